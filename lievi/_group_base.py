@@ -1,0 +1,152 @@
+"""The abstract matrix Lie group: everything derived from `hat` and `vee`.
+
+A concrete group supplies the matrix size `n`, the algebra dimension `d` and the
+isomorphism `hat: R^d -> g ⊂ gl(n)` with its inverse `vee`. From these the base class
+derives the operators the discrete Euler–Poincaré equations need (paper §4.1):
+
+- `ad(x)`: the matrix of `y ↦ [x, y]` in the algebra coordinates;
+- `Ad(g)`: the matrix of `y ↦ g y g⁻¹`;
+- `dexp(x) = Σ ad_xⁿ/(n+1)!`, the right-trivialised derivative of `exp`
+  (`d exp(x + εy)/dε · exp(−x) = dexp(x) y`), which is the paper's `iex(ad_x)` (4.3);
+- `dexpinv(x) = dexp(x)⁻¹`, the paper's `χ(−ad_x)`;
+- the Cayley map `cay(x) = (I − x/2)⁻¹(I + x/2)` (paper §5, Lewis–Simo) with its
+  right-trivialised derivative `dcay` and inverse `dcayinv`.
+
+Every method accepts leading batch axes. Subclasses override methods with closed forms
+where they have them (see `SO3Group`); the generic versions here are the reference the
+closed forms are tested against.
+"""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+import jax.numpy as jnp
+from jax.scipy.linalg import expm
+from jaxtyping import Array, Float
+
+
+class MatrixLieGroup(eqx.Module):
+    """A matrix Lie group `G ⊂ GL(n)` with Lie algebra coordinates in `R^d`.
+
+    Subclasses implement `matrix_dim`, `algebra_dim`, `hat`, `vee` and `log`. All other
+    methods have generic implementations built from those.
+    """
+
+    # ---- what a concrete group must supply -------------------------------------------
+
+    @property
+    @abc.abstractmethod
+    def matrix_dim(self) -> int:
+        """`n`, the size of the matrices."""
+
+    @property
+    @abc.abstractmethod
+    def algebra_dim(self) -> int:
+        """`d = dim g`, the number of algebra coordinates."""
+
+    @abc.abstractmethod
+    def hat(self, x: Float[Array, "*batch d"]) -> Float[Array, "*batch n n"]:
+        """Algebra coordinates `x ∈ R^d` to the matrix `x̂ ∈ g`."""
+
+    @abc.abstractmethod
+    def vee(self, X: Float[Array, "*batch n n"]) -> Float[Array, "*batch d"]:
+        """Inverse of `hat` (on matrices outside `g`, the coordinates of a projection)."""
+
+    @abc.abstractmethod
+    def log(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch d"]:
+        """Principal logarithm: algebra coordinates `x` with `exp(x) = g`."""
+
+    # ---- group structure ----------------------------------------------------------------
+
+    def identity(self, dtype=float) -> Float[Array, "n n"]:
+        return jnp.eye(self.matrix_dim, dtype=dtype)
+
+    def compose(self, a: Float[Array, "*batch n n"], b: Float[Array, "*batch n n"]):
+        return a @ b
+
+    def inverse(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
+        return jnp.linalg.inv(g)
+
+    def basis(self, dtype=float) -> Float[Array, "d n n"]:
+        """The basis matrices `E_a = hat(e_a)`, stacked."""
+        return self.hat(jnp.eye(self.algebra_dim, dtype=dtype))
+
+    def bracket(self, x: Float[Array, "*batch d"], y: Float[Array, "*batch d"]):
+        """Lie bracket `[x, y] = vee(x̂ŷ − ŷx̂)`."""
+        X, Y = self.hat(x), self.hat(y)
+        return self.vee(X @ Y - Y @ X)
+
+    def _columns(self, M: Float[Array, "*batch d n n"]) -> Float[Array, "*batch d d"]:
+        # M[..., a] is the image of the basis matrix E_a; vee it and make it column a.
+        return jnp.swapaxes(self.vee(M), -1, -2)
+
+    def ad(self, x: Float[Array, "*batch d"]) -> Float[Array, "*batch d d"]:
+        """Matrix of `ad_x: y ↦ [x, y]`."""
+        X = self.hat(x)[..., None, :, :]
+        E = self.basis(x.dtype)
+        return self._columns(X @ E - E @ X)
+
+    def Ad(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch d d"]:
+        """Matrix of `Ad_g: y ↦ vee(g ŷ g⁻¹)`."""
+        G = g[..., None, :, :]
+        Ginv = self.inverse(g)[..., None, :, :]
+        return self._columns(G @ self.basis(g.dtype) @ Ginv)
+
+    # ---- exponential chart --------------------------------------------------------------
+
+    def exp(self, x: Float[Array, "*batch d"]) -> Float[Array, "*batch n n"]:
+        return expm(self.hat(x))
+
+    def dexp(self, x: Float[Array, "*batch d"]) -> Float[Array, "*batch d d"]:
+        """`Σ ad_xⁿ/(n+1)!`, the right-trivialised derivative of `exp` (paper's `iex`)."""
+        # φ₁(A) = Σ Aⁿ/(n+1)! is the top-right block of expm([[A, I], [0, 0]]).
+        A = self.ad(x)
+        d = self.algebra_dim
+        batch = A.shape[:-2]
+        eye = jnp.broadcast_to(jnp.eye(d, dtype=A.dtype), A.shape)
+        top = jnp.concatenate([A, eye], axis=-1)
+        bottom = jnp.zeros(batch + (d, 2 * d), A.dtype)
+        return expm(jnp.concatenate([top, bottom], axis=-2))[..., :d, d:]
+
+    def dexpinv(self, x: Float[Array, "*batch d"]) -> Float[Array, "*batch d d"]:
+        """Inverse of `dexp(x)`; the paper's `χ(−ad_x)` (see (4.8))."""
+        D = self.dexp(x)
+        eye = jnp.broadcast_to(jnp.eye(self.algebra_dim, dtype=D.dtype), D.shape)
+        return jnp.linalg.solve(D, eye)
+
+    # ---- Cayley chart (Lewis–Simo; paper §5) ----------------------------------------------
+
+    def _half(self, x):
+        X = self.hat(x)
+        eye = jnp.eye(self.matrix_dim, dtype=X.dtype)
+        return eye - X / 2, eye + X / 2
+
+    def cay(self, x: Float[Array, "*batch d"]) -> Float[Array, "*batch n n"]:
+        """Cayley map `(I − x̂/2)⁻¹(I + x̂/2)`."""
+        minus, plus = self._half(x)
+        return jnp.linalg.solve(minus, plus)
+
+    def cayinv(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch d"]:
+        """Inverse Cayley map `2 (g + I)⁻¹ (g − I)`."""
+        eye = jnp.eye(self.matrix_dim, dtype=g.dtype)
+        return self.vee(2 * jnp.linalg.solve(g + eye, g - eye))
+
+    def dcay(self, x: Float[Array, "*batch d"]) -> Float[Array, "*batch d d"]:
+        """Right-trivialised derivative of `cay`: `y ↦ (I − x̂/2)⁻¹ ŷ (I + x̂/2)⁻¹`."""
+        minus, plus = self._half(x)
+        minus_inv = jnp.linalg.inv(minus)[..., None, :, :]
+        plus_inv = jnp.linalg.inv(plus)[..., None, :, :]
+        return self._columns(minus_inv @ self.basis(x.dtype) @ plus_inv)
+
+    def dcayinv(self, x: Float[Array, "*batch d"]) -> Float[Array, "*batch d d"]:
+        """Inverse of `dcay`: `y ↦ (I − x̂/2) ŷ (I + x̂/2) = y − [x, y]/2 − x̂ŷx̂/4`."""
+        minus, plus = self._half(x)
+        return self._columns(minus[..., None, :, :] @ self.basis(x.dtype) @ plus[..., None, :, :])
+
+    # ---- checks ---------------------------------------------------------------------------
+
+    def membership_defect(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch"]:
+        """How far `g` is from the group (0 on the group). Generic groups: 0."""
+        return jnp.zeros(g.shape[:-2], g.dtype)

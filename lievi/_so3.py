@@ -1,0 +1,187 @@
+"""SO(3) in closed form (NOTES §2), NaN-free in values and gradients.
+
+Every trigonometric coefficient is a function of `θ² = |x|²` with a Taylor branch near
+θ = 0. Both branches of a `jnp.where` are differentiated in reverse mode, so the exact
+branch is evaluated at a harmless substitute inside the Taylor region ("double where");
+otherwise `0 · inf = NaN` leaks into gradients at the identity (jaxlie issue 9,
+kornia issue 4404). `log` switches near θ = π to an axis taken from the symmetric part,
+where `sin θ` carries no information.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._son import AbstractSpecialOrthogonal
+
+
+def _small_threshold(dtype) -> float:
+    # Taylor series below are exact to O(θ¹⁰); the switch point keeps the truncation
+    # error and the cancellation error of the exact forms both near machine epsilon.
+    return 1e-3 if jnp.finfo(dtype).bits >= 64 else 1e-1
+
+
+def _series_or_exact(theta2, exact, coefficients):
+    """`exact(θ²)` away from 0, the power series `Σ c_k θ^{2k}` near 0, safe for AD."""
+    small = theta2 < _small_threshold(theta2.dtype)
+    safe = jnp.where(small, jnp.ones_like(theta2), theta2)
+    series = jnp.zeros_like(theta2)
+    for c in reversed(coefficients):
+        series = series * theta2 + c
+    return jnp.where(small, series, exact(safe))
+
+
+def _sinc(t2):  # sin θ / θ
+    return _series_or_exact(
+        t2, lambda s: jnp.sin(jnp.sqrt(s)) / jnp.sqrt(s), (1, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880)
+    )
+
+
+def _cosc(t2):  # (1 − cos θ) / θ² = 2 sin²(θ/2) / θ², written without cancellation
+    return _series_or_exact(
+        t2,
+        lambda s: 2 * jnp.sin(jnp.sqrt(s) / 2) ** 2 / s,
+        (1 / 2, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800),
+    )
+
+
+def _sinc3(t2):  # (θ − sin θ) / θ³
+    return _series_or_exact(
+        t2,
+        lambda s: (jnp.sqrt(s) - jnp.sin(jnp.sqrt(s))) / (s * jnp.sqrt(s)),
+        (1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800),
+    )
+
+
+def _dexpinv_coefficient(t2):  # (1 − (θ/2) cot(θ/2)) / θ²
+    def exact(s):
+        half = jnp.sqrt(s) / 2
+        return (1 - half * jnp.cos(half) / jnp.sin(half)) / s
+
+    return _series_or_exact(t2, exact, (1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160))
+
+
+def _dot(x, y):
+    return jnp.sum(x * y, axis=-1)
+
+
+def _outer(x, y):
+    return x[..., :, None] * y[..., None, :]
+
+
+class SO3Group(AbstractSpecialOrthogonal):
+    """SO(3) with closed forms. Use the instance `lievi.SO3`.
+
+    Coordinates are the usual hat map: `x̂ y = x × y`, identical to `SOn(3)`.
+    """
+
+    @property
+    def matrix_dim(self) -> int:
+        return 3
+
+    def hat(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+        if x.shape[-1] != 3:
+            raise ValueError(f"so(3) coordinates must have last axis 3, got shape {x.shape}.")
+        x1, x2, x3 = x[..., 0], x[..., 1], x[..., 2]
+        z = jnp.zeros_like(x1)
+        rows = (
+            jnp.stack([z, -x3, x2], axis=-1),
+            jnp.stack([x3, z, -x1], axis=-1),
+            jnp.stack([-x2, x1, z], axis=-1),
+        )
+        return jnp.stack(rows, axis=-2)
+
+    def vee(self, X: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
+        return (
+            jnp.stack(
+                [X[..., 2, 1] - X[..., 1, 2], X[..., 0, 2] - X[..., 2, 0], X[..., 1, 0] - X[..., 0, 1]],
+                axis=-1,
+            )
+            / 2
+        )
+
+    def bracket(self, x, y):
+        return jnp.cross(x, y)
+
+    def ad(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+        return self.hat(x)
+
+    def Ad(self, g: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3 3"]:
+        return g
+
+    def exp(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+        """Rodrigues: `I + (sin θ/θ) x̂ + ((1 − cos θ)/θ²) x̂²`."""
+        t2 = _dot(x, x)[..., None, None]
+        X = self.hat(x)
+        return jnp.eye(3, dtype=x.dtype) + _sinc(t2) * X + _cosc(t2) * (X @ X)
+
+    def log(self, g: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
+        """Principal logarithm, `|log g| ≤ π`; accurate up to and at θ = π."""
+        dtype = g.dtype
+        c = (jnp.trace(g, axis1=-2, axis2=-1) - 1) / 2  # cos θ
+        v = self.vee(g)  # sin θ · axis
+        vv = _dot(v, v)  # sin² θ
+        tiny = jnp.finfo(dtype).tiny
+        small = (vv < _small_threshold(dtype)) & (c > 0)
+        near_pi = c < 0
+
+        # Away from 0 and π: θ/sin θ · v with θ = atan2(sin θ, cos θ) (no acos of a
+        # trace slightly above 3). The square root gets a safe argument where it is unused.
+        s = jnp.sqrt(jnp.where(small, 1.0, jnp.maximum(vv, tiny)))
+        theta = jnp.arctan2(s, c)
+        generic = (theta / s)[..., None] * v
+
+        # Near 0: asin(s)/s = 1 + s²/6 + 3s⁴/40 + 5s⁶/112 + 35s⁸/1152 in s² = sin²θ.
+        series = 1 + vv * (1 / 6 + vv * (3 / 40 + vv * (5 / 112 + vv * 35 / 1152)))
+        near_zero = series[..., None] * v
+
+        # Near π: (g + gᵀ)/2 − cos θ I = (1 − cos θ) a aᵀ; read a off its largest column
+        # and orient it along v (= sin θ · a).
+        B = (g + jnp.swapaxes(g, -1, -2)) / 2 - c[..., None, None] * jnp.eye(3, dtype=dtype)
+        diag = jnp.diagonal(B, axis1=-2, axis2=-1)
+        k = jnp.argmax(diag, axis=-1)
+        column = jnp.take_along_axis(B, k[..., None, None], axis=-1)[..., 0]
+        bkk = jnp.take_along_axis(diag, k[..., None], axis=-1)[..., 0]
+        denominator = jnp.where(near_pi, bkk * (1 - c), 1.0)
+        axis = column / jnp.sqrt(jnp.maximum(denominator, tiny))[..., None]
+        orientation = jnp.where(_dot(axis, v) < 0, -1.0, 1.0)
+        opposite = (orientation * theta)[..., None] * axis
+
+        out = jnp.where(small[..., None], near_zero, generic)
+        return jnp.where(near_pi[..., None], opposite, out)
+
+    def dexp(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+        """`I + ((1 − cos θ)/θ²) x̂ + ((θ − sin θ)/θ³) x̂²`."""
+        t2 = _dot(x, x)[..., None, None]
+        X = self.hat(x)
+        return jnp.eye(3, dtype=x.dtype) + _cosc(t2) * X + _sinc3(t2) * (X @ X)
+
+    def dexpinv(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+        """`I − x̂/2 + (1/θ²)(1 − (θ/2)cot(θ/2)) x̂²` (NOTES §2)."""
+        t2 = _dot(x, x)[..., None, None]
+        X = self.hat(x)
+        return jnp.eye(3, dtype=x.dtype) - X / 2 + _dexpinv_coefficient(t2) * (X @ X)
+
+    def cay(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+        """`(I − x̂/2)⁻¹(I + x̂/2) = I + 4/(4 + θ²) (x̂ + x̂²/2)`."""
+        alpha = (4 / (4 + _dot(x, x)))[..., None, None]
+        X = self.hat(x)
+        return jnp.eye(3, dtype=x.dtype) + alpha * (X + X @ X / 2)
+
+    def cayinv(self, g: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
+        """`4 vee(g) / (1 + tr g)`, defined for rotation angles below π."""
+        return 4 * self.vee(g) / (1 + jnp.trace(g, axis1=-2, axis2=-1))[..., None]
+
+    def dcay(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+        """`4/(4 + θ²) (I + x̂/2)`."""
+        alpha = (4 / (4 + _dot(x, x)))[..., None, None]
+        return alpha * (jnp.eye(3, dtype=x.dtype) + self.hat(x) / 2)
+
+    def dcayinv(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+        """`I − x̂/2 + x xᵀ/4` (NOTES §1)."""
+        return jnp.eye(3, dtype=x.dtype) - self.hat(x) / 2 + _outer(x, x) / 4
+
+
+SO3 = SO3Group()
+"""SO(3) with closed-form `exp`, `log`, `dexp`, `dexpinv` and the Cayley maps."""
