@@ -145,6 +145,11 @@ class MatrixLieGroup(eqx.Module):
         minus, plus = self._half(x)
         return self._columns(minus[..., None, :, :] @ self.basis(x.dtype) @ plus[..., None, :, :])
 
+    @property
+    def exp_radius(self) -> float:
+        """`exp` is injective on `{x : |x| < exp_radius}` (∞ if unknown)."""
+        return float("inf")
+
     # ---- checks ---------------------------------------------------------------------------
 
     def membership_defect(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch"]:

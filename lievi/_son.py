@@ -57,13 +57,19 @@ class AbstractSpecialOrthogonal(MatrixLieGroup):
         # The skew part's coordinates: exact on so(n), a projection elsewhere.
         return jnp.asarray(sign, X.dtype) * (X[..., j, i] - X[..., i, j]) / 2
 
+    @property
+    def exp_radius(self) -> float:
+        # |x| = (Σ θ_i²)^½ over the rotation planes bounds the largest angle θ_i from above.
+        return float(jnp.pi)
+
     def inverse(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
         return jnp.swapaxes(g, -1, -2)
 
     def membership_defect(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch"]:
-        """`‖gᵀg − I‖_F`."""
+        """`‖gᵀg − I‖_F + |det g − 1|` (the determinant term catches reflections)."""
         eye = jnp.eye(self.matrix_dim, dtype=g.dtype)
-        return jnp.linalg.norm(jnp.swapaxes(g, -1, -2) @ g - eye, axis=(-2, -1))
+        orthogonality = jnp.linalg.norm(jnp.swapaxes(g, -1, -2) @ g - eye, axis=(-2, -1))
+        return orthogonality + jnp.abs(jnp.linalg.det(g) - 1)
 
     def log(self, g: Float[Array, "*batch n n"], iterations: int = 8):
         """Principal logarithm for rotation angles below π.

@@ -1,0 +1,42 @@
+"""Any reduced Lagrangian `l: g → R` on any matrix Lie group (paper §2–§4)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import equinox as eqx
+from jaxtyping import Array, Float, Scalar
+
+from ._group_base import MatrixLieGroup
+from ._system_base import SIDES, AbstractLieSystem
+
+
+class LieLagrangian(AbstractLieSystem):
+    """A system given by its reduced Lagrangian; derivatives by autodiff.
+
+    **Arguments:**
+
+    - `group`: a `MatrixLieGroup`, e.g. `lievi.SO3` or `lievi.SOn(5)`.
+    - `l`: the reduced Lagrangian, a function of algebra coordinates `(d,) → ()`. It must
+      be strictly convex near the motion (regular Legendre map).
+    - `side`: `"left"` for a left-invariant system (`ξ = g⁻¹ġ`), `"right"` for a
+      right-invariant one (`ξ = ġg⁻¹`).
+    """
+
+    group: MatrixLieGroup = eqx.field(static=True)
+    side: str = eqx.field(static=True)
+    l: Callable[[Float[Array, " d"]], Scalar]
+
+    def __init__(self, group: MatrixLieGroup, l: Callable, side: str = "left"):
+        self.group = group
+        self.l = l
+        self.side = side
+
+    def __check_init__(self):
+        if self.side not in SIDES:
+            raise ValueError(f"`side` must be one of {SIDES}, got {self.side!r}.")
+        if not isinstance(self.group, MatrixLieGroup):
+            raise ValueError(f"`group` must be a lievi MatrixLieGroup, got {type(self.group)}.")
+
+    def lagrangian(self, xi: Float[Array, " d"]) -> Scalar:
+        return self.l(xi)

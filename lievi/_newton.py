@@ -1,0 +1,68 @@
+"""Newton's method inside `jax.lax.while_loop`, differentiated implicitly.
+
+The solve is wrapped in `jax.lax.custom_root`, so derivatives of the root with respect to
+anything the residual closes over (momentum, inertia, h) come from the implicit function
+theorem at the converged root, `dx = −J⁻¹ ∂r`, not from differentiating the iterations:
+reverse mode works (it cannot go through a `while_loop`) and the derivative does not
+depend on how many iterations were taken.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int, Scalar
+
+
+class NewtonInfo(eqx.Module):
+    """What a Newton solve did: iterations taken, final residual ∞-norm, convergence."""
+
+    iterations: Int[Array, ""]
+    residual: Float[Array, ""]
+    converged: Array
+
+
+def _value_and_jacobian(residual, x):
+    return jax.jacfwd(lambda y: (residual(y), residual(y)), has_aux=True)(x)
+
+
+def newton_solve(
+    residual: Callable[[Float[Array, " d"]], Float[Array, " d"]],
+    x0: Float[Array, " d"],
+    tolerance: Scalar,
+    max_steps: int,
+) -> tuple[Float[Array, " d"], NewtonInfo]:
+    """Find `x` with `residual(x) = 0` starting from `x0`.
+
+    Stops when `‖residual(x)‖_∞ ≤ tolerance`, on a non-finite residual, or after
+    `max_steps` iterations; `NewtonInfo.converged` says which.
+    """
+
+    def solve(f, guess):
+        def cond(carry):
+            _, r, _, it = carry
+            norm = jnp.max(jnp.abs(r))
+            return (norm > tolerance) & jnp.isfinite(norm) & (it < max_steps)
+
+        def body(carry):
+            x, r, jac, it = carry
+            x = x - jnp.linalg.solve(jac, r)
+            jac, r = _value_and_jacobian(f, x)
+            return x, r, jac, it + 1
+
+        jac, r = _value_and_jacobian(f, guess)
+        x, r, _, it = jax.lax.while_loop(cond, body, (guess, r, jac, jnp.array(0, jnp.int32)))
+        # Auxiliary outputs stay floating point: custom_root gives them (zero) tangents,
+        # which an integer output cannot carry.
+        return x, (it.astype(r.dtype), jnp.max(jnp.abs(r)))
+
+    def tangent_solve(linear, y):
+        return jnp.linalg.solve(jax.jacobian(linear)(y), y)
+
+    x, (iterations, norm) = jax.lax.custom_root(residual, x0, solve, tangent_solve, has_aux=True)
+    iterations = jax.lax.stop_gradient(iterations).astype(jnp.int32)
+    norm = jax.lax.stop_gradient(norm)
+    return x, NewtonInfo(iterations, norm, norm <= tolerance)

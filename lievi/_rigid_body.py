@@ -1,0 +1,64 @@
+"""The free rigid body on SO(3) (left-invariant; paper §4.2 with n = 3).
+
+`l(Ω) = ½ Ωᵀ I Ω`, body momentum `Π = I Ω`, energy `H(Π) = ½ Πᵀ I⁻¹ Π`. The Euler–Poincaré
+equations are Euler's equations `Π̇ = Π × Ω` with reconstruction `ġ = g Ω̂`.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Scalar
+
+from ._checks import check_spd
+from ._group_base import MatrixLieGroup
+from ._so3 import SO3
+from ._system_base import AbstractLieSystem
+
+
+class RigidBody(AbstractLieSystem):
+    """A free rigid body.
+
+    **Arguments:**
+
+    - `inertia`: principal moments of inertia, shape `(3,)`, or a full symmetric positive
+      definite inertia tensor, shape `(3, 3)`, in the body frame. A pytree leaf, so
+      `jax.grad` and `jax.vmap` reach it.
+    """
+
+    inertia: Float[Array, "3"] | Float[Array, "3 3"]
+    group: MatrixLieGroup = eqx.field(static=True)
+    side: str = eqx.field(static=True)
+
+    def __init__(self, inertia):
+        self.inertia = inertia
+        self.group = SO3
+        self.side = "left"
+
+    def __check_init__(self):
+        shape = jnp.shape(self.inertia)
+        if shape not in ((3,), (3, 3)):
+            raise ValueError(
+                f"`inertia` must be principal moments of shape (3,) or a tensor of shape "
+                f"(3, 3), got shape {shape}."
+            )
+        check_spd("inertia", self.inertia_tensor)
+
+    @property
+    def inertia_tensor(self) -> Float[Array, "3 3"]:
+        inertia = jnp.asarray(self.inertia)
+        return jnp.diag(inertia) if inertia.ndim == 1 else inertia
+
+    def lagrangian(self, xi: Float[Array, "3"]) -> Scalar:
+        return jnp.dot(xi, self.legendre(xi)) / 2
+
+    def legendre(self, xi: Float[Array, "3"]) -> Float[Array, "3"]:
+        inertia = jnp.asarray(self.inertia)
+        return inertia * xi if inertia.ndim == 1 else inertia @ xi
+
+    def velocity(self, m: Float[Array, "3"]) -> Float[Array, "3"]:
+        inertia = jnp.asarray(self.inertia)
+        return m / inertia if inertia.ndim == 1 else jnp.linalg.solve(inertia, m)
+
+    def energy(self, m: Float[Array, "3"]) -> Scalar:
+        return jnp.dot(m, self.velocity(m)) / 2

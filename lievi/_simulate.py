@@ -1,0 +1,177 @@
+"""`simulate`: the one entry point, a jit-compiled `lax.scan` over integrator steps."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from ._checks import check_finite, is_concrete
+from ._integrator_base import AbstractIntegrator, AbstractVariationalIntegrator
+from ._results import RESULTS
+from ._system_base import AbstractLieSystem
+
+
+class Solution(eqx.Module):
+    """A computed trajectory.
+
+    **Attributes:**
+
+    - `ts`: saved times, shape `(T,)`, `T = n_steps // save_every + 1` (initial state included).
+    - `g`: group elements, shape `(T, n, n)`.
+    - `m`: momenta in algebra coordinates (body momentum `Π` for left-invariant systems,
+      spatial `μ` for right-invariant ones), shape `(T, d)`.
+    - `result`: a `RESULTS` code for the whole run (the first failure, if any). After a
+      failed step the state is NaN, so no number past a failure can be mistaken for a result.
+    - `stats`: `newton_iterations` and `residual`, shape `(T − 1,)`, the maximum over the
+      steps between consecutive saves; `failed_step`, the index of the first failed step
+      (−1 if none); `total_newton_iterations`; `num_steps`.
+    """
+
+    ts: Float[Array, " T"]
+    g: Float[Array, "T n n"]
+    m: Float[Array, "T d"]
+    result: Int[Array, ""]
+    stats: dict[str, Array]
+
+
+def _check_integer(name: str, value, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"`{name}` must be an integer ≥ {minimum}, got {value!r}.")
+    return int(value)
+
+
+def _check_step_size(h) -> None:
+    if jnp.ndim(h) != 0:
+        raise ValueError(f"`h` must be a scalar step size, got shape {jnp.shape(h)}.")
+    if is_concrete(h):
+        check_finite("h", h)
+        if not float(h) > 0:
+            raise ValueError(f"`h` must be > 0, got {float(h)}; pass a positive step size.")
+
+
+def simulate(
+    system: AbstractLieSystem,
+    integrator: AbstractIntegrator,
+    g0: Float[Array, "n n"],
+    m0: Float[Array, " d"] | None = None,
+    *,
+    h,
+    n_steps: int,
+    save_every: int = 1,
+    g1: Float[Array, "n n"] | None = None,
+    t0=0.0,
+    throw: bool = True,
+) -> Solution:
+    """Integrate `system` with `integrator` from `(g0, m0)` for `n_steps` steps of size `h`.
+
+    **Arguments:**
+
+    - `system`: e.g. `lievi.RigidBody(inertia)`.
+    - `integrator`: e.g. `lievi.DEP(chart="exp")`.
+    - `g0`: initial group element, `(n, n)`; for SO(n) orthogonal to 1e-6.
+    - `m0`: initial momentum in algebra coordinates, `(d,)` (body momentum for
+      left-invariant systems). Give either `m0` or `g1`.
+    - `h`: step size `> 0` (may be traced, e.g. differentiated or vmapped).
+    - `n_steps`: number of steps, a Python `int ≥ 1`.
+    - `save_every`: save every this many steps; must divide `n_steps`.
+    - `g1`: instead of `m0`, the second configuration of the discrete trajectory (paper
+      §2: a variational integrator is started from `(g0, g1)`); `m0` is then the discrete
+      Legendre transform `−D₁L_d(g0, g1)`.
+    - `t0`: initial time.
+    - `throw`: if a step fails (see `RESULTS`), raise an error saying what to do; with
+      `throw=False` the failure is returned in `Solution.result` instead.
+
+    **Returns:** a `Solution`.
+
+    Shapes, `h`, `n_steps`, `save_every` and concrete values of `g0`, `m0` are checked
+    eagerly and raise `ValueError`. Under `jax.vmap` (many bodies) use `throw=False` to
+    let a batch carry on and read the per-body `result`.
+    """
+    n_steps = _check_integer("n_steps", n_steps, 1)
+    save_every = _check_integer("save_every", save_every, 1)
+    if n_steps % save_every:
+        raise ValueError(f"`save_every` ({save_every}) must divide `n_steps` ({n_steps}).")
+    _check_step_size(h)
+    if (m0 is None) == (g1 is None):
+        raise ValueError("Give exactly one of `m0` (initial momentum) and `g1` (second configuration).")
+    if g1 is not None:
+        if not isinstance(integrator, AbstractVariationalIntegrator):
+            raise ValueError("`g1` needs a variational integrator (one with a discrete Lagrangian).")
+        system.check_state(g1, jnp.zeros(system.group.algebra_dim))
+        system.check_state(g0, jnp.zeros(system.group.algebra_dim))
+        dtype = jnp.result_type(g0, g1, h, float)
+        g0, g1 = jnp.asarray(g0, dtype), jnp.asarray(g1, dtype)
+        m0 = integrator.momentum_from_configurations(system, g0, g1, jnp.asarray(h, dtype))
+    system.check_state(g0, m0)
+    dtype = jnp.result_type(g0, m0, h, float)
+    solution = _simulate(
+        system,
+        integrator,
+        jnp.asarray(g0, dtype),
+        jnp.asarray(m0, dtype),
+        jnp.asarray(h, dtype),
+        jnp.asarray(t0, dtype),
+        n_steps,
+        save_every,
+    )
+    if throw:
+        result = eqx.branched_error_if(
+            solution.result,
+            solution.result != RESULTS.successful,
+            solution.result,
+            [
+                f"lievi.simulate: a step failed: {msg} (Run with throw=False to get the "
+                "partial trajectory and `stats['failed_step']`.)"
+                for msg in RESULTS.messages
+            ],
+        )
+        solution = eqx.tree_at(lambda s: s.result, solution, result)
+    return solution
+
+
+@eqx.filter_jit
+def _simulate(system, integrator, g0, m0, h, t0, n_steps: int, save_every: int) -> Solution:
+    nan = jnp.asarray(jnp.nan, m0.dtype)
+
+    def one_step(carry, _):
+        g, m, result, failed_step, k = carry
+        g_next, m_next, info = integrator.step(system, g, m, h)
+        newly_failed = (result == RESULTS.successful) & (info.result != RESULTS.successful)
+        failed_step = jnp.where(newly_failed, k, failed_step)
+        result = RESULTS.first_failure(result, info.result)
+        ok = result == RESULTS.successful
+        # After a failure the state is NaN: no silent numbers past the failed step.
+        g_next = jnp.where(ok, g_next, nan)
+        m_next = jnp.where(ok, m_next, nan)
+        return (g_next, m_next, result, failed_step, k + 1), (info.iterations, info.residual)
+
+    def one_save(carry, _):
+        carry, (iterations, residuals) = jax.lax.scan(one_step, carry, None, length=save_every)
+        g, m = carry[0], carry[1]
+        return carry, (g, m, jnp.max(iterations), jnp.sum(iterations), jnp.max(residuals))
+
+    int32 = jnp.int32
+    init = (g0, m0, jnp.asarray(RESULTS.successful, int32), jnp.asarray(-1, int32), jnp.asarray(0, int32))
+    n_saves = n_steps // save_every
+    final, (gs, ms, iterations, total, residuals) = jax.lax.scan(
+        one_save, init, None, length=n_saves
+    )
+    _, _, result, failed_step, _ = final
+    ts = t0 + h * save_every * jnp.arange(n_saves + 1, dtype=m0.dtype)
+    stats = {
+        "newton_iterations": iterations,
+        "residual": residuals,
+        "failed_step": failed_step,
+        "total_newton_iterations": jnp.sum(total),
+        "num_steps": jnp.asarray(n_steps),
+    }
+    return Solution(
+        ts=ts,
+        g=jnp.concatenate([g0[None], gs]),
+        m=jnp.concatenate([m0[None], ms]),
+        result=result,
+        stats=stats,
+    )

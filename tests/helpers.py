@@ -1,0 +1,40 @@
+"""Shared test problems and tolerances (stated once, here)."""
+
+import jax.numpy as jnp
+import numpy as np
+
+import lievi
+
+# float64 tolerances
+ROUNDOFF = 1e-12  # conserved quantities, DEL residual, Poisson defect, group identities
+# float32 tolerances (values only; ~1e3 ulps)
+ROUNDOFF_F32 = 1e-4
+
+
+def hlw_problem():
+    """Hairer–Lubich–Wanner rigid body (NOTES §4)."""
+    body = lievi.RigidBody(jnp.array([2.0, 1.0, 2.0 / 3.0]))
+    m0 = jnp.array([np.cos(1.1), 0.0, np.sin(1.1)])
+    return body, jnp.eye(3), m0
+
+
+def random_rotation(rng, n):
+    q, r = np.linalg.qr(rng.normal(size=(n, n)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return jnp.asarray(q)
+
+
+def random_generalized_body(rng, n):
+    """A random generalized rigid body on SO(n) with Λᵢ + Λⱼ > 0, a random state."""
+    Lambda = jnp.asarray(rng.uniform(0.5, 2.0, size=n))
+    body = lievi.GeneralizedRigidBody(Lambda)
+    d = n * (n - 1) // 2
+    m0 = jnp.asarray(rng.normal(size=d))
+    return body, random_rotation(rng, n), m0
+
+
+# Every integrator of the core library, for parametrize.
+INTEGRATORS = (lievi.DEP(chart="exp"), lievi.DEP(chart="cayley"))
+INTEGRATOR_IDS = ("dep-exp", "dep-cayley")
