@@ -23,8 +23,9 @@ import abc
 
 import equinox as eqx
 import jax.numpy as jnp
-from jax.scipy.linalg import expm
 from jaxtyping import Array, Float
+
+from ._expm import expm
 
 
 class MatrixLieGroup(eqx.Module):

@@ -1,0 +1,396 @@
+"""`python -m lievi demo`: every integrator on the Hairer–Lubich–Wanner rigid body.
+
+Runs the free rigid body of NOTES §4 (`I = (2, 1, 2/3)`, `Π₀ = (cos 1.1, 0, sin 1.1)`,
+`g₀ = I₃`, `h = 0.1`, `T = 100`) with each integrator in `INTEGRATORS`, compares with a
+DOP853 reference solution (rtol = atol = 1e-13, computed once) and prints one table row
+per integrator: errors at `T`, conservation drifts, the DEL residual, Newton iterations,
+the result code and wall times. `--plot` saves a figure (needs matplotlib, imported only
+then), `--json` writes the table.
+
+Adding an integrator to the demo is one row in `INTEGRATORS`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import lievi
+from lievi import diagnostics
+
+# (display name, integrator): one row each in the table and the plot.
+INTEGRATORS: tuple[tuple[str, lievi.AbstractIntegrator], ...] = (
+    ("DEP exp chart", lievi.DEP(chart="exp")),
+    ("DEP Cayley (Lewis–Simo)", lievi.DEP(chart="cayley")),
+)
+
+# The HLW problem (NOTES §4).
+INERTIA = (2.0, 1.0, 2.0 / 3.0)
+THETA = 1.1
+DEFAULT_H = 0.1
+DEFAULT_STEPS = 1000  # T = 100 at h = 0.1
+REFERENCE_TOL = 1e-13
+
+
+def hlw_problem():
+    """`(body, g0, m0)` of the Hairer–Lubich–Wanner rigid body."""
+    body = lievi.RigidBody(jnp.array(INERTIA))
+    m0 = jnp.array([math.cos(THETA), 0.0, math.sin(THETA)])
+    return body, jnp.eye(3), m0
+
+
+# --------------------------------------------------------------------------- arguments
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer ≥ 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer ≥ 1, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The `demo` subcommand's options."""
+    parser.add_argument(
+        "--steps",
+        type=_positive_int,
+        default=DEFAULT_STEPS,
+        metavar="N",
+        help=f"number of steps (default {DEFAULT_STEPS}, i.e. T = 100 at the default h)",
+    )
+    parser.add_argument(
+        "--h",
+        type=_positive_float,
+        default=DEFAULT_H,
+        metavar="H",
+        help=f"step size (default {DEFAULT_H})",
+    )
+    parser.add_argument(
+        "--plot",
+        metavar="FILE.png",
+        default=None,
+        help="save a figure: Π(t) against the reference, and |E − E₀| (needs matplotlib)",
+    )
+    parser.add_argument(
+        "--json", metavar="FILE.json", default=None, help="write the table as JSON"
+    )
+
+
+# --------------------------------------------------------------------------- runs
+
+
+def _timed_simulate(body, integrator, g0, m0, h, n_steps):
+    """Run twice: the first call compiles and runs, the second only runs."""
+    times = []
+    for _ in range(2):
+        start = time.perf_counter()
+        solution = lievi.simulate(body, integrator, g0, m0, h=h, n_steps=n_steps, throw=False)
+        solution = jax.block_until_ready(solution)
+        times.append(time.perf_counter() - start)
+    return solution, times[0], times[1]
+
+
+@eqx.filter_jit
+def _diagnostics(body, integrator, g, m, h):
+    """All trajectory diagnostics in one compiled call (eager `del_residual` is slow)."""
+    eye = jnp.eye(g.shape[-1], dtype=g.dtype)
+    energy = diagnostics.energy(body, m)
+    out = {
+        "energy": energy,
+        "energy_drift": diagnostics.relative_drift(energy),
+        "casimir_drift": diagnostics.relative_drift(diagnostics.casimirs(body, m)),
+        "spatial_momentum_drift": diagnostics.relative_drift(
+            diagnostics.spatial_momentum(body, g, m)
+        ),
+        "orthogonality_end": jnp.linalg.norm(g[-1].T @ g[-1] - eye),
+    }
+    if isinstance(integrator, lievi.AbstractVariationalIntegrator) and g.shape[0] >= 3:
+        out["del_residual_max"] = jnp.max(
+            jnp.abs(diagnostics.del_residual(body, integrator, g, h))
+        )
+    return out
+
+
+def run_integrator(name, integrator, body, g0, m0, h, n_steps, g_ref, m_ref) -> tuple[dict, Any]:
+    """One table row (a dict of plain Python numbers), and `(Solution, energy)` to plot."""
+    solution, first_time, second_time = _timed_simulate(body, integrator, g0, m0, h, n_steps)
+    g, m = solution.g, solution.m
+    diag = _diagnostics(body, integrator, g, m, jnp.asarray(h, m.dtype))
+    energy = np.asarray(diag.pop("energy"))
+    diag = {k: float(v) for k, v in diag.items()}
+    row = {
+        "integrator": name,
+        "order": int(integrator.order()),
+        "error_m": float(np.max(np.abs(np.asarray(m[-1]) - m_ref[-1]))),
+        "error_g": float(np.max(np.abs(np.asarray(g[-1]) - g_ref[-1]))),
+        "energy_drift": diag["energy_drift"],
+        "casimir_drift": diag["casimir_drift"],
+        "spatial_momentum_drift": diag["spatial_momentum_drift"],
+        "orthogonality_end": diag["orthogonality_end"],
+        # None: not variational (no discrete Lagrangian to check), or fewer than 2 steps.
+        "del_residual_max": diag.get("del_residual_max"),
+        "newton_per_step": float(solution.stats["total_newton_iterations"]) / n_steps,
+        "result": int(solution.result),
+        "failed_step": int(solution.stats["failed_step"]),
+        "time_first_s": first_time,
+        "time_second_s": second_time,
+    }
+    return row, (solution, energy)
+
+
+# --------------------------------------------------------------------------- output
+
+# (key, header line 1, header line 2, format)
+_COLUMNS = (
+    ("error_m", "error at T", "Π", "{:.2e}"),
+    ("error_g", "error at T", "g", "{:.2e}"),
+    ("energy_drift", "rel. drift", "energy", "{:.2e}"),
+    ("casimir_drift", "rel. drift", "Casimir", "{:.2e}"),
+    ("spatial_momentum_drift", "rel. drift", "spat.mom", "{:.2e}"),
+    ("orthogonality_end", "at T", "‖gᵀg−I‖", "{:.2e}"),
+    ("del_residual_max", "max", "DEL res.", "{:.2e}"),
+    ("newton_per_step", "", "Newton/step", "{:.2f}"),
+    ("result", "", "result", "{:d}"),
+    ("time_first_s", "wall time [s]", "1st run", "{:.3f}"),
+    ("time_second_s", "wall time [s]", "2nd run", "{:.3f}"),
+)
+
+
+def _cell(value, fmt: str) -> str:
+    if value is None:
+        return "n/a"
+    return fmt.format(value)
+
+
+def format_table(rows: list[dict]) -> str:
+    """The rows as an aligned text table (two header lines)."""
+    name_width = max([len("integrator")] + [len(r["integrator"]) for r in rows])
+    cells = [[_cell(r[key], fmt) for key, _, _, fmt in _COLUMNS] for r in rows]
+    widths = [
+        max([len(bottom)] + [len(c[i]) for c in cells])
+        for i, (_, _, bottom, _) in enumerate(_COLUMNS)
+    ]
+    sep = "  "
+    # Top header: each run of equal labels centred once over the columns it spans.
+    spans, i = [], 0
+    while i < len(_COLUMNS):
+        j = i
+        while j + 1 < len(_COLUMNS) and _COLUMNS[j + 1][1] == _COLUMNS[i][1]:
+            j += 1
+        span = sum(widths[i : j + 1]) + len(sep) * (j - i)
+        spans.append(_COLUMNS[i][1].center(span))
+        i = j + 1
+    top = sep.join([" " * name_width] + spans)
+    bottom = sep.join(
+        ["integrator".ljust(name_width)] + [b.rjust(w) for (_, _, b, _), w in zip(_COLUMNS, widths)]
+    )
+    lines = [top.rstrip(), bottom, "-" * len(bottom)]
+    for r, c in zip(rows, cells):
+        row = [r["integrator"].ljust(name_width)] + [x.rjust(w) for x, w in zip(c, widths)]
+        lines.append(sep.join(row))
+    return "\n".join(lines)
+
+
+_LEGEND = """\
+error at T: max |·| against the reference at the final time, for Π and for g.
+rel. drift: max_k |q_k − q_0| / |q_0| of the energy ½ΠᵀI⁻¹Π, the Casimir |Π|², and the
+  spatial momentum gΠ. ‖gᵀg−I‖: Frobenius norm at T. DEL res.: max |D₂L_d + D₁L_d|
+  over the trajectory (n/a: not variational, or fewer than 2 steps). Newton/step: mean
+  iterations. result: 0 = success (lievi.RESULTS). wall time: 1st run = compile + run,
+  2nd run = the compiled run alone."""
+
+
+def _device_description() -> str:
+    device = jax.devices()[0]
+    kind = getattr(device, "device_kind", "")
+    text = f"{device} ({device.platform}"
+    if kind and kind.lower() != device.platform:
+        text += f", {kind}"
+    return text + ")"
+
+
+def _header(h: float, n_steps: int, reference_time: float) -> str:
+    return "\n".join(
+        [
+            "lievi demo: free rigid body on SO(3), Hairer–Lubich–Wanner test problem (NOTES §4)",
+            "  inertia I = (2, 1, 2/3),  Π₀ = (cos 1.1, 0, sin 1.1),  g₀ = I₃",
+            f"  h = {h:g},  n_steps = {n_steps},  T = {h * n_steps:g}",
+            f"  reference: DOP853, rtol = atol = {REFERENCE_TOL:g} ({reference_time:.2f} s)",
+            f"  device: {_device_description()},  float64,  "
+            f"lievi {lievi.__version__}, jax {jax.__version__}",
+        ]
+    )
+
+
+def _json_safe(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None  # strict JSON has no NaN/inf
+    return value
+
+
+def write_json(path: str, h: float, n_steps: int, rows: list[dict]) -> None:
+    document = {
+        "problem": {
+            "name": "Hairer–Lubich–Wanner rigid body",
+            "inertia": list(INERTIA),
+            "m0": [math.cos(THETA), 0.0, math.sin(THETA)],
+            "g0": "identity",
+            "h": h,
+            "n_steps": n_steps,
+            "T": h * n_steps,
+        },
+        "reference": {"method": "DOP853", "rtol": REFERENCE_TOL, "atol": REFERENCE_TOL},
+        "device": str(jax.devices()[0]),
+        "platform": jax.devices()[0].platform,
+        "rows": [{k: _json_safe(v) for k, v in row.items()} for row in rows],
+    }
+    with open(path, "w", encoding="utf-8") as f:
+        json.dump(document, f, indent=2, ensure_ascii=False)
+        f.write("\n")
+
+
+def save_plot(path: str, ts, m_ref, energy_ref, runs: list[tuple[str, Any, Any]]) -> None:
+    """Left: Π components against t (reference in grey); right: |E − E₀| against t.
+
+    `runs`: `(name, Solution, energy trajectory)` per integrator. matplotlib is imported
+    here, so the package itself does not need it.
+    """
+    try:
+        import matplotlib
+    except ImportError:
+        raise SystemExit(
+            "--plot needs matplotlib: pip install matplotlib (or lievi[plot])."
+        ) from None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ts = np.asarray(ts)
+    energy0 = float(energy_ref[0])
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    styles = ("--", ":", "-.", (0, (5, 1)), (0, (3, 1, 1, 1)))
+
+    fig = plt.figure(figsize=(13, 6.5), layout="constrained")
+    grid = fig.add_gridspec(3, 2)
+    axes = []
+    for i in range(3):
+        ax = fig.add_subplot(grid[i, 0], sharex=axes[0] if axes else None)
+        axes.append(ax)
+        ax.plot(ts, m_ref[:, i], color="black", lw=3, alpha=0.3, label="reference (DOP853)")
+        for j, (name, solution, _) in enumerate(runs):
+            ax.plot(
+                ts,
+                np.asarray(solution.m[:, i]),
+                color=colours[j % len(colours)],
+                ls=styles[j % len(styles)],
+                lw=1.2,
+                label=name,
+            )
+        ax.set_ylabel(f"$\\Pi_{i + 1}$")
+        ax.grid(True, alpha=0.3)
+        if i < 2:
+            ax.tick_params(labelbottom=False)
+    axes[0].set_title("body momentum Π(t)")
+    low, high = axes[0].get_ylim()
+    axes[0].set_ylim(low, high + 0.35 * (high - low))  # room for the legend
+    axes[0].legend(fontsize="small", loc="upper right", ncol=min(3, len(runs) + 1))
+    axes[-1].set_xlabel("t")
+
+    def positive(x):  # log axes: drop exact zeros (t = 0)
+        x = np.abs(np.asarray(x) - energy0)
+        return np.where(x > 0, x, np.nan)
+
+    ax = fig.add_subplot(grid[:, 1])
+    for j, (name, _, energy) in enumerate(runs):
+        ax.semilogy(ts, positive(energy), color=colours[j % len(colours)], lw=1.0, label=name)
+    ax.semilogy(
+        ts, positive(energy_ref), color="black", alpha=0.3, lw=1.0, label="reference (DOP853)"
+    )
+    ax.set_title(f"energy error |E − E₀|  (E₀ = {energy0:.6g})")
+    ax.set_xlabel("t")
+    ax.set_ylabel("|E − E₀|")
+    ax.grid(True, which="major", alpha=0.3)
+    ax.legend(fontsize="small", loc="lower right")
+
+    h = ts[1] - ts[0] if len(ts) > 1 else float("nan")
+    fig.suptitle(
+        f"lievi: Hairer–Lubich–Wanner rigid body, I = (2, 1, 2/3), h = {h:g}, T = {ts[-1]:g}"
+    )
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the demo with the parsed `demo` options; returns the exit status.
+
+    The status is 0 when every integrator succeeded (result code 0), 1 otherwise.
+    """
+    if not jax.config.jax_enable_x64:
+        raise RuntimeError(
+            "the demo needs float64: run `python -m lievi demo`, or call "
+            "jax.config.update('jax_enable_x64', True) before creating arrays."
+        )
+    h, n_steps = float(args.h), int(args.steps)
+    body, g0, m0 = hlw_problem()
+    ts = h * np.arange(n_steps + 1)
+
+    start = time.perf_counter()
+    g_ref, m_ref = lievi.reference_solution(
+        body, g0, m0, ts, rtol=REFERENCE_TOL, atol=REFERENCE_TOL
+    )
+    reference_time = time.perf_counter() - start
+
+    print(_header(h, n_steps, reference_time), flush=True)
+    print(flush=True)
+
+    rows, runs = [], []
+    for name, integrator in INTEGRATORS:
+        row, (solution, energy) = run_integrator(
+            name, integrator, body, g0, m0, h, n_steps, g_ref, m_ref
+        )
+        rows.append(row)
+        runs.append((name, solution, energy))
+
+    print(format_table(rows))
+    print()
+    print(_LEGEND)
+    for row in rows:
+        if row["result"] != lievi.RESULTS.successful:
+            print(
+                f"\n{row['integrator']}: failed at step {row['failed_step']}: "
+                f"{lievi.RESULTS.message(row['result'])}"
+            )
+
+    if args.json or args.plot:
+        print()
+    if args.json:
+        write_json(args.json, h, n_steps, rows)
+        print(f"table written to {args.json}")
+    if args.plot:
+        energy_ref = np.asarray(eqx.filter_jit(diagnostics.energy)(body, jnp.asarray(m_ref)))
+        save_plot(args.plot, ts, m_ref, energy_ref, runs)
+        print(f"figure written to {args.plot}")
+    return 0 if all(r["result"] == lievi.RESULTS.successful for r in rows) else 1

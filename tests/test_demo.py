@@ -1,0 +1,94 @@
+"""The command-line demo `python -m lievi demo`."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+
+from lievi import _demo
+from lievi.__main__ import build_parser
+
+
+def test_demo_in_process_json_and_plot(tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    plot, table = tmp_path / "demo.png", tmp_path / "demo.json"
+    args = build_parser().parse_args(
+        ["demo", "--steps", "50", "--plot", str(plot), "--json", str(table)]
+    )
+    assert _demo.main(args) == 0
+
+    out = capsys.readouterr().out
+    assert "Hairer–Lubich–Wanner" in out
+    assert "device:" in out
+
+    document = json.loads(table.read_text(encoding="utf-8"))
+    assert document["problem"]["n_steps"] == 50
+    assert math.isclose(document["problem"]["T"], 5.0)
+    rows = document["rows"]
+    assert [row["integrator"] for row in rows] == [name for name, _ in _demo.INTEGRATORS]
+    for row in rows:
+        assert row["integrator"] in out
+        assert row["result"] == 0
+        assert row["failed_step"] == -1
+        for key in (
+            "error_m",
+            "error_g",
+            "energy_drift",
+            "casimir_drift",
+            "spatial_momentum_drift",
+            "orthogonality_end",
+            "newton_per_step",
+            "time_first_s",
+            "time_second_s",
+        ):
+            assert isinstance(row[key], float) and math.isfinite(row[key]), (row["integrator"], key)
+        # h = 0.1 to T = 5 with second-order methods: small but nonzero errors.
+        assert 0 < row["error_m"] < 0.1
+        assert 0 < row["error_g"] < 0.1
+        assert row["casimir_drift"] < 1e-12
+        if row["del_residual_max"] is not None:
+            assert row["del_residual_max"] < 1e-12
+
+    assert plot.exists() and plot.stat().st_size > 0
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_demo_reports_failure(tmp_path, capsys):
+    # h = 4 takes the exponential chart past its injectivity radius on the first step.
+    table = tmp_path / "demo.json"
+    args = build_parser().parse_args(["demo", "--steps", "3", "--h", "4", "--json", str(table)])
+    assert _demo.main(args) == 1
+    out = capsys.readouterr().out
+    assert "failed at step 0" in out
+    rows = {row["integrator"]: row for row in json.loads(table.read_text())["rows"]}
+    assert rows["DEP exp chart"]["result"] == 2
+    assert rows["DEP exp chart"]["error_m"] is None  # NaN is written as null
+
+
+def test_demo_subprocess():
+    env = dict(os.environ, PYTHONIOENCODING="utf-8")
+    proc = subprocess.run(
+        [sys.executable, "-m", "lievi", "demo", "--steps", "20"],
+        capture_output=True,
+        text=True,
+        encoding="utf-8",
+        env=env,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert any(line.startswith("integrator") for line in lines)
+    for name, _ in _demo.INTEGRATORS:
+        row = [line for line in lines if line.startswith(name)]
+        assert len(row) == 1, proc.stdout
+        assert row[0].split()[-3] == "0"  # result code column
+
+
+def test_cli_rejects_bad_arguments():
+    parser = build_parser()
+    for argv in (["demo", "--steps", "0"], ["demo", "--h", "-1"], ["demo", "--h", "nan"], []):
+        with pytest.raises(SystemExit):
+            parser.parse_args(argv)
