@@ -76,3 +76,16 @@ def test_energy_bounded_without_drift_over_1e5_steps(integrator):
     assert first <= 1e-3
     # The group element stays on SO(3) to round-off after 1e5 products.
     assert dg.orthogonality_defect(body, sol.g[-1]) <= ROUNDOFF
+
+
+@pytest.mark.slow
+def test_energy_bounded_over_1e6_steps():
+    """T = 1e5 at h = 0.1 (exp chart): still bounded, still on the group."""
+    body, g0, m0 = hlw_problem()
+    sol = lievi.simulate(body, lievi.DEP(), g0, m0, h=0.1, n_steps=1_000_000, save_every=100)
+    energy = dg.energy(body, sol.m)
+    error = np.asarray((energy - energy[0]) / energy[0])
+    tenth = len(error) // 10
+    assert np.max(np.abs(error[-tenth:])) <= 1.01 * np.max(np.abs(error[:tenth]))
+    assert dg.relative_drift(dg.casimirs(body, sol.m)) <= 10 * ROUNDOFF
+    assert dg.orthogonality_defect(body, sol.g[-1]) <= 10 * ROUNDOFF
