@@ -97,15 +97,15 @@ def simulate(
     _check_step_size(h)
     if (m0 is None) == (g1 is None):
         raise ValueError("Give exactly one of `m0` (initial momentum) and `g1` (second configuration).")
+    system.check_element("g0", g0)
     if g1 is not None:
         if not isinstance(integrator, AbstractVariationalIntegrator):
             raise ValueError("`g1` needs a variational integrator (one with a discrete Lagrangian).")
-        system.check_state(g1, jnp.zeros(system.group.algebra_dim))
-        system.check_state(g0, jnp.zeros(system.group.algebra_dim))
+        system.check_element("g1", g1)
         dtype = jnp.result_type(g0, g1, h, float)
         g0, g1 = jnp.asarray(g0, dtype), jnp.asarray(g1, dtype)
         m0 = integrator.momentum_from_configurations(system, g0, g1, jnp.asarray(h, dtype))
-    system.check_state(g0, m0)
+    system.check_momentum("m0", m0)
     dtype = jnp.result_type(g0, m0, h, float)
     solution = _simulate(
         system,

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
+from ._checks import check_finite, check_shape, is_concrete
 from ._group_base import MatrixLieGroup
 
 SIDES = ("left", "right")
@@ -54,20 +55,22 @@ class AbstractLieSystem(eqx.Module):
         xi = self.velocity(m)
         return jnp.dot(m, xi) - self.lagrangian(xi)
 
-    def check_state(self, g0, m0) -> None:
-        """Raise `ValueError` for shapes or values that cannot start a simulation."""
-        from ._checks import check_finite, check_shape, is_concrete
-
-        n, d = self.group.matrix_dim, self.group.algebra_dim
-        check_shape("g0", g0, (n, n), f"a {n}×{n} group element")
-        check_shape("m0", m0, (d,), f"momentum coordinates of dimension {d}")
-        check_finite("g0", g0)
-        check_finite("m0", m0)
-        if is_concrete(g0):
-            defect = float(self.group.membership_defect(jnp.asarray(g0, float)))
+    def check_element(self, name: str, g) -> None:
+        """Raise `ValueError` unless `g` is an `(n, n)` finite element of the group."""
+        n = self.group.matrix_dim
+        check_shape(name, g, (n, n), f"a {n}×{n} group element")
+        check_finite(name, g)
+        if is_concrete(g):
+            defect = float(self.group.membership_defect(jnp.asarray(g, float)))
             if defect > 1e-6:
                 raise ValueError(
-                    f"`g0` is not in the group: membership defect {defect:.3g} > 1e-6 (for "
-                    "SO(n): ‖g0ᵀg0 − I‖ + |det g0 − 1|). Pass a rotation matrix, e.g. "
+                    f"`{name}` is not in the group: membership defect {defect:.3g} > 1e-6 "
+                    "(for SO(n): ‖gᵀg − I‖ + |det g − 1|). Pass a rotation matrix, e.g. "
                     "orthonormalise with a QR or polar decomposition."
                 )
+
+    def check_momentum(self, name: str, m) -> None:
+        """Raise `ValueError` unless `m` is a finite `(d,)` momentum."""
+        d = self.group.algebra_dim
+        check_shape(name, m, (d,), f"momentum coordinates of dimension {d}")
+        check_finite(name, m)

@@ -43,11 +43,13 @@ def casimirs(system: AbstractLieSystem, m: Float[Array, "*batch d"]) -> Float[Ar
     if not isinstance(group, AbstractSpecialOrthogonal):
         raise NotImplementedError("casimirs: only the SO(n) groups have Casimirs implemented.")
     M = group.hat(m)
-    powers, out, M2 = M @ M, [], M @ M
+    M2 = M @ M
+    power = M2  # m̂^{2k}
+    traces = []
     for _ in range(group.matrix_dim // 2):
-        out.append(-jnp.trace(powers, axis1=-2, axis2=-1) / 2)
-        powers = powers @ M2
-    return jnp.stack(out, axis=-1)
+        traces.append(-jnp.trace(power, axis1=-2, axis2=-1) / 2)
+        power = power @ M2
+    return jnp.stack(traces, axis=-1)
 
 
 def spatial_momentum(
