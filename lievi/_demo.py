@@ -29,7 +29,7 @@ from lievi import diagnostics
 # (display name, integrator): one row each in the table and the plot.
 INTEGRATORS: tuple[tuple[str, lievi.AbstractIntegrator], ...] = (
     ("DEP exp chart", lievi.DEP(chart="exp")),
-    ("DEP Cayley (Lewis–Simo)", lievi.DEP(chart="cayley")),
+    ("DEP Cayley chart", lievi.DEP(chart="cayley")),
 )
 
 # The HLW problem (NOTES §4).

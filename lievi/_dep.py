@@ -1,7 +1,7 @@
 """The discrete Euler–Poincaré / discrete Lie–Poisson integrator (paper §2–§4, (4.8)).
 
-Discrete Lagrangian, in a chart `φ` of the group (`exp` as in (4.7), or the Cayley map
-of Lewis–Simo, §5):
+Discrete Lagrangian, in a chart `φ` of the group: `exp` as in (4.7), or the Cayley map
+`cay`, the choice the paper discusses after (5.7), second order by Lewis–Simo [LS 96]:
 
 - left-invariant (the rigid body): `L_d(g_k, g_{k+1}) = h·l(φ⁻¹(g_k⁻¹ g_{k+1})/h)`;
 - right-invariant: `L_d(g_k, g_{k+1}) = h·l(φ⁻¹(g_{k+1} g_k⁻¹)/h)`.
@@ -61,7 +61,11 @@ class DEP(AbstractVariationalIntegrator):
 
     **Arguments:**
 
-    - `chart`: `"exp"` (the paper's (4.7)–(4.8)) or `"cayley"` (Lewis–Simo, (5.7)).
+    - `chart`: `"exp"` (the paper's (4.7)–(4.8)) or `"cayley"` (the same DEP equation with
+      `F_k = cay(ξ_k)`, the Cayley variant discussed after (5.7)). Note that the
+      Moser–Veselov/Lewis–Simo scheme (5.7) itself uses a different discrete Lagrangian,
+      `tr((I − F)Λ)/h` (on SO(3): `½ξᵀIξ / (h(1 + |ξ|²/4))` with `F = cay(ξ)`), so its
+      iterates differ from these at O(h³) per step.
     - `rtol`, `atol`: the Newton solve stops when `‖residual‖_∞ ≤ atol + rtol·‖m‖_∞`.
       Default: 64 ulps of the dtype for both.
     - `max_steps`: maximum Newton iterations per step; exceeding it is reported as

@@ -9,7 +9,7 @@ derives the operators the discrete Euler–Poincaré equations need (paper §4.1
 - `dexp(x) = Σ ad_xⁿ/(n+1)!`, the right-trivialised derivative of `exp`
   (`d exp(x + εy)/dε · exp(−x) = dexp(x) y`), which is the paper's `iex(ad_x)` (4.3);
 - `dexpinv(x) = dexp(x)⁻¹`, the paper's `χ(−ad_x)`;
-- the Cayley map `cay(x) = (I − x/2)⁻¹(I + x/2)` (paper §5, Lewis–Simo) with its
+- the Cayley map `cay(x) = (I − x/2)⁻¹(I + x/2)` (paper §5) with its
   right-trivialised derivative `dcay` and inverse `dcayinv`.
 
 Every method accepts leading batch axes. Subclasses override methods with closed forms
@@ -117,7 +117,7 @@ class MatrixLieGroup(eqx.Module):
         eye = jnp.broadcast_to(jnp.eye(self.algebra_dim, dtype=D.dtype), D.shape)
         return jnp.linalg.solve(D, eye)
 
-    # ---- Cayley chart (Lewis–Simo; paper §5) ----------------------------------------------
+    # ---- Cayley chart (paper §5) -------------------------------------------------------------
 
     def _half(self, x):
         X = self.hat(x)

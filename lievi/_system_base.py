@@ -61,7 +61,10 @@ class AbstractLieSystem(eqx.Module):
         check_shape(name, g, (n, n), f"a {n}×{n} group element")
         check_finite(name, g)
         if is_concrete(g):
-            defect = float(self.group.membership_defect(jnp.asarray(g, float)))
+            # Evaluated now even when `simulate` is being traced by an outer `jit` with a
+            # concrete `g` captured from outside.
+            with jax.ensure_compile_time_eval():
+                defect = float(self.group.membership_defect(jnp.asarray(g, float)))
             if defect > 1e-6:
                 raise ValueError(
                     f"`{name}` is not in the group: membership defect {defect:.3g} > 1e-6 "

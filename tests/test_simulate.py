@@ -151,3 +151,16 @@ def test_bad_integrator_settings():
         lievi.DEP(max_steps=0)
     with pytest.raises(ValueError, match="`side` must be one of"):
         lievi.LieLagrangian(lievi.SO3, lambda x: x @ x, side="middle")
+
+
+def test_simulate_under_outer_jit_and_vmap():
+    """Eager checks must not break when `simulate` is traced with concrete captured values."""
+    body, g0, m0 = hlw_problem()
+
+    def final(m):
+        return lievi.simulate(body, lievi.DEP(), g0, m, h=0.1, n_steps=10, throw=False).m[-1]
+
+    expected = final(m0)
+    np.testing.assert_allclose(jax.jit(final)(m0), expected, rtol=0, atol=1e-14)
+    batched = jax.jit(jax.vmap(final))(jnp.stack([m0, 2 * m0]))
+    np.testing.assert_allclose(batched[0], expected, rtol=0, atol=1e-14)
