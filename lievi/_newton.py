@@ -25,8 +25,14 @@ class NewtonInfo(eqx.Module):
     converged: Array
 
 
-def _value_and_jacobian(residual, x):
-    return jax.jacfwd(lambda y: (residual(y), residual(y)), has_aux=True)(x)
+def _jacobian_and_value(residual, x):
+    """`(∂r/∂x, r(x))` from one forward-mode pass (the value rides along as aux)."""
+
+    def value_twice(y):
+        r = residual(y)
+        return r, r
+
+    return jax.jacfwd(value_twice, has_aux=True)(x)
 
 
 def newton_solve(
@@ -50,10 +56,10 @@ def newton_solve(
         def body(carry):
             x, r, jac, it = carry
             x = x - jnp.linalg.solve(jac, r)
-            jac, r = _value_and_jacobian(f, x)
+            jac, r = _jacobian_and_value(f, x)
             return x, r, jac, it + 1
 
-        jac, r = _value_and_jacobian(f, guess)
+        jac, r = _jacobian_and_value(f, guess)
         x, r, _, it = jax.lax.while_loop(cond, body, (guess, r, jac, jnp.array(0, jnp.int32)))
         # Auxiliary outputs stay floating point: custom_root gives them (zero) tangents,
         # which an integer output cannot carry.
