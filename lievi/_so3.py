@@ -123,7 +123,8 @@ class SO3Group(AbstractSpecialOrthogonal):
         v = self.vee(g)  # sin θ · axis
         vv = _dot(v, v)  # sin² θ
         tiny = jnp.finfo(dtype).tiny
-        small = (vv < _small_threshold(dtype)) & (c > 0)
+        # Near 0 means tan²θ = |v|²/cos²θ below the threshold (and cos θ > 0).
+        small = (c > 0) & (vv < _small_threshold(dtype) * c * c)
         near_pi = c < 0
 
         # Away from 0 and π: θ/sin θ · v with θ = atan2(sin θ, cos θ) (no acos of a
@@ -132,9 +133,16 @@ class SO3Group(AbstractSpecialOrthogonal):
         theta = jnp.arctan2(s, c)
         generic = (theta / s)[..., None] * v
 
-        # Near 0: asin(s)/s = 1 + s²/6 + 3s⁴/40 + 5s⁶/112 + 35s⁸/1152 in s² = sin²θ.
-        series = 1 + vv * (1 / 6 + vv * (3 / 40 + vv * (5 / 112 + vv * 35 / 1152)))
-        near_zero = series[..., None] * v
+        # Near 0: the same function atan2(s, c)/s = atan(u)/(u c), u = s/c, as a series in
+        # u² = vv/c² (u² < 0.1; truncation u¹⁴/15). Being the same function of (v, c) as
+        # the generic branch, the derivatives with respect to all nine entries of `g` (not
+        # only those along the group) are continuous across the switch.
+        c_safe = jnp.where(small, c, 1.0)
+        u2 = vv / (c_safe * c_safe)
+        series = jnp.zeros_like(u2)
+        for k in reversed(range(7)):
+            series = series * u2 + (-1) ** k / (2 * k + 1)
+        near_zero = (series / c_safe)[..., None] * v
 
         # Near π: (g + gᵀ)/2 − cos θ I = (1 − cos θ) a aᵀ; read a off its largest column
         # and orient it along v (= sin θ · a).

@@ -14,6 +14,7 @@ for `⟨X, Y⟩ = tr(XᵀY)/2`, so `|x|` is the Frobenius norm of `x̂` over √
 from __future__ import annotations
 
 import functools
+import math
 
 import equinox as eqx
 import jax
@@ -71,22 +72,107 @@ class AbstractSpecialOrthogonal(MatrixLieGroup):
         orthogonality = jnp.linalg.norm(jnp.swapaxes(g, -1, -2) @ g - eye, axis=(-2, -1))
         return orthogonality + jnp.abs(jnp.linalg.det(g) - 1)
 
-    def log(self, g: Float[Array, "*batch n n"], iterations: int = 8):
+    def log(self, g: Float[Array, "*batch n n"], iterations: int = 1):
         """Principal logarithm for rotation angles below π.
 
-        Starts from the Cayley coordinates `cayinv(g)` (error O(θ³)) and refines with
-        Newton's method on `exp(x) = g` in the left trivialisation,
-        `x ← x + dexpinv(−x) · vee(exp(−x) g)`, whose derivative at the fixed point is
-        the exact derivative of `log`, so it differentiates correctly through the fixed
-        number of iterations.
-        """
+        `x = 2³ log(g^{1/8})`: three principal square roots (polar factors of `I + g`)
+        bring every rotation angle below π/8, where the Gregory series
+        `log h = 2 artanh W`, `W = (h − I)(h + I)⁻¹` converges fast. This start is
+        accurate to about `ε/(π − θ)` for a largest angle `θ` (forming `I + g` cancels
+        near a half-turn), and its derivative to about `ε/(π − θ)²`.
 
-        def body(_, x):
+        It is then refined by `iterations` Newton steps on `exp(x) = g` in the left
+        trivialisation, `x ← x + dexpinv(−x) · vee(exp(−x) g)`. One step brings the value
+        to round-off up to `π − 1e-7`, and since the Newton map has zero derivative at
+        its fixed point, the derivative of the result is the exact derivative of `log`.
+        The first step needs no matrix exponential: `exp(x) = h⁸` for `h = g^{1/8}`, and
+        `dexp(−x)` follows from `dexp(−x/8)` (a short power series) by the doubling
+        formula `dexp(2z) = ½(I + Ad_{exp z}) dexp(z)`. Further steps use `exp` and
+        `dexpinv`.
+
+        At an angle of exactly π (where the principal logarithm is not unique) the result
+        is not finite; `SO3` handles that case in closed form.
+        """
+        # Loops are `fori_loop`s rather than Python loops: that compiles several times faster.
+        dtype = g.dtype
+        eye = jnp.eye(self.matrix_dim, dtype=dtype)
+        h = jax.lax.fori_loop(0, _ROOTS, lambda _, h: _rotation_sqrt(h, _POLAR_ITERATIONS), g)
+        W = jnp.linalg.solve(h + eye, h - eye)  # tanh(X/2), h = exp(X); |eigenvalues| < tan(π/16)
+        W2 = W @ W
+
+        def gregory(i, S):  # Horner for Σ_{k<K} W^{2k}/(2k+1), k = K − 1 − i
+            return S @ W2 + eye / (2 * (_GREGORY_TERMS - 1 - i) + 1).astype(dtype)
+
+        S = jnp.broadcast_to(eye / (2 * _GREGORY_TERMS - 1), W.shape)
+        S = jax.lax.fori_loop(1, _GREGORY_TERMS, gregory, S)
+        y = self.vee(2 * W @ S)  # log h
+        x = 2**_ROOTS * y
+        if iterations < 1:
+            return x
+
+        # First Newton step. dexp(−y) = Σ (−ad_y)ᵏ/(k+1)!, with |ad_y| ≤ π/4.
+        A = -self.ad(y)
+        eye_d = jnp.eye(self.algebra_dim, dtype=dtype)
+        inverse_factorials = jnp.asarray(
+            [1 / math.factorial(k + 1) for k in range(_DEXP_TERMS)], dtype=dtype
+        )
+
+        def dexp_series(i, D):  # Horner, k = K − 1 − i
+            return A @ D + eye_d * inverse_factorials[_DEXP_TERMS - 1 - i]
+
+        D = jnp.broadcast_to(eye_d * inverse_factorials[-1], A.shape)
+        D = jax.lax.fori_loop(1, _DEXP_TERMS, dexp_series, D)
+
+        def doubling(_, carry):  # dexp(2z) = ½(I + Ad_{exp z}) dexp(z)
+            D, power = carry
+            return (D + self.Ad(power) @ D) / 2, power @ power
+
+        # z = −y, −2y, −4y: afterwards D = dexp(−x) and power = exp(−x).
+        D, power = jax.lax.fori_loop(0, _ROOTS, doubling, (D, self.inverse(h)))
+        residual = self.vee(power @ g)  # log(exp(−x) g) to third order
+        x = x + jnp.linalg.solve(D, residual[..., None])[..., 0]
+        if iterations < 2:
+            return x
+
+        def newton(_, x):
             e = self.inverse(self.exp(x)) @ g
-            # vee of the skew part of e is log(e) to third order in log(e).
             return x + jnp.einsum("...ab,...b->...a", self.dexpinv(-x), self.vee(e))
 
-        return jax.lax.fori_loop(0, iterations, body, self.cayinv(g))
+        return jax.lax.fori_loop(1, iterations, newton, x)
+
+
+# `log` takes _ROOTS square roots, each with _POLAR_ITERATIONS scaled Newton iterations for
+# the polar factor. The first root must cope with `I + g` nearly singular (angles near π):
+# 6 iterations reached round-off for condition numbers up to 1e13 when measured. The later
+# ones start from singular values in [cos(π/4), 1] and [cos(π/8), 1] and need 4; the extra
+# iterations stay at round-off.
+_ROOTS = 3
+_POLAR_ITERATIONS = 8
+# Terms of the series Σ W^{2k}/(2k+1) with |W| ≤ tan(π/16): the first omitted term is
+# below 1e-17 relative.
+_GREGORY_TERMS = 12
+# Terms of dexp(z) = Σ ad_zᵏ/(k+1)! for |ad_z| ≤ π/4: the first omitted is below 3e-18.
+_DEXP_TERMS = 17
+
+
+def _rotation_sqrt(g, iterations: int):
+    """Principal square root of a rotation whose angles are all below π.
+
+    For `g = exp(X)`, `I + g = exp(X/2) · 2cos(X/2)` with `2cos(X/2)` symmetric positive
+    definite, so `√g = exp(X/2)` is the orthogonal polar factor of `I + g`. It is computed
+    by Newton's iteration `Z ← (γZ + (γZ)⁻ᵀ)/2` with Higham's Frobenius-norm scaling
+    `γ = (‖Z⁻¹‖/‖Z‖)^½`, which converges quadratically from any nonsingular start.
+    """
+    eye = jnp.eye(g.shape[-1], dtype=g.dtype)
+
+    def body(_, Z):
+        Z_inv = jnp.linalg.inv(Z)
+        gamma = jnp.sqrt(
+            jnp.linalg.norm(Z_inv, axis=(-2, -1)) / jnp.linalg.norm(Z, axis=(-2, -1))
+        )[..., None, None]
+        return (gamma * Z + jnp.swapaxes(Z_inv, -1, -2) / gamma) / 2
+
+    return jax.lax.fori_loop(0, iterations, body, g + eye)
 
 
 class SOn(AbstractSpecialOrthogonal):
