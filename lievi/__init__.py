@@ -7,6 +7,7 @@ equations*, Nonlinearity 12 (1999) 1647–1662, in JAX.
 from importlib.metadata import PackageNotFoundError, version
 
 from . import diagnostics as diagnostics
+from ._composition import Composition as Composition
 from ._dep import DEP as DEP
 from ._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
 from ._group_base import MatrixLieGroup as MatrixLieGroup

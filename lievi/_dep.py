@@ -90,6 +90,10 @@ class DEP(AbstractVariationalIntegrator):
     def order(self) -> int:
         return 2
 
+    def is_symmetric(self) -> bool:
+        # The adjoint Lagrangian −L_d(g_{k+1}, g_k; −h) equals L_d: φ⁻¹(F⁻¹) = −φ⁻¹(F).
+        return True
+
     def discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
         group = system.group
         _, chart_inverse, _ = _chart(group, self.chart)

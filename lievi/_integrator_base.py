@@ -33,6 +33,10 @@ class AbstractIntegrator(eqx.Module):
     def order(self) -> int:
         """Classical order of accuracy."""
 
+    def is_symmetric(self) -> bool:
+        """Whether `Φ_{−h} = Φ_h⁻¹` (time-reversible); `Composition` needs it."""
+        return False
+
     @abc.abstractmethod
     def step(
         self, system: AbstractLieSystem, g: Float[Array, "n n"], m: Float[Array, " d"], h: Scalar
