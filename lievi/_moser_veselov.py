@@ -132,6 +132,10 @@ class MoserVeselov(AbstractVariationalIntegrator):
     def order(self) -> int:
         return 2
 
+    def is_symmetric(self) -> bool:
+        # −L_d(g₁, g₀; −h) = tr((I − g₁ᵀg₀)Λ)/h = L_d(g₀, g₁; h): tr(AᵀΛ) = tr(AΛ).
+        return True
+
     def discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
         """`tr((I − g₀ᵀg₁)Λ)/h`, Moser–Veselov's `tr(g_k Λ g_{k+1}ᵀ)` up to scale and shift."""
         check_rigid_body("MoserVeselov", system)
