@@ -36,6 +36,7 @@ order, not the digits):
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Scalar
 
@@ -144,14 +145,22 @@ class Composition(AbstractIntegrator):
         return True
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar):
-        result = jnp.asarray(RESULTS.successful, jnp.int32)
-        iterations = jnp.asarray(0, jnp.int32)
-        residual = jnp.asarray(0, m.dtype)
-        # A Python loop (unrolled at trace time): the stages are few and their step
-        # sizes are compile-time constants times `h`.
-        for gamma in self.coefficients:
+        gammas = jnp.asarray(self.coefficients, dtype=m.dtype)
+
+        def stage(carry, gamma):
+            g, m, result, iterations, residual = carry
             g, m, info = self.method.step(system, g, m, gamma * h)
             result = RESULTS.first_failure(result, info.result)
-            iterations = iterations + info.iterations
-            residual = jnp.maximum(residual, info.residual)
+            return (g, m, result, iterations + info.iterations, jnp.maximum(residual, info.residual)), None
+
+        init = (
+            g,
+            m,
+            jnp.asarray(RESULTS.successful, jnp.int32),
+            jnp.asarray(0, jnp.int32),
+            jnp.asarray(0, m.dtype),
+        )
+        # A `scan` over the stages, not a Python loop: the inner step (a Newton solve for
+        # the implicit methods) is traced and compiled once instead of up to nine times.
+        (g, m, result, iterations, residual), _ = jax.lax.scan(stage, init, gammas)
         return g, m, StepInfo(result, iterations, residual)
