@@ -16,6 +16,7 @@ from ._integrator_base import AbstractVariationalIntegrator as AbstractVariation
 from ._integrator_base import StepInfo as StepInfo
 from ._lie_lagrangian import LieLagrangian as LieLagrangian
 from ._moser_veselov import MoserVeselov as MoserVeselov
+from ._preprocessed_dmv import PreprocessedMoserVeselov as PreprocessedMoserVeselov
 from ._reference import reference_solution as reference_solution
 from ._results import RESULTS as RESULTS
 from ._rigid_body import RigidBody as RigidBody
