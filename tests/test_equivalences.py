@@ -39,11 +39,15 @@ def _newton(residual, x):
 
 
 def _del_residual(system, integrator, h, g_prev, g, g_next):
-    """`d/dη [L_d(g_{k−1}, g e^η) + L_d(g e^η, g_{k+1})]` at η = 0 (Theorem 2.1)."""
+    """`d/dη [L_d(g_{k−1}, g cay(η)) + L_d(g cay(η), g_{k+1})]` at η = 0 (Theorem 2.1).
+
+    Any curve through `g` with velocity `g η̂` gives the same derivative; `cay` compiles
+    faster than `exp` on SO(n).
+    """
     group = system.group
 
     def action(eta):
-        moved = g @ group.exp(eta)
+        moved = g @ group.cay(eta)
         return integrator.discrete_lagrangian(
             system, g_prev, moved, h
         ) + integrator.discrete_lagrangian(system, moved, g_next, h)
@@ -96,7 +100,7 @@ def test_theorem_5_1_dep_equals_moser_veselov(case):
     np.testing.assert_allclose(momenta, sol.m[:-1], rtol=0, atol=ROUNDOFF)
 
 
-@pytest.mark.parametrize("n", [3, 5])
+@pytest.mark.parametrize("n", [3, 4])
 def test_moser_veselov_iterates_satisfy_5_4(n):
     """(5.4) itself, `fᵀ_{k+1,k}Λ − Λf_{k+1,k} = Λfᵀ_{k,k−1} − f_{k,k−1}Λ`, with
     `f_{k+1,k} = g_{k+1}ᵀ g_k`, and (5.6₂) `M_{k+1} = Π_k = ωᵀΛ − Λω` scaled by h."""
