@@ -82,6 +82,30 @@ def test_discrete_legendre_transform_matches_step(hlw_run):
     np.testing.assert_allclose(again.m, sol.m, rtol=0, atol=ROUNDOFF)
 
 
+def observed_order(system, g0, m0, T, hs):
+    g_ref, m_ref = lievi.reference_solution(system, g0, m0, [0.0, T])
+    errors = []
+    for h in hs:
+        sol = lievi.simulate(system, MV, g0, m0, h=h, n_steps=int(round(T / h)))
+        errors.append(
+            max(np.max(np.abs(sol.m[-1] - m_ref[-1])), np.max(np.abs(sol.g[-1] - g_ref[-1])))
+        )
+    return np.polyfit(np.log(hs), np.log(errors), 1)[0], errors
+
+
+def test_second_order_on_hlw():
+    """Against DOP853 (rtol 1e-13), T = 2, h = 0.1 … 0.0125: measured 2.000."""
+    body, g0, m0 = hlw_problem()
+    order, errors = observed_order(body, g0, m0, 2.0, [0.1 / 2**k for k in range(4)])
+    assert abs(order - 2) <= 0.1, (order, errors)
+
+
+def test_second_order_on_so4():
+    body, g0, m0 = random_generalized_body(np.random.default_rng(4), 4)
+    order, errors = observed_order(body, g0, m0, 1.0, [0.05 / 2**k for k in range(3)])
+    assert abs(order - 2) <= 0.1, (order, errors)
+
+
 def test_conservation_over_1e4_steps():
     body, g0, m0 = hlw_problem()
     sol = lievi.simulate(body, MV, g0, m0, h=H, n_steps=10_000, save_every=10)
@@ -89,8 +113,9 @@ def test_conservation_over_1e4_steps():
     assert dg.relative_drift(dg.casimirs(body, sol.m)) <= ROUNDOFF
     assert dg.relative_drift(dg.spatial_momentum(body, sol.g, sol.m)) <= ROUNDOFF
     assert dg.orthogonality_defect(body, sol.g[-1]) <= ROUNDOFF
-    energy = dg.energy(body, sol.m)
-    assert dg.relative_drift(energy) <= 1e-2  # O(h²), bounded (a variational method)
+    # Not merely bounded: MV keeps the energy itself to round-off (measured 3e-15 here,
+    # 5e-15 on SO(4)), unlike DEP and the splitting, whose energy error is O(h²).
+    assert dg.relative_drift(dg.energy(body, sol.m)) <= ROUNDOFF
 
 
 def test_dlp_map_is_poisson(hlw_run):
@@ -109,10 +134,9 @@ def test_generalized_rigid_body(n):
     assert jnp.max(sol.stats["residual"]) <= 1e-14 * scale
     assert jnp.max(jnp.abs(del_residual(body, MV, sol.g, h))) <= ROUNDOFF * scale
     assert dg.relative_drift(dg.casimirs(body, sol.m)) <= ROUNDOFF
+    assert dg.relative_drift(dg.energy(body, sol.m)) <= ROUNDOFF
     assert dg.relative_drift(dg.spatial_momentum(body, sol.g, sol.m)) <= ROUNDOFF
     assert dg.orthogonality_defect(body, sol.g[-1]) <= ROUNDOFF
-    assert mv_equation_residual(body, sol.m, h) <= 1e-14 * scale
-    assert poisson_defect(body, MV, sol.g[7], sol.m[7], h) <= ROUNDOFF * scale
 
 
 def test_son3_generalized_body_matches_rigid_body():
@@ -226,3 +250,15 @@ def test_implicit_derivative_matches_finite_differences():
     np.testing.assert_allclose(grad_inertia, fd, rtol=1e-6, atol=1e-9)
     fd_h = (loss(body.inertia, H + eps) - loss(body.inertia, H - eps)) / (2 * eps)
     np.testing.assert_allclose(grad_h, fd_h, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("n", [4, 5])
+def test_generalized_rigid_body_poisson(n):
+    """The momentum map on so(n)* is Poisson, and `ΩᵀΛ − ΛΩ = hΠ̂` holds to 1e-14 for the
+    solved Ω (the SO(3) cases run by default; (5.4) on SO(4) is in test_equivalences)."""
+    body, g0, m0 = random_generalized_body(np.random.default_rng(n), n)
+    scale = float(jnp.max(jnp.abs(m0)))
+    assert poisson_defect(body, MV, g0, m0, 0.05) <= ROUNDOFF * scale
+    sol = lievi.simulate(body, MV, g0, m0, h=0.05, n_steps=STEPS)
+    assert mv_equation_residual(body, sol.m, 0.05) <= 1e-14 * scale
