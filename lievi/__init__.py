@@ -20,11 +20,13 @@ from ._preprocessed_dmv import PreprocessedMoserVeselov as PreprocessedMoserVese
 from ._reference import reference_solution as reference_solution
 from ._results import RESULTS as RESULTS
 from ._rigid_body import RigidBody as RigidBody
+from ._rk4 import RK4 as RK4
 from ._simulate import Solution as Solution
 from ._simulate import simulate as simulate
 from ._so3 import SO3 as SO3
 from ._so3 import SO3Group as SO3Group
 from ._son import SOn as SOn
+from ._splitting import LiePoissonSplitting as LiePoissonSplitting
 from ._system_base import AbstractLieSystem as AbstractLieSystem
 
 try:
