@@ -100,6 +100,10 @@ class LiePoissonSplitting(AbstractIntegrator):
     def order(self) -> int:
         return 2
 
+    def is_symmetric(self) -> bool:
+        # A palindromic (Strang) product of exact flows: Φ_{−h} = Φ_h⁻¹.
+        return True
+
     def step(self, system: AbstractLieSystem, g, m, h: Scalar):
         check_rigid_body("LiePoissonSplitting", system)
         _check_pair_sums("LiePoissonSplitting", system)
