@@ -60,8 +60,10 @@ CASES = [
     (lievi.DEP(), 6, None),
     (lievi.MoserVeselov(), 4, None),
     (lievi.MoserVeselov(), 6, None),
+    (lievi.LiePoissonSplitting(), 4, None),
+    (lievi.LiePoissonSplitting(), 6, None),
 ]
-CASE_IDS = ["dep-4", "dep-6", "mv-4", "mv-6"]
+CASE_IDS = ["dep-4", "dep-6", "mv-4", "mv-6", "splitting-4", "splitting-6"]
 SLOW_CASES = [
     (lievi.DEP(chart="cayley"), 4, "suzuki"),
     (lievi.DEP(chart="cayley"), 6, "yoshida"),
@@ -202,3 +204,6 @@ def test_bad_input():
     # A composition is of order 4 or 6, not 2: composing it again is refused.
     with pytest.raises(ValueError, match="order 2"):
         lievi.Composition(lievi.Composition(lievi.DEP(), 4), 6)
+    # RK4 is neither symmetric nor of order 2.
+    with pytest.raises(ValueError, match="symmetric"):
+        lievi.Composition(lievi.RK4(), 4)
