@@ -1,0 +1,236 @@
+"""Work–precision of every integrator: error at T against steps and against wall time.
+
+For each method (DEP exp / Cayley, Moser–Veselov, Lie–Poisson splitting, RK4, the
+compositions of order 4 and 6, the preprocessed DMV of orders 4–10) on three free rigid
+bodies — HLW `I = (2, 1, 2/3)`, `Π₀ = (cos 1.1, 0, sin 1.1)`; Hairer–Vilmart
+`I = (0.6, 0.8, 1.0)` and the "water molecule" `I = (0.345, 0.653, 1.0)`, `y₀ = (1.8, 0.4, −0.9)`
+(NOTES §4) — integrate to T = 10 with N = 25·2^k steps and measure the error in Π and in
+the attitude against DOP853 (rtol = atol = 1e-13, itself ~1e-13 accurate) and the wall
+time of the jitted run (compile apart, best of 3; the preprocessing of the preprocessed
+DMV included). Also: the relative energy error over T = 1e4 (h = 0.1, HLW body) of the
+geometric methods against RK4, and the cost per step of the preprocessed DMV relative to
+plain DMV (same run, same machine, 1e4 steps). Writes `benchmarks/results/accuracy.json`
+and `accuracy.png`, prints tables. The machine may be shared: wall times are indicative,
+ratios within one run are the figure to quote.
+
+    python benchmarks/accuracy.py            # full (~10–20 min on 2 cores)
+    python benchmarks/accuracy.py --quick    # smoke test (a few methods, small sizes)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import lievi  # noqa: E402
+from lievi import diagnostics as dg  # noqa: E402
+
+RESULTS_DIR = pathlib.Path(__file__).parent / "results"
+
+PROBLEMS = {
+    "HLW": (jnp.array([2.0, 1.0, 2.0 / 3.0]), jnp.array([np.cos(1.1), 0.0, np.sin(1.1)])),
+    "HV": (jnp.array([0.6, 0.8, 1.0]), jnp.array([1.8, 0.4, -0.9])),
+    "HV water": (jnp.array([0.345, 0.653, 1.0]), jnp.array([1.8, 0.4, -0.9])),
+}
+
+
+def methods(quick: bool):
+    mv, split = lievi.MoserVeselov(), lievi.LiePoissonSplitting()
+    full = {
+        "DEP exp": lievi.DEP(chart="exp"),
+        "DEP Cayley": lievi.DEP(chart="cayley"),
+        "MV": mv,
+        "splitting": split,
+        "RK4": lievi.RK4(),
+        "Comp4(DEP exp)": lievi.Composition(lievi.DEP(), 4),
+        "Comp4(MV)": lievi.Composition(mv, 4),
+        "Comp6(MV)": lievi.Composition(mv, 6),
+        "Comp4(splitting)": lievi.Composition(split, 4),
+        "Comp6(splitting)": lievi.Composition(split, 6),
+        "pDMV4": lievi.PreprocessedMoserVeselov(4),
+        "pDMV6": lievi.PreprocessedMoserVeselov(6),
+        "pDMV8": lievi.PreprocessedMoserVeselov(8),
+        "pDMV10": lievi.PreprocessedMoserVeselov(10),
+    }
+    if quick:
+        keep = ("DEP exp", "MV", "RK4", "Comp4(MV)", "pDMV6")
+        return {k: full[k] for k in keep}
+    return full
+
+
+@eqx.filter_jit
+def final_state(system, integrator, g0, m0, h, n):
+    """`n` steps (traced: one compile for every n), preprocessing included."""
+    if isinstance(integrator, lievi.PreprocessedMoserVeselov):
+        integrator = integrator.prepare(system, m0, h)
+
+    def body(_, state):
+        g, m, ok = state
+        g, m, info = integrator.step(system, g, m, h)
+        return g, m, ok & (info.result == lievi.RESULTS.successful)
+
+    return jax.lax.fori_loop(0, n, body, (g0, m0, jnp.array(True)))
+
+
+def timed(fn, *args, repeats=3):
+    jax.block_until_ready(fn(*args))  # compile (or cache hit)
+    best, out = np.inf, None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - start)
+    return best, out
+
+
+def work_precision(quick: bool):
+    T = 2.0 if quick else 10.0
+    steps = [25, 50] if quick else [25 * 2**k for k in range(8)]
+    problems = {"HV": PROBLEMS["HV"]} if quick else PROBLEMS
+    out = {"T": T, "steps": steps, "problems": {}}
+    for pname, (inertia, m0) in problems.items():
+        body = lievi.RigidBody(inertia)
+        g0 = jnp.eye(3)
+        g_ref, m_ref = lievi.reference_solution(body, g0, m0, [0.0, T])
+        rows = {}
+        for name, integrator in methods(quick).items():
+            err_m, err_g, wall = [], [], []
+            for n in steps:
+                h = jnp.asarray(T / n)
+                seconds, (g, m, ok) = timed(final_state, body, integrator, g0, m0, h, jnp.asarray(n))
+                good = bool(ok) and bool(jnp.all(jnp.isfinite(m)))
+                err_m.append(float(np.max(np.abs(m - m_ref[-1]))) if good else float("nan"))
+                err_g.append(float(np.max(np.abs(g - g_ref[-1]))) if good else float("nan"))
+                wall.append(seconds)
+            finite = [(n, e) for n, e in zip(steps, err_m) if np.isfinite(e) and e > 1e-12]
+            slope = (
+                float(-np.polyfit(np.log([n for n, _ in finite]), np.log([e for _, e in finite]), 1)[0])
+                if len(finite) >= 2
+                else float("nan")
+            )
+            rows[name] = {"error_m": err_m, "error_g": err_g, "wall_s": wall, "fitted_order": slope}
+            print(f"{pname:9s} {name:17s} order≈{slope:5.2f}  " + " ".join(f"{e:8.1e}" for e in err_m))
+        out["problems"][pname] = rows
+    return out
+
+
+def long_time_energy(quick: bool):
+    inertia, m0 = PROBLEMS["HLW"]
+    body = lievi.RigidBody(inertia)
+    h = 0.1
+    n_steps, save_every = (2_000, 20) if quick else (100_000, 100)
+    chosen = ("MV", "RK4", "pDMV6") if quick else ("DEP exp", "MV", "splitting", "RK4", "Comp4(MV)", "pDMV6")
+    all_methods = methods(False)
+    out = {"h": h, "T": h * n_steps, "methods": {}}
+    for name in chosen:
+        integrator = all_methods[name]
+        if isinstance(integrator, lievi.PreprocessedMoserVeselov):
+            integrator = integrator.prepare(body, m0, h)
+        sol = lievi.simulate(body, integrator, jnp.eye(3), m0, h=h, n_steps=n_steps, save_every=save_every)
+        energy = dg.energy(body, sol.m)
+        error = np.abs(np.asarray((energy - energy[0]) / energy[0]))
+        casimir = float(dg.relative_drift(dg.casimirs(body, sol.m)))
+        out["methods"][name] = {
+            "t": np.asarray(sol.ts).tolist(),
+            "energy_error": error.tolist(),
+            "max_energy_error": float(error.max()),
+            "casimir_drift": casimir,
+        }
+        print(f"T = {h * n_steps:g}: {name:10s} max |ΔH/H| = {error.max():.1e}, Casimir drift {casimir:.1e}")
+    return out
+
+
+def cost_ratio(quick: bool):
+    """Seconds per step of the (prepared) preprocessed DMV over plain DMV, same run."""
+    inertia, m0 = PROBLEMS["HV"]
+    body = lievi.RigidBody(inertia)
+    n = 1_000 if quick else 10_000
+    h = jnp.asarray(0.01)
+    out = {"n_steps": n}
+    # The body is an argument, not a closed-over constant: as under `simulate`, it is traced.
+    run = eqx.filter_jit(
+        lambda integrator, body, m0: jax.lax.fori_loop(
+            0, n, lambda _, s: integrator.step(body, s[0], s[1], h)[:2], (jnp.eye(3), m0)
+        )
+    )
+    prepare = eqx.filter_jit(lambda integrator, body, m0: integrator.prepare(body, m0, h))
+    mv_s, _ = timed(run, lievi.MoserVeselov(), body, m0, repeats=5)
+    out["MV_s_per_step"] = mv_s / n
+    for order in (4, 6, 8, 10):
+        prepared = lievi.PreprocessedMoserVeselov(order).prepare(body, m0, h)
+        seconds, _ = timed(run, prepared, body, m0, repeats=5)
+        prep_s, _ = timed(prepare, lievi.PreprocessedMoserVeselov(order), body, m0)
+        out[f"pDMV{order}"] = {"s_per_step": seconds / n, "ratio_to_MV": seconds / mv_s, "prepare_s": prep_s}
+        print(f"pDMV{order}: {seconds / mv_s:.2f}× plain DMV per step; preprocessing {prep_s * 1e3:.2f} ms once")
+    print(f"plain DMV: {mv_s / n * 1e6:.2f} µs per step")
+    return out
+
+
+def plot(results, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    problems = results["work_precision"]["problems"]
+    steps = results["work_precision"]["steps"]
+    fig, axes = plt.subplots(len(problems) + 1, 2, figsize=(12, 4.2 * (len(problems) + 1)))
+    axes = np.atleast_2d(axes)
+    for row, (pname, rows) in enumerate(problems.items()):
+        for name, r in rows.items():
+            style = "--" if name.startswith("Comp") else (":" if name.startswith("pDMV") else "-")
+            axes[row, 0].loglog(steps, r["error_m"], style, marker="o", ms=3, label=name)
+            axes[row, 1].loglog(r["wall_s"], r["error_m"], style, marker="o", ms=3, label=name)
+        axes[row, 0].set(xlabel="steps to T", ylabel="max error in Π at T", title=f"{pname}: error vs steps")
+        axes[row, 1].set(xlabel="wall time [s] (jitted, compile apart)", title=f"{pname}: error vs wall time")
+        for ax in axes[row]:
+            ax.grid(True, which="both", alpha=0.3)
+    axes[0, 1].legend(fontsize=7, ncol=2)
+    energy = results["long_time_energy"]
+    for name, r in energy["methods"].items():
+        axes[-1, 0].semilogy(r["t"][1:], np.maximum(r["energy_error"][1:], 1e-17), label=name, lw=0.8)
+    axes[-1, 0].set(
+        xlabel="t", ylabel="|ΔH/H|", title=f"HLW, h = {energy['h']}: energy error to T = {energy['T']:g}"
+    )
+    axes[-1, 0].legend(fontsize=7)
+    cost = results["cost"]
+    orders = [k for k in cost if k.startswith("pDMV")]
+    axes[-1, 1].bar(["MV"] + orders, [1.0] + [cost[k]["ratio_to_MV"] for k in orders])
+    axes[-1, 1].axhline(2.0, color="k", ls="--", lw=0.8)
+    axes[-1, 1].set(ylabel="cost per step / plain DMV", title="preprocessed DMV: cost per step")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smoke test: few methods, small sizes")
+    parser.add_argument("--out", default=None, help="output directory (default benchmarks/results)")
+    args = parser.parse_args()
+    out_dir = pathlib.Path(args.out) if args.out else RESULTS_DIR
+    out_dir.mkdir(parents=True, exist_ok=True)
+    suffix = "_quick" if args.quick else ""
+    start = time.perf_counter()
+    results = {
+        "device": str(jax.devices()[0]),
+        "dtype": "float64",
+        "work_precision": work_precision(args.quick),
+        "long_time_energy": long_time_energy(args.quick),
+        "cost": cost_ratio(args.quick),
+    }
+    results["total_s"] = time.perf_counter() - start
+    (out_dir / f"accuracy{suffix}.json").write_text(json.dumps(results, indent=1))
+    plot(results, out_dir / f"accuracy{suffix}.png")
+    print(f"wrote {out_dir / f'accuracy{suffix}.json'} and .png in {results['total_s']:.0f}s")
+
+
+if __name__ == "__main__":
+    main()
