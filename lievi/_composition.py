@@ -151,7 +151,9 @@ class Composition(AbstractIntegrator):
             g, m, result, iterations, residual = carry
             g, m, info = self.method.step(system, g, m, gamma * h)
             result = RESULTS.first_failure(result, info.result)
-            return (g, m, result, iterations + info.iterations, jnp.maximum(residual, info.residual)), None
+            iterations = iterations + info.iterations
+            residual = jnp.maximum(residual, info.residual)
+            return (g, m, result, iterations, residual), None
 
         init = (
             g,

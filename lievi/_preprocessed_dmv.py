@@ -1,4 +1,6 @@
-"""The preprocessed discrete Moser–Veselov algorithm (after Hairer & Vilmart, J. Phys. A 39 (2006) 13225).
+"""The preprocessed discrete Moser–Veselov algorithm (after Hairer & Vilmart 2006).
+
+Hairer & Vilmart, J. Phys. A 39 (2006) 13225.
 
 Why a modified step and one extra rotation suffice (our derivation; the tests check the
 order, not this argument). The DMV step of `lievi.MoserVeselov` on the free rigid body
@@ -76,7 +78,7 @@ def _vee(M):
 def dmv_series(inverse_inertia: Float[Array, "3 3"], y: Float[Array, "3"], degree: int):
     """Taylor coefficients in the step `s` of the DMV step: `(F(s), y₁(s))`, degree `degree`.
 
-    `F = cay(x)`, `I x = s·vee((1 − X/2) Ŷ (1 + X/2))`, `y₁ = Fᵀy` (conventions of `MoserVeselov`).
+    `F = cay(x)`, `I x = s·vee((1 − X/2) Ŷ (1 + X/2))`, `y₁ = Fᵀy` (as in `MoserVeselov`).
     """
     n = degree + 1
     mask = jnp.asarray(_cauchy_mask(n), y.dtype)
@@ -211,7 +213,9 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
         # h' and φ are odd in h (τ and ρ are), and depend on conserved quantities only.
         return True
 
-    def prepare(self, system: AbstractLieSystem, m0: Float[Array, "3"], h) -> "PreprocessedMoserVeselov":
+    def prepare(
+        self, system: AbstractLieSystem, m0: Float[Array, "3"], h
+    ) -> PreprocessedMoserVeselov:
         """A copy with `h'` and `φ` computed once for step `h` on the trajectory of `m0`."""
         _check_system(system)
         system.check_momentum("m0", m0)

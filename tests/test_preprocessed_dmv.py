@@ -54,7 +54,10 @@ def observed_order(name, order, steps, t=T):
     return slope, errors
 
 
-@pytest.mark.parametrize("order", [6, pytest.param(4, marks=pytest.mark.slow), pytest.param(8, marks=pytest.mark.slow), 10])
+@pytest.mark.parametrize(
+    "order",
+    [6, 10, pytest.param(4, marks=pytest.mark.slow), pytest.param(8, marks=pytest.mark.slow)],
+)
 def test_order(order):
     slope, errors = observed_order("hv", order, STEPS[order])
     assert abs(slope - order) <= ORDER_TOLERANCE, (slope, errors)
@@ -136,7 +139,8 @@ def test_gradient_matches_finite_differences():
     eps = 1e-6
     fd = jnp.stack(
         [
-            (final_momentum(inertia.at[i].add(eps)) - final_momentum(inertia.at[i].add(-eps))) / (2 * eps)
+            (final_momentum(inertia.at[i].add(eps)) - final_momentum(inertia.at[i].add(-eps)))
+            / (2 * eps)
             for i in range(3)
         ]
     )
