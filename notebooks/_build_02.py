@@ -119,7 +119,9 @@ print("S(s) = |y| sin(rho |y|)       :", np.asarray(S))
 
 Error in $\Pi$ at $T$ against the number of steps, for every method (the preprocessing of
 `PreprocessedMoserVeselov` is part of the run). One compiled loop per method serves every
-step count.
+step count. At N = 25 (h = 0.4) the Newton solves of the Moser–Veselov-based methods do not
+all converge on this body (`benchmarks/accuracy.py` reports those points as NaN; here they
+are plotted as they come).
 """),
     code(r"""
 @eqx.filter_jit
@@ -223,12 +225,12 @@ fig.tight_layout()
 ## 5. The stored full benchmark (`benchmarks/accuracy.py`)
 
 Three bodies, every method, wall times, and the cost per step of the preprocessed DMV
-relative to plain DMV, measured in the same run.
+relative to plain DMV, measured in the same run. The figure is
+[`benchmarks/results/accuracy.png`](../benchmarks/results/accuracy.png).
 """),
     code(r"""
 import json
 from pathlib import Path
-from IPython.display import Image, display
 results = Path("..") / "benchmarks" / "results"
 if (results / "accuracy.json").exists():
     data = json.loads((results / "accuracy.json").read_text())
@@ -237,7 +239,7 @@ if (results / "accuracy.json").exists():
     cost = data["cost"]
     print("cost per step / plain DMV: " + ", ".join(
         f"{k} {v['ratio_to_MV']:.2f}" for k, v in cost.items() if k.startswith("pDMV")))
-    display(Image(filename=str(results / "accuracy.png")))
+    print("figure: benchmarks/results/accuracy.png")
 else:
     print("run `python benchmarks/accuracy.py` to produce the stored results")
 """),
