@@ -136,9 +136,8 @@ def test_bad_input():
 def test_float32_run():
     body, g0, m0 = hlw_problem()
     body32 = lievi.RigidBody(body.inertia.astype(jnp.float32))
-    sol32 = lievi.simulate(
-        body32, SPLIT, g0.astype(jnp.float32), m0.astype(jnp.float32), h=np.float32(H), n_steps=STEPS
-    )
+    g32, m32 = g0.astype(jnp.float32), m0.astype(jnp.float32)
+    sol32 = lievi.simulate(body32, SPLIT, g32, m32, h=np.float32(H), n_steps=STEPS)
     sol64 = lievi.simulate(body, SPLIT, g0, m0, h=H, n_steps=STEPS)
     assert sol32.m.dtype == jnp.float32 and sol32.g.dtype == jnp.float32
     assert sol32.result == lievi.RESULTS.successful
