@@ -83,7 +83,7 @@ def dep_on_group(system, integrator, g0, m0, h, n_steps):
     return g, jnp.maximum(worst, jnp.max(residuals))
 
 
-@pytest.mark.parametrize("case", ["hlw", "so4"])
+@pytest.mark.parametrize("case", ["hlw", pytest.param("so4", marks=pytest.mark.slow)])
 def test_theorem_5_1_dep_equals_moser_veselov(case):
     if case == "hlw":
         body, g0, m0 = hlw_problem()

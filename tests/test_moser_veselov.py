@@ -94,12 +94,13 @@ def observed_order(system, g0, m0, T, hs):
 
 
 def test_second_order_on_hlw():
-    """Against DOP853 (rtol 1e-13), T = 2, h = 0.1 … 0.0125: measured 2.000."""
+    """Against DOP853 (rtol 1e-13), T = 2, h = 0.1 … 0.025 (measured 2.004 down to 0.0125)."""
     body, g0, m0 = hlw_problem()
-    order, errors = observed_order(body, g0, m0, 2.0, [0.1 / 2**k for k in range(4)])
+    order, errors = observed_order(body, g0, m0, 2.0, [0.1 / 2**k for k in range(3)])
     assert abs(order - 2) <= 0.1, (order, errors)
 
 
+@pytest.mark.slow
 def test_second_order_on_so4():
     body, g0, m0 = random_generalized_body(np.random.default_rng(4), 4)
     order, errors = observed_order(body, g0, m0, 1.0, [0.05 / 2**k for k in range(3)])

@@ -37,10 +37,11 @@ def observed_order(system, g0, m0, T, hs):
 
 def test_second_order_on_hlw():
     body, g0, m0 = hlw_problem()
-    order, errors = observed_order(body, g0, m0, 2.0, [0.1 / 2**k for k in range(4)])
+    order, errors = observed_order(body, g0, m0, 2.0, [0.1 / 2**k for k in range(3)])
     assert abs(order - 2) <= ORDER_TOLERANCE, (order, errors)
 
 
+@pytest.mark.slow
 def test_second_order_on_so4():
     body, g0, m0 = random_generalized_body(np.random.default_rng(4), 4)
     order, errors = observed_order(body, g0, m0, 1.0, [0.05 / 2**k for k in range(3)])
@@ -135,9 +136,8 @@ def test_bad_input():
 def test_float32_run():
     body, g0, m0 = hlw_problem()
     body32 = lievi.RigidBody(body.inertia.astype(jnp.float32))
-    sol32 = lievi.simulate(
-        body32, SPLIT, g0.astype(jnp.float32), m0.astype(jnp.float32), h=np.float32(H), n_steps=STEPS
-    )
+    g32, m32 = g0.astype(jnp.float32), m0.astype(jnp.float32)
+    sol32 = lievi.simulate(body32, SPLIT, g32, m32, h=np.float32(H), n_steps=STEPS)
     sol64 = lievi.simulate(body, SPLIT, g0, m0, h=H, n_steps=STEPS)
     assert sol32.m.dtype == jnp.float32 and sol32.g.dtype == jnp.float32
     assert sol32.result == lievi.RESULTS.successful
