@@ -189,3 +189,17 @@ def test_bad_input():
         lievi.PreprocessedMoserVeselov(6).prepare(son, jnp.zeros(6), 0.1)
     with pytest.raises(ValueError, match="m0"):
         lievi.PreprocessedMoserVeselov(6).prepare(lievi.RigidBody(BODIES["hv"]), jnp.zeros(4), 0.1)
+
+
+@pytest.mark.slow
+def test_float32():
+    """The whole pipeline (series, Newton, rotation) runs in float32 and stays close."""
+    finals = {}
+    for dtype in (jnp.float32, jnp.float64):
+        body = lievi.RigidBody(BODIES["hv"].astype(dtype))
+        m0, h = Y0.astype(dtype), jnp.asarray(0.05, dtype)
+        integrator = lievi.PreprocessedMoserVeselov(6).prepare(body, m0, h)
+        sol = lievi.simulate(body, integrator, jnp.eye(3, dtype=dtype), m0, h=h, n_steps=200)
+        assert sol.m.dtype == dtype and sol.result == lievi.RESULTS.successful
+        finals[dtype] = sol.m[-1]
+    np.testing.assert_allclose(finals[jnp.float32], finals[jnp.float64], atol=1e-4)
