@@ -40,6 +40,7 @@ well defined and is used unchanged.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
@@ -82,14 +83,18 @@ def _check_pair_sums(method: str, system) -> None:
     """Eagerly reject `Λᵢ + Λⱼ ≤ 0` (a system built around its own checks, e.g. by tree_at)."""
     if isinstance(system, GeneralizedRigidBody):
         if is_concrete(system.Lambda):
-            pair_sums = np.asarray(system.plane_inertia)
+            # Evaluated now even inside a trace that closed over a concrete system.
+            with jax.ensure_compile_time_eval():
+                pair_sums = np.asarray(system.plane_inertia)
             if np.any(pair_sums <= 0):
                 raise ValueError(
                     f"{method}: `Lambda` must satisfy Λᵢ + Λⱼ > 0 for all i ≠ j; smallest "
                     f"pair sum is {pair_sums.min():.3g}."
                 )
     elif is_concrete(system.inertia):
-        eigenvalues = np.linalg.eigvalsh(np.asarray(system.inertia_tensor, float))
+        with jax.ensure_compile_time_eval():
+            inertia_tensor = np.asarray(system.inertia_tensor, float)
+        eigenvalues = np.linalg.eigvalsh(inertia_tensor)
         if np.any(eigenvalues <= 0):
             raise ValueError(
                 f"{method}: the inertia must be positive definite (Λᵢ + Λⱼ > 0); got "

@@ -33,8 +33,7 @@ def final_state(system, integrator, g0, m0, h, n):
     return jax.lax.fori_loop(0, n, body, (g0, m0))
 
 
-# Jitted: the system is then traced, as under `simulate` (an eager `scan` over stages would
-# see a concrete inertia inside a trace).
+# Jitted: the system is then traced, as under `simulate`.
 step = eqx.filter_jit(lambda integrator, system, g, m, h: integrator.step(system, g, m, h))
 
 
@@ -208,3 +207,13 @@ def test_bad_input():
     # RK4 is neither symmetric nor of order 2.
     with pytest.raises(ValueError, match="symmetric"):
         lievi.Composition(lievi.RK4(), 4)
+
+
+@pytest.mark.parametrize("inner", [lievi.MoserVeselov(), lievi.LiePoissonSplitting()])
+def test_eager_step_with_concrete_system(inner):
+    # An eager step runs the stages in a `lax.scan` that closes over a concrete system:
+    # the inner method's input checks must still evaluate (not fail on a tracer).
+    body, g0, m0 = hlw_problem()
+    g, m, info = lievi.Composition(inner).step(body, g0, m0, 0.1)
+    assert int(info.result) == int(lievi.RESULTS.successful)
+    np.testing.assert_allclose(np.linalg.norm(m), np.linalg.norm(m0), rtol=1e-12)
