@@ -33,6 +33,8 @@ INTEGRATORS: tuple[tuple[str, lievi.AbstractIntegrator], ...] = (
     ("Moser–Veselov", lievi.MoserVeselov()),
     ("Lie–Poisson splitting", lievi.LiePoissonSplitting()),
     ("RK4 (non-geometric)", lievi.RK4()),
+    ("Composition(MV), order 6", lievi.Composition(lievi.MoserVeselov(), order=6)),
+    ("preprocessed DMV, order 6", lievi.PreprocessedMoserVeselov(order=6)),
 )
 
 # The HLW problem (NOTES §4).

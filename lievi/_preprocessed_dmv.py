@@ -229,7 +229,16 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
         if self.h_modified is None:
             h_mod, angle = preprocessing(system, m, h, self.order_)
         else:
+            # The prepared series belong to one step size: a different `h` would silently
+            # give a low-order (wrong-time) step, so it is an error, also under `jit`.
+            h = eqx.error_if(
+                jnp.asarray(h, m.dtype),
+                jnp.abs(h - self.h_prepared) > 1e-12 * jnp.abs(self.h_prepared),
+                "PreprocessedMoserVeselov was prepared for another step size `h`: call "
+                "`.prepare(system, m0, h)` with the `h` you simulate with.",
+            )
             h_mod, angle = self.h_modified.astype(m.dtype), self.angle.astype(m.dtype)
+            h_mod = h_mod + 0 * h  # keeps the check in the computation graph
         g_next, m_next, info = self.method.step(system, g, m, h_mod)
         norm = jnp.sqrt(jnp.dot(m_next, m_next))
         safe_norm = jnp.where(norm > 0, norm, 1.0)

@@ -191,6 +191,17 @@ def test_bad_input():
         lievi.PreprocessedMoserVeselov(6).prepare(lievi.RigidBody(BODIES["hv"]), jnp.zeros(4), 0.1)
 
 
+
+def test_prepared_for_another_step_size_is_an_error():
+    # The series of a prepared integrator belong to one h; another h must not run silently.
+    body = lievi.RigidBody(BODIES["hv"])
+    prepared = lievi.PreprocessedMoserVeselov(6).prepare(body, Y0, 0.1)
+    solution = lievi.simulate(body, prepared, jnp.eye(3), Y0, h=0.1, n_steps=3)
+    assert int(solution.result) == int(lievi.RESULTS.successful)
+    with pytest.raises(Exception, match="prepared for another step size"):
+        lievi.simulate(body, prepared, jnp.eye(3), Y0, h=0.05, n_steps=3)
+
+
 @pytest.mark.slow
 def test_float32():
     """The whole pipeline (series, Newton, rotation) runs in float32 and stays close."""
