@@ -27,6 +27,7 @@ whose gradient is zero; the count of failed samples is reported at every iterati
 
 from __future__ import annotations
 
+import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -242,14 +243,26 @@ def fit_inertia(
         horizons=horizons,
         weights=(float(orientation_weight), float(velocity_weight)),
     )
-    fit = lambda *args: _fit_one(*args, **static)  # noqa: E731
-    for _ in batch_shape:
-        fit = jax.vmap(fit)
-    return _run(fit, jnp.asarray(theta0, dtype), orientations, angular_velocities, m0, g0, trace, jnp.asarray(h, dtype))
+    return _run(
+        tuple(sorted(static.items())),
+        len(batch_shape),
+        jnp.asarray(theta0, dtype),
+        orientations,
+        angular_velocities,
+        m0,
+        g0,
+        trace,
+        jnp.asarray(h, dtype),
+    )
 
 
 @eqx.filter_jit
-def _run(fit, *args):
+def _run(static: tuple, n_batch: int, *args):
+    # `static` (hashable: integrator, flags, optimiser) and `n_batch` are compile-time
+    # constants, so repeated fits of the same shapes reuse one compilation.
+    fit = functools.partial(_fit_one, **dict(static))
+    for _ in range(n_batch):  # every argument but h carries the batch axes
+        fit = jax.vmap(fit, in_axes=(0, 0, 0, 0, 0, 0, None))
     return fit(*args)
 
 
@@ -350,7 +363,8 @@ def _fit_one(
     if g0_known is None:
         params["g0_chart"] = jnp.zeros(3, dtype)
 
-    if isinstance(optimizer, str) and optimizer == "lbfgs":
+    use_lbfgs = isinstance(optimizer, str) and optimizer == "lbfgs"
+    if use_lbfgs:
         opt = optax.lbfgs()
 
         def update(params, state, horizon):
@@ -408,7 +422,14 @@ def _fit_one(
         fresh = opt.init(params)
         opt_state = jax.tree.map(lambda a, b: jnp.where(advance, a, b), fresh, opt_state)
         params, opt_state = update(params, opt_state, horizon_of[stage])
-        value, failed, _, gnorm = measure(params, stage)
+        if use_lbfgs:
+            # The line search already evaluated loss and gradient at the accepted point.
+            value = optax.tree.get(opt_state, "value")
+            grad = optax.tree.get(opt_state, "grad")
+            gnorm = jnp.max(jnp.stack([jnp.max(jnp.abs(g)) for g in jax.tree.leaves(grad)]))
+            failed = loss_terms(params, horizon_of[stage])[1][0].astype(jnp.int32)
+        else:
+            value, failed, _, gnorm = measure(params, stage)
         it = it + 1
         return (
             params,
