@@ -140,8 +140,8 @@ def fit_inertia(
     max_iters: int = 500,
     gtol: float | None = None,
     horizons: tuple[int, ...] | None = None,
-    orientation_weight: float = 1.0,
-    velocity_weight: float = 1.0,
+    orientation_weight=1.0,
+    velocity_weight=1.0,
 ) -> InertiaFit:
     """Fit the inertia (and Π₀, g₀ when unknown) of rigid bodies to observations.
 
@@ -175,7 +175,9 @@ def fit_inertia(
       each stage started from the previous one's solution and run until
       `‖∇loss‖_∞ ≤ √gtol` (the last stage: `gtol`). Default: 4, 8, 16, … up to `S`. One
       compilation for all stages (the stage only changes a mask).
-    - `orientation_weight`, `velocity_weight`: `w_R`, `w_Ω` of the loss.
+    - `orientation_weight`, `velocity_weight`: `w_R`, `w_Ω` of the loss: scalars, or one
+      weight per sample, shape `(S,)` or `(*batch, S)`. With Gaussian noise of known size
+      `σ_k` on sample `k`, `w_k = 1/σ_k²` makes the fit the maximum-likelihood estimate.
 
     **Returns:** an `InertiaFit`.
     """
@@ -205,10 +207,19 @@ def fit_inertia(
     m0 = None if m0 is None else _batched("m0", m0, batch_shape, (3,))
     g0 = None if g0 is None else _batched("g0", g0, batch_shape, (3, 3))
     trace = None if trace is None else _batched("trace", trace, batch_shape, ())
+    weights = []
+    for name, w in (("orientation_weight", orientation_weight), ("velocity_weight", velocity_weight)):
+        w = jnp.broadcast_to(w, (n_samples,)) if jnp.ndim(w) == 0 else w
+        w = _batched(name, w, batch_shape, (n_samples,))
+        check_finite(name, w)
+        if is_concrete(w) and np.any(np.asarray(w) < 0):
+            raise ValueError(f"`{name}` must be ≥ 0.")
+        weights.append(w)
 
     dtype = jnp.result_type(*[x for x in (orientations, angular_velocities, inertia, m0, g0, h) if x is not None], float)
     cast = lambda x: None if x is None else jnp.asarray(x, dtype)  # noqa: E731
     orientations, angular_velocities, m0, g0, trace = map(cast, (orientations, angular_velocities, m0, g0, trace))
+    weights = tuple(map(cast, weights))
     if not is_concrete(inertia):
         raise ValueError("`inertia` (the initial guess) must be a concrete array, not traced.")
     check_finite("inertia", inertia)
@@ -241,7 +252,6 @@ def fit_inertia(
         max_iters=int(max_iters),
         gtol=float(gtol),
         horizons=horizons,
-        weights=(float(orientation_weight), float(velocity_weight)),
     )
     return _run(
         tuple(sorted(static.items())),
@@ -252,6 +262,7 @@ def fit_inertia(
         m0,
         g0,
         trace,
+        weights,
         jnp.asarray(h, dtype),
     )
 
@@ -262,7 +273,7 @@ def _run(static: tuple, n_batch: int, *args):
     # constants, so repeated fits of the same shapes reuse one compilation.
     fit = functools.partial(_fit_one, **dict(static))
     for _ in range(n_batch):  # every argument but h carries the batch axes
-        fit = jax.vmap(fit, in_axes=(0, 0, 0, 0, 0, 0, None))
+        fit = jax.vmap(fit, in_axes=(0, 0, 0, 0, 0, 0, 0, None))
     return fit(*args)
 
 
@@ -295,6 +306,7 @@ def _fit_one(
     m0_known,
     g0_known,
     trace,
+    weights,
     h,
     *,
     integrator,
@@ -307,11 +319,10 @@ def _fit_one(
     max_iters,
     gtol,
     horizons,
-    weights,
 ):
     dtype = theta0.dtype
     n_steps = (n_samples - 1) * sample_every
-    w_orientation, w_velocity = weights
+    w_orientation, w_velocity = weights  # per sample, (S,)
 
     def inertia_of(params):
         inertia = _to_inertia(params["theta"], tensor, realisable)
@@ -335,21 +346,23 @@ def _fit_one(
             body, integrator, g0_of(params), m0_of(params), h=h, n_steps=n_steps, save_every=sample_every, throw=False
         )
         valid = jnp.all(jnp.isfinite(sol.m), axis=-1)
-        weight = counted / jnp.sum(counted)  # mean over the samples of this stage
+        counted = counted.astype(dtype)
         total = jnp.zeros((), dtype)
         if orientations is not None:
             # double where: a failed (NaN) sample never enters arithmetic, so no NaN gradient
             g = jnp.where(valid[:, None, None], sol.g, orientations)
             err = jnp.sum((g - orientations) ** 2, axis=(-2, -1))
-            total = total + w_orientation * jnp.sum(weight * jnp.where(valid, err, _ORIENTATION_PENALTY))
+            weight = w_orientation * counted / jnp.sum(counted)  # weighted mean over this stage
+            total = total + jnp.sum(weight * jnp.where(valid, err, _ORIENTATION_PENALTY))
         if angular_velocities is not None:
             m = jnp.where(valid[:, None], sol.m, 0.0)
             omega = jax.vmap(body.velocity)(m)
             omega = jnp.where(valid[:, None], omega, angular_velocities)
             err = jnp.sum((omega - angular_velocities) ** 2, axis=-1)
             penalty = 4 * jnp.max(jnp.sum(angular_velocities**2, axis=-1))
-            total = total + w_velocity * jnp.sum(weight * jnp.where(valid, err, penalty))
-        return total, (jnp.sum(~valid & counted), sol.result)
+            weight = w_velocity * counted / jnp.sum(counted)
+            total = total + jnp.sum(weight * jnp.where(valid, err, penalty))
+        return total, (jnp.sum(~valid & (counted > 0)), sol.result)
 
     # Initial parameters. Unknown Π₀: from the first two samples, Π₀ ≈ I·Ω₀.
     params = {"theta": theta0}
