@@ -4,8 +4,11 @@ For the HLW rigid body (float64, exp-chart DEP, h = 0.01) and N steps, a traject
 (fixed weights on 10 saved states) is differentiated with respect to the inertia, Π₀ and h.
 Measured in the same run, for each N:
 
-- forward time (jit of the loss) and gradient time (jit of `value_and_grad`), best of 3
-  after a warm-up (compile time apart), with and without `checkpoint=True`;
+- forward cost (jit of the loss) and gradient cost (jit of `value_and_grad`), with and
+  without `checkpoint=True`, as process CPU time (wall time recorded too): best of 7
+  rounds, the three measured in turn in each round, after a warm-up, compile time apart.
+  CPU time, because the machine this was written on is shared and loaded: time slices
+  lost to other processes inflate wall times at random, not the CPU time of this one;
 - their ratio, the acceptance figure (≤ 5 at N = 1e4);
 - memory: XLA's own account of the compiled executable, `memory_analysis()`
   (`temp_size_in_bytes`: the scratch the executable allocates, which is where the stored
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import platform
 import time
@@ -59,14 +63,22 @@ def make_loss(n_steps: int, checkpoint):
     return loss
 
 
-def best_time(fn, arg, repeats=3):
-    jax.block_until_ready(fn(arg))  # warm-up (and compile, if not yet)
-    best = np.inf
+def best_times(fns, arg, repeats=7):
+    """Best wall and CPU time of each function, measured in interleaved rounds so that load
+    from other processes on a shared machine hits every function alike. The cost ratios use
+    the process CPU time (`time.process_time`), which time slices lost to other processes do
+    not inflate; the wall times are recorded too."""
+    for fn in fns:
+        jax.block_until_ready(fn(arg))  # warm-up
+    wall = [np.inf] * len(fns)
+    cpu = [np.inf] * len(fns)
     for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(arg))
-        best = min(best, time.perf_counter() - start)
-    return best
+        for i, fn in enumerate(fns):
+            start_wall, start_cpu = time.perf_counter(), time.process_time()
+            jax.block_until_ready(fn(arg))
+            wall[i] = min(wall[i], time.perf_counter() - start_wall)
+            cpu[i] = min(cpu[i], time.process_time() - start_cpu)
+    return wall, cpu
 
 
 def compiled(fn, arg):
@@ -84,15 +96,19 @@ def measure(n_steps: int):
     }
     row = {"n_steps": n_steps}
     forward, row["compile_forward_s"], row["temp_bytes_forward"] = compiled(make_loss(n_steps, False), params)
-    row["forward_s"] = best_time(forward, params)
-    values = {}
+    grads = {}
     for name, checkpoint in (("plain", False), ("checkpoint", True)):
-        grad, row[f"compile_grad_{name}_s"], row[f"temp_bytes_grad_{name}"] = compiled(
+        grads[name], row[f"compile_grad_{name}_s"], row[f"temp_bytes_grad_{name}"] = compiled(
             jax.value_and_grad(make_loss(n_steps, checkpoint)), params
         )
-        row[f"grad_{name}_s"] = best_time(grad, params)
+    wall, cpu = best_times([forward, grads["plain"], grads["checkpoint"]], params)
+    row["forward_s"], row["grad_plain_s"], row["grad_checkpoint_s"] = cpu
+    row["forward_wall_s"], row["grad_plain_wall_s"], row["grad_checkpoint_wall_s"] = wall
+    values = {}
+    for name in grads:
         row[f"ratio_{name}"] = row[f"grad_{name}_s"] / row["forward_s"]
-        values[name] = grad(params)
+        row[f"ratio_{name}_wall"] = row[f"grad_{name}_wall_s"] / row["forward_wall_s"]
+        values[name] = grads[name](params)
     # Same numbers either way (the test suite checks this too).
     row["checkpoint_grad_max_rel_diff"] = float(
         max(
@@ -135,12 +151,13 @@ def main():
     parser.add_argument("--quick", action="store_true", help="only N = 1e3 and 1e4")
     args = parser.parse_args()
     sizes = [1_000, 10_000] if args.quick else [1_000, 3_000, 10_000, 30_000, 100_000]
+    load_before = os.getloadavg()  # a shared machine: other processes inflate both times
     rows = []
     for n in sizes:
         row = measure(n)
         rows.append(row)
         print(
-            f"N = {n:>6d}: forward {row['forward_s'] * 1e3:8.1f} ms | gradient {row['ratio_plain']:.2f}× "
+            f"N = {n:>6d}: forward {row['forward_s'] * 1e3:8.1f} ms CPU | gradient {row['ratio_plain']:.2f}× "
             f"(checkpoint {row['ratio_checkpoint']:.2f}×) | temp memory: forward "
             f"{row['temp_bytes_forward'] / 2**20:7.2f} MiB, gradient {row['temp_bytes_grad_plain'] / 2**20:8.2f} MiB, "
             f"checkpointed {row['temp_bytes_grad_checkpoint'] / 2**20:7.2f} MiB",
@@ -157,11 +174,16 @@ def main():
         "jax": jax.__version__,
         "quick": args.quick,
         "memory_source": "compiled executable memory_analysis().temp_size_in_bytes",
+        "timing": "process CPU time (wall time in *_wall_s): best of 7 interleaved rounds after a warm-up, compile excluded",
+        "cpu_count": os.cpu_count(),
+        "load_average_before": load_before,
+        "load_average_after": os.getloadavg(),
         "rows": rows,
     }
     suffix = "_quick" if args.quick else ""
     (RESULTS / f"gradients{suffix}.json").write_text(json.dumps(out, indent=2))
     plot(rows, RESULTS / f"gradients{suffix}.png")
+    print(f"load average before {load_before}, after {os.getloadavg()} ({os.cpu_count()} CPUs)")
     print(f"wrote {RESULTS / f'gradients{suffix}.json'} and .png")
 
 
