@@ -82,9 +82,14 @@ INTEGRATORS = {
 
 
 # The Cayley chart shares all code paths but the chart; its copies are `slow` (compile time).
-# Moser–Veselov has its own Newton solve (on a quadratic equation), so it runs by default.
+# So are Moser–Veselov's, but for the finite-difference check below, which runs by default.
 @pytest.fixture(
-    scope="module", params=["exp", pytest.param("cayley", marks=pytest.mark.slow), "moser-veselov"]
+    scope="module",
+    params=[
+        "exp",
+        pytest.param("cayley", marks=pytest.mark.slow),
+        pytest.param("moser-veselov", marks=pytest.mark.slow),
+    ],
 )
 def compiled(request):
     dep = INTEGRATORS[request.param]
@@ -123,6 +128,16 @@ def test_gradient_matches_finite_differences(compiled):
     params = _params()
     ad = _flat(grad(params))
     fd = _finite_difference(loss, params)
+    assert np.all(np.isfinite(ad))
+    np.testing.assert_allclose(ad, fd, rtol=FD_RTOL, atol=FD_RTOL * np.max(np.abs(ad)))
+
+
+def test_moser_veselov_gradient_matches_finite_differences():
+    """Implicit differentiation through Moser–Veselov's own Newton solve (default suite)."""
+    mv = INTEGRATORS["moser-veselov"]
+    params = _params()
+    ad = _flat(jax.jit(jax.grad(lambda p: _loss(p, mv)))(params))
+    fd = _finite_difference(jax.jit(lambda p: _loss(p, mv)), params)
     assert np.all(np.isfinite(ad))
     np.testing.assert_allclose(ad, fd, rtol=FD_RTOL, atol=FD_RTOL * np.max(np.abs(ad)))
 
