@@ -215,6 +215,7 @@ def test_gradient_finite_at_zero_momentum_float32(chart):
     _check_zero_momentum_gradient(grads, f32)
 
 
+@pytest.mark.slow  # the default suite runs vmap of grad through simulate in test_identification
 def test_gradient_under_vmap(compiled):
     """`vmap` of `grad` over a batch of bodies equals the per-body gradients."""
     dep, _, grad = compiled
