@@ -10,6 +10,8 @@ from . import diagnostics as diagnostics
 from ._composition import Composition as Composition
 from ._dep import DEP as DEP
 from ._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
+from ._identification import InertiaFit as InertiaFit
+from ._identification import fit_inertia as fit_inertia
 from ._group_base import MatrixLieGroup as MatrixLieGroup
 from ._integrator_base import AbstractIntegrator as AbstractIntegrator
 from ._integrator_base import AbstractVariationalIntegrator as AbstractVariationalIntegrator

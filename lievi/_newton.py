@@ -61,6 +61,10 @@ def newton_solve(
 
         jac, r = _jacobian_and_value(f, guess)
         x, r, _, it = jax.lax.while_loop(cond, body, (guess, r, jac, jnp.array(0, jnp.int32)))
+        # A diverged solve (reported through the residual) hands back the finite guess:
+        # the implicit derivative is then evaluated at a finite point, so a failed step
+        # whose output is masked contributes 0, not NaN, to a gradient.
+        x = jnp.where(jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(r)), x, guess)
         # Auxiliary outputs stay floating point: custom_root gives them (zero) tangents,
         # which an integer output cannot carry.
         return x, (it.astype(r.dtype), jnp.max(jnp.abs(r)))

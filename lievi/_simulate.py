@@ -64,6 +64,7 @@ def simulate(
     g1: Float[Array, "n n"] | None = None,
     t0=0.0,
     throw: bool = True,
+    checkpoint: bool | int = False,
 ) -> Solution:
     """Integrate `system` with `integrator` from `(g0, m0)` for `n_steps` steps of size `h`.
 
@@ -83,6 +84,13 @@ def simulate(
     - `t0`: initial time.
     - `throw`: if a step fails (see `RESULTS`), raise an error saying what to do; with
       `throw=False` the failure is returned in `Solution.result` instead.
+    - `checkpoint`: memory of reverse-mode differentiation (`jax.grad`). `False` (default)
+      stores every step's internals, O(`n_steps`) memory. `True` splits the run into
+      segments of about √`n_steps` steps, each wrapped in `jax.checkpoint`: the backward
+      pass stores only the state at segment boundaries and recomputes one segment at a
+      time, O(√`n_steps`) memory for one extra forward pass. An `int` sets the segment
+      length in steps; it must divide `save_every` or be a multiple of it that divides
+      `n_steps`. No effect on values or on forward-mode derivatives.
 
     **Returns:** a `Solution`.
 
@@ -106,6 +114,7 @@ def simulate(
         g0, g1 = jnp.asarray(g0, dtype), jnp.asarray(g1, dtype)
         m0 = integrator.momentum_from_configurations(system, g0, g1, jnp.asarray(h, dtype))
     system.check_momentum("m0", m0)
+    segment = _checkpoint_segment(checkpoint, n_steps, save_every)
     dtype = jnp.result_type(g0, m0, h, float)
     solution = _simulate(
         system,
@@ -116,6 +125,7 @@ def simulate(
         jnp.asarray(t0, dtype),
         n_steps,
         save_every,
+        segment,
     )
     if throw:
         result = eqx.branched_error_if(
@@ -132,8 +142,45 @@ def simulate(
     return solution
 
 
+def _checkpoint_segment(checkpoint, n_steps: int, save_every: int) -> int | None:
+    """Steps per `jax.checkpoint`-ed segment, or `None` for no checkpointing."""
+    if checkpoint is False or checkpoint is None:
+        return None
+    # A segment either lies inside one save interval or spans whole save intervals.
+    n_saves = n_steps // save_every
+    allowed = sorted(
+        {d for d in range(1, save_every + 1) if save_every % d == 0}
+        | {save_every * d for d in range(1, n_saves + 1) if n_saves % d == 0}
+    )
+    if checkpoint is True:
+        # √N segments of √N steps minimise stored states + one segment's internals.
+        return min(allowed, key=lambda c: abs(np.log(c) - 0.5 * np.log(n_steps)))
+    if isinstance(checkpoint, bool) or not isinstance(checkpoint, (int, np.integer)) or checkpoint not in allowed:
+        raise ValueError(
+            f"`checkpoint` must be True, False, or a segment length in steps that divides "
+            f"`save_every` ({save_every}) or is a multiple of it dividing `n_steps` ({n_steps}); "
+            f"got {checkpoint!r}. Pass checkpoint=True to choose one near √n_steps."
+        )
+    return int(checkpoint)
+
+
+def _scan_in_segments(body, carry, length: int, segment: int | None):
+    """`lax.scan(body, carry, None, length)`, in `jax.checkpoint`-ed chunks of `segment`."""
+    if segment is None or segment >= length:
+        return jax.lax.scan(body, carry, None, length=length)
+
+    @jax.checkpoint
+    def chunk(carry, _):
+        return jax.lax.scan(body, carry, None, length=segment)
+
+    carry, ys = jax.lax.scan(chunk, carry, None, length=length // segment)
+    return carry, jax.tree.map(lambda y: y.reshape((length,) + y.shape[2:]), ys)
+
+
 @eqx.filter_jit
-def _simulate(system, integrator, g0, m0, h, t0, n_steps: int, save_every: int) -> Solution:
+def _simulate(
+    system, integrator, g0, m0, h, t0, n_steps: int, save_every: int, segment: int | None = None
+) -> Solution:
     nan = jnp.asarray(jnp.nan, m0.dtype)
 
     def one_step(carry, _):
@@ -143,22 +190,28 @@ def _simulate(system, integrator, g0, m0, h, t0, n_steps: int, save_every: int) 
         failed_step = jnp.where(newly_failed, k, failed_step)
         result = RESULTS.first_failure(result, info.result)
         ok = result == RESULTS.successful
-        # After a failure the state is NaN: no silent numbers past the failed step.
-        g_next = jnp.where(ok, g_next, nan)
-        m_next = jnp.where(ok, m_next, nan)
+        # After a failure the carried state stays at the last good one: later steps then
+        # run on finite numbers, so their (unused) derivatives are finite and a failure
+        # cannot turn the gradient of a masked loss into NaN. The saved state is NaN.
+        g_next = jnp.where(ok, g_next, g)
+        m_next = jnp.where(ok, m_next, m)
         return (g_next, m_next, result, failed_step, k + 1), (info.iterations, info.residual)
 
+    inner = segment if segment is not None and segment < save_every else None
+    outer = segment // save_every if segment is not None and segment > save_every else None
+
     def one_save(carry, _):
-        carry, (iterations, residuals) = jax.lax.scan(one_step, carry, None, length=save_every)
-        g, m = carry[0], carry[1]
+        carry, (iterations, residuals) = _scan_in_segments(one_step, carry, save_every, inner)
+        g, m, result = carry[0], carry[1], carry[2]
+        # No silent numbers past the failed step.
+        ok = result == RESULTS.successful
+        g, m = jnp.where(ok, g, nan), jnp.where(ok, m, nan)
         return carry, (g, m, jnp.max(iterations), jnp.sum(iterations), jnp.max(residuals))
 
     int32 = jnp.int32
     init = (g0, m0, jnp.asarray(RESULTS.successful, int32), jnp.asarray(-1, int32), jnp.asarray(0, int32))
     n_saves = n_steps // save_every
-    final, (gs, ms, iterations, total, residuals) = jax.lax.scan(
-        one_save, init, None, length=n_saves
-    )
+    final, (gs, ms, iterations, total, residuals) = _scan_in_segments(one_save, init, n_saves, outer)
     _, _, result, failed_step, _ = final
     ts = t0 + h * save_every * jnp.arange(n_saves + 1, dtype=m0.dtype)
     stats = {

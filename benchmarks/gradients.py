@@ -1,0 +1,191 @@
+"""Cost and memory of reverse-mode gradients through `simulate`, against the number of steps.
+
+For the HLW rigid body (float64, exp-chart DEP, h = 0.01) and N steps, a trajectory loss
+(fixed weights on 10 saved states) is differentiated with respect to the inertia, Π₀ and h.
+Measured in the same run, for each N:
+
+- forward cost (jit of the loss) and gradient cost (jit of `value_and_grad`), with and
+  without `checkpoint=True`, as process CPU time (wall time recorded too): best of 7
+  rounds, the three measured in turn in each round, after a warm-up, compile time apart.
+  CPU time, because the machine this was written on is shared and loaded: time slices
+  lost to other processes inflate wall times at random, not the CPU time of this one;
+- their ratio, the acceptance figure (≤ 5 at N = 1e4);
+- memory: XLA's own account of the compiled executable, `memory_analysis()`
+  (`temp_size_in_bytes`: the scratch the executable allocates, which is where the stored
+  residuals of reverse mode live), for the forward and both gradients.
+
+Writes `benchmarks/results/gradients.json` and `benchmarks/results/gradients.png`.
+
+    python benchmarks/gradients.py           # N = 1e3, 3e3, 1e4, 3e4, 1e5 (several minutes)
+    python benchmarks/gradients.py --quick   # N = 1e3, 1e4
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import lievi  # noqa: E402
+
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+H = 0.01
+N_SAVES = 10
+
+
+def make_loss(n_steps: int, checkpoint):
+    weights_g = jnp.asarray(np.random.default_rng(0).normal(size=(N_SAVES + 1, 3, 3)))
+    weights_m = jnp.asarray(np.random.default_rng(1).normal(size=(N_SAVES + 1, 3)))
+
+    def loss(params):
+        sol = lievi.simulate(
+            lievi.RigidBody(params["inertia"]),
+            lievi.DEP(),
+            jnp.eye(3),
+            params["m0"],
+            h=params["h"],
+            n_steps=n_steps,
+            save_every=n_steps // N_SAVES,
+            throw=False,
+            checkpoint=checkpoint,
+        )
+        return jnp.sum(weights_g * sol.g) + jnp.sum(weights_m * sol.m)
+
+    return loss
+
+
+def best_times(fns, arg, repeats=7):
+    """Best wall and CPU time of each function, measured in interleaved rounds so that load
+    from other processes on a shared machine hits every function alike. The cost ratios use
+    the process CPU time (`time.process_time`), which time slices lost to other processes do
+    not inflate; the wall times are recorded too."""
+    for fn in fns:
+        jax.block_until_ready(fn(arg))  # warm-up
+    wall = [np.inf] * len(fns)
+    cpu = [np.inf] * len(fns)
+    for _ in range(repeats):
+        for i, fn in enumerate(fns):
+            start_wall, start_cpu = time.perf_counter(), time.process_time()
+            jax.block_until_ready(fn(arg))
+            wall[i] = min(wall[i], time.perf_counter() - start_wall)
+            cpu[i] = min(cpu[i], time.process_time() - start_cpu)
+    return wall, cpu
+
+
+def compiled(fn, arg):
+    start = time.perf_counter()
+    exe = jax.jit(fn).lower(arg).compile()
+    seconds = time.perf_counter() - start
+    return exe, seconds, exe.memory_analysis().temp_size_in_bytes
+
+
+def measure(n_steps: int):
+    params = {
+        "inertia": jnp.array([2.0, 1.0, 2.0 / 3.0]),
+        "m0": jnp.array([np.cos(1.1), 0.0, np.sin(1.1)]),
+        "h": jnp.asarray(H),
+    }
+    row = {"n_steps": n_steps}
+    forward, row["compile_forward_s"], row["temp_bytes_forward"] = compiled(make_loss(n_steps, False), params)
+    grads = {}
+    for name, checkpoint in (("plain", False), ("checkpoint", True)):
+        grads[name], row[f"compile_grad_{name}_s"], row[f"temp_bytes_grad_{name}"] = compiled(
+            jax.value_and_grad(make_loss(n_steps, checkpoint)), params
+        )
+    wall, cpu = best_times([forward, grads["plain"], grads["checkpoint"]], params)
+    row["forward_s"], row["grad_plain_s"], row["grad_checkpoint_s"] = cpu
+    row["forward_wall_s"], row["grad_plain_wall_s"], row["grad_checkpoint_wall_s"] = wall
+    values = {}
+    for name in grads:
+        row[f"ratio_{name}"] = row[f"grad_{name}_s"] / row["forward_s"]
+        row[f"ratio_{name}_wall"] = row[f"grad_{name}_wall_s"] / row["forward_wall_s"]
+        values[name] = grads[name](params)
+    # Same numbers either way (the test suite checks this too).
+    row["checkpoint_grad_max_rel_diff"] = float(
+        max(
+            jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b))
+            for a, b in zip(jax.tree.leaves(values["checkpoint"]), jax.tree.leaves(values["plain"]))
+        )
+    )
+    return row
+
+
+def plot(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = np.array([r["n_steps"] for r in rows])
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
+    ax1.semilogx(n, [r["ratio_plain"] for r in rows], "o-", label="gradient / forward, plain")
+    ax1.semilogx(n, [r["ratio_checkpoint"] for r in rows], "s-", label="gradient / forward, checkpoint=True")
+    ax1.axhline(5, color="k", ls="--", lw=1, label="acceptance: 5×")
+    ax1.set(xlabel="steps N", ylabel="time ratio", title="Gradient cost relative to the forward pass")
+    ax1.set_ylim(bottom=0)
+    ax1.legend()
+    mib = 2.0**20
+    ax2.loglog(n, [r["temp_bytes_grad_plain"] / mib for r in rows], "o-", label="gradient, plain")
+    ax2.loglog(n, [r["temp_bytes_grad_checkpoint"] / mib for r in rows], "s-", label="gradient, checkpoint=True")
+    ax2.loglog(n, [r["temp_bytes_forward"] / mib for r in rows], "^-", label="forward")
+    ref = rows[0]["temp_bytes_grad_checkpoint"] / mib
+    ax2.loglog(n, ref * np.sqrt(n / n[0]), "k:", lw=1, label="∝ √N")
+    ax2.set(xlabel="steps N", ylabel="MiB (XLA temp allocation)", title="Memory of the compiled executable")
+    ax2.legend()
+    fig.suptitle("HLW rigid body, exp-chart DEP, float64, " + platform.processor() + f" ({jax.devices()[0].platform})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="only N = 1e3 and 1e4")
+    args = parser.parse_args()
+    sizes = [1_000, 10_000] if args.quick else [1_000, 3_000, 10_000, 30_000, 100_000]
+    load_before = os.getloadavg()  # a shared machine: other processes inflate both times
+    rows = []
+    for n in sizes:
+        row = measure(n)
+        rows.append(row)
+        print(
+            f"N = {n:>6d}: forward {row['forward_s'] * 1e3:8.1f} ms CPU | gradient {row['ratio_plain']:.2f}× "
+            f"(checkpoint {row['ratio_checkpoint']:.2f}×) | temp memory: forward "
+            f"{row['temp_bytes_forward'] / 2**20:7.2f} MiB, gradient {row['temp_bytes_grad_plain'] / 2**20:8.2f} MiB, "
+            f"checkpointed {row['temp_bytes_grad_checkpoint'] / 2**20:7.2f} MiB",
+            flush=True,
+        )
+    if len(rows) > 1:
+        n = np.log([r["n_steps"] for r in rows])
+        for name in ("plain", "checkpoint"):
+            slope = np.polyfit(n, np.log([r[f"temp_bytes_grad_{name}"] for r in rows]), 1)[0]
+            print(f"memory growth exponent (log-log slope), {name}: {slope:.2f}")
+    RESULTS.mkdir(exist_ok=True)
+    out = {
+        "device": str(jax.devices()[0]),
+        "jax": jax.__version__,
+        "quick": args.quick,
+        "memory_source": "compiled executable memory_analysis().temp_size_in_bytes",
+        "timing": "process CPU time (wall time in *_wall_s): best of 7 interleaved rounds after a warm-up, compile excluded",
+        "cpu_count": os.cpu_count(),
+        "load_average_before": load_before,
+        "load_average_after": os.getloadavg(),
+        "rows": rows,
+    }
+    suffix = "_quick" if args.quick else ""
+    (RESULTS / f"gradients{suffix}.json").write_text(json.dumps(out, indent=2))
+    plot(rows, RESULTS / f"gradients{suffix}.png")
+    print(f"load average before {load_before}, after {os.getloadavg()} ({os.cpu_count()} CPUs)")
+    print(f"wrote {RESULTS / f'gradients{suffix}.json'} and .png")
+
+
+if __name__ == "__main__":
+    main()
