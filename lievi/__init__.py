@@ -7,6 +7,9 @@ equations*, Nonlinearity 12 (1999) 1647–1662, in JAX.
 from importlib.metadata import PackageNotFoundError, version
 
 from . import diagnostics as diagnostics
+from ._batch import has_fast_path as has_fast_path
+from ._batch import shard_batch as shard_batch
+from ._batch import simulate_batch as simulate_batch
 from ._dep import DEP as DEP
 from ._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
 from ._group_base import MatrixLieGroup as MatrixLieGroup
