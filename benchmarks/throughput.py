@@ -1,0 +1,199 @@
+"""Throughput of batched rigid-body rollouts: body-steps per second against batch size.
+
+Every integrator lievi has for the free rigid body (DEP exp and Cayley charts, and when
+present Moser–Veselov, Lie–Poisson splitting and RK4), run through
+`lievi.simulate_batch` (its structure-of-arrays fast path where there is one), against,
+in the same run and on the same rigid-body ODE (Euler's equations plus `ġ = gΩ̂`),
+diffrax `Tsit5` with a constant step, vmapped — and the naive `jax.vmap(simulate)` DEP
+for reference. Random bodies (inertia and momentum per body), `--steps` steps of size
+0.1, only the final state kept. Compile time is reported separately (first call minus
+the best of the timed calls). The device is the one JAX picks; on a GPU the default
+dtype is float32 only.
+
+    python benchmarks/throughput.py [--quick] [--batches 1 100 10000] [--steps 100]
+                                    [--dtypes float64 float32] [--out throughput]
+
+Writes `benchmarks/results/<out>.json` and `<out>.png`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import pathlib
+import platform
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import lievi  # noqa: E402
+
+H = 0.1
+
+
+def rigid_body_inputs(batch: int, dtype, seed: int = 0):
+    """Random bodies: principal moments in [0.5, 2], unit-scale momenta, random attitudes."""
+    rng = np.random.default_rng(seed)
+    inertia = rng.uniform(0.5, 2.0, size=(batch, 3))
+    m0 = rng.normal(size=(batch, 3))
+    q, r = np.linalg.qr(rng.normal(size=(batch, 3, 3)))
+    q = q * np.sign(np.diagonal(r, axis1=-2, axis2=-1))[:, None, :]
+    q[np.linalg.det(q) < 0, :, 0] *= -1
+    return jnp.asarray(inertia, dtype), jnp.asarray(q, dtype), jnp.asarray(m0, dtype)
+
+
+def lievi_runner(integrator, steps: int, fast: bool = True):
+    def run(inertia, g0, m0):
+        bodies = jax.vmap(lievi.RigidBody)(inertia)
+        sol = lievi.simulate_batch(
+            bodies, integrator, g0, m0, h=jnp.asarray(H, m0.dtype), n_steps=steps,
+            system_axis=0, save=("g", "m"), fast=fast, throw=False,
+        )
+        return sol.g[:, -1], sol.m[:, -1], sol.result
+
+    return jax.jit(run)
+
+
+def diffrax_runner(steps: int):
+    import diffrax
+
+    def field(t, y, inertia):
+        Pi, g = y
+        omega = Pi / inertia
+        return jnp.cross(Pi, omega), g @ lievi.SO3.hat(omega)
+
+    def one(inertia, g0, m0):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(field), diffrax.Tsit5(), t0=0.0, t1=steps * H, dt0=H,
+            y0=(m0, g0), args=inertia, stepsize_controller=diffrax.ConstantStepSize(),
+            saveat=diffrax.SaveAt(t1=True), max_steps=steps,
+        )
+        return sol.ys[1][-1], sol.ys[0][-1], sol.result._value
+
+    return jax.jit(jax.vmap(one))
+
+
+def methods(steps: int):
+    rows = {
+        "DEP exp": lievi_runner(lievi.DEP(chart="exp"), steps),
+        "DEP cayley": lievi_runner(lievi.DEP(chart="cayley"), steps),
+    }
+    for name, cls in (("Moser-Veselov", "MoserVeselov"), ("splitting", "LiePoissonSplitting"), ("RK4", "RK4")):
+        if hasattr(lievi, cls):
+            rows[name] = lievi_runner(getattr(lievi, cls)(), steps)
+    rows["diffrax Tsit5"] = diffrax_runner(steps)
+    rows["DEP exp, vmap(simulate)"] = lievi_runner(lievi.DEP(chart="exp"), steps, fast=False)
+    return rows
+
+
+def timed(fn, args, min_total: float = 0.5, max_repeats: int = 5):
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - start
+    best, total, repeats = np.inf, 0.0, 0
+    while repeats < max_repeats and (repeats < 2 or total < min_total):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        elapsed = time.perf_counter() - start
+        best, total, repeats = min(best, elapsed), total + elapsed, repeats + 1
+    return max(first - best, 0.0), best
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smoke run: batches 1 and 100, 10 steps")
+    parser.add_argument("--batches", type=int, nargs="+", default=None)
+    parser.add_argument("--steps", type=int, default=None)
+    parser.add_argument("--dtypes", nargs="+", default=None, choices=("float64", "float32"))
+    parser.add_argument("--methods", nargs="+", default=None, help="names to run (default: all)")
+    parser.add_argument("--budget", type=float, default=60.0,
+                        help="skip larger batches of a method once one run takes longer than this [s]")
+    parser.add_argument("--out", default="throughput", help="basename of the JSON and PNG")
+    parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
+    args = parser.parse_args()
+
+    device = jax.devices()[0]
+    on_cpu = device.platform == "cpu"
+    batches = args.batches or ([1, 100] if args.quick else [1, 10, 100, 1_000, 10_000, 100_000, 1_000_000])
+    steps = args.steps or (10 if args.quick else 100)
+    dtypes = args.dtypes or (["float64", "float32"] if on_cpu else ["float32"])
+    load = os.getloadavg() if hasattr(os, "getloadavg") else None
+    print(f"device: {device.device_kind} ({device.platform}, {jax.device_count()} device(s)), "
+          f"jax {jax.__version__}, {os.cpu_count()} CPUs, load average {load}")
+    print(f"{steps} steps of h = {H}, final state only; body-steps/s (compile time apart)")
+
+    records = []
+    for dtype_name in dtypes:
+        dtype = jnp.dtype(dtype_name)
+        runners = methods(steps)
+        if args.methods:
+            runners = {k: v for k, v in runners.items() if k in args.methods}
+        print(f"\n{dtype_name}\n{'method':<26}{'batch':>9}{'compile [s]':>13}{'run [s]':>11}{'body-steps/s':>15}")
+        for name, fn in runners.items():
+            for batch in sorted(batches):
+                inputs = rigid_body_inputs(batch, dtype)
+                compile_s, run_s = timed(fn, inputs)
+                rate = batch * steps / run_s
+                records.append({"method": name, "dtype": dtype_name, "batch": batch, "steps": steps,
+                                "compile_s": compile_s, "run_s": run_s, "body_steps_per_s": rate})
+                print(f"{name:<26}{batch:>9}{compile_s:>13.2f}{run_s:>11.4f}{rate:>15.3g}", flush=True)
+                if run_s > args.budget / 10:  # the next batch (×10) would exceed the budget
+                    print(f"{'':<26}(larger batches skipped: over the --budget of {args.budget:g} s)")
+                    break
+
+    out = pathlib.Path(args.outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "device": f"{device.device_kind} ({device.platform})",
+        "device_count": jax.device_count(),
+        "jax": jax.__version__,
+        "cpus": os.cpu_count(),
+        "machine": platform.machine(),
+        "load_average_at_start": load,
+        "load_average_at_end": os.getloadavg() if hasattr(os, "getloadavg") else None,
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "h": H,
+        "steps": steps,
+        "command": "python benchmarks/throughput.py " + " ".join(
+            a for a in os.sys.argv[1:]
+        ),
+    }
+    (out / f"{args.out}.json").write_text(json.dumps({"meta": meta, "results": records}, indent=2))
+    print(f"\nwrote {out / (args.out + '.json')}")
+    try:
+        plot(records, meta, out / f"{args.out}.png")
+        print(f"wrote {out / (args.out + '.png')}")
+    except ImportError:
+        print("matplotlib not installed: no plot")
+
+
+def plot(records, meta, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    dtypes = sorted({r["dtype"] for r in records}, reverse=True)
+    fig, axes = plt.subplots(1, len(dtypes), figsize=(6 * len(dtypes), 4.5), squeeze=False, sharey=True)
+    for ax, dtype in zip(axes[0], dtypes):
+        for name in dict.fromkeys(r["method"] for r in records):
+            rows = [r for r in records if r["method"] == name and r["dtype"] == dtype]
+            if rows:
+                ax.loglog([r["batch"] for r in rows], [r["body_steps_per_s"] for r in rows], "o-", label=name)
+        ax.set_title(f"{dtype}, {meta['device']}")
+        ax.set_xlabel("batch size (bodies)")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].set_ylabel(f"body-steps / s ({meta['steps']} steps, final state)")
+    axes[0][-1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+if __name__ == "__main__":
+    main()
