@@ -20,10 +20,12 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import functools
 import json
 import os
 import pathlib
 import platform
+import sys
 import time
 
 import jax
@@ -37,6 +39,7 @@ import lievi  # noqa: E402
 H = 0.1
 
 
+@functools.lru_cache(maxsize=4)
 def rigid_body_inputs(batch: int, dtype, seed: int = 0):
     """Random bodies: principal moments in [0.5, 2], unit-scale momenta, random attitudes."""
     rng = np.random.default_rng(seed)
@@ -48,12 +51,12 @@ def rigid_body_inputs(batch: int, dtype, seed: int = 0):
     return jnp.asarray(inertia, dtype), jnp.asarray(q, dtype), jnp.asarray(m0, dtype)
 
 
-def lievi_runner(integrator, steps: int, fast: bool = True):
+def lievi_runner(integrator, steps: int, fast: bool = True, **options):
     def run(inertia, g0, m0):
         bodies = jax.vmap(lievi.RigidBody)(inertia)
         sol = lievi.simulate_batch(
             bodies, integrator, g0, m0, h=jnp.asarray(H, m0.dtype), n_steps=steps,
-            system_axis=0, save=("g", "m"), fast=fast, throw=False,
+            system_axis=0, save=("g", "m"), fast=fast, throw=False, **options,
         )
         return sol.g[:, -1], sol.m[:, -1], sol.result
 
@@ -83,6 +86,10 @@ def methods(steps: int):
     rows = {
         "DEP exp": lievi_runner(lievi.DEP(chart="exp"), steps),
         "DEP cayley": lievi_runner(lievi.DEP(chart="cayley"), steps),
+        # Exactly three Newton iterations and a check, no convergence tail (no
+        # data-dependent loop: on a GPU no device-to-host sync per step), 4 steps per
+        # loop iteration.
+        "DEP exp, 3 its, unroll 4": lievi_runner(lievi.DEP(chart="exp", max_steps=3), steps, unroll=4),
     }
     for name, cls in (("Moser-Veselov", "MoserVeselov"), ("splitting", "LiePoissonSplitting"), ("RK4", "RK4")):
         if hasattr(lievi, cls):
@@ -90,6 +97,20 @@ def methods(steps: int):
     rows["diffrax Tsit5"] = diffrax_runner(steps)
     rows["DEP exp, vmap(simulate)"] = lievi_runner(lievi.DEP(chart="exp"), steps, fast=False)
     return rows
+
+
+def check_against_generic(name, fn, dtype, steps: int):
+    """Max |difference| of the final state from the `vmap(simulate)` path (64 bodies)."""
+    if "vmap" in name or "diffrax" in name:
+        return None
+    integrator = {"DEP cayley": lievi.DEP(chart="cayley")}.get(name, lievi.DEP(chart="exp"))
+    for label, cls in (("Moser-Veselov", "MoserVeselov"), ("splitting", "LiePoissonSplitting"), ("RK4", "RK4")):
+        if name == label:
+            integrator = getattr(lievi, cls)()
+    inputs = rigid_body_inputs(64, dtype, seed=1)
+    fast = fn(*inputs)
+    generic = lievi_runner(integrator, steps, fast=False)(*inputs)
+    return float(max(jnp.max(jnp.abs(fast[0] - generic[0])), jnp.max(jnp.abs(fast[1] - generic[1]))))
 
 
 def timed(fn, args, min_total: float = 0.5, max_repeats: int = 5):
@@ -128,25 +149,6 @@ def main():
           f"jax {jax.__version__}, {os.cpu_count()} CPUs, load average {load}")
     print(f"{steps} steps of h = {H}, final state only; body-steps/s (compile time apart)")
 
-    records = []
-    for dtype_name in dtypes:
-        dtype = jnp.dtype(dtype_name)
-        runners = methods(steps)
-        if args.methods:
-            runners = {k: v for k, v in runners.items() if k in args.methods}
-        print(f"\n{dtype_name}\n{'method':<26}{'batch':>9}{'compile [s]':>13}{'run [s]':>11}{'body-steps/s':>15}")
-        for name, fn in runners.items():
-            for batch in sorted(batches):
-                inputs = rigid_body_inputs(batch, dtype)
-                compile_s, run_s = timed(fn, inputs)
-                rate = batch * steps / run_s
-                records.append({"method": name, "dtype": dtype_name, "batch": batch, "steps": steps,
-                                "compile_s": compile_s, "run_s": run_s, "body_steps_per_s": rate})
-                print(f"{name:<26}{batch:>9}{compile_s:>13.2f}{run_s:>11.4f}{rate:>15.3g}", flush=True)
-                if run_s > args.budget / 10:  # the next batch (×10) would exceed the budget
-                    print(f"{'':<26}(larger batches skipped: over the --budget of {args.budget:g} s)")
-                    break
-
     out = pathlib.Path(args.outdir)
     out.mkdir(parents=True, exist_ok=True)
     meta = {
@@ -156,15 +158,37 @@ def main():
         "cpus": os.cpu_count(),
         "machine": platform.machine(),
         "load_average_at_start": load,
-        "load_average_at_end": os.getloadavg() if hasattr(os, "getloadavg") else None,
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "h": H,
         "steps": steps,
-        "command": "python benchmarks/throughput.py " + " ".join(
-            a for a in os.sys.argv[1:]
-        ),
+        "command": " ".join(["python benchmarks/throughput.py", *sys.argv[1:]]),
     }
-    (out / f"{args.out}.json").write_text(json.dumps({"meta": meta, "results": records}, indent=2))
+    records = []
+    for dtype_name in dtypes:
+        dtype = jnp.dtype(dtype_name)
+        runners = methods(steps)
+        if args.methods:
+            runners = {k: v for k, v in runners.items() if k in args.methods}
+        print(f"\n{dtype_name}\n{'method':<26}{'batch':>9}{'compile [s]':>13}{'run [s]':>11}{'body-steps/s':>15}")
+        for name, fn in runners.items():
+            difference = check_against_generic(name, fn, dtype, steps)
+            if difference is not None:
+                print(f"{name:<26}final state vs vmap(simulate), 64 bodies: max |difference| {difference:.2g}")
+            for batch in sorted(batches):
+                inputs = rigid_body_inputs(batch, dtype)
+                compile_s, run_s = timed(fn, inputs)
+                rate = batch * steps / run_s
+                records.append({"method": name, "dtype": dtype_name, "batch": batch, "steps": steps,
+                                "compile_s": compile_s, "run_s": run_s, "body_steps_per_s": rate,
+                                "max_abs_difference_vs_vmap_simulate": difference})
+                print(f"{name:<26}{batch:>9}{compile_s:>13.2f}{run_s:>11.4f}{rate:>15.3g}", flush=True)
+                if run_s > args.budget / 10:  # the next batch (×10) would exceed the budget
+                    print(f"{'':<26}(larger batches skipped: over the --budget of {args.budget:g} s)")
+                    break
+            # Saved after every method, so an interrupted run keeps what it measured.
+            meta["load_average_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
+            (out / f"{args.out}.json").write_text(json.dumps({"meta": meta, "results": records}, indent=2))
+
     print(f"\nwrote {out / (args.out + '.json')}")
     try:
         plot(records, meta, out / f"{args.out}.png")

@@ -74,6 +74,7 @@ def simulate_batch(
     system_axis: int | None = None,
     fast: bool = True,
     fixed_iterations: int = DEFAULT_FIXED_ITERATIONS,
+    unroll: int = 1,
     throw: bool = True,
 ) -> Solution:
     """Integrate a batch of `B` bodies: `jax.vmap(simulate)` with a fast path.
@@ -101,6 +102,9 @@ def simulate_batch(
     - `fixed_iterations`: (fast path) Newton iterations every body takes before the one
       convergence check; bodies still above tolerance then continue, alone, up to the
       integrator's `max_steps`.
+    - `unroll`: (fast path) steps per iteration of the compiled loop (`lax.scan`'s
+      `unroll`). On a GPU a few steps per iteration amortise the per-iteration launch
+      cost; it multiplies the compiled code, hence the compile time, by `unroll`.
     - `throw`: raise if any body failed. With `throw=False` each body's `result` says
       whether it succeeded; a failed body does not stop the others.
 
@@ -123,6 +127,7 @@ def simulate_batch(
     if system_axis not in (None, 0):
         raise ValueError(f"`system_axis` must be None (shared system) or 0, got {system_axis!r}.")
     fixed_iterations = _check_integer("fixed_iterations", fixed_iterations, 1)
+    unroll = _check_integer("unroll", unroll, 1)
     n, d = system.group.matrix_dim, system.group.algebra_dim
     _check_batch("g0", g0, (n, n), "one group element per body")
     _check_batch("m0", m0, (d,), "one momentum per body")
@@ -158,7 +163,9 @@ def simulate_batch(
     dtype = jnp.result_type(g0, m0, h, float)
     g0, m0, h = jnp.asarray(g0, dtype), jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
     if fast and has_fast_path(system, integrator, system_axis):
-        solution = _simulate_fast(system, integrator, g0, m0, h, n_steps, save_every, save, fixed_iterations)
+        solution = _simulate_fast(
+            system, integrator, g0, m0, h, n_steps, save_every, save, fixed_iterations, unroll
+        )
     else:
         solution = _simulate_vmap(system, integrator, g0, m0, h, n_steps, save_every, save, system_axis)
     if throw:
@@ -208,7 +215,9 @@ def _simulate_vmap(system, integrator, g0, m0, h, n_steps, save_every, save, sys
 
 
 @eqx.filter_jit
-def _simulate_fast(system, integrator, g0, m0, h, n_steps, save_every, save, fixed_iterations):
+def _simulate_fast(
+            system, integrator, g0, m0, h, n_steps, save_every, save, fixed_iterations, unroll
+        ):
     chart = _fast_step(system, integrator)
     batch, dtype = g0.shape[0], m0.dtype
     inertia = jnp.asarray(system.inertia, dtype)
@@ -238,7 +247,9 @@ def _simulate_fast(system, integrator, g0, m0, h, n_steps, save_every, save, fix
         return (g_next, Pi_next, result, failed_step, k + 1), (iterations, residual)
 
     def one_save(carry, _):
-        carry, (iterations, residuals) = jax.lax.scan(one_step, carry, None, length=save_every)
+        carry, (iterations, residuals) = jax.lax.scan(
+            one_step, carry, None, length=save_every, unroll=min(unroll, save_every)
+        )
         out = {"iterations": jnp.sum(iterations, axis=0)}
         if "g" in save:
             out["g"] = jnp.stack(carry[0])
