@@ -17,6 +17,7 @@ from ._integrator_base import AbstractIntegrator as AbstractIntegrator
 from ._integrator_base import AbstractVariationalIntegrator as AbstractVariationalIntegrator
 from ._integrator_base import StepInfo as StepInfo
 from ._lie_lagrangian import LieLagrangian as LieLagrangian
+from ._moser_veselov import MoserVeselov as MoserVeselov
 from ._reference import reference_solution as reference_solution
 from ._results import RESULTS as RESULTS
 from ._rigid_body import RigidBody as RigidBody

@@ -1,0 +1,176 @@
+"""The Moser–Veselov discretization of the (generalized) rigid body (paper §5, (5.4)–(5.6)).
+
+For the left-invariant generalized rigid body on SO(n) with inertia operator
+`J(ξ) = Λξ + ξΛ`, the Moser–Veselov step from `(g_k, Π_k)` is (NOTES §1)
+
+    Ωᵀ Λ − Λ Ω = h Π̂_k,   Ω ∈ SO(n)          (the second line of (5.6); DEP (5.4)),
+    Π̂_{k+1} = Ω Π̂_k Ωᵀ                         (the first line of (5.6); DLP (5.5)),
+    g_{k+1} = g_k Ωᵀ                             (reconstruction, (5.7₁)).
+
+The increment is `F = Ωᵀ = g_k⁻¹ g_{k+1}` (the paper's `f_{k+1,k} = Ω`). The discrete
+Lagrangian is Moser–Veselov's, `L_d(g_k, g_{k+1}) = tr((I − g_kᵀ g_{k+1}) Λ)/h`
+(the paper's `−tr(g_k Λ g_{k+1}ᵀ)/h²` scaled by `h` and shifted by a constant, so that
+`L_d ≈ h·l(ξ)` as for `DEP` and its discrete Legendre transform gives `Π` itself).
+
+Solving the implicit equation. Write `F = cay(X) = (I − X/2)⁻¹(I + X/2)`, `X ∈ so(n)`
+(the Cayley chart of Lewis–Simo (5.7), which covers every rotation with no angle equal
+to π — every increment a sensible step can produce). Multiplying `F Λ − Λ Fᵀ = h Π̂` by
+`(I − X/2)` on the left and `(I + X/2)` on the right, and using that `X` commutes with
+`cay(X)`, turns the equation into the *quadratic* equation
+
+    J(X) = Λ X + X Λ = h (I − X/2) Π̂ (I + X/2),
+
+exactly equivalent to the original. Its right-hand side is `h·dcayinv(x) Π` in
+coordinates, and its left-hand side is the Legendre map of the system, `I x` on SO(3). We
+solve it by Newton's method from the explicit-Euler guess `h I⁻¹ Π` (O(h²) from the root;
+the Jacobian there is `J + O(h)`, well conditioned since `J` is positive definite) with
+`lievi._newton.newton_solve`, so the step differentiates by the implicit function theorem.
+
+The rigid body on SO(3) maps to `Λ = ½ tr(I)·Id − I` (for principal moments
+`I₁ = Λ₂ + Λ₃, …`). A full inertia tensor gives a symmetric, non-diagonal `Λ`; the
+equations above hold verbatim for any symmetric `Λ` (`Λx̂ + x̂Λ = hat((tr Λ − Λ)x)`), and
+they are equivariant under conjugation by a rotation, so the step equals the diagonal
+step in the principal frame (the tests check this) without an eigendecomposition —
+which keeps derivatives with respect to the inertia finite for degenerate moments.
+Moments that violate the triangle inequality (`I₃ ≥ I₁ + I₂`, not a physical body) give
+some `Λᵢ ≤ 0`; only the pair sums `Λᵢ + Λⱼ = I_k > 0` enter `J`, so the scheme is still
+well defined and is used unchanged.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Scalar
+
+from ._checks import check_shape, is_concrete
+from ._dep import default_tolerance
+from ._generalized_rigid_body import GeneralizedRigidBody
+from ._integrator_base import AbstractVariationalIntegrator, StepInfo
+from ._newton import newton_solve
+from ._results import RESULTS
+from ._rigid_body import RigidBody
+from ._system_base import AbstractLieSystem
+
+
+def check_rigid_body(method: str, system: AbstractLieSystem) -> None:
+    """Raise `ValueError` unless `system` is a rigid body the method supports."""
+    if not isinstance(system, (RigidBody, GeneralizedRigidBody)):
+        raise ValueError(
+            f"{method} integrates the free rigid body only: pass a `lievi.RigidBody` or a "
+            f"`lievi.GeneralizedRigidBody`, got {type(system).__name__}. For any other "
+            "reduced Lagrangian use `lievi.DEP`."
+        )
+    if system.side != "left":
+        raise ValueError(f"{method}: the rigid body must be left-invariant (side='left').")
+
+
+def moser_veselov_Lambda(system: RigidBody | GeneralizedRigidBody) -> Float[Array, "n n"]:
+    """The symmetric matrix `Λ` with `J(ξ̂) = Λξ̂ + ξ̂Λ` the system's inertia operator.
+
+    `diag(Λ)` for `GeneralizedRigidBody`; `½ tr(I)·Id − I` for `RigidBody` (any symmetric
+    inertia tensor `I`; for principal moments `Λᵢ = ½(I₁ + I₂ + I₃) − Iᵢ`).
+    """
+    if isinstance(system, GeneralizedRigidBody):
+        return jnp.diag(jnp.asarray(system.Lambda))
+    inertia = system.inertia_tensor
+    return jnp.trace(inertia) / 2 * jnp.eye(3, dtype=inertia.dtype) - inertia
+
+
+def _check_pair_sums(method: str, system) -> None:
+    """Eagerly reject `Λᵢ + Λⱼ ≤ 0` (a system built around its own checks, e.g. by tree_at)."""
+    if isinstance(system, GeneralizedRigidBody):
+        if is_concrete(system.Lambda):
+            pair_sums = np.asarray(system.plane_inertia)
+            if np.any(pair_sums <= 0):
+                raise ValueError(
+                    f"{method}: `Lambda` must satisfy Λᵢ + Λⱼ > 0 for all i ≠ j; smallest "
+                    f"pair sum is {pair_sums.min():.3g}."
+                )
+    elif is_concrete(system.inertia):
+        eigenvalues = np.linalg.eigvalsh(np.asarray(system.inertia_tensor, float))
+        if np.any(eigenvalues <= 0):
+            raise ValueError(
+                f"{method}: the inertia must be positive definite (Λᵢ + Λⱼ > 0); got "
+                f"eigenvalues {eigenvalues}."
+            )
+
+
+class MoserVeselov(AbstractVariationalIntegrator):
+    """The Moser–Veselov integrator for the free rigid body (paper §5, Theorem 5.1).
+
+    Second order, symplectic on `SO(n) × SO(n)`, Lie–Poisson on `so(n)*` (Casimirs kept to
+    round-off), conserves the spatial momentum; implicit, solved by Newton's method on the
+    Cayley chart (see the module docstring). Equivalent to the DEP algorithm (5.4) with the
+    discrete Lagrangian `tr((I − g_kᵀg_{k+1})Λ)/h` and to the Lewis–Simo algorithm (5.7).
+
+    Works for `RigidBody` (principal moments or a full tensor) and `GeneralizedRigidBody`
+    on SO(n), n ≥ 3.
+
+    **Arguments:**
+
+    - `rtol`, `atol`: the Newton solve stops when the residual of `J(X)/h − (I − X/2)Π̂(I + X/2)`
+      (momentum units) satisfies `‖r‖_∞ ≤ atol + rtol·‖Π‖_∞`. Default: 64 ulps of the dtype
+      for both.
+    - `max_steps`: maximum Newton iterations per step; exceeding it is reported as
+      `RESULTS.newton_not_converged`.
+    """
+
+    rtol: float | None = eqx.field(default=None, static=True)
+    atol: float | None = eqx.field(default=None, static=True)
+    max_steps: int = eqx.field(default=20, static=True)
+
+    def __check_init__(self):
+        if not isinstance(self.max_steps, int) or self.max_steps < 1:
+            raise ValueError(f"`max_steps` must be a positive integer, got {self.max_steps!r}.")
+        for name in ("rtol", "atol"):
+            value = getattr(self, name)
+            if value is not None and not value >= 0:
+                raise ValueError(f"`{name}` must be ≥ 0, got {value!r}.")
+
+    def order(self) -> int:
+        return 2
+
+    def discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
+        """`tr((I − g₀ᵀg₁)Λ)/h`, Moser–Veselov's `tr(g_k Λ g_{k+1}ᵀ)` up to scale and shift."""
+        check_rigid_body("MoserVeselov", system)
+        Lambda = moser_veselov_Lambda(system)
+        increment = system.group.inverse(g0) @ g1
+        eye = jnp.eye(increment.shape[-1], dtype=increment.dtype)
+        return jnp.trace((eye - increment) @ Lambda) / h
+
+    def solve_increment(self, system: AbstractLieSystem, m: Float[Array, " d"], h: Scalar):
+        """Solve `J(X) = h (I − X/2) Π̂ (I + X/2)` for the Cayley coordinates `x` of `F = Ωᵀ`."""
+        group = system.group
+        M = group.hat(m)
+        eye = jnp.eye(group.matrix_dim, dtype=m.dtype)
+
+        def residual(x):
+            # Divided by h: the residual is in momentum units, like DEP's.
+            X = group.hat(x)
+            return system.legendre(x) / h - group.vee((eye - X / 2) @ M @ (eye + X / 2))
+
+        eps_tol = default_tolerance(m.dtype)
+        rtol = eps_tol if self.rtol is None else self.rtol
+        atol = eps_tol if self.atol is None else self.atol
+        tolerance = atol + rtol * jnp.max(jnp.abs(m))
+        return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps)
+
+    def step(self, system: AbstractLieSystem, g, m, h: Scalar):
+        check_rigid_body("MoserVeselov", system)
+        _check_pair_sums("MoserVeselov", system)
+        group = system.group
+        n, d = group.matrix_dim, group.algebra_dim
+        check_shape("g", g, (n, n), f"an element of SO({n})")
+        check_shape("m", m, (d,), f"momentum coordinates of so({n})*")
+        x, info = self.solve_increment(system, m, h)
+        F = group.cay(x)  # F = Ωᵀ = g_k⁻¹ g_{k+1}
+        g_next = g @ F
+        # Π̂_{k+1} = Ω Π̂_k Ωᵀ = Fᵀ Π̂_k F: a conjugation, so Casimirs are kept to round-off
+        # whatever the Newton residual.
+        m_next = group.vee(F.T @ group.hat(m) @ F)
+        result = jnp.where(info.converged, RESULTS.successful, RESULTS.newton_not_converged)
+        finite = jnp.isfinite(info.residual) & jnp.all(jnp.isfinite(m_next))
+        result = jnp.where(finite, result, RESULTS.nonfinite)
+        return g_next, m_next, StepInfo(result, info.iterations, info.residual)
