@@ -20,6 +20,7 @@ from . import _fast_so3
 from ._checks import check_finite, is_concrete
 from ._dep import DEP, default_tolerance
 from ._integrator_base import AbstractIntegrator
+from ._moser_veselov import MoserVeselov
 from ._results import RESULTS
 from ._rigid_body import RigidBody
 from ._simulate import Solution, _check_integer, simulate
@@ -40,6 +41,8 @@ def _fast_step(system, integrator):
         return None
     if isinstance(integrator, DEP):
         return integrator.chart
+    if isinstance(integrator, MoserVeselov):
+        return "moser-veselov"
     return None
 
 

@@ -91,7 +91,33 @@ def _solve3(J, r):
     )
 
 
+def _residual_moser_veselov(x, Pi, A, with_jacobian: bool):
+    """`r = I x/h − Π − ½ Π×x − ¼ (x·Π) x` and its Jacobian `A − ½Π̂ − ¼((x·Π)1 + xΠᵀ)`.
+
+    `MoserVeselov`'s residual `J(X)/h − vee((1 − X/2) Π̂ (1 + X/2))` on SO(3) written out
+    (`vee([Π̂, X̂]) = Π×x`, `vee(X̂Π̂X̂) = −(x·Π)x`); `F = cay(x)`.
+    """
+    px = _cross(Pi, x)
+    d = _dot(x, Pi)
+    r = tuple(A[i] * x[i] - Pi[i] - px[i] / 2 - d * x[i] / 4 for i in range(3))
+    if not with_jacobian:
+        return r, None
+    P = (0, -Pi[2], Pi[1], Pi[2], 0, -Pi[0], -Pi[1], Pi[0], 0)
+    rows = []
+    for i in range(3):
+        row = []
+        for j in range(3):
+            entry = -P[3 * i + j] / 2 - x[i] * Pi[j] / 4
+            if i == j:
+                entry = entry + A[i] - d / 4
+            row.append(entry)
+        rows.append(tuple(row))
+    return r, tuple(rows)
+
+
 def _residual(chart, xi, Pi, A, with_jacobian: bool):
+    if chart == "moser-veselov":
+        return _residual_moser_veselov(xi, Pi, A, with_jacobian)
     w = tuple(A[i] * xi[i] for i in range(3))
     d = _dot(xi, w)
     t = _dot(xi, xi)
@@ -178,6 +204,8 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
 def dep_step(chart, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int):
     """One DEP + DLP + reconstruction step on structure-of-arrays state.
 
+    `chart`: `"exp"`, `"cayley"` (`DEP`) or `"moser-veselov"` (`MoserVeselov`: the
+    Cayley chart with the Moser–Veselov residual).
     `g`: 9 arrays (row-major), `Pi`: 3 arrays, `A = I/h`: 3 arrays (or scalars).
     Returns `(g_next, Pi_next, result, iterations, residual)`.
     """

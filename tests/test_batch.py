@@ -16,6 +16,12 @@ import lievi
 from lievi import _fast_so3
 
 CHARTS = ("exp", "cayley")
+# Every integrator with a fast path.
+FAST = {
+    "dep-exp": lievi.DEP(chart="exp"),
+    "dep-cayley": lievi.DEP(chart="cayley"),
+    "moser-veselov": lievi.MoserVeselov(),
+}
 BATCH, STEPS, SAVE_EVERY = 24, 20, 5
 
 
@@ -32,11 +38,12 @@ def problem():
     return random_batch(np.random.default_rng(5), BATCH)
 
 
-@pytest.fixture(scope="module", params=CHARTS)
+@pytest.fixture(scope="module", params=list(FAST))
 def runs(request, problem):
     """Fast path and generic path (vmap of simulate) on the same batch."""
     bodies, g0, m0, h = problem
-    dep = lievi.DEP(chart=request.param)
+    dep = FAST[request.param]
+    assert lievi.has_fast_path(bodies, dep, system_axis=0)
     kwargs = dict(h=h, n_steps=STEPS, save_every=SAVE_EVERY, system_axis=0)
     fast = lievi.simulate_batch(bodies, dep, g0, m0, **kwargs)
     generic = lievi.simulate_batch(bodies, dep, g0, m0, fast=False, **kwargs)
@@ -69,11 +76,12 @@ def test_batched_equals_per_body(runs, problem):
         np.testing.assert_allclose(fast.g[b], single.g, rtol=0, atol=ROUNDOFF)
 
 
-@pytest.mark.parametrize("chart", CHARTS)
+@pytest.mark.parametrize("chart", CHARTS + ("moser-veselov",))
 @pytest.mark.parametrize("scale", [0.0, 1e-9, 1e-3, 0.5, 2.0, 3.1])
 def test_closed_form_jacobian(chart, scale):
-    """The hand-written residual and 3×3 Jacobian equal `jacfwd` of the generic residual,
-    at θ = 0, tiny θ and up to θ = 3.1 (just below π, the exp chart's limit)."""
+    """The hand-written residual and 3×3 Jacobian equal `jacfwd` of the generic residual
+    (`DEP`'s, or `MoserVeselov`'s), at θ = 0, tiny θ and up to θ = 3.1 (just below π, the
+    exp chart's limit)."""
     rng = np.random.default_rng(int(scale * 100))
     inertia, h = jnp.asarray(rng.uniform(0.5, 2.0, 3)), 0.2
     Pi = jnp.asarray(rng.normal(size=3))
@@ -83,6 +91,9 @@ def test_closed_form_jacobian(chart, scale):
     dinv = body.group.dexpinv if chart == "exp" else body.group.dcayinv
 
     def residual(x):
+        if chart == "moser-veselov":
+            eye, X = jnp.eye(3), body.group.hat(x)
+            return body.legendre(x) / h - body.group.vee((eye - X / 2) @ body.group.hat(Pi) @ (eye + X / 2))
         return dinv(x).T @ body.legendre(x / h) - Pi
 
     r, J = _fast_so3._residual(chart, tuple(xi), tuple(Pi), tuple(inertia / h), True)
