@@ -28,11 +28,13 @@ from ._system_base import AbstractLieSystem
 
 SAVE_FIELDS = ("g", "m", "stats")
 
-# Newton iterations the fast path always takes before its one convergence check. From
-# the explicit-Euler guess (O(h²) off the root) three quadratic steps reach 64 ulps for
-# |ξ| = h|Ω| up to ~0.5 (measured: `tests/test_batch.py`); bodies that need more continue
-# in a `while_loop` up to `max_steps`.
-DEFAULT_FIXED_ITERATIONS = 3
+# Newton iterations the fast path always takes before its one convergence check, per
+# method. From the explicit-Euler guess (O(h²) off the root) three quadratic steps reach
+# 64 ulps for nearly every body at |ξ| = h|Ω| ≲ 0.3; the Cayley-chart DEP needs a fourth
+# for a few bodies in 10⁴ (h = 0.1, the random bodies of `benchmarks/throughput.py`), and
+# as one such body sends the whole batch into the tail, four fixed iterations are faster
+# there (measured). Bodies that need more continue in a `while_loop` up to `max_steps`.
+DEFAULT_FIXED_ITERATIONS = {"exp": 3, "cayley": 4, "moser-veselov": 3}
 
 
 def _fast_step(system, integrator):
@@ -76,7 +78,7 @@ def simulate_batch(
     save: Sequence[str] = SAVE_FIELDS,
     system_axis: int | None = None,
     fast: bool = True,
-    fixed_iterations: int = DEFAULT_FIXED_ITERATIONS,
+    fixed_iterations: int | None = None,
     unroll: int = 1,
     throw: bool = True,
 ) -> Solution:
@@ -104,7 +106,9 @@ def simulate_batch(
       tail is a `while_loop`): for gradients pass `fast=False`.
     - `fixed_iterations`: (fast path) Newton iterations every body takes before the one
       convergence check; bodies still above tolerance then continue, alone, up to the
-      integrator's `max_steps`.
+      integrator's `max_steps`. Default: 3 (exp chart, Moser–Veselov) or 4 (Cayley
+      chart). With `max_steps` equal to it (e.g. `DEP(max_steps=3)`) there is no
+      data-dependent loop at all; bodies not converged then are reported as failed.
     - `unroll`: (fast path) steps per iteration of the compiled loop (`lax.scan`'s
       `unroll`). On a GPU a few steps per iteration amortise the per-iteration launch
       cost; it multiplies the compiled code, hence the compile time, by `unroll`.
@@ -129,7 +133,8 @@ def simulate_batch(
         raise ValueError(f"`save` may only contain {SAVE_FIELDS}, got {sorted(unknown)}.")
     if system_axis not in (None, 0):
         raise ValueError(f"`system_axis` must be None (shared system) or 0, got {system_axis!r}.")
-    fixed_iterations = _check_integer("fixed_iterations", fixed_iterations, 1)
+    if fixed_iterations is not None:
+        fixed_iterations = _check_integer("fixed_iterations", fixed_iterations, 1)
     unroll = _check_integer("unroll", unroll, 1)
     n, d = system.group.matrix_dim, system.group.algebra_dim
     _check_batch("g0", g0, (n, n), "one group element per body")
@@ -222,6 +227,8 @@ def _simulate_fast(
             system, integrator, g0, m0, h, n_steps, save_every, save, fixed_iterations, unroll
         ):
     chart = _fast_step(system, integrator)
+    if fixed_iterations is None:
+        fixed_iterations = DEFAULT_FIXED_ITERATIONS[chart]
     batch, dtype = g0.shape[0], m0.dtype
     inertia = jnp.asarray(system.inertia, dtype)
     # Structure of arrays: component-major, batch minor.
@@ -235,7 +242,7 @@ def _simulate_fast(
     int32 = jnp.int32
 
     def one_step(carry, _):
-        g, Pi, result, failed_step, k = carry
+        (g, Pi, result, failed_step, k), (total, most, worst) = carry
         tolerance = atol + rtol * _fast_so3._max_abs(Pi)
         g_next, Pi_next, step_result, iterations, residual = _fast_so3.dep_step(
             chart, g, Pi, A, tolerance, fixed_iterations, integrator.max_steps
@@ -247,21 +254,30 @@ def _simulate_fast(
         # After a failure the body's state is NaN, as in `simulate`.
         g_next = tuple(jnp.where(ok, x, nan) for x in g_next)
         Pi_next = tuple(jnp.where(ok, x, nan) for x in Pi_next)
-        return (g_next, Pi_next, result, failed_step, k + 1), (iterations, residual)
+        # Statistics are reduced in the carry, not stacked per step: a (steps, B) output
+        # would cost more memory traffic than the state itself.
+        counters = (total + iterations, jnp.maximum(most, iterations), jnp.fmax(worst, residual))
+        return ((g_next, Pi_next, result, failed_step, k + 1), counters), None
 
-    def one_save(carry, _):
-        carry, (iterations, residuals) = jax.lax.scan(
-            one_step, carry, None, length=save_every, unroll=min(unroll, save_every)
+    zero_counters = (
+        jnp.zeros((batch,), int32),
+        jnp.zeros((batch,), int32),
+        jnp.full((batch,), -jnp.inf, dtype),
+    )
+
+    def one_save(state, _):
+        (state, (total, most, worst)), _ = jax.lax.scan(
+            one_step, (state, zero_counters), None, length=save_every, unroll=min(unroll, save_every)
         )
-        out = {"iterations": jnp.sum(iterations, axis=0)}
+        out = {"iterations": total}
         if "g" in save:
-            out["g"] = jnp.stack(carry[0])
+            out["g"] = jnp.stack(state[0])
         if "m" in save:
-            out["m"] = jnp.stack(carry[1])
+            out["m"] = jnp.stack(state[1])
         if "stats" in save:
-            out["max_iterations"] = jnp.max(iterations, axis=0)
-            out["residual"] = jnp.max(residuals, axis=0)
-        return carry, out
+            out["max_iterations"] = most
+            out["residual"] = worst
+        return state, out
 
     init = (
         g,
