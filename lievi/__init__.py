@@ -26,6 +26,7 @@ from ._simulate import simulate as simulate
 from ._so3 import SO3 as SO3
 from ._so3 import SO3Group as SO3Group
 from ._son import SOn as SOn
+from ._splitting import LiePoissonSplitting as LiePoissonSplitting
 from ._system_base import AbstractLieSystem as AbstractLieSystem
 
 try:

@@ -6,6 +6,7 @@ the step, Casimirs / spatial momentum / orthogonality, the Poisson property, SO(
 full inertia tensors, failures and bad input, float32, implicit derivatives.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,6 +21,10 @@ from helpers import ROUNDOFF, hlw_problem, random_generalized_body, random_rotat
 MV = lievi.MoserVeselov()
 H = 0.1
 
+# Compiled once per shape: eager autodiff of the diagnostics costs seconds per call.
+del_residual = eqx.filter_jit(dg.del_residual)
+poisson_defect = eqx.filter_jit(dg.poisson_defect)
+
 
 @pytest.fixture(scope="module")
 def hlw_run():
@@ -27,12 +32,17 @@ def hlw_run():
     return body, lievi.simulate(body, MV, g0, m0, h=H, n_steps=100)
 
 
+@eqx.filter_jit
 def mv_equation_residual(system, m, h):
-    """`max |ΩᵀΛ − ΛΩ − hΠ̂|` for the Ω the integrator solves for (the equation itself)."""
-    x, _ = MV.solve_increment(system, m, h)
-    omega = system.group.cay(x).T
-    Lambda = moser_veselov_Lambda(system)
-    return jnp.max(jnp.abs(omega.T @ Lambda - Lambda @ omega - h * system.group.hat(m)))
+    """`max |ΩᵀΛ − ΛΩ − hΠ̂|` over momenta `m (T, d)`, for the Ω the integrator solves for."""
+
+    def one(m):
+        x, _ = MV.solve_increment(system, m, h)
+        omega = system.group.cay(x).T
+        Lambda = moser_veselov_Lambda(system)
+        return jnp.max(jnp.abs(omega.T @ Lambda - Lambda @ omega - h * system.group.hat(m)))
+
+    return jnp.max(jax.vmap(one)(m))
 
 
 def test_lambda_of_rigid_body():
@@ -48,13 +58,12 @@ def test_newton_residual_and_equation(hlw_run):
     assert sol.result == lievi.RESULTS.successful
     assert jnp.max(sol.stats["residual"]) <= 1e-14
     assert jnp.max(sol.stats["newton_iterations"]) <= 3
-    worst = max(float(mv_equation_residual(body, m, H)) for m in sol.m[::10])
-    assert worst <= 1e-14
+    assert mv_equation_residual(body, sol.m, H) <= 1e-14
 
 
 def test_del_residual_hlw(hlw_run):
     body, sol = hlw_run
-    residual = dg.del_residual(body, MV, sol.g, H)
+    residual = del_residual(body, MV, sol.g, H)
     assert residual.shape == (99, 3)
     assert jnp.max(jnp.abs(residual)) <= ROUNDOFF
 
@@ -84,23 +93,23 @@ def test_conservation_over_1e4_steps():
 def test_dlp_map_is_poisson(hlw_run):
     body, sol = hlw_run
     for k in (0, 50):
-        assert dg.poisson_defect(body, MV, sol.g[k], sol.m[k], H) <= ROUNDOFF
+        assert poisson_defect(body, MV, sol.g[k], sol.m[k], H) <= ROUNDOFF
 
 
 @pytest.mark.parametrize("n", [4, 5])
 def test_generalized_rigid_body(n):
     body, g0, m0 = random_generalized_body(np.random.default_rng(n), n)
     h = 0.05
-    sol = lievi.simulate(body, MV, g0, m0, h=h, n_steps=200)
+    sol = lievi.simulate(body, MV, g0, m0, h=h, n_steps=100)
     assert sol.result == lievi.RESULTS.successful
     scale = float(jnp.max(jnp.abs(m0)))
     assert jnp.max(sol.stats["residual"]) <= 1e-14 * scale
-    assert jnp.max(jnp.abs(dg.del_residual(body, MV, sol.g, h))) <= ROUNDOFF * scale
+    assert jnp.max(jnp.abs(del_residual(body, MV, sol.g, h))) <= ROUNDOFF * scale
     assert dg.relative_drift(dg.casimirs(body, sol.m)) <= ROUNDOFF
     assert dg.relative_drift(dg.spatial_momentum(body, sol.g, sol.m)) <= ROUNDOFF
     assert dg.orthogonality_defect(body, sol.g[-1]) <= ROUNDOFF
-    assert mv_equation_residual(body, sol.m[-1], h) <= 1e-14 * scale
-    assert dg.poisson_defect(body, MV, sol.g[7], sol.m[7], h) <= ROUNDOFF * scale
+    assert mv_equation_residual(body, sol.m, h) <= 1e-14 * scale
+    assert poisson_defect(body, MV, sol.g[7], sol.m[7], h) <= ROUNDOFF * scale
 
 
 def test_son3_generalized_body_matches_rigid_body():
@@ -134,7 +143,7 @@ def test_moments_violating_triangle_inequality():
     _, g0, m0 = hlw_problem()
     sol = lievi.simulate(body, MV, g0, m0, h=0.05, n_steps=40)
     assert jnp.max(sol.stats["residual"]) <= 1e-14
-    assert jnp.max(jnp.abs(dg.del_residual(body, MV, sol.g, 0.05))) <= ROUNDOFF
+    assert jnp.max(jnp.abs(del_residual(body, MV, sol.g, 0.05))) <= ROUNDOFF
     g_ref, m_ref = lievi.reference_solution(body, g0, m0, [0.0, 2.0])
     assert np.max(np.abs(sol.m[-1] - m_ref[-1])) <= 1e-2  # O(h²) error, not garbage
 

@@ -1,0 +1,168 @@
+"""The explicit Lie–Poisson splitting (paper §6): order, symmetry, conservation, Poisson.
+
+NOTES §3: order by regression against DOP853, Casimirs / spatial momentum to round-off
+over 1e4 steps, the Poisson property of the momentum map, SO(n), full inertia tensors,
+bad input, float32, derivatives.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lievi
+from lievi import diagnostics as dg
+
+from helpers import ROUNDOFF, hlw_problem, random_generalized_body, random_rotation
+
+SPLIT = lievi.LiePoissonSplitting()
+H = 0.1
+ORDER_TOLERANCE = 0.1
+
+poisson_defect = eqx.filter_jit(dg.poisson_defect)
+
+
+def observed_order(system, g0, m0, T, hs):
+    g_ref, m_ref = lievi.reference_solution(system, g0, m0, [0.0, T])
+    errors = []
+    for h in hs:
+        sol = lievi.simulate(system, SPLIT, g0, m0, h=h, n_steps=int(round(T / h)))
+        errors.append(
+            max(np.max(np.abs(sol.m[-1] - m_ref[-1])), np.max(np.abs(sol.g[-1] - g_ref[-1])))
+        )
+    return np.polyfit(np.log(hs), np.log(errors), 1)[0], errors
+
+
+def test_second_order_on_hlw():
+    body, g0, m0 = hlw_problem()
+    order, errors = observed_order(body, g0, m0, 2.0, [0.1 / 2**k for k in range(4)])
+    assert abs(order - 2) <= ORDER_TOLERANCE, (order, errors)
+
+
+def test_second_order_on_so4():
+    body, g0, m0 = random_generalized_body(np.random.default_rng(4), 4)
+    order, errors = observed_order(body, g0, m0, 1.0, [0.05 / 2**k for k in range(3)])
+    assert abs(order - 2) <= ORDER_TOLERANCE, (order, errors)
+
+
+def test_symmetric_and_explicit():
+    """`Φ_{−h} ∘ Φ_h = id` to round-off (so `lievi.Composition` can raise its order)."""
+    body, g0, m0 = hlw_problem()
+    g1, m1, info = SPLIT.step(body, g0, m0, H)
+    g2, m2, _ = SPLIT.step(body, g1, m1, -H)
+    np.testing.assert_allclose(g2, g0, rtol=0, atol=ROUNDOFF)
+    np.testing.assert_allclose(m2, m0, rtol=0, atol=ROUNDOFF)
+    assert info.result == lievi.RESULTS.successful and info.iterations == 0
+
+
+def test_conservation_over_1e4_steps():
+    """Casimirs, spatial momentum and `gᵀg = I` to round-off; energy bounded, O(h²)."""
+    body, g0, m0 = hlw_problem()
+    sol = lievi.simulate(body, SPLIT, g0, m0, h=H, n_steps=10_000, save_every=10)
+    assert sol.result == lievi.RESULTS.successful
+    assert dg.relative_drift(dg.casimirs(body, sol.m)) <= ROUNDOFF
+    assert dg.relative_drift(dg.spatial_momentum(body, sol.g, sol.m)) <= ROUNDOFF
+    assert dg.orthogonality_defect(body, sol.g[-1]) <= ROUNDOFF
+    energy = np.asarray(dg.energy(body, sol.m))
+    error = np.abs(energy / energy[0] - 1)
+    tenth = len(error) // 10
+    assert np.max(error) <= 1e-2
+    assert np.max(error[-tenth:]) <= 1.01 * np.max(error[:tenth])
+
+
+def test_momentum_map_is_poisson():
+    body, g0, m0 = hlw_problem()
+    assert poisson_defect(body, SPLIT, g0, m0, H) <= ROUNDOFF
+
+
+@pytest.mark.parametrize("n", [4, 5])
+def test_generalized_rigid_body(n):
+    body, g0, m0 = random_generalized_body(np.random.default_rng(n), n)
+    h = 0.05
+    sol = lievi.simulate(body, SPLIT, g0, m0, h=h, n_steps=200)
+    assert sol.result == lievi.RESULTS.successful
+    scale = float(jnp.max(jnp.abs(m0)))
+    assert dg.relative_drift(dg.casimirs(body, sol.m)) <= ROUNDOFF
+    assert dg.relative_drift(dg.spatial_momentum(body, sol.g, sol.m)) <= ROUNDOFF
+    assert dg.orthogonality_defect(body, sol.g[-1]) <= ROUNDOFF
+    assert poisson_defect(body, SPLIT, sol.g[7], sol.m[7], h) <= ROUNDOFF * scale
+    g_ref, m_ref = lievi.reference_solution(body, g0, m0, [0.0, 200 * h])
+    assert np.max(np.abs(sol.m[-1] - m_ref[-1])) <= 1e-2 * scale  # O(h²), not garbage
+
+
+def test_son3_generalized_body_matches_rigid_body():
+    Lambda = jnp.array([0.2, 0.9, 1.3])
+    inertia = jnp.array([Lambda[1] + Lambda[2], Lambda[0] + Lambda[2], Lambda[0] + Lambda[1]])
+    _, g0, m0 = hlw_problem()
+    a = lievi.simulate(lievi.RigidBody(inertia), SPLIT, g0, m0, h=H, n_steps=30)
+    b = lievi.simulate(lievi.GeneralizedRigidBody(Lambda), SPLIT, g0, m0, h=H, n_steps=30)
+    np.testing.assert_allclose(a.g, b.g, rtol=0, atol=ROUNDOFF)
+    np.testing.assert_allclose(a.m, b.m, rtol=0, atol=ROUNDOFF)
+
+
+def test_full_inertia_tensor_equals_rotated_diagonal_run():
+    """`I' = Q I Qᵀ`, `g' = g Qᵀ`, `Π' = QΠ` is the same motion. The diagonal run lists the
+    moments in ascending order, the order in which the full tensor's axes are split."""
+    body = lievi.RigidBody(jnp.array([2.0 / 3.0, 1.0, 2.0]))
+    _, g0, m0 = hlw_problem()
+    Q = random_rotation(np.random.default_rng(0), 3)
+    full = lievi.RigidBody(Q @ jnp.diag(body.inertia) @ Q.T)
+    a = lievi.simulate(body, SPLIT, g0, m0, h=H, n_steps=50)
+    b = lievi.simulate(full, SPLIT, g0 @ Q.T, Q @ m0, h=H, n_steps=50)
+    np.testing.assert_allclose(b.g @ Q, a.g, rtol=0, atol=ROUNDOFF)
+    np.testing.assert_allclose(b.m @ Q, a.m, rtol=0, atol=ROUNDOFF)
+
+
+def test_bad_input():
+    body, g0, m0 = hlw_problem()
+    with pytest.raises(ValueError, match="free rigid body only"):
+        generic = lievi.LieLagrangian(lievi.SO3, body.lagrangian)
+        SPLIT.step(generic, g0, m0, H)
+    bad = eqx.tree_at(
+        lambda b: b.Lambda,
+        lievi.GeneralizedRigidBody(jnp.ones(4)),
+        jnp.array([1.0, -1.5, 2.0, 1.0]),
+    )
+    with pytest.raises(ValueError, match="Λᵢ \\+ Λⱼ > 0"):
+        SPLIT.step(bad, jnp.eye(4), jnp.ones(6), H)
+    with pytest.raises(ValueError, match="`m` must have shape"):
+        SPLIT.step(body, g0, jnp.ones(4), H)
+    with pytest.raises(ValueError, match="`g` must have shape"):
+        SPLIT.step(body, jnp.eye(4), m0, H)
+
+
+def test_float32_run():
+    body, g0, m0 = hlw_problem()
+    body32 = lievi.RigidBody(body.inertia.astype(jnp.float32))
+    sol32 = lievi.simulate(
+        body32, SPLIT, g0.astype(jnp.float32), m0.astype(jnp.float32), h=np.float32(H), n_steps=200
+    )
+    sol64 = lievi.simulate(body, SPLIT, g0, m0, h=H, n_steps=200)
+    assert sol32.m.dtype == jnp.float32 and sol32.g.dtype == jnp.float32
+    assert sol32.result == lievi.RESULTS.successful
+    assert dg.relative_drift(dg.casimirs(body32, sol32.m)) <= 1e-5
+    np.testing.assert_allclose(sol32.m, sol64.m, rtol=0, atol=1e-4)
+
+
+def test_derivative_matches_finite_differences():
+    """Explicit, so reverse mode goes straight through the sub-rotations (and `eigh`)."""
+    body, g0, m0 = hlw_problem()
+    Q = random_rotation(np.random.default_rng(1), 3)
+
+    def loss(inertia, h):
+        sol = lievi.simulate(lievi.RigidBody(inertia), SPLIT, g0, m0, h=h, n_steps=10)
+        return jnp.sum(sol.m[-1] ** 2 * jnp.array([1.0, 2.0, 3.0])) + sol.g[-1, 0, 1]
+
+    for inertia in (body.inertia, Q @ jnp.diag(body.inertia) @ Q.T):
+        grad_inertia, grad_h = jax.grad(loss, argnums=(0, 1))(inertia, jnp.asarray(H))
+        eps = 1e-6
+        basis = np.eye(inertia.size).reshape((-1,) + inertia.shape)
+        if inertia.ndim == 2:  # symmetric perturbations of a tensor
+            basis = [(e + e.T) / 2 for e in basis]
+        fd = [(loss(inertia + eps * e, H) - loss(inertia - eps * e, H)) / (2 * eps) for e in basis]
+        np.testing.assert_allclose(
+            [jnp.sum(grad_inertia * e) for e in basis], fd, rtol=1e-6, atol=1e-8
+        )
+        fd_h = (loss(inertia, H + eps) - loss(inertia, H - eps)) / (2 * eps)
+        np.testing.assert_allclose(grad_h, fd_h, rtol=1e-6, atol=1e-8)
