@@ -16,13 +16,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _fast_so3
+from . import _fast_explicit, _fast_so3
 from ._checks import check_finite, is_concrete
 from ._dep import DEP, default_tolerance
 from ._integrator_base import AbstractIntegrator
 from ._moser_veselov import MoserVeselov
 from ._results import RESULTS
 from ._rigid_body import RigidBody
+from ._splitting import LiePoissonSplitting
 from ._simulate import Solution, _check_integer, simulate
 from ._system_base import AbstractLieSystem
 
@@ -45,6 +46,8 @@ def _fast_step(system, integrator):
         return integrator.chart
     if isinstance(integrator, MoserVeselov):
         return "moser-veselov"
+    if isinstance(integrator, LiePoissonSplitting):
+        return "splitting"
     return None
 
 
@@ -228,25 +231,31 @@ def _simulate_fast(
         ):
     chart = _fast_step(system, integrator)
     if fixed_iterations is None:
-        fixed_iterations = DEFAULT_FIXED_ITERATIONS[chart]
+        fixed_iterations = DEFAULT_FIXED_ITERATIONS.get(chart, 0)
     batch, dtype = g0.shape[0], m0.dtype
     inertia = jnp.asarray(system.inertia, dtype)
     # Structure of arrays: component-major, batch minor.
     A = tuple(jnp.broadcast_to(inertia[..., i], (batch,)) / h for i in range(3))
+    h_over_inertia = tuple(1 / a for a in A)
     g = tuple(g0[:, i, j] for i in range(3) for j in range(3))
     Pi = tuple(m0[:, i] for i in range(3))
     eps = default_tolerance(dtype)
-    rtol = eps if integrator.rtol is None else integrator.rtol
-    atol = eps if integrator.atol is None else integrator.atol
+    rtol = eps if getattr(integrator, "rtol", None) is None else integrator.rtol
+    atol = eps if getattr(integrator, "atol", None) is None else integrator.atol
     nan = jnp.asarray(jnp.nan, dtype)
     int32 = jnp.int32
 
     def one_step(carry, _):
         (g, Pi, result, failed_step, k), (total, most, worst) = carry
-        tolerance = atol + rtol * _fast_so3._max_abs(Pi)
-        g_next, Pi_next, step_result, iterations, residual = _fast_so3.dep_step(
-            chart, g, Pi, A, tolerance, fixed_iterations, integrator.max_steps
-        )
+        if chart == "splitting":
+            g_next, Pi_next, step_result = _fast_explicit.splitting_step(g, Pi, h_over_inertia)
+            # Explicit: no Newton iterations, zero residual (as the per-body `StepInfo`).
+            iterations, residual = jnp.zeros((batch,), int32), jnp.zeros((batch,), dtype)
+        else:
+            tolerance = atol + rtol * _fast_so3._max_abs(Pi)
+            g_next, Pi_next, step_result, iterations, residual = _fast_so3.dep_step(
+                chart, g, Pi, A, tolerance, fixed_iterations, integrator.max_steps
+            )
         newly_failed = (result == RESULTS.successful) & (step_result != RESULTS.successful)
         failed_step = jnp.where(newly_failed, k, failed_step)
         result = RESULTS.first_failure(result, step_result)
