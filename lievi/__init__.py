@@ -21,6 +21,7 @@ from ._moser_veselov import MoserVeselov as MoserVeselov
 from ._reference import reference_solution as reference_solution
 from ._results import RESULTS as RESULTS
 from ._rigid_body import RigidBody as RigidBody
+from ._rk4 import RK4 as RK4
 from ._simulate import Solution as Solution
 from ._simulate import simulate as simulate
 from ._so3 import SO3 as SO3

@@ -1,0 +1,69 @@
+"""Classical Runge–Kutta 4 on the Euler–Poincaré equations: the non-geometric baseline.
+
+The continuous equations (the ones `lievi.reference_solution` solves) are, with `ξ` the
+velocity of `m` (inverse Legendre map),
+
+    left-invariant:   ṁ = ad_ξᵀ m,    ġ = g ξ̂;
+    right-invariant:  ṁ = −ad_ξᵀ m,   ġ = ξ̂ g.
+
+RK4 treats `(g, m)` as a point of `R^{n×n} × R^d`: fourth order, explicit, and nothing
+else. `g` drifts off the group, the momentum off its coadjoint orbit (Casimirs drift) and
+the energy drifts — slowly, O(h⁴) per unit time, but without bound, which is what the
+structure-preserving methods are compared against (the tests measure it over T = 1e4).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Scalar
+
+from ._checks import check_shape
+from ._integrator_base import AbstractIntegrator, StepInfo
+from ._results import RESULTS
+from ._system_base import AbstractLieSystem
+
+
+def euler_poincare_vector_field(system: AbstractLieSystem, g, m):
+    """`(ġ, ṁ)` of the Euler–Poincaré equations with reconstruction."""
+    group = system.group
+    xi = system.velocity(m)
+    if system.side == "left":
+        return g @ group.hat(xi), group.ad(xi).T @ m
+    return group.hat(xi) @ g, -group.ad(xi).T @ m
+
+
+class RK4(AbstractIntegrator):
+    """Classical fourth-order Runge–Kutta on the Euler–Poincaré equations (a baseline).
+
+    Works for any `AbstractLieSystem` (left- or right-invariant). Not geometric: `g` leaves
+    the group and Casimirs and energy drift (see the module docstring). No arguments.
+    """
+
+    def order(self) -> int:
+        return 4
+
+    def step(self, system: AbstractLieSystem, g, m, h: Scalar):
+        group = system.group
+        n, d = group.matrix_dim, group.algebra_dim
+        check_shape("g", g, (n, n), f"a {n}×{n} group element")
+        check_shape("m", m, (d,), f"momentum coordinates of dimension {d}")
+
+        def f(y):
+            return euler_poincare_vector_field(system, *y)
+
+        def axpy(a, k, y):
+            return jax.tree.map(lambda ki, yi: yi + a * ki, k, y)
+
+        y = (g, m)
+        k1 = f(y)
+        k2 = f(axpy(h / 2, k1, y))
+        k3 = f(axpy(h / 2, k2, y))
+        k4 = f(axpy(h, k3, y))
+        g_next, m_next = jax.tree.map(
+            lambda yi, a, b, c, e: yi + h / 6 * (a + 2 * b + 2 * c + e), y, k1, k2, k3, k4
+        )
+        finite = jnp.all(jnp.isfinite(m_next)) & jnp.all(jnp.isfinite(g_next))
+        result = jnp.where(finite, RESULTS.successful, RESULTS.nonfinite)
+        zero = jnp.zeros((), m_next.dtype)
+        return g_next, m_next, StepInfo(result, jnp.zeros((), jnp.int32), zero)
