@@ -1,9 +1,10 @@
 """`simulate_batch`: many bodies at once, with a fast path for the rigid body on SO(3).
 
 Semantics are those of `jax.vmap(simulate)` over the bodies (the generic path is exactly
-that); for `RigidBody` with principal moments and the integrators that have one, a
-structure-of-arrays fast path (`_fast_so3.py`) computes the same iterates to round-off,
-20–50× faster on CPU. Everything runs inside one jit-compiled `lax.scan`: no host
+that); for `RigidBody` with principal moments and the integrators that have one (`DEP`,
+`MoserVeselov`: `_fast_so3.py`; `LiePoissonSplitting`, `RK4`: `_fast_explicit.py`), a
+structure-of-arrays fast path computes the same iterates to round-off, 10–50× faster on
+CPU (`benchmarks/throughput.py`). Everything runs inside one jit-compiled `lax.scan`: no host
 synchronisation per step.
 """
 
@@ -23,6 +24,7 @@ from ._integrator_base import AbstractIntegrator
 from ._moser_veselov import MoserVeselov
 from ._results import RESULTS
 from ._rigid_body import RigidBody
+from ._rk4 import RK4
 from ._splitting import LiePoissonSplitting
 from ._simulate import Solution, _check_integer, simulate
 from ._system_base import AbstractLieSystem
@@ -48,6 +50,8 @@ def _fast_step(system, integrator):
         return "moser-veselov"
     if isinstance(integrator, LiePoissonSplitting):
         return "splitting"
+    if isinstance(integrator, RK4):
+        return "rk4"
     return None
 
 
@@ -104,9 +108,10 @@ def simulate_batch(
       final state is what makes very large batches fit in memory.
     - `system_axis`: `None` or `0`, as `in_axes` of `jax.vmap` for `system`.
     - `fast`: use the structure-of-arrays fast path when there is one (the rigid body
-      with principal moments of inertia and `DEP`, both charts). Its iterates equal the
-      generic path's to round-off; it is not reverse-mode differentiable (its Newton
-      tail is a `while_loop`): for gradients pass `fast=False`.
+      with principal moments of inertia and `DEP` (both charts), `MoserVeselov`,
+      `LiePoissonSplitting` or `RK4`). Its iterates equal the generic path's to
+      round-off; it is not reverse-mode differentiable (its Newton tail is a
+      `while_loop`): for gradients pass `fast=False`.
     - `fixed_iterations`: (fast path) Newton iterations every body takes before the one
       convergence check; bodies still above tolerance then continue, alone, up to the
       integrator's `max_steps`. Default: 3 (exp chart, Moser–Veselov) or 4 (Cayley
@@ -237,6 +242,7 @@ def _simulate_fast(
     # Structure of arrays: component-major, batch minor.
     A = tuple(jnp.broadcast_to(inertia[..., i], (batch,)) / h for i in range(3))
     h_over_inertia = tuple(1 / a for a in A)
+    inverse_inertia = tuple(1 / jnp.broadcast_to(inertia[..., i], (batch,)) for i in range(3))
     g = tuple(g0[:, i, j] for i in range(3) for j in range(3))
     Pi = tuple(m0[:, i] for i in range(3))
     eps = default_tolerance(dtype)
@@ -247,8 +253,11 @@ def _simulate_fast(
 
     def one_step(carry, _):
         (g, Pi, result, failed_step, k), (total, most, worst) = carry
-        if chart == "splitting":
-            g_next, Pi_next, step_result = _fast_explicit.splitting_step(g, Pi, h_over_inertia)
+        if chart in ("splitting", "rk4"):
+            if chart == "splitting":
+                g_next, Pi_next, step_result = _fast_explicit.splitting_step(g, Pi, h_over_inertia)
+            else:
+                g_next, Pi_next, step_result = _fast_explicit.rk4_step(g, Pi, h, inverse_inertia)
             # Explicit: no Newton iterations, zero residual (as the per-body `StepInfo`).
             iterations, residual = jnp.zeros((batch,), int32), jnp.zeros((batch,), dtype)
         else:

@@ -22,6 +22,7 @@ FAST = {
     "dep-cayley": lievi.DEP(chart="cayley"),
     "moser-veselov": lievi.MoserVeselov(),
     "splitting": lievi.LiePoissonSplitting(),
+    "rk4": lievi.RK4(),
 }
 BATCH, STEPS, SAVE_EVERY = 24, 20, 5
 
