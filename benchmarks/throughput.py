@@ -12,8 +12,19 @@ dtype is float32 only.
 
     python benchmarks/throughput.py [--quick] [--batches 1 100 10000] [--steps 100]
                                     [--dtypes float64 float32] [--out throughput]
+                                    [--cpu-devices N]
+    python benchmarks/throughput.py --acceptance [--cpu-devices 2]
 
 Writes `benchmarks/results/<out>.json` and `<out>.png`.
+
+`--acceptance` is the issue's CPU acceptance configuration alone (a few minutes): batch
+1e5, 100 steps, float64, final state only, every lievi method and diffrax Tsit5, checked
+against the targets (DEP exp ≥ 1e7, Moser–Veselov and splitting ≥ 3e7 body-steps/s, every
+method ≥ 10× diffrax), into `throughput_cpu_acceptance.json`. `--cpu-devices N` splits
+the host CPU into N XLA devices (`--xla_force_host_platform_device_count`) and shards the
+batch over them with `lievi.shard_batch` — XLA runs one device's work on one thread, so
+this is how a batch uses more than one core (every method, diffrax included, gets the
+same sharded inputs).
 """
 
 from __future__ import annotations
@@ -28,7 +39,18 @@ import platform
 import sys
 import time
 
-import jax
+
+def _early_cpu_devices():
+    """`--cpu-devices N` must reach XLA before jax is imported."""
+    if "--cpu-devices" in sys.argv:
+        n = int(sys.argv[sys.argv.index("--cpu-devices") + 1])
+        flags = os.environ.get("XLA_FLAGS", "")
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
+
+
+_early_cpu_devices()
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
@@ -113,6 +135,30 @@ def check_against_generic(name, fn, dtype, steps: int):
     return float(max(jnp.max(jnp.abs(fast[0] - generic[0])), jnp.max(jnp.abs(fast[1] - generic[1]))))
 
 
+# The issue's CPU acceptance targets (float64, batch 1e5, 100 steps), body-steps/s.
+TARGETS = {"DEP exp": 1e7, "Moser-Veselov": 3e7, "splitting": 3e7}
+ACCEPTANCE_METHODS = ("DEP exp", "DEP cayley", "Moser-Veselov", "splitting", "RK4", "diffrax Tsit5")
+
+
+def acceptance_summary(records):
+    """Each method against its target and against diffrax Tsit5 (≥ 10×), in this run."""
+    rates = {r["method"]: r["body_steps_per_s"] for r in records}
+    base = rates.get("diffrax Tsit5")
+    lines = []
+    for name, rate in rates.items():
+        if name == "diffrax Tsit5":
+            continue
+        ratio = rate / base if base else float("nan")
+        target = TARGETS.get(name)
+        verdict = "" if target is None else (" ≥ target" if rate >= target else " BELOW target")
+        lines.append({"method": name, "body_steps_per_s": rate, "target": target,
+                      "vs_diffrax_tsit5": ratio, "meets_target": None if target is None else rate >= target,
+                      "meets_10x_diffrax": ratio >= 10})
+        print(f"{name:<26}{rate:>12.3g}  target {target or '-':>8}{verdict:<14}"
+              f"{ratio:>8.1f}× diffrax Tsit5{'' if ratio >= 10 else ' (below 10×)'}")
+    return lines
+
+
 def timed(fn, args, min_total: float = 0.5, max_repeats: int = 5):
     start = time.perf_counter()
     jax.block_until_ready(fn(*args))
@@ -135,15 +181,27 @@ def main():
     parser.add_argument("--methods", nargs="+", default=None, help="names to run (default: all)")
     parser.add_argument("--budget", type=float, default=60.0,
                         help="skip larger batches of a method once one run takes longer than this [s]")
-    parser.add_argument("--out", default="throughput", help="basename of the JSON and PNG")
+    parser.add_argument("--acceptance", action="store_true",
+                        help="only the CPU acceptance configuration: batch 1e5, 100 steps, float64, every method")
+    parser.add_argument("--cpu-devices", type=int, default=None,
+                        help="split the CPU into this many XLA devices and shard the batch over them")
+    parser.add_argument("--out", default=None, help="basename of the JSON and PNG")
     parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
     args = parser.parse_args()
 
     device = jax.devices()[0]
     on_cpu = device.platform == "cpu"
+    if args.acceptance:
+        args.batches = args.batches or [100_000]
+        args.steps = args.steps or 100
+        args.dtypes = args.dtypes or ["float64"]
+        args.methods = args.methods or list(ACCEPTANCE_METHODS)
+        args.out = args.out or "throughput_cpu_acceptance"
+    args.out = args.out or "throughput"
     batches = args.batches or ([1, 100] if args.quick else [1, 10, 100, 1_000, 10_000, 100_000, 1_000_000])
     steps = args.steps or (10 if args.quick else 100)
     dtypes = args.dtypes or (["float64", "float32"] if on_cpu else ["float32"])
+    n_devices = jax.device_count()
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     print(f"device: {device.device_kind} ({device.platform}, {jax.device_count()} device(s)), "
           f"jax {jax.__version__}, {os.cpu_count()} CPUs, load average {load}")
@@ -176,6 +234,10 @@ def main():
                 print(f"{name:<26}final state vs vmap(simulate), 64 bodies: max |difference| {difference:.2g}")
             for batch in sorted(batches):
                 inputs = rigid_body_inputs(batch, dtype)
+                if n_devices > 1:
+                    if batch % n_devices:
+                        continue
+                    inputs = lievi.shard_batch(inputs)
                 compile_s, run_s = timed(fn, inputs)
                 rate = batch * steps / run_s
                 records.append({"method": name, "dtype": dtype_name, "batch": batch, "steps": steps,
@@ -189,6 +251,11 @@ def main():
             meta["load_average_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
             (out / f"{args.out}.json").write_text(json.dumps({"meta": meta, "results": records}, indent=2))
 
+    if args.acceptance:
+        print(f"\nacceptance (float64, batch {batches[-1]}, {steps} steps, final state only, "
+              f"{n_devices} device(s); load average now {os.getloadavg()}):")
+        meta["acceptance"] = acceptance_summary([r for r in records if r["batch"] == batches[-1]])
+        (out / f"{args.out}.json").write_text(json.dumps({"meta": meta, "results": records}, indent=2))
     print(f"\nwrote {out / (args.out + '.json')}")
     try:
         plot(records, meta, out / f"{args.out}.png")

@@ -241,7 +241,6 @@ def _simulate_fast(
     inertia = jnp.asarray(system.inertia, dtype)
     # Structure of arrays: component-major, batch minor.
     A = tuple(jnp.broadcast_to(inertia[..., i], (batch,)) / h for i in range(3))
-    h_over_inertia = tuple(1 / a for a in A)
     inverse_inertia = tuple(1 / jnp.broadcast_to(inertia[..., i], (batch,)) for i in range(3))
     g = tuple(g0[:, i, j] for i in range(3) for j in range(3))
     Pi = tuple(m0[:, i] for i in range(3))
@@ -255,7 +254,7 @@ def _simulate_fast(
         (g, Pi, result, failed_step, k), (total, most, worst) = carry
         if chart in ("splitting", "rk4"):
             if chart == "splitting":
-                g_next, Pi_next, step_result = _fast_explicit.splitting_step(g, Pi, h_over_inertia)
+                g_next, Pi_next, step_result = _fast_explicit.splitting_step(g, Pi, A)
             else:
                 g_next, Pi_next, step_result = _fast_explicit.rk4_step(g, Pi, h, inverse_inertia)
             # Explicit: no Newton iterations, zero residual (as the per-body `StepInfo`).

@@ -53,12 +53,14 @@ def sincos(x):
     r = ((x - k * _P1) - k * _P2) - k * _P3
     u = r * r
     s, c = r * _horner(_SIN, u), _horner(_COS, u)
-    # x = r + kπ/2: quadrant q = k mod 4 rotates (s, c) by q quarter turns.
-    q = jnp.mod(k, 4)
-    odd = (q == 1) | (q == 3)
+    # x = r + kπ/2: quadrant q = k mod 4 rotates (s, c) by q quarter turns. Integer bit
+    # operations (two's complement: `k & 3` is k mod 4 for negative k too): a float `mod`
+    # is a scalar `fmod` call on CPU.
+    q = k.astype(jnp.int32)
+    odd = (q & 1) == 1
     sin, cos = jnp.where(odd, c, s), jnp.where(odd, s, c)
-    sin = jnp.where(q >= 2, -sin, sin)
-    cos = jnp.where((q == 1) | (q == 2), -cos, cos)
+    sin = jnp.where((q & 2) == 2, -sin, sin)
+    cos = jnp.where(((q + 1) & 2) == 2, -cos, cos)
     return sin, cos
 
 
@@ -69,33 +71,66 @@ def _finite_result(Pi, g):
     return jnp.where(finite, RESULTS.successful, RESULTS.nonfinite).astype(jnp.int32)
 
 
-def _rotate_about_axis(g, Pi, p: int, alpha):
-    """`g ← g F`, `Π ← Fᵀ Π` for `F = exp(α ê_p)`, the rotation by `α` about axis `p`.
+def materialise(values, one):
+    """`values / one` with `one` an array of ones computed at run time: forces XLA to store
+    `values` instead of recomputing them in every consumer.
 
-    With `(q, r)` the axes after `p` in cyclic order, `F e_q = cos α e_q + sin α e_r` and
-    `F e_r = −sin α e_q + cos α e_r`: columns `q`, `r` of `g` and components `q`, `r` of
-    `Π` change, `Π_p` (hence the angle of the sub-flow) does not.
+    XLA's CPU fusion duplicates a cheap producer into each of its consumers; a step with
+    12 outputs that all depend on one chain of cheap elementwise work then evaluates that
+    chain up to 12 times (measured 5–10× the operation count of the step, 2–3× the run
+    time). A floating division counts as expensive (`InstructionFusion::IsExpensive`), so
+    its result is computed once and kept. `one` must not be a constant, or the division
+    is simplified away: it is built from the state (`x·0 + 1`).
     """
+    return tuple(v / one for v in values)
+
+
+def _rotation_about_axis(p: int, alpha, one):
+    """`F = exp(α ê_p)` as 9 arrays, row-major; with `(q, r)` the axes after `p` in cyclic
+    order, `F e_q = cos α e_q + sin α e_r`, `F e_r = −sin α e_q + cos α e_r`."""
     q, r = (p + 1) % 3, (p + 2) % 3
-    s, c = sincos(alpha)
-    g = list(g)
+    s, c = materialise(sincos(alpha), one)
+    F = {(p, p): 1.0, (q, q): c, (r, q): s, (q, r): -s, (r, r): c}
+    return tuple(F.get((i, j), 0.0) for i in range(3) for j in range(3))
+
+
+def _matmul3(X, Y):
+    """`X Y` for 3×3 matrices as 9 arrays (entries may be Python floats, 0.0 and 1.0 drop)."""
+
+    def term(x, y):
+        if isinstance(x, float) and x == 0 or isinstance(y, float) and y == 0:
+            return None
+        return y if isinstance(x, float) and x == 1 else x if isinstance(y, float) and y == 1 else x * y
+
+    out = []
     for i in range(3):
-        gq, gr = g[3 * i + q], g[3 * i + r]
-        g[3 * i + q], g[3 * i + r] = c * gq + s * gr, c * gr - s * gq
-    Pi = list(Pi)
-    Pi[q], Pi[r] = c * Pi[q] + s * Pi[r], c * Pi[r] - s * Pi[q]
-    return tuple(g), tuple(Pi)
+        for j in range(3):
+            terms = [t for k in range(3) if (t := term(X[3 * i + k], Y[3 * k + j])) is not None]
+            out.append(sum(terms[1:], terms[0]) if terms else 0.0)
+    return tuple(out)
 
 
-def splitting_step(g, Pi, h_over_inertia):
+def splitting_step(g, Pi, inertia_over_h):
     """One `LiePoissonSplitting` step: axes 0, 1 (h/2), 2 (h), 1, 0 (h/2), as `_splitting.py`.
 
-    `g`: 9 arrays (row-major), `Pi`: 3 arrays, `h_over_inertia`: `h/I_p`, 3 arrays or
-    scalars. Returns `(g_next, Pi_next, result)`.
+    Sub-flow about axis `p` for a fraction `f` of the step: `F = exp(α ê_p)` with
+    `α = f Π_p / (I_p/h)`, `Π ← Fᵀ Π` (`Π_p` does not change); the five rotations are
+    composed into one `F` and `g ← g F` once (equal to rotating `g` five times, to
+    round-off). `g`: 9 arrays (row-major), `Pi`: 3 arrays, `inertia_over_h`: `I_p/h`, 3
+    arrays or scalars. Returns `(g_next, Pi_next, result)`.
     """
+    one = Pi[0] * 0 + 1
+    F = None
     for p, fraction in ((0, 0.5), (1, 0.5), (2, 1.0), (1, 0.5), (0, 0.5)):
-        g, Pi = _rotate_about_axis(g, Pi, p, fraction * h_over_inertia[p] * Pi[p])
-    return g, Pi, _finite_result(Pi, g)
+        Fp = _rotation_about_axis(p, fraction * Pi[p] / inertia_over_h[p], one)
+        q, r = (p + 1) % 3, (p + 2) % 3
+        c, s = Fp[4 * q], Fp[3 * r + q]
+        Pi = list(Pi)
+        Pi[q], Pi[r] = c * Pi[q] + s * Pi[r], c * Pi[r] - s * Pi[q]
+        F = Fp if F is None else _matmul3(F, Fp)
+    F = materialise(F, one)
+    g = _matmul3(g, F)
+    return g, tuple(Pi), _finite_result(Pi, g)
 
 
 def rk4_step(g, Pi, h, inverse_inertia):
