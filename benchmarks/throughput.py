@@ -164,7 +164,9 @@ def timed(fn, args, min_total: float = 0.5, max_repeats: int = 5):
     jax.block_until_ready(fn(*args))
     first = time.perf_counter() - start
     best, total, repeats = np.inf, 0.0, 0
-    while repeats < max_repeats and (repeats < 2 or total < min_total):
+    # Slow runs (diffrax at 1e5 bodies on CPU: minutes) are timed once more, not twice.
+    min_repeats = 1 if first > 20 else 2
+    while repeats < max_repeats and (repeats < min_repeats or total < min_total):
         start = time.perf_counter()
         jax.block_until_ready(fn(*args))
         elapsed = time.perf_counter() - start
