@@ -30,6 +30,9 @@ from lievi import diagnostics
 INTEGRATORS: tuple[tuple[str, lievi.AbstractIntegrator], ...] = (
     ("DEP exp chart", lievi.DEP(chart="exp")),
     ("DEP Cayley chart", lievi.DEP(chart="cayley")),
+    ("Moser–Veselov", lievi.MoserVeselov()),
+    ("Lie–Poisson splitting", lievi.LiePoissonSplitting()),
+    ("RK4 (non-geometric)", lievi.RK4()),
 )
 
 # The HLW problem (NOTES §4).

@@ -35,7 +35,9 @@ with respect to the inertia of a symmetric body, pass principal moments.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Scalar
 
 from ._checks import check_shape
@@ -60,23 +62,27 @@ def _principal_frame(system):
     return moments, Q
 
 
-def _rotate_plane(g, M, i: int, j: int, sign: float, angle):
-    """`g ← g F`, `M ← Fᵀ M F` for the Givens rotation `F = exp(angle · ê_p)` of plane (i, j).
+def _sub_flow(carry, x):
+    """Exact flow of `H_p` for a time `t`: `g ← g F`, `Π̂ ← Fᵀ Π̂ F`, `F = exp(t Π_p/I_p · ê_p)`.
 
-    `ê_p[j, i] = sign`, `ê_p[i, j] = −sign`, so `F[i, i] = F[j, j] = cos`,
-    `F[j, i] = sign·sin`, `F[i, j] = −sign·sin`; only columns / rows `i`, `j` change.
+    `ê_p[j, i] = sign`, `ê_p[i, j] = −sign` (the basis of `lievi.SOn`), so `F` is the Givens
+    rotation with `F[i, i] = F[j, j] = cos`, `F[j, i] = sign·sin`, `F[i, j] = −sign·sin`.
+    Built from one-hot vectors so that one `lax.scan` body serves every plane: the
+    compile time does not grow with the number of planes (unrolling 19 sub-flows on SO(5)
+    compiled 4× slower, and its Jacobian 5× slower).
     """
+    g, M = carry
+    i, j, sign, t, moment = x
+    eye = jnp.eye(g.shape[-1], dtype=g.dtype)
+    e_i, e_j = eye[i], eye[j]
+    angle = t * sign * (e_j @ M @ e_i) / moment  # Π_p = sign·Π̂[j, i] is constant on the flow
     c, s = jnp.cos(angle), sign * jnp.sin(angle)
-
-    def columns(A):  # A F
-        ai, aj = A[:, i], A[:, j]
-        return A.at[:, i].set(c * ai + s * aj).at[:, j].set(c * aj - s * ai)
-
-    def rows(A):  # Fᵀ A
-        ai, aj = A[i, :], A[j, :]
-        return A.at[i, :].set(c * ai + s * aj).at[j, :].set(c * aj - s * ai)
-
-    return columns(g), rows(columns(M))
+    F = (
+        eye
+        + (c - 1) * (jnp.outer(e_i, e_i) + jnp.outer(e_j, e_j))
+        + s * (jnp.outer(e_j, e_i) - jnp.outer(e_i, e_j))
+    )
+    return (g @ F, F.T @ M @ F), None
 
 
 class LiePoissonSplitting(AbstractIntegrator):
@@ -104,16 +110,20 @@ class LiePoissonSplitting(AbstractIntegrator):
         moments, Q = _principal_frame(system)
         if Q is not None:
             g, m = g @ Q, Q.T @ m
-        planes = list(zip(*(a.tolist() for a in _planes(n))))
-        last = len(planes) - 1
+        i, j, sign = _planes(n)
+        last = d - 1
         # The palindrome p = 0 … d−2 (h/2), d−1 (h), d−2 … 0 (h/2).
-        sequence = [(p, 0.5) for p in range(last)] + [(last, 1.0)]
-        sequence += [(p, 0.5) for p in reversed(range(last))]
-        M = group.hat(m)
-        for p, fraction in sequence:
-            i, j, sign = planes[p]
-            m_p = sign * M[j, i]
-            g, M = _rotate_plane(g, M, i, j, sign, fraction * h * m_p / moments[p])
+        order = np.r_[np.arange(last), last, np.arange(last)[::-1]]
+        fraction = np.r_[np.full(last, 0.5), 1.0, np.full(last, 0.5)]
+        dtype = jnp.result_type(g, m)
+        sequence = (
+            jnp.asarray(i[order]),
+            jnp.asarray(j[order]),
+            jnp.asarray(sign[order], dtype),
+            (jnp.asarray(fraction, dtype) * h).astype(dtype),
+            jnp.asarray(moments, dtype)[order],
+        )
+        (g, M), _ = jax.lax.scan(_sub_flow, (g, group.hat(m)), sequence)
         m_next = group.vee(M)
         if Q is not None:
             g, m_next = g @ Q.T, Q @ m_next

@@ -48,7 +48,10 @@ def test_demo_in_process_json_and_plot(tmp_path, capsys):
         # h = 0.1 to T = 5 with second-order methods: small but nonzero errors.
         assert 0 < row["error_m"] < 0.1
         assert 0 < row["error_g"] < 0.1
-        assert row["casimir_drift"] < 1e-12
+        if row["integrator"] == "RK4 (non-geometric)":
+            assert row["casimir_drift"] > 1e-9  # the baseline drifts, visibly even at T = 5
+        else:
+            assert row["casimir_drift"] < 1e-12
         if row["del_residual_max"] is not None:
             assert row["del_residual_max"] < 1e-12
 

@@ -20,6 +20,9 @@ from helpers import ROUNDOFF, hlw_problem, random_generalized_body, random_rotat
 
 MV = lievi.MoserVeselov()
 H = 0.1
+# One trajectory length throughout (also in test_equivalences): `simulate` compiles once per
+# system type and length, and compiling dominates these tests' time.
+STEPS = 40
 
 # Compiled once per shape: eager autodiff of the diagnostics costs seconds per call.
 del_residual = eqx.filter_jit(dg.del_residual)
@@ -29,7 +32,7 @@ poisson_defect = eqx.filter_jit(dg.poisson_defect)
 @pytest.fixture(scope="module")
 def hlw_run():
     body, g0, m0 = hlw_problem()
-    return body, lievi.simulate(body, MV, g0, m0, h=H, n_steps=100)
+    return body, lievi.simulate(body, MV, g0, m0, h=H, n_steps=STEPS)
 
 
 @eqx.filter_jit
@@ -64,19 +67,44 @@ def test_newton_residual_and_equation(hlw_run):
 def test_del_residual_hlw(hlw_run):
     body, sol = hlw_run
     residual = del_residual(body, MV, sol.g, H)
-    assert residual.shape == (99, 3)
+    assert residual.shape == (STEPS - 1, 3)
     assert jnp.max(jnp.abs(residual)) <= ROUNDOFF
 
 
 def test_discrete_legendre_transform_matches_step(hlw_run):
     """`−D₁L_d(g_k, g_{k+1}) = Π_k` along the trajectory; starting from `(g0, g1)` agrees."""
     body, sol = hlw_run
-    for k in (0, 37, 99):
+    for k in (0, 17, STEPS - 1):
         m = MV.momentum_from_configurations(body, sol.g[k], sol.g[k + 1], jnp.asarray(H))
         np.testing.assert_allclose(m, sol.m[k], rtol=0, atol=ROUNDOFF)
-    again = lievi.simulate(body, MV, sol.g[0], g1=sol.g[1], h=H, n_steps=100)
+    again = lievi.simulate(body, MV, sol.g[0], g1=sol.g[1], h=H, n_steps=STEPS)
     np.testing.assert_allclose(again.g, sol.g, rtol=0, atol=ROUNDOFF)
     np.testing.assert_allclose(again.m, sol.m, rtol=0, atol=ROUNDOFF)
+
+
+def observed_order(system, g0, m0, T, hs):
+    g_ref, m_ref = lievi.reference_solution(system, g0, m0, [0.0, T])
+    errors = []
+    for h in hs:
+        sol = lievi.simulate(system, MV, g0, m0, h=h, n_steps=int(round(T / h)))
+        errors.append(
+            max(np.max(np.abs(sol.m[-1] - m_ref[-1])), np.max(np.abs(sol.g[-1] - g_ref[-1])))
+        )
+    return np.polyfit(np.log(hs), np.log(errors), 1)[0], errors
+
+
+def test_second_order_on_hlw():
+    """Against DOP853 (rtol 1e-13), T = 2, h = 0.1 … 0.0125: measured 2.000."""
+    body, g0, m0 = hlw_problem()
+    order, errors = observed_order(body, g0, m0, 2.0, [0.1 / 2**k for k in range(4)])
+    assert abs(order - 2) <= 0.1, (order, errors)
+
+
+@pytest.mark.slow
+def test_second_order_on_so4():
+    body, g0, m0 = random_generalized_body(np.random.default_rng(4), 4)
+    order, errors = observed_order(body, g0, m0, 1.0, [0.05 / 2**k for k in range(3)])
+    assert abs(order - 2) <= 0.1, (order, errors)
 
 
 def test_conservation_over_1e4_steps():
@@ -86,38 +114,38 @@ def test_conservation_over_1e4_steps():
     assert dg.relative_drift(dg.casimirs(body, sol.m)) <= ROUNDOFF
     assert dg.relative_drift(dg.spatial_momentum(body, sol.g, sol.m)) <= ROUNDOFF
     assert dg.orthogonality_defect(body, sol.g[-1]) <= ROUNDOFF
-    energy = dg.energy(body, sol.m)
-    assert dg.relative_drift(energy) <= 1e-2  # O(h²), bounded (a variational method)
+    # Not merely bounded: MV keeps the energy itself to round-off (measured 3e-15 here,
+    # 5e-15 on SO(4)), unlike DEP and the splitting, whose energy error is O(h²).
+    assert dg.relative_drift(dg.energy(body, sol.m)) <= ROUNDOFF
 
 
 def test_dlp_map_is_poisson(hlw_run):
     body, sol = hlw_run
-    for k in (0, 50):
+    for k in (0, 30):
         assert poisson_defect(body, MV, sol.g[k], sol.m[k], H) <= ROUNDOFF
 
 
-@pytest.mark.parametrize("n", [4, 5])
+@pytest.mark.parametrize("n", [4, pytest.param(5, marks=pytest.mark.slow)])
 def test_generalized_rigid_body(n):
     body, g0, m0 = random_generalized_body(np.random.default_rng(n), n)
     h = 0.05
-    sol = lievi.simulate(body, MV, g0, m0, h=h, n_steps=100)
+    sol = lievi.simulate(body, MV, g0, m0, h=h, n_steps=STEPS)
     assert sol.result == lievi.RESULTS.successful
     scale = float(jnp.max(jnp.abs(m0)))
     assert jnp.max(sol.stats["residual"]) <= 1e-14 * scale
     assert jnp.max(jnp.abs(del_residual(body, MV, sol.g, h))) <= ROUNDOFF * scale
     assert dg.relative_drift(dg.casimirs(body, sol.m)) <= ROUNDOFF
+    assert dg.relative_drift(dg.energy(body, sol.m)) <= ROUNDOFF
     assert dg.relative_drift(dg.spatial_momentum(body, sol.g, sol.m)) <= ROUNDOFF
     assert dg.orthogonality_defect(body, sol.g[-1]) <= ROUNDOFF
-    assert mv_equation_residual(body, sol.m, h) <= 1e-14 * scale
-    assert poisson_defect(body, MV, sol.g[7], sol.m[7], h) <= ROUNDOFF * scale
 
 
 def test_son3_generalized_body_matches_rigid_body():
     Lambda = jnp.array([0.2, 0.9, 1.3])
     inertia = jnp.array([Lambda[1] + Lambda[2], Lambda[0] + Lambda[2], Lambda[0] + Lambda[1]])
     _, g0, m0 = hlw_problem()
-    a = lievi.simulate(lievi.RigidBody(inertia), MV, g0, m0, h=H, n_steps=30)
-    b = lievi.simulate(lievi.GeneralizedRigidBody(Lambda), MV, g0, m0, h=H, n_steps=30)
+    a = lievi.simulate(lievi.RigidBody(inertia), MV, g0, m0, h=H, n_steps=STEPS)
+    b = lievi.simulate(lievi.GeneralizedRigidBody(Lambda), MV, g0, m0, h=H, n_steps=STEPS)
     np.testing.assert_allclose(a.g, b.g, rtol=0, atol=ROUNDOFF)
     np.testing.assert_allclose(a.m, b.m, rtol=0, atol=ROUNDOFF)
 
@@ -127,8 +155,8 @@ def test_full_inertia_tensor_equals_rotated_diagonal_run():
     body, g0, m0 = hlw_problem()
     Q = random_rotation(np.random.default_rng(0), 3)
     full = lievi.RigidBody(Q @ jnp.diag(body.inertia) @ Q.T)
-    a = lievi.simulate(body, MV, g0, m0, h=H, n_steps=50)
-    b = lievi.simulate(full, MV, g0 @ Q.T, Q @ m0, h=H, n_steps=50)
+    a = lievi.simulate(body, MV, g0, m0, h=H, n_steps=STEPS)
+    b = lievi.simulate(full, MV, g0 @ Q.T, Q @ m0, h=H, n_steps=STEPS)
     np.testing.assert_allclose(b.g @ Q, a.g, rtol=0, atol=ROUNDOFF)
     np.testing.assert_allclose(b.m @ Q, a.m, rtol=0, atol=ROUNDOFF)
 
@@ -141,7 +169,7 @@ def test_moments_violating_triangle_inequality():
     body = lievi.RigidBody(jnp.array([1.0, 1.2, 3.0]))
     assert jnp.min(jnp.diag(moser_veselov_Lambda(body))) < 0
     _, g0, m0 = hlw_problem()
-    sol = lievi.simulate(body, MV, g0, m0, h=0.05, n_steps=40)
+    sol = lievi.simulate(body, MV, g0, m0, h=0.05, n_steps=STEPS)
     assert jnp.max(sol.stats["residual"]) <= 1e-14
     assert jnp.max(jnp.abs(del_residual(body, MV, sol.g, 0.05))) <= ROUNDOFF
     g_ref, m_ref = lievi.reference_solution(body, g0, m0, [0.0, 2.0])
@@ -197,9 +225,9 @@ def test_float32_run():
     body, g0, m0 = hlw_problem()
     body32 = lievi.RigidBody(body.inertia.astype(jnp.float32))
     sol32 = lievi.simulate(
-        body32, MV, g0.astype(jnp.float32), m0.astype(jnp.float32), h=np.float32(H), n_steps=200
+        body32, MV, g0.astype(jnp.float32), m0.astype(jnp.float32), h=np.float32(H), n_steps=STEPS
     )
-    sol64 = lievi.simulate(body, MV, g0, m0, h=H, n_steps=200)
+    sol64 = lievi.simulate(body, MV, g0, m0, h=H, n_steps=STEPS)
     assert sol32.m.dtype == jnp.float32 and sol32.g.dtype == jnp.float32
     assert sol32.result == lievi.RESULTS.successful
     assert dg.relative_drift(dg.casimirs(body32, sol32.m)) <= 1e-5
@@ -223,3 +251,15 @@ def test_implicit_derivative_matches_finite_differences():
     np.testing.assert_allclose(grad_inertia, fd, rtol=1e-6, atol=1e-9)
     fd_h = (loss(body.inertia, H + eps) - loss(body.inertia, H - eps)) / (2 * eps)
     np.testing.assert_allclose(grad_h, fd_h, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("n", [4, 5])
+def test_generalized_rigid_body_poisson(n):
+    """The momentum map on so(n)* is Poisson, and `ΩᵀΛ − ΛΩ = hΠ̂` holds to 1e-14 for the
+    solved Ω (the SO(3) cases run by default; (5.4) on SO(4) is in test_equivalences)."""
+    body, g0, m0 = random_generalized_body(np.random.default_rng(n), n)
+    scale = float(jnp.max(jnp.abs(m0)))
+    assert poisson_defect(body, MV, g0, m0, 0.05) <= ROUNDOFF * scale
+    sol = lievi.simulate(body, MV, g0, m0, h=0.05, n_steps=STEPS)
+    assert mv_equation_residual(body, sol.m, 0.05) <= 1e-14 * scale

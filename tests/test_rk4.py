@@ -30,6 +30,7 @@ def test_fourth_order_on_hlw():
     assert abs(order - 4) <= ORDER_TOLERANCE, (order, errors)
 
 
+@pytest.mark.slow
 def test_fourth_order_on_so4():
     body, g0, m0 = random_generalized_body(np.random.default_rng(4), 4)
     order, errors = observed_order(body, g0, m0, 1.0, [0.1 / 2**k for k in range(3)])
