@@ -7,12 +7,15 @@ equations*, Nonlinearity 12 (1999) 1647–1662, in JAX.
 from importlib.metadata import PackageNotFoundError, version
 
 from . import diagnostics as diagnostics
+from ._batch import has_fast_path as has_fast_path
+from ._batch import shard_batch as shard_batch
+from ._batch import simulate_batch as simulate_batch
 from ._composition import Composition as Composition
 from ._dep import DEP as DEP
 from ._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
+from ._group_base import MatrixLieGroup as MatrixLieGroup
 from ._identification import InertiaFit as InertiaFit
 from ._identification import fit_inertia as fit_inertia
-from ._group_base import MatrixLieGroup as MatrixLieGroup
 from ._integrator_base import AbstractIntegrator as AbstractIntegrator
 from ._integrator_base import AbstractVariationalIntegrator as AbstractVariationalIntegrator
 from ._integrator_base import StepInfo as StepInfo

@@ -1,0 +1,292 @@
+"""Throughput of batched rigid-body rollouts: body-steps per second against batch size.
+
+Every integrator lievi has for the free rigid body (DEP exp and Cayley charts, and when
+present Moser–Veselov, Lie–Poisson splitting and RK4), run through
+`lievi.simulate_batch` (its structure-of-arrays fast path where there is one), against,
+in the same run and on the same rigid-body ODE (Euler's equations plus `ġ = gΩ̂`),
+diffrax `Tsit5` with a constant step, vmapped — and the naive `jax.vmap(simulate)` DEP
+for reference. Random bodies (inertia and momentum per body), `--steps` steps of size
+0.1, only the final state kept. Compile time is reported separately (first call minus
+the best of the timed calls). The device is the one JAX picks; on a GPU the default
+dtype is float32 only.
+
+    python benchmarks/throughput.py [--quick] [--batches 1 100 10000] [--steps 100]
+                                    [--dtypes float64 float32] [--out throughput]
+                                    [--cpu-devices N]
+    python benchmarks/throughput.py --acceptance [--cpu-devices 2]
+
+Writes `benchmarks/results/<out>.json` and `<out>.png`.
+
+`--acceptance` is the issue's CPU acceptance configuration alone (a few minutes): batch
+1e5, 100 steps, float64, final state only, every lievi method and diffrax Tsit5, checked
+against the targets (DEP exp ≥ 1e7, Moser–Veselov and splitting ≥ 3e7 body-steps/s, every
+method ≥ 10× diffrax), into `throughput_cpu_acceptance.json`. `--cpu-devices N` splits
+the host CPU into N XLA devices (`--xla_force_host_platform_device_count`) and shards the
+batch over them with `lievi.shard_batch` — XLA runs one device's work on one thread, so
+this is how a batch uses more than one core (every method, diffrax included, gets the
+same sharded inputs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import functools
+import json
+import os
+import pathlib
+import platform
+import sys
+import time
+
+
+def _early_cpu_devices():
+    """`--cpu-devices N` must reach XLA before jax is imported."""
+    if "--cpu-devices" in sys.argv:
+        n = int(sys.argv[sys.argv.index("--cpu-devices") + 1])
+        flags = os.environ.get("XLA_FLAGS", "")
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
+
+
+_early_cpu_devices()
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import lievi  # noqa: E402
+
+H = 0.1
+
+
+@functools.lru_cache(maxsize=4)
+def rigid_body_inputs(batch: int, dtype, seed: int = 0):
+    """Random bodies: principal moments in [0.5, 2], unit-scale momenta, random attitudes."""
+    rng = np.random.default_rng(seed)
+    inertia = rng.uniform(0.5, 2.0, size=(batch, 3))
+    m0 = rng.normal(size=(batch, 3))
+    q, r = np.linalg.qr(rng.normal(size=(batch, 3, 3)))
+    q = q * np.sign(np.diagonal(r, axis1=-2, axis2=-1))[:, None, :]
+    q[np.linalg.det(q) < 0, :, 0] *= -1
+    return jnp.asarray(inertia, dtype), jnp.asarray(q, dtype), jnp.asarray(m0, dtype)
+
+
+def lievi_runner(integrator, steps: int, fast: bool = True, **options):
+    def run(inertia, g0, m0):
+        bodies = jax.vmap(lievi.RigidBody)(inertia)
+        sol = lievi.simulate_batch(
+            bodies, integrator, g0, m0, h=jnp.asarray(H, m0.dtype), n_steps=steps,
+            system_axis=0, save=("g", "m"), fast=fast, throw=False, **options,
+        )
+        return sol.g[:, -1], sol.m[:, -1], sol.result
+
+    return jax.jit(run)
+
+
+def diffrax_runner(steps: int):
+    import diffrax
+
+    def field(t, y, inertia):
+        Pi, g = y
+        omega = Pi / inertia
+        return jnp.cross(Pi, omega), g @ lievi.SO3.hat(omega)
+
+    def one(inertia, g0, m0):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(field), diffrax.Tsit5(), t0=0.0, t1=steps * H, dt0=H,
+            y0=(m0, g0), args=inertia, stepsize_controller=diffrax.ConstantStepSize(),
+            saveat=diffrax.SaveAt(t1=True), max_steps=steps,
+        )
+        return sol.ys[1][-1], sol.ys[0][-1], sol.result._value
+
+    return jax.jit(jax.vmap(one))
+
+
+def methods(steps: int):
+    rows = {
+        "DEP exp": lievi_runner(lievi.DEP(chart="exp"), steps),
+        "DEP cayley": lievi_runner(lievi.DEP(chart="cayley"), steps),
+        # Exactly three Newton iterations and a check, no convergence tail (no
+        # data-dependent loop: on a GPU no device-to-host sync per step), 4 steps per
+        # loop iteration.
+        "DEP exp, 3 its, unroll 4": lievi_runner(lievi.DEP(chart="exp", max_steps=3), steps, unroll=4),
+    }
+    for name, cls in (("Moser-Veselov", "MoserVeselov"), ("splitting", "LiePoissonSplitting"), ("RK4", "RK4")):
+        if hasattr(lievi, cls):
+            rows[name] = lievi_runner(getattr(lievi, cls)(), steps)
+    rows["diffrax Tsit5"] = diffrax_runner(steps)
+    rows["DEP exp, vmap(simulate)"] = lievi_runner(lievi.DEP(chart="exp"), steps, fast=False)
+    return rows
+
+
+def check_against_generic(name, fn, dtype, steps: int):
+    """Max |difference| of the final state from the `vmap(simulate)` path (64 bodies)."""
+    if "vmap" in name or "diffrax" in name:
+        return None
+    integrator = {"DEP cayley": lievi.DEP(chart="cayley")}.get(name, lievi.DEP(chart="exp"))
+    for label, cls in (("Moser-Veselov", "MoserVeselov"), ("splitting", "LiePoissonSplitting"), ("RK4", "RK4")):
+        if name == label:
+            integrator = getattr(lievi, cls)()
+    inputs = rigid_body_inputs(64, dtype, seed=1)
+    fast = fn(*inputs)
+    generic = lievi_runner(integrator, steps, fast=False)(*inputs)
+    return float(max(jnp.max(jnp.abs(fast[0] - generic[0])), jnp.max(jnp.abs(fast[1] - generic[1]))))
+
+
+# The issue's CPU acceptance targets (float64, batch 1e5, 100 steps), body-steps/s.
+TARGETS = {"DEP exp": 1e7, "Moser-Veselov": 3e7, "splitting": 3e7}
+ACCEPTANCE_METHODS = ("DEP exp", "DEP cayley", "Moser-Veselov", "splitting", "RK4", "diffrax Tsit5")
+
+
+def acceptance_summary(records):
+    """Each method against its target and against diffrax Tsit5 (≥ 10×), in this run."""
+    rates = {r["method"]: r["body_steps_per_s"] for r in records}
+    base = rates.get("diffrax Tsit5")
+    lines = []
+    for name, rate in rates.items():
+        if name == "diffrax Tsit5":
+            continue
+        ratio = rate / base if base else float("nan")
+        target = TARGETS.get(name)
+        verdict = "" if target is None else (" ≥ target" if rate >= target else " BELOW target")
+        lines.append({"method": name, "body_steps_per_s": rate, "target": target,
+                      "vs_diffrax_tsit5": ratio, "meets_target": None if target is None else rate >= target,
+                      "meets_10x_diffrax": ratio >= 10})
+        print(f"{name:<26}{rate:>12.3g}  target {target or '-':>8}{verdict:<14}"
+              f"{ratio:>8.1f}× diffrax Tsit5{'' if ratio >= 10 else ' (below 10×)'}")
+    return lines
+
+
+def timed(fn, args, min_total: float = 0.5, max_repeats: int = 5):
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - start
+    best, total, repeats = np.inf, 0.0, 0
+    # Slow runs (diffrax at 1e5 bodies on CPU: minutes) are timed once more, not twice.
+    min_repeats = 1 if first > 20 else 2
+    while repeats < max_repeats and (repeats < min_repeats or total < min_total):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        elapsed = time.perf_counter() - start
+        best, total, repeats = min(best, elapsed), total + elapsed, repeats + 1
+    return max(first - best, 0.0), best
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smoke run: batches 1 and 100, 10 steps")
+    parser.add_argument("--batches", type=int, nargs="+", default=None)
+    parser.add_argument("--steps", type=int, default=None)
+    parser.add_argument("--dtypes", nargs="+", default=None, choices=("float64", "float32"))
+    parser.add_argument("--methods", nargs="+", default=None, help="names to run (default: all)")
+    parser.add_argument("--budget", type=float, default=60.0,
+                        help="skip larger batches of a method once one run takes longer than this [s]")
+    parser.add_argument("--acceptance", action="store_true",
+                        help="only the CPU acceptance configuration: batch 1e5, 100 steps, float64, every method")
+    parser.add_argument("--cpu-devices", type=int, default=None,
+                        help="split the CPU into this many XLA devices and shard the batch over them")
+    parser.add_argument("--out", default=None, help="basename of the JSON and PNG")
+    parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
+    args = parser.parse_args()
+
+    device = jax.devices()[0]
+    on_cpu = device.platform == "cpu"
+    if args.acceptance:
+        args.batches = args.batches or [100_000]
+        args.steps = args.steps or 100
+        args.dtypes = args.dtypes or ["float64"]
+        args.methods = args.methods or list(ACCEPTANCE_METHODS)
+        args.out = args.out or "throughput_cpu_acceptance"
+    args.out = args.out or "throughput"
+    batches = args.batches or ([1, 100] if args.quick else [1, 10, 100, 1_000, 10_000, 100_000, 1_000_000])
+    steps = args.steps or (10 if args.quick else 100)
+    dtypes = args.dtypes or (["float64", "float32"] if on_cpu else ["float32"])
+    n_devices = jax.device_count()
+    load = os.getloadavg() if hasattr(os, "getloadavg") else None
+    print(f"device: {device.device_kind} ({device.platform}, {jax.device_count()} device(s)), "
+          f"jax {jax.__version__}, {os.cpu_count()} CPUs, load average {load}")
+    print(f"{steps} steps of h = {H}, final state only; body-steps/s (compile time apart)")
+
+    out = pathlib.Path(args.outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "device": f"{device.device_kind} ({device.platform})",
+        "device_count": jax.device_count(),
+        "jax": jax.__version__,
+        "cpus": os.cpu_count(),
+        "machine": platform.machine(),
+        "load_average_at_start": load,
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "h": H,
+        "steps": steps,
+        "command": " ".join(["python benchmarks/throughput.py", *sys.argv[1:]]),
+    }
+    records = []
+    for dtype_name in dtypes:
+        dtype = jnp.dtype(dtype_name)
+        runners = methods(steps)
+        if args.methods:
+            runners = {k: v for k, v in runners.items() if k in args.methods}
+        print(f"\n{dtype_name}\n{'method':<26}{'batch':>9}{'compile [s]':>13}{'run [s]':>11}{'body-steps/s':>15}")
+        for name, fn in runners.items():
+            difference = check_against_generic(name, fn, dtype, steps)
+            if difference is not None:
+                print(f"{name:<26}final state vs vmap(simulate), 64 bodies: max |difference| {difference:.2g}")
+            for batch in sorted(batches):
+                inputs = rigid_body_inputs(batch, dtype)
+                if n_devices > 1:
+                    if batch % n_devices:
+                        continue
+                    inputs = lievi.shard_batch(inputs)
+                compile_s, run_s = timed(fn, inputs)
+                rate = batch * steps / run_s
+                records.append({"method": name, "dtype": dtype_name, "batch": batch, "steps": steps,
+                                "compile_s": compile_s, "run_s": run_s, "body_steps_per_s": rate,
+                                "max_abs_difference_vs_vmap_simulate": difference})
+                print(f"{name:<26}{batch:>9}{compile_s:>13.2f}{run_s:>11.4f}{rate:>15.3g}", flush=True)
+                if run_s > args.budget / 10:  # the next batch (×10) would exceed the budget
+                    print(f"{'':<26}(larger batches skipped: over the --budget of {args.budget:g} s)")
+                    break
+            # Saved after every method, so an interrupted run keeps what it measured.
+            meta["load_average_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
+            (out / f"{args.out}.json").write_text(json.dumps({"meta": meta, "results": records}, indent=2))
+
+    if args.acceptance:
+        print(f"\nacceptance (float64, batch {batches[-1]}, {steps} steps, final state only, "
+              f"{n_devices} device(s); load average now {os.getloadavg()}):")
+        meta["acceptance"] = acceptance_summary([r for r in records if r["batch"] == batches[-1]])
+        (out / f"{args.out}.json").write_text(json.dumps({"meta": meta, "results": records}, indent=2))
+    print(f"\nwrote {out / (args.out + '.json')}")
+    try:
+        plot(records, meta, out / f"{args.out}.png")
+        print(f"wrote {out / (args.out + '.png')}")
+    except ImportError:
+        print("matplotlib not installed: no plot")
+
+
+def plot(records, meta, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    dtypes = sorted({r["dtype"] for r in records}, reverse=True)
+    fig, axes = plt.subplots(1, len(dtypes), figsize=(6 * len(dtypes), 4.5), squeeze=False, sharey=True)
+    for ax, dtype in zip(axes[0], dtypes):
+        for name in dict.fromkeys(r["method"] for r in records):
+            rows = [r for r in records if r["method"] == name and r["dtype"] == dtype]
+            if rows:
+                ax.loglog([r["batch"] for r in rows], [r["body_steps_per_s"] for r in rows], "o-", label=name)
+        ax.set_title(f"{dtype}, {meta['device']}")
+        ax.set_xlabel("batch size (bodies)")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].set_ylabel(f"body-steps / s ({meta['steps']} steps, final state)")
+    axes[0][-1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+if __name__ == "__main__":
+    main()

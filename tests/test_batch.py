@@ -1,0 +1,263 @@
+"""`simulate_batch`: batched results equal per-body `simulate` to round-off; the fast
+structure-of-arrays path equals the generic one; failures are per body; sharding."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import ROUNDOFF, ROUNDOFF_F32, random_rotation
+
+import lievi
+from lievi import _fast_explicit, _fast_so3
+
+CHARTS = ("exp", "cayley")
+# Every integrator with a fast path.
+FAST = {
+    "dep-exp": lievi.DEP(chart="exp"),
+    "dep-cayley": lievi.DEP(chart="cayley"),
+    "moser-veselov": lievi.MoserVeselov(),
+    "splitting": lievi.LiePoissonSplitting(),
+    "rk4": lievi.RK4(),
+}
+BATCH, STEPS, SAVE_EVERY = 24, 20, 5
+
+
+def random_batch(rng, batch, dtype=jnp.float64):
+    inertia = jnp.asarray(rng.uniform(0.5, 2.0, size=(batch, 3)), dtype)
+    g0 = jnp.stack([random_rotation(rng, 3) for _ in range(batch)]).astype(dtype)
+    m0 = jnp.asarray(rng.normal(size=(batch, 3)), dtype)
+    h = jnp.asarray(rng.uniform(0.05, 0.3, size=batch), dtype)
+    return jax.vmap(lievi.RigidBody)(inertia), g0, m0, h
+
+
+@pytest.fixture(scope="module")
+def problem():
+    return random_batch(np.random.default_rng(5), BATCH)
+
+
+@pytest.fixture(scope="module", params=list(FAST))
+def runs(request, problem):
+    """Fast path and generic path (vmap of simulate) on the same batch."""
+    bodies, g0, m0, h = problem
+    dep = FAST[request.param]
+    assert lievi.has_fast_path(bodies, dep, system_axis=0)
+    kwargs = dict(h=h, n_steps=STEPS, save_every=SAVE_EVERY, system_axis=0)
+    fast = lievi.simulate_batch(bodies, dep, g0, m0, **kwargs)
+    generic = lievi.simulate_batch(bodies, dep, g0, m0, fast=False, **kwargs)
+    return dep, fast, generic
+
+
+def test_fast_equals_generic(runs):
+    _, fast, generic = runs
+    assert fast.g.shape == generic.g.shape == (BATCH, STEPS // SAVE_EVERY + 1, 3, 3)
+    np.testing.assert_array_equal(fast.result, 0)
+    np.testing.assert_array_equal(generic.result, 0)
+    np.testing.assert_allclose(fast.ts, generic.ts, rtol=0, atol=ROUNDOFF)
+    np.testing.assert_allclose(fast.g, generic.g, rtol=0, atol=ROUNDOFF)
+    np.testing.assert_allclose(fast.m, generic.m, rtol=0, atol=ROUNDOFF)
+    # Converged to the integrator's tolerance 64 ulps·(1 + ‖Π‖_∞) at every step.
+    bound = 64 * np.finfo(np.float64).eps * (1 + np.abs(fast.m).max(axis=(1, 2)))
+    assert np.all(fast.stats["residual"] <= bound[:, None])
+    np.testing.assert_array_equal(fast.stats["failed_step"], -1)
+
+
+def test_batched_equals_per_body(runs, problem):
+    """The batch (both paths) equals `simulate` called on each body alone."""
+    dep, fast, generic = runs
+    bodies, g0, m0, h = problem
+    for b in (0, 7, BATCH - 1):
+        body = lievi.RigidBody(bodies.inertia[b])
+        single = lievi.simulate(body, dep, g0[b], m0[b], h=h[b], n_steps=STEPS, save_every=SAVE_EVERY)
+        np.testing.assert_allclose(generic.m[b], single.m, rtol=0, atol=ROUNDOFF)
+        np.testing.assert_allclose(fast.m[b], single.m, rtol=0, atol=ROUNDOFF)
+        np.testing.assert_allclose(fast.g[b], single.g, rtol=0, atol=ROUNDOFF)
+
+
+@pytest.mark.parametrize("chart", CHARTS + ("moser-veselov",))
+@pytest.mark.parametrize(
+    "scale", [0.0, 1e-3, 3.1] + [pytest.param(x, marks=pytest.mark.slow) for x in (1e-9, 0.5, 2.0)]
+)
+def test_closed_form_jacobian(chart, scale):
+    """The hand-written residual and 3×3 Jacobian equal `jacfwd` of the generic residual
+    (`DEP`'s, or `MoserVeselov`'s), at θ = 0, tiny θ and up to θ = 3.1 (just below π, the
+    exp chart's limit)."""
+    rng = np.random.default_rng(int(scale * 100))
+    inertia, h = jnp.asarray(rng.uniform(0.5, 2.0, 3)), 0.2
+    Pi = jnp.asarray(rng.normal(size=3))
+    direction = rng.normal(size=3)
+    xi = jnp.asarray(scale * direction / np.linalg.norm(direction))
+    body = lievi.RigidBody(inertia)
+    dinv = body.group.dexpinv if chart == "exp" else body.group.dcayinv
+
+    def residual(x):
+        if chart == "moser-veselov":
+            eye, X = jnp.eye(3), body.group.hat(x)
+            return body.legendre(x) / h - body.group.vee((eye - X / 2) @ body.group.hat(Pi) @ (eye + X / 2))
+        return dinv(x).T @ body.legendre(x / h) - Pi
+
+    r, J = _fast_so3._residual(chart, tuple(xi), tuple(Pi), tuple(inertia / h), True)
+    scale_r = 1 + np.abs(residual(xi)).max()
+    np.testing.assert_allclose(np.array(r), residual(xi), rtol=0, atol=ROUNDOFF * scale_r)
+    np.testing.assert_allclose(np.array(J), jax.jacfwd(residual)(xi), rtol=0, atol=ROUNDOFF * 10 / h)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_sincos(dtype):
+    """The splitting's polynomial sin/cos: within one ulp of the exact values (numpy in
+    float64 on the rounded argument) for angles up to 1e4, both signs, and at 0, ±π/4,
+    the quadrant boundaries."""
+    rng = np.random.default_rng(0)
+    x = np.concatenate([rng.uniform(-1e4, 1e4, 4000), rng.uniform(-4, 4, 4000),
+                        np.pi / 4 * np.arange(-8, 9), [0.0, -0.0, 1e-30]])
+    x = jnp.asarray(x, dtype)
+    s, c = jax.jit(_fast_explicit.sincos)(x)
+    exact = np.asarray(x, np.float64)
+    eps = np.finfo(dtype).eps
+    np.testing.assert_allclose(np.asarray(s, np.float64), np.sin(exact), rtol=0, atol=eps)
+    np.testing.assert_allclose(np.asarray(c, np.float64), np.cos(exact), rtol=0, atol=eps)
+
+
+def test_float32(problem):
+    """float32 is first class: the fast path matches the generic float32 run to float32
+    round-off, keeps the Casimir |Π| to round-off and stays within 1e-4 of float64."""
+    bodies, g0, m0, h = problem
+    bodies32 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), bodies)
+    args32 = (g0.astype(jnp.float32), m0.astype(jnp.float32))
+    dep = lievi.DEP(chart="exp")
+    kwargs = dict(n_steps=STEPS, save_every=SAVE_EVERY, system_axis=0)
+    fast = lievi.simulate_batch(bodies32, dep, *args32, h=h.astype(jnp.float32), **kwargs)
+    generic = lievi.simulate_batch(bodies32, dep, *args32, h=h.astype(jnp.float32), fast=False, **kwargs)
+    exact = lievi.simulate_batch(bodies, dep, g0, m0, h=h, **kwargs)
+    assert fast.m.dtype == jnp.float32 and fast.g.dtype == jnp.float32
+    np.testing.assert_array_equal(fast.result, 0)
+    np.testing.assert_allclose(fast.m, generic.m, rtol=0, atol=ROUNDOFF_F32)
+    np.testing.assert_allclose(fast.m, exact.m, rtol=0, atol=ROUNDOFF_F32)
+    norms = np.linalg.norm(np.asarray(fast.m, np.float64), axis=-1)
+    np.testing.assert_allclose(norms, np.broadcast_to(norms[:, :1], norms.shape), rtol=10 * STEPS * np.finfo(np.float32).eps)
+
+
+@pytest.mark.slow
+def test_one_fixed_iteration_then_tail(problem):
+    """With one fixed Newton iteration the convergence tail finishes the job: same iterates."""
+    bodies, g0, m0, h = problem
+    dep = lievi.DEP(chart="exp")
+    kwargs = dict(h=h, n_steps=STEPS, save_every=SAVE_EVERY, system_axis=0)
+    one = lievi.simulate_batch(bodies, dep, g0, m0, fixed_iterations=1, **kwargs)
+    generic = lievi.simulate_batch(bodies, dep, g0, m0, fast=False, **kwargs)
+    np.testing.assert_allclose(one.m, generic.m, rtol=0, atol=ROUNDOFF)
+    assert np.all(one.stats["newton_iterations"] >= 2)  # the tail ran
+
+
+@pytest.mark.parametrize("chart", ["exp", pytest.param("cayley", marks=pytest.mark.slow)])
+def test_failures_are_per_body(chart):
+    """One body with a far too large step fails; the others carry on, equal to the
+    generic path; the failed body is NaN after its failed step; throw=True raises."""
+    rng = np.random.default_rng(1)
+    bodies, g0, m0, _ = random_batch(rng, 6)
+    h = jnp.full(6, 0.1).at[2].set(40.0)
+    dep = lievi.DEP(chart=chart, max_steps=6)
+    kwargs = dict(h=h, n_steps=8, save_every=1, system_axis=0, throw=False)
+    fast = lievi.simulate_batch(bodies, dep, g0, m0, **kwargs)
+    generic = lievi.simulate_batch(bodies, dep, g0, m0, fast=False, **kwargs)
+    ok = np.arange(6) != 2
+    assert fast.result[2] != lievi.RESULTS.successful
+    assert fast.result[2] == generic.result[2]
+    assert fast.stats["failed_step"][2] == generic.stats["failed_step"][2] >= 0
+    np.testing.assert_array_equal(fast.result[ok], 0)
+    np.testing.assert_allclose(fast.m[ok], generic.m[ok], rtol=0, atol=ROUNDOFF)
+    k = int(fast.stats["failed_step"][2])
+    assert np.all(np.isnan(fast.m[2, k + 1 :])) and np.all(np.isfinite(fast.m[2, : k + 1]))
+    with pytest.raises(Exception, match="a body failed"):
+        lievi.simulate_batch(bodies, dep, g0, m0, **{**kwargs, "throw": True})
+
+
+def test_shared_system_and_save_options(problem):
+    _, g0, m0, _ = problem
+    body = lievi.RigidBody(jnp.array([2.0, 1.0, 2 / 3]))
+    dep = lievi.DEP()
+    final = lievi.simulate_batch(body, dep, g0, m0, h=0.1, n_steps=STEPS, save=("m",))
+    assert final.g is None and final.m.shape == (BATCH, 2, 3)
+    assert "newton_iterations" not in final.stats
+    assert final.stats["total_newton_iterations"].shape == (BATCH,)
+    single = lievi.simulate(body, dep, g0[3], m0[3], h=0.1, n_steps=STEPS, save_every=STEPS)
+    np.testing.assert_allclose(final.m[3], single.m, rtol=0, atol=ROUNDOFF)
+    assert lievi.has_fast_path(body, dep)
+    assert not lievi.has_fast_path(lievi.RigidBody(jnp.diag(jnp.array([2.0, 1.0, 0.5]))), dep)
+
+
+@pytest.mark.slow
+def test_full_tensor_uses_generic_path(problem):
+    """No fast path for a full inertia tensor: the vmap path runs and equals `simulate`."""
+    _, g0, m0, _ = problem
+    q = np.asarray(random_rotation(np.random.default_rng(3), 3))
+    body = lievi.RigidBody(jnp.asarray(q @ np.diag([2.0, 1.0, 0.7]) @ q.T))
+    sol = lievi.simulate_batch(body, lievi.DEP(), g0[:3], m0[:3], h=0.1, n_steps=4)
+    single = lievi.simulate(body, lievi.DEP(), g0[1], m0[1], h=0.1, n_steps=4, save_every=4)
+    np.testing.assert_allclose(sol.m[1], single.m, rtol=0, atol=ROUNDOFF)
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (dict(g0=jnp.eye(3)), "`g0` must have shape"),
+        (dict(m0=jnp.zeros((5, 3))), "same batch size"),
+        (dict(h=jnp.ones(5)), "`h` must be a scalar or have shape"),
+        (dict(h=-0.1), "`h` must be > 0"),
+        (dict(save=("g", "energy")), "`save` may only contain"),
+        (dict(system_axis=1), "`system_axis`"),
+        (dict(save_every=3), "must divide"),
+        (dict(g0=2 * jnp.broadcast_to(jnp.eye(3), (4, 3, 3))), r"`g0\[0\]` is not in the group"),
+        (dict(system_axis=0), "leading axis 4"),
+    ],
+)
+def test_bad_input(change, match):
+    kwargs = dict(g0=jnp.broadcast_to(jnp.eye(3), (4, 3, 3)), m0=jnp.ones((4, 3)), h=0.1, n_steps=4)
+    kwargs.update(change)
+    body = lievi.RigidBody(jnp.array([2.0, 1.0, 0.5]))
+    g0, m0 = kwargs.pop("g0"), kwargs.pop("m0")
+    with pytest.raises(ValueError, match=match):
+        lievi.simulate_batch(body, lievi.DEP(), g0, m0, **kwargs)
+
+
+_SHARDED = """
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp, numpy as np
+import lievi
+assert len(jax.devices()) == 4, jax.devices()
+rng = np.random.default_rng(0)
+B = 16
+inertia = jnp.asarray(rng.uniform(0.5, 2.0, (B, 3)))
+m0 = jnp.asarray(rng.normal(size=(B, 3)))
+g0 = jnp.broadcast_to(jnp.eye(3), (B, 3, 3))
+h = jnp.asarray(rng.uniform(0.05, 0.2, B))
+for fast in (True,):
+    args = (jax.vmap(lievi.RigidBody)(inertia), g0, m0, h)
+    run = lambda bodies, g0, m0, h: lievi.simulate_batch(
+        bodies, lievi.DEP(), g0, m0, h=h, n_steps=10, save_every=5, system_axis=0, fast=fast)
+    plain = run(*args)
+    sharded_args = lievi.shard_batch(args)
+    assert len(sharded_args[2].sharding.device_set) == 4
+    sharded = run(*sharded_args)
+    assert len(sharded.m.sharding.device_set) == 4, sharded.m.sharding
+    # Equal to round-off, not bitwise: XLA compiles the per-device shapes (4 bodies) with
+    # different vectorisation than the whole batch (16).
+    np.testing.assert_allclose(np.asarray(sharded.m), np.asarray(plain.m), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(sharded.g), np.asarray(plain.g), rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(np.asarray(sharded.result), np.asarray(plain.result))
+print("SHARDED OK")
+"""
+
+
+def test_sharded_equals_unsharded():
+    """On 4 (forced host) CPU devices the sharded batch equals the unsharded one."""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    done = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(_SHARDED)], env=env, capture_output=True, text=True, timeout=600
+    )
+    assert "SHARDED OK" in done.stdout, done.stdout + done.stderr
