@@ -36,8 +36,11 @@ SAVE_FIELDS = ("g", "m", "stats")
 # 64 ulps for nearly every body at |ξ| = h|Ω| ≲ 0.3; the Cayley-chart DEP needs a fourth
 # for a few bodies in 10⁴ (h = 0.1, the random bodies of `benchmarks/throughput.py`), and
 # as one such body sends the whole batch into the tail, four fixed iterations are faster
-# there (measured). Bodies that need more continue in a `while_loop` up to `max_steps`.
-DEFAULT_FIXED_ITERATIONS = {"exp": 3, "cayley": 4, "moser-veselov": 3}
+# there (measured). Moser–Veselov's fixed iterations are scalar Newton steps on a quartic
+# (`_fast_so3._moser_veselov_by_scalar_newton`, ~40 operations each): four reach 64 ulps
+# for every one of 10⁵ such bodies. Bodies that need more continue in a `while_loop` up to
+# `max_steps`.
+DEFAULT_FIXED_ITERATIONS = {"exp": 3, "cayley": 4, "moser-veselov": 4}
 
 
 def _fast_step(system, integrator):
@@ -114,7 +117,8 @@ def simulate_batch(
       `while_loop`): for gradients pass `fast=False`.
     - `fixed_iterations`: (fast path) Newton iterations every body takes before the one
       convergence check; bodies still above tolerance then continue, alone, up to the
-      integrator's `max_steps`. Default: 3 (exp chart, Moser–Veselov) or 4 (Cayley
+      integrator's `max_steps`. Default: 3 (exp chart), 4 (Moser–Veselov, whose fixed
+      iterations are scalar ones, see `_fast_so3.py`) or 4 (Cayley
       chart). With `max_steps` equal to it (e.g. `DEP(max_steps=3)`) there is no
       data-dependent loop at all; bodies not converged then are reported as failed.
     - `unroll`: (fast path) steps per iteration of the compiled loop (`lax.scan`'s
