@@ -188,19 +188,19 @@ def _moser_veselov_by_scalar_newton(Pi, A, iterations: int):
     s = p2[0] / A[0] + p2[1] / A[1] + p2[2] / A[2]
 
     def minors(s):
+        """`(d, (d₂d₃, d₃d₁, d₁d₂), det M(s))`."""
         d = tuple(a - s / 4 for a in A)
-        return d, (d[1] * d[2], d[2] * d[0], d[0] * d[1])
+        m = (d[1] * d[2], d[2] * d[0], d[0] * d[1])
+        return d, m, d[0] * m[0] + (d[0] * p2[0] + d[1] * p2[1] + d[2] * p2[2]) / 4
 
     for _ in range(iterations):
-        d, m = minors(s)
-        det = d[0] * m[0] + (d[0] * p2[0] + d[1] * p2[1] + d[2] * p2[2]) / 4
+        d, m, det = minors(s)
         quadratic = m[0] * p2[0] + m[1] * p2[1] + m[2] * p2[2] + quarter * norm2
         d_det = -(m[0] + m[1] + m[2]) / 4 - norm2 / 16
         d_quadratic = -((d[1] + d[2]) * p2[0] + (d[2] + d[0]) * p2[1] + (d[0] + d[1]) * p2[2]) / 4
         f = s * det - quadratic
         s = s - f / (det + s * d_det - d_quadratic)
-    d, m = minors(s)
-    det = d[0] * m[0] + (d[0] * p2[0] + d[1] * p2[1] + d[2] * p2[2]) / 4
+    _, m, det = minors(s)
     inverse_det = 1 / det
     return tuple(
         (Pi[i] * (m[i] + quarter) + Pi[(i + 1) % 3] * Pi[(i + 2) % 3] * (A[(i + 1) % 3] - A[(i + 2) % 3]) / 2)
