@@ -117,10 +117,10 @@ def simulate_batch(
       `while_loop`): for gradients pass `fast=False`.
     - `fixed_iterations`: (fast path) Newton iterations every body takes before the one
       convergence check; bodies still above tolerance then continue, alone, up to the
-      integrator's `max_steps`. Default: 3 (exp chart), 4 (Moser–Veselov, whose fixed
-      iterations are scalar ones, see `_fast_so3.py`) or 4 (Cayley
-      chart). With `max_steps` equal to it (e.g. `DEP(max_steps=3)`) there is no
-      data-dependent loop at all; bodies not converged then are reported as failed.
+      integrator's `max_steps`. Default: 3 (exp chart) or 4 (Cayley chart;
+      Moser–Veselov, whose fixed iterations are scalar ones, see `_fast_so3.py`). With
+      `max_steps` equal to it (e.g. `DEP(max_steps=3)`) there is no data-dependent loop
+      at all; bodies not converged then are reported as failed.
     - `unroll`: (fast path) steps per iteration of the compiled loop (`lax.scan`'s
       `unroll`). On a GPU a few steps per iteration amortise the per-iteration launch
       cost; it multiplies the compiled code, hence the compile time, by `unroll`.

@@ -163,6 +163,11 @@ def _max_abs(x):
     return jnp.maximum(jnp.maximum(jnp.abs(x[0]), jnp.abs(x[1])), jnp.abs(x[2]))
 
 
+def _explicit_euler_guess(Pi, A):
+    """The Newton start `h·I⁻¹Π = Π/A`, as `DEP.solve_increment` and `MoserVeselov`'s."""
+    return tuple(Pi[i] / A[i] for i in range(3))
+
+
 def _moser_veselov_by_scalar_newton(Pi, A, iterations: int):
     """The Moser–Veselov increment `x` from a scalar Newton iteration (a quartic in `s`).
 
@@ -216,20 +221,19 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
     the fixed iterations are scalar Newton iterations (`_moser_veselov_by_scalar_newton`);
     any further ones, for the bodies still above tolerance, are Newton steps in `x`.
     """
-    if chart == "moser-veselov":
-        xi = _moser_veselov_by_scalar_newton(Pi, A, min(fixed_iterations, max_steps))
+    fixed = min(fixed_iterations, max_steps)
+    restartable = chart == "moser-veselov"
+    if restartable:
+        xi = _moser_veselov_by_scalar_newton(Pi, A, fixed)
     else:
-        # Explicit-Euler guess h·I⁻¹Π, as `DEP.solve_increment`.
-        xi = tuple(Pi[i] / A[i] for i in range(3))
-        for _ in range(min(fixed_iterations, max_steps)):
+        xi = _explicit_euler_guess(Pi, A)
+        for _ in range(fixed):
             r, J = _residual(chart, xi, Pi, A, True)
             delta = _solve3(J, r)
             xi = tuple(xi[i] - delta[i] for i in range(3))
     r, _ = _residual(chart, xi, Pi, A, False)
     norm = _max_abs(r)
-    fixed = min(fixed_iterations, max_steps)
     iterations = jnp.full(norm.shape, fixed, jnp.int32)
-    restartable = chart == "moser-veselov"
 
     def active(norm, iterations):
         on = (norm > tolerance) & jnp.isfinite(norm)
@@ -250,7 +254,7 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
             # A body the scalar iteration left worse off than the explicit-Euler guess
             # (far from the root, or on another root of the quartic) continues from that
             # guess, as the three-dimensional Newton of `MoserVeselov` would have started.
-            guess = tuple(Pi[i] / A[i] for i in range(3))
+            guess = _explicit_euler_guess(Pi, A)
             guess_norm = _max_abs(_residual(chart, guess, Pi, A, False)[0])
             restart = on & (iterations == fixed) & ~(norm <= guess_norm)
             xi = tuple(jnp.where(restart, guess[i], xi[i]) for i in range(3))
