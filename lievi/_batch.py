@@ -26,7 +26,7 @@ from ._results import RESULTS
 from ._rigid_body import RigidBody
 from ._rk4 import RK4
 from ._splitting import LiePoissonSplitting
-from ._simulate import Solution, _check_integer, simulate
+from ._simulate import Solution, _check_integer, simulate, state_dtype
 from ._system_base import AbstractLieSystem
 
 SAVE_FIELDS = ("g", "m", "stats")
@@ -180,7 +180,7 @@ def simulate_batch(
                 "Pass rotation matrices, e.g. orthonormalise with a QR or polar decomposition."
             )
 
-    dtype = jnp.result_type(g0, m0, h, float)
+    dtype = state_dtype(system, g0, m0, h)
     g0, m0, h = jnp.asarray(g0, dtype), jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
     if fast and has_fast_path(system, integrator, system_axis):
         solution = _simulate_fast(

@@ -94,6 +94,9 @@ def simulate(
 
     **Returns:** a `Solution`.
 
+    The run computes in the promoted dtype of `g0`, `m0`, `h` and the system's parameters
+    (NumPy rules: float32 throughout needs a float32 system too).
+
     Shapes, `h`, `n_steps`, `save_every` and concrete values of `g0`, `m0` are checked
     eagerly and raise `ValueError`. Under `jax.vmap` (many bodies) use `throw=False` to
     let a batch carry on and read the per-body `result`.
@@ -110,12 +113,12 @@ def simulate(
         if not isinstance(integrator, AbstractVariationalIntegrator):
             raise ValueError("`g1` needs a variational integrator (one with a discrete Lagrangian).")
         system.check_element("g1", g1)
-        dtype = jnp.result_type(g0, g1, h, float)
+        dtype = state_dtype(system, g0, g1, h)
         g0, g1 = jnp.asarray(g0, dtype), jnp.asarray(g1, dtype)
         m0 = integrator.momentum_from_configurations(system, g0, g1, jnp.asarray(h, dtype))
     system.check_momentum("m0", m0)
     segment = _checkpoint_segment(checkpoint, n_steps, save_every)
-    dtype = jnp.result_type(g0, m0, h, float)
+    dtype = state_dtype(system, g0, m0, h)
     solution = _simulate(
         system,
         integrator,
@@ -140,6 +143,14 @@ def simulate(
         )
         solution = eqx.tree_at(lambda s: s.result, solution, result)
     return solution
+
+
+def state_dtype(system, *arrays):
+    """The dtype a run computes in: NumPy promotion of the state, `h` and the system's
+    floating-point parameters (a float64 inertia with a float32 state runs in float64;
+    for float32 throughout, pass float32 parameters too)."""
+    params = [x for x in jax.tree.leaves(system) if eqx.is_inexact_array(x)]
+    return jnp.result_type(*arrays, *params, float)
 
 
 def _checkpoint_segment(checkpoint, n_steps: int, save_every: int) -> int | None:

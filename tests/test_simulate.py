@@ -88,6 +88,24 @@ def test_float32_run():
     np.testing.assert_allclose(sol32.m, sol64.m, rtol=0, atol=1e-4)
 
 
+@pytest.mark.parametrize("integrator", [lievi.DEP(), lievi.MoserVeselov()], ids=["dep", "mv"])
+def test_mixed_precision_promotes(integrator):
+    """A float64 system with a float32 state (or the reverse) runs in float64, NumPy's
+    promotion, on the generic and the batched fast path alike, and equals the float64 run."""
+    body, g0, m0 = hlw_problem()
+    body32 = lievi.RigidBody(body.inertia.astype(jnp.float32))
+    g32, m32 = g0.astype(jnp.float32), m0.astype(jnp.float32)
+    reference = lievi.simulate(body, integrator, g32.astype(float), m32.astype(float), h=0.1, n_steps=10)
+    for system, g, m in [(body, g32, m32), (body32, g0, m0)]:
+        sol = lievi.simulate(system, integrator, g, m, h=0.1, n_steps=10)
+        assert sol.m.dtype == sol.g.dtype == jnp.float64
+        if system is body:
+            np.testing.assert_allclose(sol.m, reference.m, rtol=0, atol=1e-14)
+    batch = lievi.simulate_batch(body, integrator, g32[None], m32[None], h=0.1, n_steps=10)
+    assert batch.m.dtype == jnp.float64
+    np.testing.assert_allclose(batch.m[0, -1], reference.m[-1], rtol=0, atol=1e-13)
+
+
 # ---- bad input --------------------------------------------------------------------------
 
 
