@@ -45,6 +45,7 @@ from jaxtyping import Array, Float, Scalar
 from ._integrator_base import AbstractIntegrator, StepInfo
 from ._moser_veselov import MoserVeselov
 from ._rigid_body import RigidBody
+from ._simulate import state_dtype
 from ._so3 import SO3
 from ._system_base import AbstractLieSystem
 
@@ -219,7 +220,7 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
         """A copy with `h'` and `φ` computed once for step `h` on the trajectory of `m0`."""
         _check_system(system)
         system.check_momentum("m0", m0)
-        dtype = jnp.result_type(m0, h, float)
+        dtype = state_dtype(system, m0, h)
         m0, h = jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
         h_mod, angle = preprocessing(system, m0, h, self.order_)
         return PreprocessedMoserVeselov(self.order_, self.method, _prepared=(h, h_mod, angle))
