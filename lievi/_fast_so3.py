@@ -236,12 +236,8 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
     iterations = jnp.full(norm.shape, fixed, jnp.int32)
 
     def active(norm, iterations):
-        on = (norm > tolerance) & jnp.isfinite(norm)
-        if restartable:
-            # A non-finite scalar iterate (a vanishing derivative) restarts below.
-            on = on | (~jnp.isfinite(norm) & (iterations == fixed))
         # Bodies stop at max_steps like `DEP`; a lane that has stopped is inactive.
-        return on & (iterations < max_steps)
+        return (norm > tolerance) & jnp.isfinite(norm) & (iterations < max_steps)
 
     def cond(carry):
         _, norm, iterations = carry
@@ -250,14 +246,6 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
     def body(carry):
         xi, norm, iterations = carry
         on = active(norm, iterations)
-        if restartable:
-            # A body the scalar iteration left worse off than the explicit-Euler guess
-            # (far from the root, or on another root of the quartic) continues from that
-            # guess, as the three-dimensional Newton of `MoserVeselov` would have started.
-            guess = _explicit_euler_guess(Pi, A)
-            guess_norm = _max_abs(_residual(chart, guess, Pi, A, False)[0])
-            restart = on & (iterations == fixed) & ~(norm <= guess_norm)
-            xi = tuple(jnp.where(restart, guess[i], xi[i]) for i in range(3))
         r, J = _residual(chart, xi, Pi, A, True)
         delta = _solve3(J, r)
         xi = tuple(jnp.where(on, xi[i] - delta[i], xi[i]) for i in range(3))
@@ -265,8 +253,27 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
         norm = jnp.where(on, _max_abs(r), norm)
         return xi, norm, iterations + on.astype(jnp.int32)
 
+    def restart(carry):
+        # A body the scalar iteration left unconverged and worse off than the
+        # explicit-Euler guess (far from the root, on another root of the quartic, or
+        # non-finite) continues from that guess, as the three-dimensional Newton of
+        # `MoserVeselov` would have started. Once, on entering the tail.
+        xi, norm, iterations = carry
+        guess = _explicit_euler_guess(Pi, A)
+        guess_norm = _max_abs(_residual(chart, guess, Pi, A, False)[0])
+        back = ~(norm <= tolerance) & ~(norm <= guess_norm)
+        xi = tuple(jnp.where(back, guess[i], xi[i]) for i in range(3))
+        return xi, jnp.where(back, guess_norm, norm), iterations
+
+    def tail(carry):
+        if restartable:
+            carry = restart(carry)
+        return jax.lax.while_loop(cond, body, carry)
+
     if max_steps > fixed:
-        xi, norm, iterations = jax.lax.while_loop(cond, body, (xi, norm, iterations))
+        # The tail (and the restart's extra residual) only when some body needs it.
+        unfinished = jnp.any(~(norm <= tolerance))
+        xi, norm, iterations = jax.lax.cond(unfinished, tail, lambda c: c, (xi, norm, iterations))
     return xi, iterations, norm, norm <= tolerance
 
 
