@@ -28,6 +28,7 @@ whose gradient is zero; the count of failed samples is reported at every iterati
 from __future__ import annotations
 
 import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -36,11 +37,11 @@ import optax
 from jaxtyping import Array, Bool, Float, Int
 
 from ._checks import check_finite, is_concrete
-from ._dep import DEP
-from ._integrator_base import AbstractIntegrator
-from ._rigid_body import RigidBody
+from ._groups._so3 import SO3
+from ._integrators._base import AbstractIntegrator
+from ._integrators._dep import DEP
 from ._simulate import simulate
-from ._so3 import SO3
+from ._systems._rigid_body import RigidBody
 
 _ORIENTATION_PENALTY = 8.0  # max ‖g − R‖_F² over rotations g, R
 

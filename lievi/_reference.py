@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from ._system_base import AbstractLieSystem
+from ._systems._base import AbstractLieSystem
 
 
 def reference_solution(

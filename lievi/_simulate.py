@@ -9,9 +9,9 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ._checks import check_finite, is_concrete
-from ._integrator_base import AbstractIntegrator, AbstractVariationalIntegrator
+from ._integrators._base import AbstractIntegrator, AbstractVariationalIntegrator
 from ._results import RESULTS
-from ._system_base import AbstractLieSystem
+from ._systems._base import AbstractLieSystem
 
 
 class Solution(eqx.Module):

@@ -16,9 +16,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
-from ._integrator_base import AbstractIntegrator, AbstractVariationalIntegrator
-from ._son import AbstractSpecialOrthogonal
-from ._system_base import AbstractLieSystem
+from ._groups._son import AbstractSpecialOrthogonal
+from ._integrators._base import AbstractIntegrator, AbstractVariationalIntegrator
+from ._systems._base import AbstractLieSystem
 
 
 def _batched(fn, core_ndim: int, x):

@@ -71,7 +71,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 import lievi
 from lievi import diagnostics
-from lievi._preprocessed_dmv import modification_series
+from lievi._integrators._preprocessed_dmv import modification_series
 %config InlineBackend.figure_formats = ["png"]
 plt.rcParams.update({"figure.dpi": 100, "axes.grid": True, "grid.alpha": 0.3})
 print("lievi", lievi.__version__, "| jax", jax.__version__, "| SMALL =", SMALL)
@@ -104,7 +104,7 @@ $I$ and step $\alpha h$.)
 So `PreprocessedMoserVeselov(p)` runs DMV with the step $h'$ that solves $\tau(h') = h$ and
 rotates the attitude back by $\rho(h')|y|$, with both series cut after $h^p$: order $p$. The
 series are computed in JAX, by truncated power series of the DMV step and of the exact flow
-(see `lievi/_preprocessed_dmv.py`), once per trajectory (`prepare`); then each step is one
+(see `lievi/_integrators/_preprocessed_dmv.py`), once per trajectory (`prepare`); then each step is one
 DMV step and one small rotation. The coefficients for our body (odd powers only — the
 method is symmetric):
 """),

@@ -13,7 +13,7 @@ import pytest
 from helpers import ROUNDOFF, ROUNDOFF_F32, random_rotation
 
 import lievi
-from lievi import _fast_explicit, _fast_so3
+from lievi._batch import _fast_explicit, _fast_so3
 
 CHARTS = ("exp", "cayley")
 # Every integrator with a fast path.

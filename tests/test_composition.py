@@ -93,7 +93,7 @@ def test_order_other_schemes(hlw_reference, method, order, scheme):
 
 def test_coefficients_are_consistent():
     """Σγ = 1 and the stages are palindromic (the structural facts the order relies on)."""
-    from lievi._composition import SCHEMES
+    from lievi._integrators._composition import SCHEMES
 
     for (order, scheme), gammas in SCHEMES.items():
         assert abs(sum(gammas) - 1) <= 1e-14, scheme

@@ -24,7 +24,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import lievi
-from lievi._so3 import _small_threshold
+from lievi._groups._so3 import _small_threshold
 
 import test_son
 from helpers import ROUNDOFF, ROUNDOFF_F32

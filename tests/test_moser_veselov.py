@@ -14,7 +14,7 @@ import pytest
 
 import lievi
 from lievi import diagnostics as dg
-from lievi._moser_veselov import moser_veselov_Lambda
+from lievi._integrators._moser_veselov import moser_veselov_Lambda
 
 from helpers import ROUNDOFF, hlw_problem, random_generalized_body, random_rotation
 

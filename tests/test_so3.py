@@ -18,7 +18,7 @@ import scipy.linalg
 from scipy.spatial.transform import Rotation
 
 import lievi
-from lievi._so3 import _small_threshold
+from lievi._groups._so3 import _small_threshold
 
 import test_son
 from helpers import ROUNDOFF, ROUNDOFF_F32, random_rotation

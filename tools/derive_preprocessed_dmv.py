@@ -3,7 +3,7 @@
 Run: `python tools/derive_preprocessed_dmv.py [N]` (needs sympy, a dev-only tool; N = the
 highest power of h kept, default 5; N = 5 takes ~4 min on one core). It checks, with
 symbolic moments and initial value, that one DMV step is the exact flow over a modified
-time `τ(h)` to the order kept — the structure `lievi/_preprocessed_dmv.py` relies on — and
+time `τ(h)` to the order kept — the structure `lievi/_integrators/_preprocessed_dmv.py` relies on — and
 prints `c₃, c₅` of `τ = h + c₃h³ + c₅h⁵ + …`. (The library computes these series
 numerically in JAX at run time, including the attitude rotation `ρ` below, whose symbolic
 check is not part of this script; the tests check the resulting orders.)
@@ -118,7 +118,7 @@ c_values = {k: sp.factor(solution[cs[k]]) for k in cs}
 print(f"done in {time.time() - t0:.1f}s", file=sys.stderr)
 for k, v in c_values.items():
     print(f"c{k} =", v)
-# Cross-check with the run-time series of lievi/_preprocessed_dmv.py (`modification_series`):
+# Cross-check with the run-time series of lievi/_integrators/_preprocessed_dmv.py (`modification_series`):
 # on the Hairer–Vilmart body I = (0.6, 0.8, 1), y = (1.8, 0.4, −0.9) it gives c₃ = 2.43013889,
 # c₅ = 11.8982886.
 point = {a[0]: 1 / sp.Rational(6, 10), a[1]: 1 / sp.Rational(8, 10), a[2]: 1}

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int, Scalar
 
-from ._system_base import AbstractLieSystem
+from .._systems._base import AbstractLieSystem
 
 
 class StepInfo(eqx.Module):

@@ -14,9 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
 
-from ._checks import check_finite, is_concrete
-from ._son import SOn, _planes
-from ._system_base import AbstractLieSystem
+from .._checks import check_finite, is_concrete
+from .._groups._son import SOn, _planes
+from ._base import AbstractLieSystem
 
 
 class GeneralizedRigidBody(AbstractLieSystem):

@@ -43,7 +43,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from ._results import RESULTS
+from .._results import RESULTS
 
 # Power-series coefficients in u = φ², φ = θ/2. Eleven terms: the first omitted term is
 # below 1e-18 at φ = π/2 (θ = π).

@@ -42,12 +42,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
 
-from ._integrator_base import AbstractIntegrator, StepInfo
+from .._groups._so3 import SO3
+from .._simulate import state_dtype
+from .._systems._base import AbstractLieSystem
+from .._systems._rigid_body import RigidBody
+from ._base import AbstractIntegrator, StepInfo
 from ._moser_veselov import MoserVeselov
-from ._rigid_body import RigidBody
-from ._simulate import state_dtype
-from ._so3 import SO3
-from ._system_base import AbstractLieSystem
 
 ORDERS = (4, 6, 8, 10)
 

@@ -32,10 +32,10 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
-from ._integrator_base import AbstractVariationalIntegrator, StepInfo
+from .._results import RESULTS
+from .._systems._base import AbstractLieSystem
+from ._base import AbstractVariationalIntegrator, StepInfo
 from ._newton import newton_solve
-from ._results import RESULTS
-from ._system_base import AbstractLieSystem
 
 CHARTS = ("exp", "cayley")
 

@@ -40,9 +40,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Scalar
 
-from ._integrator_base import AbstractIntegrator, StepInfo
-from ._results import RESULTS
-from ._system_base import AbstractLieSystem
+from .._results import RESULTS
+from .._systems._base import AbstractLieSystem
+from ._base import AbstractIntegrator, StepInfo
 
 
 def _triple_jump(inner: tuple[float, ...], order: int) -> tuple[float, ...]:

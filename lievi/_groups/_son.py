@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._group_base import MatrixLieGroup
+from ._base import MatrixLieGroup
 
 
 @functools.lru_cache(maxsize=None)

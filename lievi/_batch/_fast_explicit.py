@@ -20,7 +20,7 @@ import math
 
 import jax.numpy as jnp
 
-from ._results import RESULTS
+from .._results import RESULTS
 
 
 def _pi_over_two_parts():

@@ -7,8 +7,8 @@ from collections.abc import Callable
 import equinox as eqx
 from jaxtyping import Array, Float, Scalar
 
-from ._group_base import MatrixLieGroup
-from ._system_base import SIDES, AbstractLieSystem
+from .._groups._base import MatrixLieGroup
+from ._base import SIDES, AbstractLieSystem
 
 
 class LieLagrangian(AbstractLieSystem):

@@ -17,17 +17,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_finite, is_concrete
+from .._integrators._base import AbstractIntegrator
+from .._integrators._dep import DEP, default_tolerance
+from .._integrators._moser_veselov import MoserVeselov
+from .._integrators._rk4 import RK4
+from .._integrators._splitting import LiePoissonSplitting
+from .._results import RESULTS
+from .._simulate import Solution, _check_integer, simulate, state_dtype
+from .._systems._base import AbstractLieSystem
+from .._systems._rigid_body import RigidBody
 from . import _fast_explicit, _fast_so3
-from ._checks import check_finite, is_concrete
-from ._dep import DEP, default_tolerance
-from ._integrator_base import AbstractIntegrator
-from ._moser_veselov import MoserVeselov
-from ._results import RESULTS
-from ._rigid_body import RigidBody
-from ._rk4 import RK4
-from ._splitting import LiePoissonSplitting
-from ._simulate import Solution, _check_integer, simulate, state_dtype
-from ._system_base import AbstractLieSystem
 
 SAVE_FIELDS = ("g", "m", "stats")
 

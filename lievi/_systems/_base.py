@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
-from ._checks import check_finite, check_shape, is_concrete
-from ._group_base import MatrixLieGroup
+from .._checks import check_finite, check_shape, is_concrete
+from .._groups._base import MatrixLieGroup
 
 SIDES = ("left", "right")
 

@@ -18,10 +18,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Scalar
 
-from ._checks import check_shape
-from ._integrator_base import AbstractIntegrator, StepInfo
-from ._results import RESULTS
-from ._system_base import AbstractLieSystem
+from .._checks import check_shape
+from .._results import RESULTS
+from .._systems._base import AbstractLieSystem
+from ._base import AbstractIntegrator, StepInfo
 
 
 def euler_poincare_vector_field(system: AbstractLieSystem, g, m):

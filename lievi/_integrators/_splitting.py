@@ -40,13 +40,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Scalar
 
-from ._checks import check_shape
-from ._generalized_rigid_body import GeneralizedRigidBody
-from ._integrator_base import AbstractIntegrator, StepInfo
+from .._checks import check_shape
+from .._groups._son import _planes
+from .._results import RESULTS
+from .._systems._base import AbstractLieSystem
+from .._systems._generalized_rigid_body import GeneralizedRigidBody
+from ._base import AbstractIntegrator, StepInfo
 from ._moser_veselov import _check_pair_sums, check_rigid_body
-from ._results import RESULTS
-from ._son import _planes
-from ._system_base import AbstractLieSystem
 
 
 def _principal_frame(system):

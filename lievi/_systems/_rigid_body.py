@@ -10,10 +10,10 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
-from ._checks import check_spd
-from ._group_base import MatrixLieGroup
-from ._so3 import SO3
-from ._system_base import AbstractLieSystem
+from .._checks import check_spd
+from .._groups._base import MatrixLieGroup
+from .._groups._so3 import SO3
+from ._base import AbstractLieSystem
 
 
 class RigidBody(AbstractLieSystem):

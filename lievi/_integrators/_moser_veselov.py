@@ -24,7 +24,7 @@ exactly equivalent to the original. Its right-hand side is `h·dcayinv(x) Π` in
 coordinates, and its left-hand side is the Legendre map of the system, `I x` on SO(3). We
 solve it by Newton's method from the explicit-Euler guess `h I⁻¹ Π` (O(h²) from the root;
 the Jacobian there is `J + O(h)`, well conditioned since `J` is positive definite) with
-`lievi._newton.newton_solve`, so the step differentiates by the implicit function theorem.
+`lievi._integrators._newton.newton_solve`, so the step differentiates by the implicit function theorem.
 
 The rigid body on SO(3) maps to `Λ = ½ tr(I)·Id − I` (for principal moments
 `I₁ = Λ₂ + Λ₃, …`). A full inertia tensor gives a symmetric, non-diagonal `Λ`; the
@@ -45,14 +45,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
 
-from ._checks import check_shape, is_concrete
+from .._checks import check_shape, is_concrete
+from .._results import RESULTS
+from .._systems._base import AbstractLieSystem
+from .._systems._generalized_rigid_body import GeneralizedRigidBody
+from .._systems._rigid_body import RigidBody
+from ._base import AbstractVariationalIntegrator, StepInfo
 from ._dep import default_tolerance
-from ._generalized_rigid_body import GeneralizedRigidBody
-from ._integrator_base import AbstractVariationalIntegrator, StepInfo
 from ._newton import newton_solve
-from ._results import RESULTS
-from ._rigid_body import RigidBody
-from ._system_base import AbstractLieSystem
 
 
 def check_rigid_body(method: str, system: AbstractLieSystem) -> None:
