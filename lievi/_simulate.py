@@ -36,6 +36,54 @@ class Solution(eqx.Module):
     result: Int[Array, ""]
     stats: dict[str, Array]
 
+    def angular_velocity(self, system: AbstractLieSystem, frame: str = "body") -> Float[Array, "T d"]:
+        """Angular velocity along the trajectory (frames: docs/theory/conventions.md).
+
+        **Arguments:**
+
+        - `system`: the system that was simulated (its inverse Legendre map turns momentum
+          into velocity; for the rigid body `Ω = I⁻¹Π`).
+        - `frame`: `"body"` for `Ω = g⁻¹ġ` (body coordinates), `"spatial"` for
+          `ω = ġg⁻¹` (world coordinates; `ω = gΩ` on SO(3)).
+
+        **Returns:** algebra coordinates, shape `(T, d)` (any leading batch axes of a batched
+        `Solution` kept).
+        """
+        if frame not in ("body", "spatial"):
+            raise ValueError(f"`frame` must be 'body' or 'spatial', got {frame!r}.")
+        xi = _over_leading_axes(system.velocity, 1, self.m)
+        # Left-invariant systems carry the body velocity, right-invariant the spatial one.
+        if frame == ("spatial" if system.side == "left" else "body"):
+            group = system.group
+            A = group.Ad(self.g if system.side == "left" else group.inverse(self.g))
+            xi = jnp.einsum("...ab,...b->...a", A, xi)
+        return xi
+
+    def spatial_momentum(self, system: AbstractLieSystem) -> Float[Array, "T d"]:
+        """Momentum in the world frame along the trajectory: `gΠ` on SO(3).
+
+        Left-invariant systems: `Ad*_{g⁻¹}Π = Ad_{g⁻¹}ᵀΠ` (`gΠ̂gᵀ` on SO(n)), conserved by the
+        free flow and kept to round-off by the geometric integrators. Right-invariant
+        systems carry the spatial momentum `μ` already: `Solution.m` is returned.
+
+        **Arguments:**
+
+        - `system`: the system that was simulated.
+
+        **Returns:** shape `(T, d)` (leading batch axes kept).
+        """
+        if system.side == "right":
+            return self.m
+        group = system.group
+        return jnp.einsum("...ba,...b->...a", group.Ad(group.inverse(self.g)), self.m)
+
+
+def _over_leading_axes(fn, core_ndim: int, x):
+    """Apply `fn` (written for one state with `core_ndim` axes) over all leading axes."""
+    for _ in range(x.ndim - core_ndim):
+        fn = jax.vmap(fn)
+    return fn(x)
+
 
 def _check_integer(name: str, value, minimum: int) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
