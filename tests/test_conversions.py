@@ -22,11 +22,19 @@ L = type(
     "L",
     (),
     {
-        name: staticmethod(jax.jit(getattr(lievi, name), static_argnums=(1,) if name in _SEQ else ()))
+        name: staticmethod(
+            jax.jit(getattr(lievi, name), static_argnums=(1,) if name in _SEQ else ())
+        )
         for name in [
-            "rotation_vector_to_matrix", "matrix_to_rotation_vector", "matrix_to_quaternion_wxyz",
-            "matrix_to_quaternion_xyzw", "quaternion_wxyz_to_matrix", "quaternion_xyzw_to_matrix",
-            "wxyz_to_xyzw", "xyzw_to_wxyz", *_SEQ,
+            "rotation_vector_to_matrix",
+            "matrix_to_rotation_vector",
+            "matrix_to_quaternion_wxyz",
+            "matrix_to_quaternion_xyzw",
+            "quaternion_wxyz_to_matrix",
+            "quaternion_xyzw_to_matrix",
+            "wxyz_to_xyzw",
+            "xyzw_to_wxyz",
+            *_SEQ,
         ]
     },
 )
@@ -120,7 +128,8 @@ def test_euler_angles_agree_with_scipy(vectors, seq):
     angles = L.matrix_to_euler(g, seq)
     np.testing.assert_allclose(L.euler_to_matrix(angles, seq), g, atol=1e-12)
     np.testing.assert_allclose(
-        L.euler_to_matrix(angles, seq), Rotation.from_euler(seq, np.asarray(angles)).as_matrix(),
+        L.euler_to_matrix(angles, seq),
+        Rotation.from_euler(seq, np.asarray(angles)).as_matrix(),
         atol=1e-12,
     )
     # Away from gimbal lock the angles are unique in their ranges: equal to scipy's.
@@ -134,14 +143,17 @@ def test_euler_angles_agree_with_scipy(vectors, seq):
 
 
 @pytest.mark.parametrize(
-    "seq, dtype", [("xyz", jnp.float64), ("ZYX", jnp.float32), ("zxz", jnp.float64), ("XYX", jnp.float32)]
+    "seq, dtype",
+    [("xyz", jnp.float64), ("ZYX", jnp.float32), ("zxz", jnp.float64), ("XYX", jnp.float32)],
 )
 def test_euler_gimbal_lock_round_trip(seq, dtype):
     proper = seq[0].lower() == seq[2].lower()
     lock = [0.0, np.pi] if proper else [np.pi / 2, -np.pi / 2]
     angles = jnp.asarray([[0.3, m, -1.1] for m in lock] + [[0.7, 0.4, 2.5]], dtype)
     g = L.euler_to_matrix(angles, seq)
-    np.testing.assert_allclose(L.euler_to_matrix(L.matrix_to_euler(g, seq), seq), g, atol=TOL[dtype] * 10)
+    np.testing.assert_allclose(
+        L.euler_to_matrix(L.matrix_to_euler(g, seq), seq), g, atol=TOL[dtype] * 10
+    )
 
 
 def test_scipy_round_trip(vectors):
@@ -168,7 +180,8 @@ def test_jaxlie_round_trip(vectors, dtype):
     np.testing.assert_allclose(jax.vmap(lambda r: r @ p)(R), g @ p, atol=10 * TOL[dtype])
     # jaxlie's own exp agrees with lievi's on the rotation vectors.
     np.testing.assert_allclose(
-        jax.vmap(lambda v: jaxlie.SO3.exp(v).as_matrix())(jnp.asarray(vectors, dtype)), g,
+        jax.vmap(lambda v: jaxlie.SO3.exp(v).as_matrix())(jnp.asarray(vectors, dtype)),
+        g,
         atol=10 * TOL[dtype],
     )
 

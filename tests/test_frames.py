@@ -35,7 +35,9 @@ def test_spatial_momentum_is_g_pi_and_conserved():
     sol = lievi.simulate(body, lievi.MoserVeselov(), g0, m0, h=0.1, n_steps=300)
     pi = sol.spatial_momentum(body)
     np.testing.assert_allclose(pi, jnp.einsum("tab,tb->ta", sol.g, sol.m), atol=1e-15)
-    np.testing.assert_allclose(pi, lievi.diagnostics.spatial_momentum(body, sol.g, sol.m), atol=1e-15)
+    np.testing.assert_allclose(
+        pi, lievi.diagnostics.spatial_momentum(body, sol.g, sol.m), atol=1e-15
+    )
     assert lievi.diagnostics.relative_drift(pi) < ROUNDOFF
 
 
@@ -53,7 +55,9 @@ def test_generalized_body_and_batches():
     # A batched Solution (as from `jax.vmap(simulate)`) keeps its batch axis.
     batch = jax.tree.map(lambda x: jnp.stack([x, x]), sol)
     assert batch.angular_velocity(body, frame="spatial").shape == (2, 101, 6)
-    np.testing.assert_allclose(batch.spatial_momentum(body)[1], sol.spatial_momentum(body), atol=1e-15)
+    np.testing.assert_allclose(
+        batch.spatial_momentum(body)[1], sol.spatial_momentum(body), atol=1e-15
+    )
 
 
 def test_right_invariant_system_carries_spatial_momentum():
@@ -63,7 +67,9 @@ def test_right_invariant_system_carries_spatial_momentum():
     np.testing.assert_array_equal(sol.spatial_momentum(right), sol.m)
     body_velocity = sol.angular_velocity(right, frame="body")
     np.testing.assert_allclose(
-        body_velocity, jnp.einsum("tba,tb->ta", sol.g, sol.angular_velocity(right, "spatial")), atol=1e-12
+        body_velocity,
+        jnp.einsum("tba,tb->ta", sol.g, sol.angular_velocity(right, "spatial")),
+        atol=1e-12,
     )
 
 

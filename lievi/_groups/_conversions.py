@@ -23,7 +23,9 @@ from ._so3 import SO3
 
 def _check_last(name: str, x, shape: tuple[int, ...], what: str) -> None:
     if tuple(jnp.shape(x)[len(jnp.shape(x)) - len(shape) :]) != shape or jnp.ndim(x) < len(shape):
-        raise ValueError(f"`{name}` must be {what} with trailing shape {shape}, got shape {jnp.shape(x)}.")
+        raise ValueError(
+            f"`{name}` must be {what} with trailing shape {shape}, got shape {jnp.shape(x)}."
+        )
 
 
 # ---- quaternions -------------------------------------------------------------------------
@@ -78,8 +80,15 @@ def matrix_to_quaternion_wxyz(g: Float[Array, "*batch 3 3"]) -> Float[Array, "*b
     trace = jnp.trace(g, axis1=-2, axis2=-1)
     d = jnp.diagonal(g, axis1=-2, axis2=-1)
     # 4·(w², x², y², z²)
-    squares = jnp.stack([1 + trace, 1 + 2 * d[..., 0] - trace, 1 + 2 * d[..., 1] - trace,
-                         1 + 2 * d[..., 2] - trace], axis=-1)
+    squares = jnp.stack(
+        [
+            1 + trace,
+            1 + 2 * d[..., 0] - trace,
+            1 + 2 * d[..., 1] - trace,
+            1 + 2 * d[..., 2] - trace,
+        ],
+        axis=-1,
+    )
     # Products 4·(w·x, w·y, w·z, x·y, x·z, y·z) from the off-diagonal entries.
     wx = g[..., 2, 1] - g[..., 1, 2]
     wy = g[..., 0, 2] - g[..., 2, 0]
@@ -252,7 +261,9 @@ def matrix_to_euler(g: Float[Array, "*batch 3 3"], seq: str) -> Float[Array, "*b
 
 def _wrap(angle):
     """Into `(−π, π]`."""
-    return jnp.where(angle <= -jnp.pi, angle + 2 * jnp.pi, jnp.where(angle > jnp.pi, angle - 2 * jnp.pi, angle))
+    return jnp.where(
+        angle <= -jnp.pi, angle + 2 * jnp.pi, jnp.where(angle > jnp.pi, angle - 2 * jnp.pi, angle)
+    )
 
 
 # ---- other libraries ---------------------------------------------------------------------
