@@ -4,7 +4,7 @@ Implements Marsden, Pekarsky & Shkoller, *Discrete Euler–Poincaré and Lie–P
 equations*, Nonlinearity 12 (1999) 1647–1662, in JAX.
 """
 
-from importlib.metadata import PackageNotFoundError, version
+from importlib import metadata as _metadata
 
 from . import diagnostics as diagnostics
 from ._batch._simulate_batch import has_fast_path as has_fast_path
@@ -49,6 +49,10 @@ from ._systems._lie_lagrangian import LieLagrangian as LieLagrangian
 from ._systems._rigid_body import RigidBody as RigidBody
 
 try:
-    __version__ = version("lievi")
-except PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = _metadata.version("lievi")
+except _metadata.PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0+unknown"
+
+# The public API is exactly the explicit re-exports above (`from ._x import Y as Y`);
+# tests/test_docs.py checks this and that each has an entry in the API reference.
+__all__ = sorted(name for name in dir() if not name.startswith("_"))

@@ -1,67 +1,47 @@
-"""Generate `02_integrators_compared.ipynb` from the cells below.
+# ---
+# jupyter:
+#   jupytext:
+#     formats: ipynb,py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3 (ipykernel)
+#     language: python
+#     name: python3
+# ---
 
-    python notebooks/_build_02.py            # write the notebook without outputs
-    python notebooks/_build_02.py --execute  # ... and execute it at full size, saving outputs
+# %% [markdown]
+# # 02 — The integrators compared: work–precision, long-time energy, high order
+#
+# All of `lievi`'s integrators on the free rigid body, through the one entry point:
+#
+# | method | order | kind |
+# |---|---|---|
+# | `DEP(chart="exp")`, `DEP(chart="cayley")` | 2 | variational, implicit (paper §4) |
+# | `MoserVeselov()` (DMV) | 2 | variational, implicit (paper §5) |
+# | `LiePoissonSplitting()` | 2 | Lie–Poisson, explicit (paper §6) |
+# | `RK4()` | 4 | classical, not geometric (baseline) |
+# | `Composition(method, 4 or 6)` | 4, 6 | symmetric composition (triple jump, Kahan–Li) |
+# | `PreprocessedMoserVeselov(order)` | 4, 6, 8, 10 | DMV with a modified step and an attitude correction (after Hairer–Vilmart 2006) |
+#
+# Test problems (NOTES §4): the Hairer–Vilmart body $I = (0.6, 0.8, 1.0)$ with
+# $y_0 = (1.8, 0.4, -0.9)$, $Q_0 = I_3$, $T = 10$, and the HLW body $I = (2, 1, 2/3)$ for the
+# long run. Errors are measured against DOP853 at rtol = atol = $10^{-13}$ (itself about
+# $10^{-13}$ accurate). The full benchmark, with both Hairer–Vilmart bodies, the HLW body and
+# wall times, is `benchmarks/accuracy.py`; its stored results are shown at the end.
 
-`LIEVI_NOTEBOOK_SMALL=1` runs the notebook at a small size (what `tests/test_notebooks.py`
-does); do not set it with `--execute`.
-"""
-
-import os
-import sys
-from pathlib import Path
-
-import nbformat
-from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
-
-HERE = Path(__file__).resolve().parent
-TARGET = HERE / "02_integrators_compared.ipynb"
-
-
-def md(text: str):
-    return new_markdown_cell(text.strip("\n"))
-
-
-def code(text: str, tags=()):
-    cell = new_code_cell(text.strip("\n"))
-    if tags:
-        cell.metadata["tags"] = list(tags)
-    return cell
-
-
-cells = [
-    md(r"""
-# 02 — The integrators compared: work–precision, long-time energy, high order
-
-All of `lievi`'s integrators on the free rigid body, through the one entry point:
-
-| method | order | kind |
-|---|---|---|
-| `DEP(chart="exp")`, `DEP(chart="cayley")` | 2 | variational, implicit (paper §4) |
-| `MoserVeselov()` (DMV) | 2 | variational, implicit (paper §5) |
-| `LiePoissonSplitting()` | 2 | Lie–Poisson, explicit (paper §6) |
-| `RK4()` | 4 | classical, not geometric (baseline) |
-| `Composition(method, 4 or 6)` | 4, 6 | symmetric composition (triple jump, Kahan–Li) |
-| `PreprocessedMoserVeselov(order)` | 4, 6, 8, 10 | DMV with a modified step and an attitude correction (after Hairer–Vilmart 2006) |
-
-Test problems (NOTES §4): the Hairer–Vilmart body $I = (0.6, 0.8, 1.0)$ with
-$y_0 = (1.8, 0.4, -0.9)$, $Q_0 = I_3$, $T = 10$, and the HLW body $I = (2, 1, 2/3)$ for the
-long run. Errors are measured against DOP853 at rtol = atol = $10^{-13}$ (itself about
-$10^{-13}$ accurate). The full benchmark, with both Hairer–Vilmart bodies, the HLW body and
-wall times, is `benchmarks/accuracy.py`; its stored results are shown at the end.
-"""),
-    code(
-        r"""
+# %% tags=["parameters"]
 import os
 SMALL = os.environ.get("LIEVI_NOTEBOOK_SMALL", "0") not in ("", "0")
 T = 2.0 if SMALL else 10.0  # final time of the work-precision study
 STEPS = [50, 100] if SMALL else [25 * 2**k for k in range(8)]  # steps to T
 N_LONG = 2_000 if SMALL else 100_000  # long run at h = 0.1 (HLW): T = 1e4
 N_ACCEPT = 2_500  # order-6 preprocessed DMV at T = 10 (h = 0.004)
-""",
-        tags=("parameters",),
-    ),
-    code(r"""
+
+# %%
 import time
 import equinox as eqx
 import jax
@@ -72,17 +52,17 @@ jax.config.update("jax_enable_x64", True)
 import lievi
 from lievi import diagnostics
 from lievi._integrators._preprocessed_dmv import modification_series
-%config InlineBackend.figure_formats = ["png"]
+# %config InlineBackend.figure_formats = ["png"]
 plt.rcParams.update({"figure.dpi": 100, "axes.grid": True, "grid.alpha": 0.3})
 print("lievi", lievi.__version__, "| jax", jax.__version__, "| SMALL =", SMALL)
-"""),
-    md(r"""
-## 1. Why DMV can be preprocessed to any order
 
-Plain DMV keeps not only the Casimir $C = |y|^2$ but also the energy
-$H = \tfrac12 y^\top I^{-1} y$ exactly:
-"""),
-    code(r"""
+# %% [markdown]
+# ## 1. Why DMV can be preprocessed to any order
+#
+# Plain DMV keeps not only the Casimir $C = |y|^2$ but also the energy
+# $H = \tfrac12 y^\top I^{-1} y$ exactly:
+
+# %%
 body = lievi.RigidBody(jnp.array([0.6, 0.8, 1.0]))
 y0 = jnp.array([1.8, 0.4, -0.9])
 sol = lievi.simulate(body, lievi.MoserVeselov(), jnp.eye(3), y0, h=0.2, n_steps=500)
@@ -90,40 +70,41 @@ dH = float(diagnostics.relative_drift(diagnostics.energy(body, sol.m)))
 dC = float(diagnostics.relative_drift(diagnostics.casimirs(body, sol.m)))
 print(f"DMV, h = 0.2, 500 steps: energy drift {dH:.1e}, Casimir drift {dC:.1e}")
 assert dH < 1e-12 and dC < 1e-12
-"""),
-    md(r"""
-DMV is also symplectic on $T^*\mathrm{SO}(3)$ and commutes with rotations of the attitude.
-On each invariant torus of the integrable rigid body it is then a translation in the angle
-variables: **one DMV step of size $h$ is exactly the rigid-body flow over a modified time
-$\tau(h) = h + c_3 h^3 + c_5 h^5 + \dots$, followed by a rotation of the attitude about the
-body momentum by an angle $\rho(h)|y|$**, where $\tau$ and $\rho$ depend only on $h$, $H$, $C$.
-(Hairer and Vilmart say the same thing as "DMV is the exact solution of a rigid body with
-modified moments of inertia": DMV with moments $I/\alpha$ and step $h$ is DMV with moments
-$I$ and step $\alpha h$.)
 
-So `PreprocessedMoserVeselov(p)` runs DMV with the step $h'$ that solves $\tau(h') = h$ and
-rotates the attitude back by $\rho(h')|y|$, with both series cut after $h^p$: order $p$. The
-series are computed in JAX, by truncated power series of the DMV step and of the exact flow
-(see `lievi/_integrators/_preprocessed_dmv.py`), once per trajectory (`prepare`); then each step is one
-DMV step and one small rotation. The coefficients for our body (odd powers only — the
-method is symmetric):
-"""),
-    code(r"""
+# %% [markdown]
+# DMV is also symplectic on $T^*\mathrm{SO}(3)$ and commutes with rotations of the attitude.
+# On each invariant torus of the integrable rigid body it is then a translation in the angle
+# variables: **one DMV step of size $h$ is exactly the rigid-body flow over a modified time
+# $\tau(h) = h + c_3 h^3 + c_5 h^5 + \dots$, followed by a rotation of the attitude about the
+# body momentum by an angle $\rho(h)|y|$**, where $\tau$ and $\rho$ depend only on $h$, $H$, $C$.
+# (Hairer and Vilmart say the same thing as "DMV is the exact solution of a rigid body with
+# modified moments of inertia": DMV with moments $I/\alpha$ and step $h$ is DMV with moments
+# $I$ and step $\alpha h$.)
+#
+# So `PreprocessedMoserVeselov(p)` runs DMV with the step $h'$ that solves $\tau(h') = h$ and
+# rotates the attitude back by $\rho(h')|y|$, with both series cut after $h^p$: order $p$. The
+# series are computed in JAX, by truncated power series of the DMV step and of the exact flow
+# (see `lievi/_integrators/_preprocessed_dmv.py`), once per trajectory (`prepare`); then each step is one
+# DMV step and one small rotation. The coefficients for our body (odd powers only — the
+# method is symmetric):
+
+# %%
 tau, S = modification_series(jnp.diag(1 / body.inertia), y0, 10)
 np.set_printoptions(precision=4, suppress=False)
 print("tau(s) coefficients s^0..s^10:", np.asarray(tau))
 print("S(s) = |y| sin(rho |y|)       :", np.asarray(S))
-"""),
-    md(r"""
-## 2. Work–precision on the Hairer–Vilmart body
 
-Error in $\Pi$ at $T$ against the number of steps, for every method (the preprocessing of
-`PreprocessedMoserVeselov` is part of the run). One compiled loop per method serves every
-step count. At N = 25 (h = 0.4) the Newton solves of the Moser–Veselov-based methods do not
-all converge on this body (`benchmarks/accuracy.py` reports those points as NaN; here they
-are plotted as they come).
-"""),
-    code(r"""
+
+# %% [markdown]
+# ## 2. Work–precision on the Hairer–Vilmart body
+#
+# Error in $\Pi$ at $T$ against the number of steps, for every method (the preprocessing of
+# `PreprocessedMoserVeselov` is part of the run). One compiled loop per method serves every
+# step count. At N = 25 (h = 0.4) the Newton solves of the Moser–Veselov-based methods do not
+# all converge on this body (`benchmarks/accuracy.py` reports those points as NaN; here they
+# are plotted as they come).
+
+# %%
 @eqx.filter_jit
 def final_state(system, integrator, g0, m0, h, n):
     if isinstance(integrator, lievi.PreprocessedMoserVeselov):
@@ -165,8 +146,8 @@ def fitted_order(errs):
 print(f"{'method':17s} {'order':>6s}  error in Pi at T = {T:g} for N = {STEPS}")
 for name, errs in errors.items():
     print(f"{name:17s} {fitted_order(errs):6.2f}  " + " ".join(f"{e:8.1e}" for e in errs))
-"""),
-    code(r"""
+
+# %%
 fig, axes = plt.subplots(1, 2, figsize=(13, 5))
 for name in errors:
     style = "--" if name.startswith("Comp") else (":" if name.startswith("pDMV") else "-")
@@ -178,11 +159,11 @@ axes[1].set(xlabel="wall time [s] (jitted, compile apart; shared machine: indica
 axes[0].legend(fontsize=8, ncol=2)
 fig.suptitle(f"Hairer–Vilmart body I = (0.6, 0.8, 1.0), T = {T:g}")
 fig.tight_layout()
-"""),
-    md(r"""
-## 3. The accuracy bar: order-6 preprocessed DMV to $10^{-11}$ at $T = 10$
-"""),
-    code(r"""
+
+# %% [markdown]
+# ## 3. The accuracy bar: order-6 preprocessed DMV to $10^{-11}$ at $T = 10$
+
+# %%
 if not SMALL:
     g_ref10, m_ref10 = lievi.reference_solution(body, jnp.eye(3), y0, [0.0, 10.0])
     h = jnp.asarray(10.0 / N_ACCEPT)
@@ -191,16 +172,16 @@ if not SMALL:
     print(f"pDMV6, h = {float(h)}: error in Pi at T = 10 = {err:.1e}, "
           f"in Q = {float(jnp.max(jnp.abs(g - g_ref10[-1]))):.1e}")
     assert err <= 1e-11
-"""),
-    md(r"""
-## 4. Long-time energy: geometric methods against RK4
 
-The HLW body at $h = 0.1$ to $T = 10^4$ ($10^5$ steps). The Lie–Poisson methods keep the
-Casimir to round-off; DMV and its preprocessed version keep the energy to round-off too;
-DEP and the splitting have a bounded $O(h^2)$ energy error; RK4 is more accurate per step
-but drifts, linearly in time, in both energy and Casimir.
-"""),
-    code(r"""
+# %% [markdown]
+# ## 4. Long-time energy: geometric methods against RK4
+#
+# The HLW body at $h = 0.1$ to $T = 10^4$ ($10^5$ steps). The Lie–Poisson methods keep the
+# Casimir to round-off; DMV and its preprocessed version keep the energy to round-off too;
+# DEP and the splitting have a bounded $O(h^2)$ energy error; RK4 is more accurate per step
+# but drifts, linearly in time, in both energy and Casimir.
+
+# %%
 hlw = lievi.RigidBody(jnp.array([2.0, 1.0, 2.0 / 3.0]))
 m_hlw = jnp.array([np.cos(1.1), 0.0, np.sin(1.1)])
 LONG = {"DEP exp": lievi.DEP(), "splitting": split, "MV": mv, "RK4": lievi.RK4(),
@@ -220,15 +201,15 @@ for name, integrator in LONG.items():
 ax.set(xlabel="t", ylabel="|H - H_0| / H_0", title="HLW body, h = 0.1")
 ax.legend(fontsize=8)
 fig.tight_layout()
-"""),
-    md(r"""
-## 5. The stored full benchmark (`benchmarks/accuracy.py`)
 
-Three bodies, every method, wall times, and the cost per step of the preprocessed DMV
-relative to plain DMV, measured in the same run. The figure is
-[`benchmarks/results/accuracy.png`](../benchmarks/results/accuracy.png).
-"""),
-    code(r"""
+# %% [markdown]
+# ## 5. The stored full benchmark (`benchmarks/accuracy.py`)
+#
+# Three bodies, every method, wall times, and the cost per step of the preprocessed DMV
+# relative to plain DMV, measured in the same run. The figure is
+# [`benchmarks/results/accuracy.png`](../benchmarks/results/accuracy.png).
+
+# %%
 import json
 from pathlib import Path
 results = Path("..") / "benchmarks" / "results"
@@ -242,37 +223,3 @@ if (results / "accuracy.json").exists():
     print("figure: benchmarks/results/accuracy.png")
 else:
     print("run `python benchmarks/accuracy.py` to produce the stored results")
-"""),
-]
-
-nb = new_notebook(
-    cells=cells,
-    metadata={
-        "kernelspec": {"name": "python3", "display_name": "Python 3 (ipykernel)", "language": "python"},
-        "language_info": {"name": "python"},
-    },
-)
-for index, cell in enumerate(nb.cells):  # stable ids: regenerating gives no spurious diff
-    cell.id = f"cell-{index:02d}"
-
-
-def execute(notebook) -> None:
-    """Execute at full size with the `python3` kernel; drop per-cell timing metadata."""
-    import nbclient
-
-    if os.environ.get("LIEVI_NOTEBOOK_SMALL", "0") not in ("", "0"):
-        raise SystemExit("unset LIEVI_NOTEBOOK_SMALL: the stored outputs are the full-size run")
-    client = nbclient.NotebookClient(
-        notebook, timeout=1200, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}
-    )
-    client.execute()
-    for cell in notebook.cells:
-        cell.metadata.pop("execution", None)
-
-
-if __name__ == "__main__":
-    nbformat.validate(nb)
-    if "--execute" in sys.argv[1:]:
-        execute(nb)
-    nbformat.write(nb, TARGET)
-    print(f"wrote {TARGET}")

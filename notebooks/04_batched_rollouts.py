@@ -1,64 +1,43 @@
-"""Generate `04_batched_rollouts.ipynb` from the cells below.
+# ---
+# jupyter:
+#   jupytext:
+#     formats: ipynb,py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3 (ipykernel)
+#     language: python
+#     name: python3
+# ---
 
-Run from anywhere:
+# %% [markdown]
+# # 04 — Batched rollouts: 10⁵ rigid bodies at once
+#
+# `lievi.simulate_batch` integrates many bodies in one compiled loop: each body may have its
+# own inertia, initial state and step size. For the rigid body with principal moments and
+# `DEP` (both charts), `MoserVeselov`, `LiePoissonSplitting` or `RK4` it uses a
+# structure-of-arrays fast path (closed-form Newton or explicit updates on component arrays,
+# `lievi/_batch/_fast_so3.py`, `lievi/_batch/_fast_explicit.py`) whose iterates equal per-body
+# `lievi.simulate` to round-off (`tests/test_batch.py`).
+#
+# This notebook
+#
+# 1. integrates $10^5$ random bodies and shows the distribution, over the batch, of the
+#    Casimir error (round-off for every body) and of the energy error (bounded, of size
+#    $O(h^2)$), in float64 and float32;
+# 2. shows the intermediate-axis (Dzhanibekov) flip across a batch of bodies started near
+#    the unstable axis, and checks the time to the first flip against the linearised growth
+#    rate;
+# 3. shows that a failing body is reported per body and does not stop the others.
 
-    python notebooks/_build_04.py            # write the notebook without outputs
-    python notebooks/_build_04.py --execute  # ... and execute it at full size, saving the
-                                             # outputs (figures) so GitHub shows them
+# %% [markdown]
+# **Sizes.** With `LIEVI_NOTEBOOK_SMALL=1` (as the test suite does) the notebook runs at a
+# small size; the stored outputs are from a full-size run.
 
-`LIEVI_NOTEBOOK_SMALL=1` runs the notebook at a small size (what `tests/test_notebooks.py`
-does); do not set it with `--execute`.
-"""
-
-import os
-import sys
-from pathlib import Path
-
-import nbformat
-from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
-
-HERE = Path(__file__).resolve().parent
-TARGET = HERE / "04_batched_rollouts.ipynb"
-
-
-def md(text: str):
-    return new_markdown_cell(text.strip("\n"))
-
-
-def code(text: str, tags=()):
-    cell = new_code_cell(text.strip("\n"))
-    if tags:
-        cell.metadata["tags"] = list(tags)
-    return cell
-
-
-cells = [
-    md(r"""
-# 04 — Batched rollouts: 10⁵ rigid bodies at once
-
-`lievi.simulate_batch` integrates many bodies in one compiled loop: each body may have its
-own inertia, initial state and step size. For the rigid body with principal moments and
-`DEP` (both charts), `MoserVeselov`, `LiePoissonSplitting` or `RK4` it uses a
-structure-of-arrays fast path (closed-form Newton or explicit updates on component arrays,
-`lievi/_batch/_fast_so3.py`, `lievi/_batch/_fast_explicit.py`) whose iterates equal per-body
-`lievi.simulate` to round-off (`tests/test_batch.py`).
-
-This notebook
-
-1. integrates $10^5$ random bodies and shows the distribution, over the batch, of the
-   Casimir error (round-off for every body) and of the energy error (bounded, of size
-   $O(h^2)$), in float64 and float32;
-2. shows the intermediate-axis (Dzhanibekov) flip across a batch of bodies started near
-   the unstable axis, and checks the time to the first flip against the linearised growth
-   rate;
-3. shows that a failing body is reported per body and does not stop the others.
-"""),
-    md(r"""
-**Sizes.** With `LIEVI_NOTEBOOK_SMALL=1` (as the test suite does) the notebook runs at a
-small size; the stored outputs are from a full-size run.
-"""),
-    code(
-        r"""
+# %% tags=["parameters"]
 import os
 
 SMALL = os.environ.get("LIEVI_NOTEBOOK_SMALL", "0") not in ("", "0")
@@ -68,10 +47,8 @@ H = 0.05  # step size
 N_STEPS = 400 if SMALL else 2_000  # T = 20 (small) or 100
 N_SAVES = 40  # saved states per body (memory: N_BODIES × N_SAVES × 3 numbers)
 N_FLIP = 64 if SMALL else 1_000  # bodies in the Dzhanibekov batch
-""",
-        tags=("parameters",),
-    ),
-    code(r"""
+
+# %%
 import time
 
 import jax
@@ -84,16 +61,16 @@ import lievi
 from lievi import diagnostics as dg
 
 print(jax.devices()[0], "| fast path:", lievi.has_fast_path(lievi.RigidBody(jnp.ones(3)), lievi.DEP()))
-"""),
-    md(r"""
-## 1. Conservation across a batch of random bodies
 
-Principal moments uniform in $[0.5, 2]$, unit momenta in random directions, $g_0 = I_3$.
-Each body's inertia is a leaf of a batched `RigidBody` (`jax.vmap(lievi.RigidBody)`),
-passed with `system_axis=0`. Only the momenta are stored (`save=("m",)`), every
-`N_STEPS // N_SAVES` steps.
-"""),
-    code(r"""
+# %% [markdown]
+# ## 1. Conservation across a batch of random bodies
+#
+# Principal moments uniform in $[0.5, 2]$, unit momenta in random directions, $g_0 = I_3$.
+# Each body's inertia is a leaf of a batched `RigidBody` (`jax.vmap(lievi.RigidBody)`),
+# passed with `system_axis=0`. Only the momenta are stored (`save=("m",)`), every
+# `N_STEPS // N_SAVES` steps.
+
+# %%
 rng = np.random.default_rng(0)
 inertia = rng.uniform(0.5, 2.0, size=(N_BODIES, 3))
 m0 = rng.normal(size=(N_BODIES, 3))
@@ -133,8 +110,8 @@ print(f"{'integrator':<15}{'dtype':>9}{'body-steps/s':>14}{'median Casimir err':
 for (name, dtype), r in results.items():
     print(f"{name:<15}{dtype:>9}{r['rate']:>14.3g}{np.median(r['casimir']):>20.2e}{r['casimir'].max():>17.2e}"
           f"{np.median(r['energy']):>19.2e}{r['energy'].max():>16.2e}")
-"""),
-    code(r"""
+
+# %%
 fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
 bins = np.logspace(-17, -1, 80)
 for (name, dtype), r in results.items():
@@ -150,39 +127,39 @@ axes[1].set_title(f"energy: bounded, $O(h^2)$ (h = {H})")
 axes[1].legend(fontsize=7)
 plt.tight_layout()
 plt.show()
-"""),
-    md(r"""
-The Casimir $|\Pi|^2$ is kept to round-off by every body: the DLP update (3.3) is a
-rotation of $\Pi$, whatever the Newton residual. For DEP the energy error is set by the
-discretisation, $O(h^2)$, bounded, with no drift, and is the same in float32 and float64.
-Moser–Veselov keeps this energy to round-off as well (as Hairer–Vilmart note for the
-discrete Moser–Veselov algorithm). The explicit Lie–Poisson splitting (five exact axis
-rotations per step, no Newton solve) is a Poisson map too, so its Casimir error is
-round-off; its energy error is $O(h^2)$ and bounded like DEP's. In float32 the
-Casimir error is round-off of the single-precision rotation, up to about $10^{-4}$ for the
-worst of $10^5$ bodies over 2000 steps (table above; it can grow like the number of steps
-times $\varepsilon_{32} \approx 1.2\cdot10^{-7}$): float32 is good for statistics over many bodies at
-$h$ where the $O(h^2)$ error dominates, not for studying conservation to round-off.
-"""),
-    code(r"""
+
+# %% [markdown]
+# The Casimir $|\Pi|^2$ is kept to round-off by every body: the DLP update (3.3) is a
+# rotation of $\Pi$, whatever the Newton residual. For DEP the energy error is set by the
+# discretisation, $O(h^2)$, bounded, with no drift, and is the same in float32 and float64.
+# Moser–Veselov keeps this energy to round-off as well (as Hairer–Vilmart note for the
+# discrete Moser–Veselov algorithm). The explicit Lie–Poisson splitting (five exact axis
+# rotations per step, no Newton solve) is a Poisson map too, so its Casimir error is
+# round-off; its energy error is $O(h^2)$ and bounded like DEP's. In float32 the
+# Casimir error is round-off of the single-precision rotation, up to about $10^{-4}$ for the
+# worst of $10^5$ bodies over 2000 steps (table above; it can grow like the number of steps
+# times $\varepsilon_{32} \approx 1.2\cdot10^{-7}$): float32 is good for statistics over many bodies at
+# $h$ where the $O(h^2)$ error dominates, not for studying conservation to round-off.
+
+# %%
 for (name, dtype), r in results.items():
     # float32: the rotation F is orthogonal to ~eps32 per step, so the Casimir error can
     # grow like steps × eps32 in the worst body (~8 eps32 per step allowed).
     bound = 1e-13 if dtype == "float64" else N_STEPS * 1e-6
     assert r["casimir"].max() < bound, (name, dtype, r["casimir"].max())
     assert r["energy"].max() < 0.05, (name, dtype)  # O(h²) with h = 0.05, no drift
-"""),
-    md(r"""
-## 2. The intermediate-axis (Dzhanibekov) flip across a batch
 
-Bodies with $I = (1, 2, 3)$ spinning about the intermediate axis with a small perturbation
-$\varepsilon$ of the momentum, $\Pi_0 = (\varepsilon, 1, \varepsilon)$ normalised, for
-$\varepsilon$ spread over eight decades. The rotation about axis 2 is unstable; each body
-flips over periodically. Linearising Euler's equations about $\Pi = (0, p, 0)$ gives growth
-at the rate $\lambda = p\sqrt{(1/I_1 - 1/I_2)(1/I_2 - 1/I_3)}$, so the time to the first flip
-grows like $\lambda^{-1}\log(1/\varepsilon)$. One batched run gives every body's flip time.
-"""),
-    code(r"""
+# %% [markdown]
+# ## 2. The intermediate-axis (Dzhanibekov) flip across a batch
+#
+# Bodies with $I = (1, 2, 3)$ spinning about the intermediate axis with a small perturbation
+# $\varepsilon$ of the momentum, $\Pi_0 = (\varepsilon, 1, \varepsilon)$ normalised, for
+# $\varepsilon$ spread over eight decades. The rotation about axis 2 is unstable; each body
+# flips over periodically. Linearising Euler's equations about $\Pi = (0, p, 0)$ gives growth
+# at the rate $\lambda = p\sqrt{(1/I_1 - 1/I_2)(1/I_2 - 1/I_3)}$, so the time to the first flip
+# grows like $\lambda^{-1}\log(1/\varepsilon)$. One batched run gives every body's flip time.
+
+# %%
 I_FLIP = np.array([1.0, 2.0, 3.0])
 eps = np.logspace(-10, -2, N_FLIP)
 m_flip = np.stack([eps, np.ones_like(eps), eps], axis=1)
@@ -202,8 +179,8 @@ slope = np.polyfit(np.log(1 / eps[ok]), first_flip[ok], 1)[0]
 print(f"{ok.sum()} of {N_FLIP} bodies flipped within T = {n_flip * H:g}")
 print(f"d(first flip time)/d log(1/eps): fitted {slope:.4f}, linear theory 1/lambda = {1 / lam:.4f}")
 assert abs(slope * lam - 1) < 0.05
-"""),
-    code(r"""
+
+# %%
 fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
 for k in np.linspace(0, N_FLIP - 1, 6).astype(int):
     axes[0].plot(t, pi2[k], lw=1, label=f"ε = {eps[k]:.0e}")
@@ -219,16 +196,16 @@ axes[1].set_ylabel("time of the first flip")
 axes[1].legend()
 plt.tight_layout()
 plt.show()
-"""),
-    md(r"""
-## 3. Failures are per body
 
-Three bodies get a step size far too large for the exponential chart (rotation angle per
-step beyond π). With `throw=False` they report `RESULTS.step_too_large` (or a Newton
-failure) and their state is NaN from the failed step on; the other bodies are untouched —
-equal to a run without the failing bodies.
-"""),
-    code(r"""
+# %% [markdown]
+# ## 3. Failures are per body
+#
+# Three bodies get a step size far too large for the exponential chart (rotation angle per
+# step beyond π). With `throw=False` they report `RESULTS.step_too_large` (or a Newton
+# failure) and their state is NaN from the failed step on; the other bodies are untouched —
+# equal to a run without the failing bodies.
+
+# %%
 B = 8
 h = np.full(B, 0.1)
 h[[1, 4, 6]] = 50.0
@@ -244,47 +221,9 @@ good = h < 1
 alone = lievi.simulate_batch(body, lievi.DEP(), g_fail[good], m_fail[good], h=jnp.asarray(h[good]), n_steps=20)
 assert np.all(np.asarray(sol.result)[good] == 0) and np.all(np.asarray(sol.result)[~good] != 0)
 np.testing.assert_allclose(sol.m[good], alone.m, rtol=0, atol=1e-13)
-"""),
-    md(r"""
-**Scaling out.** `lievi.shard_batch((bodies, g0, m0, h))` places the batch across all local
-devices (a one-axis `Mesh` and `NamedSharding`); `simulate_batch` on those inputs runs
-sharded, equal to the single-device run (`tests/test_batch.py`). Throughput against batch
-size on CPU and GPU: `benchmarks/throughput.py` and the README.
-"""),
-]
 
-nb = new_notebook(
-    cells=cells,
-    metadata={
-        "kernelspec": {
-            "name": "python3",
-            "display_name": "Python 3 (ipykernel)",
-            "language": "python",
-        },
-        "language_info": {"name": "python"},
-    },
-)
-for index, cell in enumerate(nb.cells):  # stable ids: regenerating gives no spurious diff
-    cell.id = f"cell-{index:02d}"
-
-
-def execute(notebook) -> None:
-    """Execute at full size with the `python3` kernel; drop per-cell timing metadata."""
-    import nbclient
-
-    if os.environ.get("LIEVI_NOTEBOOK_SMALL", "0") not in ("", "0"):
-        raise SystemExit("unset LIEVI_NOTEBOOK_SMALL: the stored outputs are the full-size run")
-    client = nbclient.NotebookClient(
-        notebook, timeout=1800, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}
-    )
-    client.execute()
-    for cell in notebook.cells:
-        cell.metadata.pop("execution", None)
-
-
-if __name__ == "__main__":
-    nbformat.validate(nb)
-    if "--execute" in sys.argv[1:]:
-        execute(nb)
-    nbformat.write(nb, TARGET)
-    print(f"wrote {TARGET}")
+# %% [markdown]
+# **Scaling out.** `lievi.shard_batch((bodies, g0, m0, h))` places the batch across all local
+# devices (a one-axis `Mesh` and `NamedSharding`); `simulate_batch` on those inputs runs
+# sharded, equal to the single-device run (`tests/test_batch.py`). Throughput against batch
+# size on CPU and GPU: `benchmarks/throughput.py` and the README.
