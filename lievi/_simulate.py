@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib.util
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -113,6 +115,7 @@ def simulate(
     t0=0.0,
     throw: bool = True,
     checkpoint: bool | int = False,
+    progress_meter: bool | str = False,
 ) -> Solution:
     """Integrate `system` with `integrator` from `(g0, m0)` for `n_steps` steps of size `h`.
 
@@ -139,6 +142,12 @@ def simulate(
       time, O(√`n_steps`) memory for one extra forward pass. An `int` sets the segment
       length in steps; it must divide `save_every` or be a multiple of it that divides
       `n_steps`. No effect on values or on forward-mode derivatives.
+    - `progress_meter`: report progress of a long run while it computes (diffrax's
+      `progress_meter` convention): `"text"` prints the percentage done, `"tqdm"` draws a
+      tqdm bar (needs `pip install tqdm`), `True` picks tqdm where it is installed and text
+      otherwise, `False` (default) reports nothing. Updated about every 1% of the steps from
+      inside the compiled loop (`jax.debug.callback`), so it also works under an outer
+      `jit`; no effect on values.
 
     **Returns:** a `Solution`.
 
@@ -166,6 +175,7 @@ def simulate(
         m0 = integrator.momentum_from_configurations(system, g0, g1, jnp.asarray(h, dtype))
     system.check_momentum("m0", m0)
     segment = _checkpoint_segment(checkpoint, n_steps, save_every)
+    progress = _progress_kind(progress_meter)
     dtype = state_dtype(system, g0, m0, h)
     solution = _simulate(
         system,
@@ -177,6 +187,7 @@ def simulate(
         n_steps,
         save_every,
         segment,
+        progress,
     )
     if throw:
         result = eqx.branched_error_if(
@@ -236,11 +247,88 @@ def _scan_in_segments(body, carry, length: int, segment: int | None):
     return carry, jax.tree.map(lambda y: y.reshape((length,) + y.shape[2:]), ys)
 
 
+def _progress_kind(progress_meter) -> str | None:
+    """`None` (off), `"text"` or `"tqdm"` from the `progress_meter` argument."""
+    has_tqdm = importlib.util.find_spec("tqdm") is not None
+    if progress_meter is False or progress_meter is None:
+        return None
+    if progress_meter is True:
+        return "tqdm" if has_tqdm else "text"
+    if progress_meter == "text":
+        return "text"
+    if progress_meter == "tqdm":
+        if not has_tqdm:
+            raise ValueError(
+                "`progress_meter='tqdm'` needs tqdm: `pip install tqdm`, or pass "
+                "progress_meter='text'."
+            )
+        return "tqdm"
+    raise ValueError(
+        f"`progress_meter` must be False, True, 'text' or 'tqdm', got {progress_meter!r}."
+    )
+
+
+class _ProgressReport:
+    """Host side of the progress meter: a line per update, or one tqdm bar per run.
+
+    Called from the compiled loop with the fraction done; a fraction of 0 starts a run
+    and 1 ends it (under `vmap` the fraction arrives batched, identical in every lane).
+    """
+
+    def __init__(self, kind: str):
+        self.kind = kind
+        self.bar = None
+        self.last = -1.0
+
+    def __call__(self, fraction) -> None:
+        fraction = float(np.max(fraction))
+        if fraction == self.last:
+            return  # the same update from another lane of a vmapped run
+        self.last = fraction
+        if self.kind == "text":
+            print(f"lievi.simulate: {100 * fraction:6.2f}%", flush=True)
+        else:
+            if self.bar is None or fraction == 0.0:
+                from tqdm.auto import tqdm
+
+                self.bar = tqdm(total=100, desc="lievi.simulate", unit="%")
+            self.bar.n = round(100 * fraction, 2)
+            self.bar.refresh()
+            if fraction >= 1.0:
+                self.bar.close()
+                self.bar = None
+
+
+_PROGRESS = {"text": _ProgressReport("text"), "tqdm": _ProgressReport("tqdm")}
+
+
+def _report_progress(progress: str | None, k, n_steps: int):
+    """Send `k / n_steps` to the host about every 1% of the steps (`k` counts steps done)."""
+    if progress is None:
+        return
+    stride = max(1, n_steps // 100)
+
+    def report(k):
+        jax.debug.callback(_PROGRESS[progress], k / n_steps)
+
+    jax.lax.cond((k % stride == 0) | (k == n_steps), report, lambda k: None, k)
+
+
 @eqx.filter_jit
 def _simulate(
-    system, integrator, g0, m0, h, t0, n_steps: int, save_every: int, segment: int | None = None
+    system,
+    integrator,
+    g0,
+    m0,
+    h,
+    t0,
+    n_steps: int,
+    save_every: int,
+    segment: int | None = None,
+    progress: str | None = None,
 ) -> Solution:
     nan = jnp.asarray(jnp.nan, m0.dtype)
+    _report_progress(progress, jnp.asarray(0, jnp.int32), n_steps)
 
     def one_step(carry, _):
         g, m, result, failed_step, k = carry
@@ -254,6 +342,7 @@ def _simulate(
         # cannot turn the gradient of a masked loss into NaN. The saved state is NaN.
         g_next = jnp.where(ok, g_next, g)
         m_next = jnp.where(ok, m_next, m)
+        _report_progress(progress, k + 1, n_steps)
         return (g_next, m_next, result, failed_step, k + 1), (info.iterations, info.residual)
 
     inner = segment if segment is not None and segment < save_every else None
