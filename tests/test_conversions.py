@@ -119,7 +119,8 @@ def test_batched_shapes():
     )
 
 
-SEQUENCES = ["xyz", "zyx", "xzy", "yxz", "zxz", "xyx", "yzy", "XYZ", "ZYX", "ZXZ", "YXY", "XZX"]
+# Tait–Bryan and proper Euler, extrinsic and intrinsic, cyclic and anticyclic.
+SEQUENCES = ["xyz", "zyx", "XYZ", "ZYX", "zxz", "XZX"]
 
 
 @pytest.mark.parametrize("seq", SEQUENCES)
