@@ -59,3 +59,36 @@ def test_tqdm_meter(capsys):
     jax.effects_barrier()
     assert "lievi.simulate" in capsys.readouterr().err
     assert jnp.all(jnp.isfinite(sol.m))
+
+
+def test_tqdm_report_without_tqdm(monkeypatch):
+    """The host side of the tqdm meter with a stand-in `tqdm.auto.tqdm`: one bar per run,
+    moved to the reported percentage and closed at 100%."""
+    import sys
+    import types
+
+    from lievi._simulate import _ProgressReport
+
+    bars = []
+
+    class Bar:
+        def __init__(self, total, desc, unit):
+            self.n, self.closed, self.positions = 0, False, []
+            bars.append(self)
+
+        def refresh(self):
+            self.positions.append(self.n)
+
+        def close(self):
+            self.closed = True
+
+    fake = types.ModuleType("tqdm.auto")
+    fake.tqdm = Bar
+    monkeypatch.setitem(sys.modules, "tqdm", types.ModuleType("tqdm"))
+    monkeypatch.setitem(sys.modules, "tqdm.auto", fake)
+    report = _ProgressReport("tqdm")
+    for _run in range(2):  # two runs in a row
+        for fraction in [0.0, 0.25, 0.25, 0.5, 1.0]:  # a repeat, as from a vmapped lane
+            report(np.array([fraction, fraction]))
+    assert len(bars) == 2
+    assert all(bar.closed and bar.positions == [0.0, 25.0, 50.0, 100.0] for bar in bars)
