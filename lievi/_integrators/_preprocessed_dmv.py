@@ -46,7 +46,7 @@ from .._groups._so3 import SO3
 from .._simulate import state_dtype
 from .._systems._base import AbstractLieSystem
 from .._systems._rigid_body import RigidBody
-from ._base import AbstractIntegrator, StepInfo
+from ._base import AbstractIntegrator
 from ._moser_veselov import MoserVeselov
 
 ORDERS = (4, 6, 8, 10)
@@ -76,25 +76,28 @@ def _vee(M):
     return jnp.stack([M[..., 2, 1], M[..., 0, 2], M[..., 1, 0]], axis=-1)
 
 
-def dmv_series(inverse_inertia: Float[Array, "3 3"], y: Float[Array, "3"], degree: int):
+def dmv_series(inverse_inertia, y: Float[Array, "3"], degree: int):
     """Taylor coefficients in the step `s` of the DMV step: `(F(s), y₁(s))`, degree `degree`.
 
     `F = cay(x)`, `I x = s·vee((1 − X/2) Ŷ (1 + X/2))`, `y₁ = Fᵀy` (as in `MoserVeselov`).
+    `inverse_inertia`: a constant `(3, 3)` matrix, or a series `(degree + 1, 3, 3)` in `s`
+    (the modified inverse inertia `α(s) I⁻¹ + β(s)`).
     """
     n = degree + 1
     mask = jnp.asarray(_cauchy_mask(n), y.dtype)
     eye = jnp.eye(3, dtype=y.dtype)
+    if inverse_inertia.ndim == 2:
+        inverse_inertia = jnp.zeros((n, 3, 3), y.dtype).at[0].set(inverse_inertia)
+    inverse_inertia = inverse_inertia[:n]
     Y = _hat(y)
+    one = eye[None] * (jnp.arange(n) == 0)[:, None, None]
     x = jnp.zeros((n, 3), y.dtype)
     for _ in range(degree):  # each sweep fixes one more power of s
         X = _hat(x)
-        left = eye[None] * (jnp.arange(n) == 0)[:, None, None] - X / 2
-        right = eye[None] * (jnp.arange(n) == 0)[:, None, None] + X / 2
-        middle = jnp.einsum("kab,bc->kac", left, Y)
-        inner = _mul(middle, right, mask, ("ab", "bc", "ac"))
-        x = _shift(jnp.einsum("ab,kb->ka", inverse_inertia, _vee(inner)))
+        middle = jnp.einsum("kab,bc->kac", one - X / 2, Y)
+        inner = _mul(middle, one + X / 2, mask, ("ab", "bc", "ac"))
+        x = _shift(_mul(inverse_inertia, _vee(inner), mask, ("ab", "b", "a")))
     X = _hat(x)
-    one = eye[None] * (jnp.arange(n) == 0)[:, None, None]
     # (1 − X/2) F = 1 + X/2  ⇔  F = 1 + X/2 + (X/2) F: one more power per sweep.
     F = one
     for _ in range(degree):
@@ -114,38 +117,48 @@ def exact_series(inverse_inertia: Float[Array, "3 3"], y: Float[Array, "3"], deg
     return jnp.stack(ys), jnp.stack(Ps)
 
 
-def _compose(coefficients, tau, mask, spec):
-    """`Σ_k a_k τ(s)^k` for a series `τ` with `τ_0 = 0`, truncated."""
-    result = jnp.zeros_like(coefficients)
-    power = jnp.zeros_like(tau).at[0].set(1.0)
-    for k in range(coefficients.shape[0]):
-        result = result + jnp.einsum(f"i,{spec}->i{spec}", power, coefficients[k])
-        power = _mul(power, tau, mask, ("", "", ""))
-    return result
+def modified_moments_series(
+    inverse_inertia: Float[Array, "3 3"], y: Float[Array, "3"], degree: int
+):
+    """`(α, β)`: the Taylor coefficients in `h` (degree `degree`, even powers) of the
+    modification `I⁻¹ ↦ α(h) I⁻¹ + β(h)·Id` whose DMV step is the exact flow over `h`.
 
-
-def modification_series(inverse_inertia, y, degree: int):
-    """`(τ, S)`: series in the DMV step `s` of the exact-flow time `τ(s)` of one DMV step,
-    and of `S(s) = y₁·vee(R − Rᵀ)/2 = |y| sin(ρ|y|)`, `R = P(τ)ᵀF` (module docstring)."""
+    Power by power: with `α, β` known up to `h^{k−2}`, the DMV step deviates from the exact
+    flow first at `h^{k+1}`; a change `δα h^k, δβ h^k` moves the Cayley coordinates `x` by
+    `h^{k+1}(δα I⁻¹y + δβ y)`, hence `y₁` by `h^{k+1} δα ẏ(0)` and the attitude mismatch
+    `R = P(h)ᵀF` by the same vector (hatted). `δα` is read off the momentum mismatch
+    (projected on `ẏ(0)`), `δβ` off the component of the attitude mismatch along `y`. The
+    other components vanish by the torus argument of the module docstring
+    (`tools/derive_preprocessed_dmv.py` checks it); odd powers vanish by symmetry.
+    """
     n = degree + 1
-    mask = jnp.asarray(_cauchy_mask(n), y.dtype)
-    F, y1 = dmv_series(inverse_inertia, y, degree)
-    ys, Ps = exact_series(inverse_inertia, y, degree)
+    dtype = y.dtype
+    eye = jnp.eye(3, dtype=dtype)
+    ys, Ps = exact_series(inverse_inertia, y, degree + 1)
     velocity = ys[1]
     speed2 = jnp.dot(velocity, velocity)
-    # At a relative equilibrium (ẏ = 0) τ is not determined by y: take τ = s there; the
-    # rotation ρ then accounts for the whole attitude error (double `where`: safe gradients).
-    moving = speed2 > 1e3 * jnp.finfo(y.dtype).tiny
+    norm2 = jnp.dot(y, y)
+    # At a relative equilibrium (ẏ = 0) α is not determined by y: keep α = 1 there; β then
+    # accounts for the whole attitude error (double `where`: safe gradients). At y = 0
+    # nothing moves and (α, β) = (1, 0).
+    moving = speed2 > 1e3 * jnp.finfo(dtype).tiny
     safe_speed2 = jnp.where(moving, speed2, 1.0)
-    tau = jnp.zeros(n, y.dtype).at[1].set(1.0)
-    for k in range(2, n):
-        mismatch = y1[k] - _compose(ys, tau, mask, "a")[k]
-        tau = tau.at[k].set(jnp.where(moving, jnp.dot(mismatch, velocity) / safe_speed2, 0.0))
-    P_tau = _compose(Ps, tau, mask, "ab")
-    R = _mul(jnp.swapaxes(P_tau, 1, 2), F, mask, ("ab", "bc", "ac"))
-    axis = _vee(R - jnp.swapaxes(R, 1, 2)) / 2
-    S = _mul(y1, axis, mask, ("a", "a", ""))
-    return tau, S
+    spinning = norm2 > 1e3 * jnp.finfo(dtype).tiny
+    safe_norm2 = jnp.where(spinning, norm2, 1.0)
+    alpha = jnp.zeros(n, dtype).at[0].set(1.0)
+    beta = jnp.zeros(n, dtype)
+    for k in range(2, n, 2):
+        modified = alpha[: k + 2, None, None] * inverse_inertia + beta[: k + 2, None, None] * eye
+        modified = jnp.concatenate([modified, jnp.zeros((k + 2 - modified.shape[0], 3, 3), dtype)])
+        F, y1 = dmv_series(modified, y, k + 1)
+        mask = jnp.asarray(_cauchy_mask(k + 2), dtype)
+        R = _mul(jnp.swapaxes(Ps[: k + 2], 1, 2), F, mask, ("ab", "bc", "ac"))[k + 1]
+        mismatch_y = ys[k + 1] - y1[k + 1]
+        a = jnp.where(moving, jnp.dot(mismatch_y, velocity) / safe_speed2, 0.0)
+        rotation = -_vee(R - R.T) / 2 - a * (inverse_inertia @ y)
+        b = jnp.where(spinning, jnp.dot(rotation, y) / safe_norm2, 0.0)
+        alpha, beta = alpha.at[k].set(a), beta.at[k].set(b)
+    return alpha, beta
 
 
 def _polyval(coefficients, s):
@@ -153,19 +166,21 @@ def _polyval(coefficients, s):
 
 
 def preprocessing(system: RigidBody, m: Float[Array, "3"], h: Scalar, order: int):
-    """`(h', φ)`: the DMV step `h'` with `τ(h') = h` and the correction angle `φ = ρ(h')|y|`,
-    with `τ`, `S` truncated after `h^order`."""
+    """`(α, β)` at step `h`: the modified moments `α I⁻¹ + β` truncated after `h^(order − 2)`."""
     inverse_inertia = jnp.linalg.inv(system.inertia_tensor.astype(m.dtype))
-    tau, S = modification_series(inverse_inertia, m, order)
-    # Newton on τ(h') = h from h' = h: τ(s) = s + O(s²), a few iterations reach round-off.
-    dtau = tau[1:] * jnp.arange(1, order + 1)
-    h_mod = h
-    for _ in range(6):
-        h_mod = h_mod - (_polyval(tau, h_mod) - h) / _polyval(dtau, h_mod)
-    norm = jnp.sqrt(jnp.dot(m, m))
-    safe_norm = jnp.where(norm > 0, norm, 1.0)
-    angle = jnp.where(norm > 0, jnp.arcsin(jnp.clip(_polyval(S, h_mod) / safe_norm, -1, 1)), 0.0)
-    return h_mod, angle
+    alpha, beta = modified_moments_series(inverse_inertia, m, order - 2)
+    return _polyval(alpha, h), _polyval(beta, h)
+
+
+def modified_body(system: RigidBody, alpha, beta) -> RigidBody:
+    """The rigid body with inverse inertia `α I⁻¹ + β·Id` (same principal axes)."""
+    inertia = jnp.asarray(system.inertia)
+    alpha, beta = alpha.astype(inertia.dtype), beta.astype(inertia.dtype)
+    if inertia.ndim == 1:
+        return RigidBody(1 / (alpha / inertia + beta))
+    eye = jnp.eye(3, dtype=inertia.dtype)
+    modified = jnp.linalg.inv(alpha * jnp.linalg.inv(inertia) + beta * eye)
+    return RigidBody((modified + modified.T) / 2)
 
 
 class PreprocessedMoserVeselov(AbstractIntegrator):
@@ -194,8 +209,8 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     order_: int = eqx.field(static=True)
     method: MoserVeselov
     h_prepared: Array | None
-    h_modified: Array | None
-    angle: Array | None
+    alpha: Array | None
+    beta: Array | None
 
     def __init__(self, order: int = 6, method: MoserVeselov | None = None, *, _prepared=None):
         if isinstance(order, bool) or order not in ORDERS:
@@ -205,46 +220,43 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
             raise ValueError(f"`method` must be a lievi.MoserVeselov, got {type(method).__name__}.")
         self.order_ = order
         self.method = method
-        self.h_prepared, self.h_modified, self.angle = _prepared or (None, None, None)
+        self.h_prepared, self.alpha, self.beta = _prepared or (None, None, None)
 
     def order(self) -> int:
         return self.order_
 
     def is_symmetric(self) -> bool:
-        # h' and φ are odd in h (τ and ρ are), and depend on conserved quantities only.
+        # α and β are even in h and depend on the invariants H, C only, which the modified
+        # DMV step keeps: the step is DMV (symmetric) for a body that does not depend on
+        # the sign of h.
         return True
 
     def prepare(
         self, system: AbstractLieSystem, m0: Float[Array, "3"], h
     ) -> PreprocessedMoserVeselov:
-        """A copy with `h'` and `φ` computed once for step `h` on the trajectory of `m0`."""
+        """A copy with `α(h)` and `β(h)` computed once for step `h` on the trajectory of `m0`."""
         _check_system(system)
         system.check_momentum("m0", m0)
         dtype = state_dtype(system, m0, h)
         m0, h = jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
-        h_mod, angle = preprocessing(system, m0, h, self.order_)
-        return PreprocessedMoserVeselov(self.order_, self.method, _prepared=(h, h_mod, angle))
+        alpha, beta = preprocessing(system, m0, h, self.order_)
+        return PreprocessedMoserVeselov(self.order_, self.method, _prepared=(h, alpha, beta))
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar):
         _check_system(system)
-        if self.h_modified is None:
-            h_mod, angle = preprocessing(system, m, h, self.order_)
+        if self.alpha is None:
+            alpha, beta = preprocessing(system, m, h, self.order_)
         else:
-            # The prepared series belong to one step size: a different `h` would silently
-            # give a low-order (wrong-time) step, so it is an error, also under `jit`.
+            # The prepared moments belong to one step size: a different `h` would silently
+            # give a low-order step, so it is an error, also under `jit`.
             h = eqx.error_if(
                 jnp.asarray(h, m.dtype),
                 jnp.abs(h - self.h_prepared) > 1e-12 * jnp.abs(self.h_prepared),
                 "PreprocessedMoserVeselov was prepared for another step size `h`: call "
                 "`.prepare(system, m0, h)` with the `h` you simulate with.",
             )
-            h_mod, angle = self.h_modified.astype(m.dtype), self.angle.astype(m.dtype)
-            h_mod = h_mod + 0 * h  # keeps the check in the computation graph
-        g_next, m_next, info = self.method.step(system, g, m, h_mod)
-        norm = jnp.sqrt(jnp.dot(m_next, m_next))
-        safe_norm = jnp.where(norm > 0, norm, 1.0)
-        g_next = g_next @ SO3.exp(-angle * m_next / safe_norm)
-        return g_next, m_next, StepInfo(info.result, info.iterations, info.residual)
+            alpha, beta = self.alpha.astype(m.dtype), self.beta.astype(m.dtype)
+        return self.method.step(modified_body(system, alpha, beta), g, m, h)
 
 
 def _check_system(system) -> None:
@@ -254,5 +266,3 @@ def _check_system(system) -> None:
             f"`lievi.RigidBody`, got {type(system).__name__}. For SO(n) use `lievi.MoserVeselov` "
             "or `lievi.Composition(lievi.MoserVeselov(), order)`."
         )
-
-
