@@ -1,38 +1,53 @@
-"""The preprocessed discrete Moser–Veselov algorithm (after Hairer & Vilmart 2006).
+"""The preprocessed discrete Moser–Veselov algorithm (Hairer & Vilmart 2006).
 
-Hairer & Vilmart, J. Phys. A 39 (2006) 13225.
+E. Hairer and G. Vilmart, *Preprocessed discrete Moser–Veselov algorithm for the full
+dynamics of a rigid body*, J. Phys. A 39 (2006) 13225 (§2–§3).
 
-Why a modified step and one extra rotation suffice (our derivation; the tests check the
-order, not this argument). The DMV step of `lievi.MoserVeselov` on the free rigid body
-keeps the Casimir `C = |y|²` *and* the energy `H = ½ yᵀI⁻¹y` exactly (the tests check it),
-is symplectic on `T*SO(3)` and commutes with left rotations `Q ↦ RQ`. On each invariant
-torus of the (integrable) rigid body it is therefore a translation in the angle variables:
-it is the time-1 flow of a Hamiltonian `S_h(H, C)`, that is
+**The idea.** The DMV step of `lievi.MoserVeselov` on the free rigid body keeps the Casimir
+`C = |y|²` and the energy `H = ½ yᵀI⁻¹y` exactly, is symplectic on `T*SO(3)` and commutes
+with left rotations. On each invariant torus it is therefore a translation in the angle
+variables: the exact flow of a Hamiltonian `S_h(H, C)`. Since `H` moves the body along the
+torus and `C` only rotates the attitude about the body momentum, DMV with step `h` is the
+exact time-`h` flow of a rigid body whose inverse inertia is `α I⁻¹ + β·Id`, with `α`, `β`
+depending on `h`, `H`, `C` and the inertia. Conversely, DMV run with the *modified* inverse
+inertia
 
-    DMV_h(Q, y) = (Q · P(τ) · exp(ρ ŷ₁), y(τ)),       y₁ = y(τ),
+    Î⁻¹(h) = α(h) I⁻¹ + β(h) Id,      α = 1 + a₂h² + a₄h⁴ + …,   β = b₂h² + b₄h⁴ + …
 
-the exact flow over a modified time `τ = h + c₂h² + c₃h³ + …` (the flow of `H`) followed by
-a rotation of the attitude about the body momentum by the angle `ρ|y|` (the flow of `C`);
-`τ` and `ρ` depend only on `(h, H, C)`. Here `y(t)` is the exact momentum and `P(t)` the
-exact body propagator, `Ṗ = P Ω̂`, `P(0) = I`. (In Hairer–Vilmart's terms: DMV is the exact
-solution of a rigid body with modified moments of inertia, which is the same thing since
-DMV with moments `I/α` and step `h` is DMV with moments `I` and step `αh`.)
+(coefficients in `H`, `C` and the inertia; odd powers vanish because DMV is symmetric) is
+the exact flow of the body `I` over `h`, momentum *and* attitude. Hairer–Vilmart's
+preprocessed DMV of order `p` is DMV with `Î⁻¹` cut after `h^(p−2)`: the remainder
+perturbs the moments by `O(h^p)`, so the local error is `O(h^(p+1))`.
 
-Preprocessing. Run DMV with the step `h'` solving `τ(h') = h` (equivalently, moments
-`I·h/h'`) and undo the rotation: `Q_{k+1} = Q_k F_k exp(−ρ(h') ŷ_{k+1})`. With `τ` and `ρ`
-truncated after the power `h^p`, the local error is `O(h^{p+1})`: order `p`.
+**What is truncated, and why this choice.** Exactly the series `α(h)`, `β(h)` of the
+modified moments, after `h^(p−2)` — nothing else: the DMV step with the truncated `Î` is
+solved to round-off, and there is no separate attitude correction (`β` is it). This is
+the accurate place to cut. The same step could be written as DMV with a modified *step*
+`h'` plus an attitude rotation, `τ(h') = h` with `τ(s)` the exact-flow time reached by one
+DMV step of size `s`; but `τ` is a function of the DMV step and inherits its finite radius
+of convergence, and its coefficients grow fast with one sign (Hairer–Vilmart body
+`I = (0.6, 0.8, 1)`, `y = (1.8, 0.4, −0.9)`: `τ = s + 2.43s³ + 11.9s⁵ + 73.0s⁷ + 503s⁹ +
+3715s¹¹ + …`), so cutting it leaves a large remainder (at `h = 0.1`, T = 10: errors 6×
+(order 4) to 3×10⁵× (order 10) larger). The modified moments are functions of the exact
+flow's time, and their coefficients decay on the same problem (`α = 1 − 2.43h² + 1.94h⁴ −
+0.603h⁶ + 0.0995h⁸`, `β = 1.21h² − 1.73h⁴ + 0.624h⁶ − 0.109h⁸`); cutting them gives, step
+for step, the errors of Hairer–Vilmart's own code (`docs/preprocessed_dmv.md` has the
+table).
 
-How `τ` and `ρ` are obtained: by truncated power series in the DMV step `s`, computed in
-JAX at run time (so they are differentiable in the momentum, the inertia and `h`, and
-batch under `vmap`): the Taylor coefficients of the DMV step `(F(s), y₁(s))` follow from
-its Cayley-form equation `I x = s·vee((1 − X/2)Ŷ(1 + X/2))` by fixed-point iteration on
-series (each sweep fixes one more power), those of the exact flow from the recurrences
-`(k+1) y_{k+1} = Σ_j y_j × I⁻¹y_{k−j}`, `(k+1) P_{k+1} = Σ_j P_j (I⁻¹y_{k−j})^`; then
-`c_k` is fixed power by power by projecting the mismatch of `y₁(s)` and `y(τ(s))` on `ẏ(0)`,
-and `ρ` is read off `R = P(τ)ᵀF = exp(ρŷ₁)`: `y₁·vee(R − Rᵀ)/2 = |y| sin(ρ|y|)`.
-`tools/derive_preprocessed_dmv.py` checks the time-rescaling structure symbolically (sympy).
-The series depend only on `(h, H, C)`, so `prepare` computes them once per trajectory; the
-step then costs one DMV step plus one small rotation.
+**How `α`, `β` are computed.** Numerically, at run time, in JAX (so they differentiate in
+the momentum, the inertia and `h`, batch under `vmap`, and work for a full inertia tensor
+without an eigendecomposition): for the given `I⁻¹` and `y`, the Taylor coefficients in `h`
+of the DMV step `(F(h), y₁(h))` with a series-valued inverse inertia follow from its Cayley
+form `x = h Î⁻¹(h)·vee((1 − X/2)Ŷ(1 + X/2))` by fixed-point iteration on truncated series
+(each sweep fixes one power); those of the exact flow from `(k+1) y_{k+1} = Σ_j y_j ×
+I⁻¹y_{k−j}`, `(k+1) P_{k+1} = Σ_j P_j (I⁻¹y_{k−j})^` (`Ṗ = PΩ̂`). Then `a_k`, `b_k` are
+fixed power by power (`modified_moments_series`). At given `(H, C, I)` these numbers are
+Hairer–Vilmart's coefficients (their closed forms are polynomials in `h²H`, `h²C` with
+coefficients rational in the moments); `tools/derive_preprocessed_dmv.py` re-derives them
+in exact rational arithmetic, checks the structure (the other mismatch components vanish
+identically; odd powers vanish) and prints the polynomials. The series depend only on
+`(h, H, C)`, which the modified step keeps, so `prepare` computes them once per trajectory;
+the step then costs one DMV step on the modified body.
 """
 
 from __future__ import annotations
@@ -184,26 +199,27 @@ def modified_body(system: RigidBody, alpha, beta) -> RigidBody:
 
 
 class PreprocessedMoserVeselov(AbstractIntegrator):
-    """DMV with a preprocessed step size and an attitude correction: orders 4, 6, 8, 10.
+    """Hairer–Vilmart's preprocessed DMV: orders 4, 6, 8, 10 for the free rigid body.
 
-    For the free rigid body on SO(3) (`lievi.RigidBody`, principal moments or a full
-    tensor). Each step is one `MoserVeselov` step with the modified step `h'` (equivalently,
-    modified moments of inertia `I·h/h'`, Hairer–Vilmart's preprocessing), followed by a
-    rotation of the attitude about the new body momentum by `−φ` (see the module
-    docstring). `h'` and `φ` depend only on `h`, the energy and the Casimir, which DMV keeps
-    exactly; Casimir, energy and spatial momentum are kept to round-off. Differentiable
-    (Newton by the implicit function theorem, the series by ordinary autodiff) and batched.
+    For `lievi.RigidBody` on SO(3) (principal moments or a full tensor). Each step is one
+    `MoserVeselov` step on the body with the modified inverse inertia
+    `α(h) I⁻¹ + β(h)·Id`, whose series in `h²` (coefficients in the energy, the Casimir and
+    the inertia) are cut after `h^(order − 2)` (module docstring: what is truncated and why
+    it is the accurate choice). Symmetric; Casimir, energy and spatial momentum are kept to
+    round-off (the modified body's energy `αH + βC/2` and `C` are DMV invariants, hence so
+    is `H`). Differentiable (Newton by the implicit function theorem, the series by
+    ordinary autodiff) and batched (`vmap`).
 
     **Arguments:**
 
-    - `order`: 4, 6, 8 or 10 (where the series for `h'` and `φ` are cut).
+    - `order`: 4, 6, 8 or 10 (the modified moments are cut after `h^(order − 2)`).
     - `method`: the inner `MoserVeselov` (its Newton tolerances).
 
-    `step` computes `h'` and `φ` from the current momentum (a few thousand flops). For long
+    `step` computes `α`, `β` from the current momentum (a few thousand flops). For long
     runs call `prepare(system, m0, h)` once: it returns a copy that stores them, and whose
-    step then costs one DMV step and one 3×3 rotation. A prepared integrator must be used
-    with that same `h` (and on the trajectory of `m0`, or any state with the same energy
-    and Casimir).
+    step then costs one DMV step. A prepared integrator must be used with that same `h`
+    (an error otherwise, also under `jit`) and on the trajectory of `m0` (or any state with
+    the same energy and Casimir).
     """
 
     order_: int = eqx.field(static=True)
