@@ -200,7 +200,7 @@ def tau_series(I, y, degree=DEGREE):
         # y(τ(s)) at s^k with τ_k = 0, then τ_k from the projection on ẏ(0).
         composed = zeros3()
         power = [Q(1)]  # τ(s)^j, truncated
-        for j in range(0, k + 1):
+        for j in range(k + 1):
             if j > 0:
                 power = [
                     sum(

@@ -53,6 +53,7 @@ the step then costs one DMV step on the modified body.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
@@ -96,7 +97,8 @@ def dmv_series(inverse_inertia, y: Float[Array, "3"], degree: int):
 
     `F = cay(x)`, `I x = s·vee((1 − X/2) Ŷ (1 + X/2))`, `y₁ = Fᵀy` (as in `MoserVeselov`).
     `inverse_inertia`: a constant `(3, 3)` matrix, or a series `(degree + 1, 3, 3)` in `s`
-    (the modified inverse inertia `α(s) I⁻¹ + β(s)`).
+    (the modified inverse inertia `α(s) I⁻¹ + β(s)`). Fixed-point sweeps on truncated
+    series, each fixing one more power (a `fori_loop`: one compiled sweep).
     """
     n = degree + 1
     mask = jnp.asarray(_cauchy_mask(n), y.dtype)
@@ -106,53 +108,69 @@ def dmv_series(inverse_inertia, y: Float[Array, "3"], degree: int):
     inverse_inertia = inverse_inertia[:n]
     Y = _hat(y)
     one = eye[None] * (jnp.arange(n) == 0)[:, None, None]
-    x = jnp.zeros((n, 3), y.dtype)
-    for _ in range(degree):  # each sweep fixes one more power of s
+
+    def sweep_x(_, x):
         X = _hat(x)
         middle = jnp.einsum("kab,bc->kac", one - X / 2, Y)
         inner = _mul(middle, one + X / 2, mask, ("ab", "bc", "ac"))
-        x = _shift(_mul(inverse_inertia, _vee(inner), mask, ("ab", "b", "a")))
+        return _shift(_mul(inverse_inertia, _vee(inner), mask, ("ab", "b", "a")))
+
+    x = jax.lax.fori_loop(0, degree, sweep_x, jnp.zeros((n, 3), y.dtype))
     X = _hat(x)
+
     # (1 − X/2) F = 1 + X/2  ⇔  F = 1 + X/2 + (X/2) F: one more power per sweep.
-    F = one
-    for _ in range(degree):
-        F = one + X / 2 + _mul(X / 2, F, mask, ("ab", "bc", "ac"))
+    def sweep_F(_, F):
+        return one + X / 2 + _mul(X / 2, F, mask, ("ab", "bc", "ac"))
+
+    F = jax.lax.fori_loop(0, degree, sweep_F, one)
     y1 = jnp.einsum("kba,b->ka", F, y)
     return F, y1
 
 
 def exact_series(inverse_inertia: Float[Array, "3 3"], y: Float[Array, "3"], degree: int):
-    """Taylor coefficients in `t` of the exact `y(t)` (Euler) and `P(t)` (`Ṗ = PΩ̂`)."""
-    ys = [y]
-    Ps = [jnp.eye(3, dtype=y.dtype)]
-    for k in range(degree):
-        omegas = [inverse_inertia @ yj for yj in ys]
-        ys.append(sum(jnp.cross(ys[j], omegas[k - j]) for j in range(k + 1)) / (k + 1))
-        Ps.append(sum(Ps[j] @ _hat(omegas[k - j]) for j in range(k + 1)) / (k + 1))
-    return jnp.stack(ys), jnp.stack(Ps)
+    """Taylor coefficients in `t` of the exact `y(t)` (Euler) and `P(t)` (`Ṗ = PΩ̂`):
+    `(k+1) y_{k+1} = Σ_j y_j × I⁻¹y_{k−j}`, `(k+1) P_{k+1} = Σ_j P_j (I⁻¹y_{k−j})^`."""
+    n = degree + 1
+    mask = jnp.asarray(_cauchy_mask(n), y.dtype)
+    ys = jnp.zeros((n, 3), y.dtype).at[0].set(y)
+    Ps = jnp.zeros((n, 3, 3), y.dtype).at[0].set(jnp.eye(3, dtype=y.dtype))
+
+    def recurrence(k, series):
+        ys, Ps = series
+        pairs = jax.lax.dynamic_index_in_dim(mask, k, axis=2, keepdims=False)  # i + j = k
+        omegas = ys @ inverse_inertia.T
+        y_next = jnp.einsum("ij,iab,jb->a", pairs, _hat(ys), omegas) / (k + 1)
+        P_next = jnp.einsum("ij,iab,jbc->ac", pairs, Ps, _hat(omegas)) / (k + 1)
+        return ys.at[k + 1].set(y_next), Ps.at[k + 1].set(P_next)
+
+    return jax.lax.fori_loop(0, degree, recurrence, (ys, Ps))
 
 
 def modified_moments_series(
     inverse_inertia: Float[Array, "3 3"], y: Float[Array, "3"], degree: int
 ):
-    """`(α, β)`: the Taylor coefficients in `h` (degree `degree`, even powers) of the
-    modification `I⁻¹ ↦ α(h) I⁻¹ + β(h)·Id` whose DMV step is the exact flow over `h`.
+    """`(α, β)`: the Taylor coefficients in `h` (up to `h^degree`; odd powers are zero) of
+    the modification `I⁻¹ ↦ α(h) I⁻¹ + β(h)·Id` whose DMV step is the exact flow over `h`.
 
-    Power by power: with `α, β` known up to `h^{k−2}`, the DMV step deviates from the exact
-    flow first at `h^{k+1}`; a change `δα h^k, δβ h^k` moves the Cayley coordinates `x` by
-    `h^{k+1}(δα I⁻¹y + δβ y)`, hence `y₁` by `h^{k+1} δα ẏ(0)` and the attitude mismatch
-    `R = P(h)ᵀF` by the same vector (hatted). `δα` is read off the momentum mismatch
-    (projected on `ẏ(0)`), `δβ` off the component of the attitude mismatch along `y`. The
-    other components vanish by the torus argument of the module docstring
-    (`tools/derive_preprocessed_dmv.py` checks it); odd powers vanish by symmetry.
+    A change `δα h^k, δβ h^k` of the modified moments moves the Cayley coordinates `x` of
+    the step by `h^{k+1}(δα I⁻¹y + δβ y)`, hence `y₁` by `h^{k+1} δα ẏ(0)` and the attitude
+    mismatch `R = P(h)ᵀF` by the same vector (hatted), and nothing of lower order. So each
+    sweep reads `δα_k` off the momentum mismatch at `h^{k+1}` (projected on `ẏ(0)`) and
+    `δβ_k` off the component along `y` of the attitude mismatch, for even `k` (odd
+    coefficients vanish by symmetry); a sweep makes one more even power exact, so
+    `degree/2` sweeps suffice. The other components of
+    the mismatch vanish by the torus argument of the module docstring
+    (`tools/derive_preprocessed_dmv.py` checks it in exact arithmetic).
     """
-    n = degree + 1
+    n = degree + 2  # the step is matched up to h^(degree + 1)
     dtype = y.dtype
     eye = jnp.eye(3, dtype=dtype)
-    ys, Ps = exact_series(inverse_inertia, y, degree + 1)
+    mask = jnp.asarray(_cauchy_mask(n), dtype)
+    ys, Ps = exact_series(inverse_inertia, y, n - 1)
     velocity = ys[1]
     speed2 = jnp.dot(velocity, velocity)
     norm2 = jnp.dot(y, y)
+    spin_axis = inverse_inertia @ y
     # At a relative equilibrium (ẏ = 0) α is not determined by y: keep α = 1 there; β then
     # accounts for the whole attitude error (double `where`: safe gradients). At y = 0
     # nothing moves and (α, β) = (1, 0).
@@ -160,20 +178,23 @@ def modified_moments_series(
     safe_speed2 = jnp.where(moving, speed2, 1.0)
     spinning = norm2 > 1e3 * jnp.finfo(dtype).tiny
     safe_norm2 = jnp.where(spinning, norm2, 1.0)
+
+    def sweep(_, moments):
+        alpha, beta = moments
+        modified = alpha[:, None, None] * inverse_inertia + beta[:, None, None] * eye
+        F, y1 = dmv_series(modified, y, n - 1)
+        R = _mul(jnp.swapaxes(Ps, 1, 2), F, mask, ("ab", "bc", "ac"))
+        a = jnp.where(moving, (ys - y1) @ velocity / safe_speed2, 0.0)
+        rotation = -_vee(R - jnp.swapaxes(R, 1, 2)) / 2 - a[:, None] * spin_axis
+        b = jnp.where(spinning, rotation @ y / safe_norm2, 0.0)
+        # The mismatch at h^(k+1) corrects the coefficient of h^k, even k only: odd
+        # coefficients are zero, and updating them from a mismatch that still carries
+        # the error of lower even powers would spoil them.
+        return alpha.at[2:-1:2].add(a[3::2]), beta.at[2:-1:2].add(b[3::2])
+
     alpha = jnp.zeros(n, dtype).at[0].set(1.0)
-    beta = jnp.zeros(n, dtype)
-    for k in range(2, n, 2):
-        modified = alpha[: k + 2, None, None] * inverse_inertia + beta[: k + 2, None, None] * eye
-        modified = jnp.concatenate([modified, jnp.zeros((k + 2 - modified.shape[0], 3, 3), dtype)])
-        F, y1 = dmv_series(modified, y, k + 1)
-        mask = jnp.asarray(_cauchy_mask(k + 2), dtype)
-        R = _mul(jnp.swapaxes(Ps[: k + 2], 1, 2), F, mask, ("ab", "bc", "ac"))[k + 1]
-        mismatch_y = ys[k + 1] - y1[k + 1]
-        a = jnp.where(moving, jnp.dot(mismatch_y, velocity) / safe_speed2, 0.0)
-        rotation = -_vee(R - R.T) / 2 - a * (inverse_inertia @ y)
-        b = jnp.where(spinning, jnp.dot(rotation, y) / safe_norm2, 0.0)
-        alpha, beta = alpha.at[k].set(a), beta.at[k].set(b)
-    return alpha, beta
+    alpha, beta = jax.lax.fori_loop(0, degree // 2, sweep, (alpha, jnp.zeros(n, dtype)))
+    return alpha[: degree + 1], beta[: degree + 1]
 
 
 def _polyval(coefficients, s):
