@@ -252,6 +252,27 @@ def test_symmetric():
 
 
 @pytest.mark.slow
+def test_equivalent_moser_veselov_runs_on_the_batched_fast_path():
+    """Plain DMV on the modified bodies (`simulate_batch`'s structure-of-arrays path) takes
+    the preprocessed method's steps."""
+    body = lievi.RigidBody(BODIES["water"])
+    integrator = lievi.PreprocessedMoserVeselov(8)
+    h, n = 0.05, 20
+    m0s = jnp.stack([Y0, 0.5 * Y0, jnp.array([0.1, 1.0, 0.3])])
+    bodies, method = eqx.filter_vmap(
+        lambda m0: integrator.equivalent_moser_veselov(body, m0, h), out_axes=(0, None)
+    )(m0s)
+    g0s = jnp.broadcast_to(jnp.eye(3), (3, 3, 3))
+    assert lievi.has_fast_path(bodies, method, system_axis=0)
+    batch = lievi.simulate_batch(bodies, method, g0s, m0s, h=h, n_steps=n, system_axis=0)
+    for k in range(3):
+        prepared = integrator.prepare(body, m0s[k], h)
+        sol = lievi.simulate(body, prepared, jnp.eye(3), m0s[k], h=h, n_steps=n)
+        np.testing.assert_allclose(batch.m[k, -1], sol.m[-1], atol=ROUNDOFF)
+        np.testing.assert_allclose(batch.g[k, -1], sol.g[-1], atol=ROUNDOFF)
+
+
+@pytest.mark.slow
 def test_vmap_over_initial_momenta():
     body = lievi.RigidBody(BODIES["hv"])
     h = jnp.asarray(0.1)

@@ -279,6 +279,17 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
         alpha, beta = preprocessing(system, m0, h, self.order_)
         return PreprocessedMoserVeselov(self.order_, self.method, _prepared=(h, alpha, beta))
 
+    def equivalent_moser_veselov(
+        self, system: AbstractLieSystem, m0: Float[Array, "3"], h
+    ) -> tuple[RigidBody, MoserVeselov]:
+        """`(body, method)`: plain DMV on `body` takes the same steps as this integrator
+        prepared for `(system, m0, h)` — `body` has the modified inverse inertia
+        `α(h) I⁻¹ + β(h)·Id`. So any fast path for `MoserVeselov` (e.g. the batched one of
+        `lievi.simulate_batch`, with `jax.vmap` over `m0` and `system_axis=0`) runs the
+        preprocessed method at the cost of plain DMV."""
+        prepared = self.prepare(system, m0, h)
+        return modified_body(system, prepared.alpha, prepared.beta), self.method
+
     def step(self, system: AbstractLieSystem, g, m, h: Scalar):
         _check_system(system)
         if self.alpha is None:
