@@ -236,8 +236,8 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     - `order`: 4, 6, 8 or 10 (the modified moments are cut after `h^(order − 2)`).
     - `method`: the inner `MoserVeselov` (its Newton tolerances).
 
-    `step` computes `α`, `β` from the current momentum (a few thousand flops). For long
-    runs call `prepare(system, m0, h)` once: it returns a copy that stores them, and whose
+    `step` computes `α`, `β` from the current momentum (truncated-series arithmetic, up to
+    ~10⁶ flops at order 10). For long runs call `prepare(system, m0, h)` once: it returns a copy that stores them, and whose
     step then costs one DMV step. A prepared integrator must be used with that same `h`
     (an error otherwise, also under `jit`) and on the trajectory of `m0` (or any state with
     the same energy and Casimir).
