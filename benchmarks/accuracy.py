@@ -5,7 +5,8 @@ On the two free rigid bodies of Hairer & Vilmart (J. Phys. A 39 (2006) 13225):
 `y₀ = (1.8, 0.4, −0.9)`, `Q₀ = Id`, integrate to T = 10 with N = 25·2^k steps and measure
 the maximum error in Π over the run against DOP853 (rtol = atol = 1e-14 requested, scipy
 uses 2.2e-14; the reference is ~1e-14 accurate) and the wall time of the jitted run
-(compile apart, best of 3; the preprocessing of the preprocessed DMV included). Methods:
+(compile apart, best of 3; the preprocessing of the preprocessed DMV included); the
+figure's cost axis is N × the seconds per step of the longest run. Methods:
 `PreprocessedMoserVeselov(4, 6, 8, 10)`, plain `MoserVeselov`, `Composition(MoserVeselov,
 4 / 6)`, `DEP` (exp chart) and `Composition(DEP, 4)`. Alongside, the errors of
 Hairer–Vilmart's own preprocessed DMV code on the same problem (`HAIRER_VILMART`, see
@@ -18,6 +19,7 @@ ratios within one run are the figure to quote.
 
     python benchmarks/accuracy.py            # full (~5–10 min on 2 cores)
     python benchmarks/accuracy.py --quick    # smoke test (a few methods, small sizes)
+    python benchmarks/accuracy.py --cost-only  # re-measure the cost per step only
 """
 
 from __future__ import annotations
@@ -168,7 +170,16 @@ def work_precision(quick: bool):
                 if len(finite) >= 2
                 else float("nan")
             )
-            rows[name] = {"error_m": err_m, "wall_s": wall, "fitted_order": slope}
+            # Cost model for the figure: N × seconds per step of the longest run (short
+            # runs are dominated by dispatch and, on a shared machine, by noise).
+            per_step = wall[-1] / steps[-1]
+            rows[name] = {
+                "error_m": err_m,
+                "wall_s": wall,
+                "s_per_step": per_step,
+                "cost_s": [n * per_step for n in steps],
+                "fitted_order": slope,
+            }
             print(
                 f"{pname:9s} {name:15s} order≈{slope:5.2f}  " + " ".join(f"{e:8.1e}" for e in err_m)
             )
@@ -226,7 +237,7 @@ def cost_ratio(quick: bool):
     """Seconds per step of the (prepared) preprocessed DMV over plain DMV, same run."""
     inertia, m0 = PROBLEMS["HV"]
     body = lievi.RigidBody(inertia)
-    n = 1_000 if quick else 10_000
+    n = 1_000 if quick else 4_000
     h = jnp.asarray(0.01)
     out = {"n_steps": n}
     # The body is an argument, not a closed-over constant: as under `simulate`, it is traced.
@@ -239,23 +250,34 @@ def cost_ratio(quick: bool):
     candidates = {"MV": lievi.MoserVeselov()}
     for order in (4, 6, 8, 10):
         candidates[f"pDMV{order}"] = lievi.PreprocessedMoserVeselov(order).prepare(body, m0, h)
-    # Round robin, best of 9 each: a shared machine's load hits every method alike.
-    best = {name: np.inf for name in candidates}
-    for _ in range(3 if quick else 9):
-        for name, integrator in candidates.items():
-            best[name] = min(best[name], timed(run, integrator, body, m0, repeats=1)[0])
-    mv_s = best["MV"]
+    for integrator in candidates.values():
+        jax.block_until_ready(run(integrator, body, m0))  # compile
+    # Round robin (order reversed every other round), the ratio to the MV run of the same
+    # round, median over rounds: load on a shared machine changes slowly compared with
+    # one run and hits neighbouring runs alike; the median drops the rounds it does not.
+    seconds = {name: [] for name in candidates}
+    names = list(candidates)
+    for k in range(5 if quick else 25):
+        for name in names if k % 2 == 0 else names[::-1]:
+            start = time.perf_counter()
+            jax.block_until_ready(run(candidates[name], body, m0))
+            seconds[name].append(time.perf_counter() - start)
+    mv = np.asarray(seconds["MV"])
+    mv_s = float(np.median(mv))
     for order in (4, 6, 8, 10):
-        seconds = best[f"pDMV{order}"]
+        mine = np.asarray(seconds[f"pDMV{order}"])
+        ratio = float(np.median(mine / mv))
         prep_s, _ = timed(prepare, lievi.PreprocessedMoserVeselov(order), body, m0)
         out[f"pDMV{order}"] = {
-            "s_per_step": seconds / n,
-            "ratio_to_MV": seconds / mv_s,
+            "s_per_step": float(np.median(mine)) / n,
+            "ratio_to_MV": ratio,
+            "ratio_to_MV_best": float(mine.min() / mv.min()),
             "prepare_s": prep_s,
         }
         print(
-            f"pDMV{order}: {seconds / mv_s:.2f}× plain DMV per step; "
-            f"preprocessing {prep_s * 1e3:.2f} ms once"
+            f"pDMV{order}: {ratio:.2f}× plain DMV per step (median of {len(mv)} paired "
+            f"rounds; best/best {mine.min() / mv.min():.2f}×); preprocessing "
+            f"{prep_s * 1e3:.2f} ms once"
         )
     out["MV_s_per_step"] = mv_s / n
     print(f"plain DMV: {mv_s / n * 1e6:.2f} µs per step")
@@ -276,7 +298,7 @@ def plot(results, path):
         for name, r in rows.items():
             style = "--" if name.startswith("Comp") else ("-" if name.startswith("pDMV") else ":")
             (line,) = axes[row, 0].loglog(steps, r["error_m"], style, marker="o", ms=3, label=name)
-            axes[row, 1].loglog(r["wall_s"], r["error_m"], style, marker="o", ms=3, label=name)
+            axes[row, 1].loglog(r["cost_s"], r["error_m"], style, marker="o", ms=3, label=name)
             if "hairer_vilmart_error_m" in r:
                 axes[row, 0].loglog(
                     HAIRER_VILMART_STEPS,
@@ -291,7 +313,8 @@ def plot(results, path):
             title=f"{pname}: error vs steps (×: Hairer–Vilmart's code)",
         )
         axes[row, 1].set(
-            xlabel="wall time [s] (jitted, compile apart)", title=f"{pname}: error vs wall time"
+            xlabel="cost [s]: N × seconds per step (jitted, one body, CPU)",
+            title=f"{pname}: error vs cost",
         )
         for ax in axes[row]:
             ax.grid(True, which="both", alpha=0.3)
@@ -320,18 +343,27 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smoke test: few methods, small sizes")
     parser.add_argument("--out", default=None, help="output directory (default benchmarks/results)")
+    parser.add_argument(
+        "--cost-only",
+        action="store_true",
+        help="re-measure only the cost per step; keep the other stored results",
+    )
     args = parser.parse_args()
     out_dir = pathlib.Path(args.out) if args.out else RESULTS_DIR
     out_dir.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if args.quick else ""
     start = time.perf_counter()
-    results = {
-        "device": str(jax.devices()[0]),
-        "dtype": "float64",
-        "work_precision": work_precision(args.quick),
-        "long_time_energy": long_time_energy(args.quick),
-        "cost": cost_ratio(args.quick),
-    }
+    if args.cost_only:
+        results = json.loads((out_dir / f"accuracy{suffix}.json").read_text())
+        results["cost"] = cost_ratio(args.quick)
+    else:
+        results = {
+            "device": str(jax.devices()[0]),
+            "dtype": "float64",
+            "work_precision": work_precision(args.quick),
+            "long_time_energy": long_time_energy(args.quick),
+            "cost": cost_ratio(args.quick),
+        }
     results["total_s"] = time.perf_counter() - start
     (out_dir / f"accuracy{suffix}.json").write_text(json.dumps(results, indent=1))
     plot(results, out_dir / f"accuracy{suffix}.png")
