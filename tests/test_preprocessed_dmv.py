@@ -312,6 +312,9 @@ def test_bad_input():
         lievi.PreprocessedMoserVeselov(6).prepare(son, jnp.zeros(6), 0.1)
     with pytest.raises(ValueError, match="m0"):
         lievi.PreprocessedMoserVeselov(6).prepare(lievi.RigidBody(BODIES["hv"]), jnp.zeros(4), 0.1)
+    top = lievi.RigidBody(BODIES["hv"], potential=lievi.UniformGravity(1.0, jnp.array([0, 0, 0.1])))
+    with pytest.raises(ValueError, match="potential"):
+        lievi.PreprocessedMoserVeselov(6).prepare(top, Y0, 0.1)
 
 
 def test_prepared_for_another_step_size_is_an_error():
