@@ -240,7 +240,8 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     ~10⁶ flops at order 10). For long runs call `prepare(system, m0, h)` once: it returns a copy that stores them, and whose
     step then costs one DMV step. A prepared integrator must be used with that same `h`
     (an error otherwise, also under `jit`) and on the trajectory of `m0` (or any state with
-    the same energy and Casimir).
+    the same energy and Casimir). `equivalent_moser_veselov(system, m0, h)` returns the
+    modified body itself, for `MoserVeselov` fast paths such as `lievi.simulate_batch`'s.
     """
 
     order_: int = eqx.field(static=True)
