@@ -1,6 +1,6 @@
 """`python -m lievi demo`: every integrator on the Hairer–Lubich–Wanner rigid body.
 
-Runs the free rigid body of NOTES §4 (`I = (2, 1, 2/3)`, `Π₀ = (cos 1.1, 0, sin 1.1)`,
+Runs the free rigid body of docs/theory/test-problems.md (`I = (2, 1, 2/3)`, `Π₀ = (cos 1.1, 0, sin 1.1)`,
 `g₀ = I₃`, `h = 0.1`, `T = 100`) with each integrator in `INTEGRATORS`, compares with a
 DOP853 reference solution (rtol = atol = 1e-13, computed once) and prints one table row
 per integrator: errors at `T`, conservation drifts, the DEL residual, Newton iterations,
@@ -37,7 +37,7 @@ INTEGRATORS: tuple[tuple[str, lievi.AbstractIntegrator], ...] = (
     ("preprocessed DMV, order 6", lievi.PreprocessedMoserVeselov(order=6)),
 )
 
-# The HLW problem (NOTES §4).
+# The HLW problem (docs/theory/test-problems.md).
 INERTIA = (2.0, 1.0, 2.0 / 3.0)
 THETA = 1.1
 DEFAULT_H = 0.1
@@ -238,7 +238,7 @@ def _device_description() -> str:
 def _header(h: float, n_steps: int, reference_time: float) -> str:
     return "\n".join(
         [
-            "lievi demo: free rigid body on SO(3), Hairer–Lubich–Wanner test problem (NOTES §4)",
+            "lievi demo: free rigid body on SO(3), Hairer–Lubich–Wanner test problem (docs/theory/test-problems.md)",
             "  inertia I = (2, 1, 2/3),  Π₀ = (cos 1.1, 0, sin 1.1),  g₀ = I₃",
             f"  h = {h:g},  n_steps = {n_steps},  T = {h * n_steps:g}",
             f"  reference: DOP853, rtol = atol = {REFERENCE_TOL:g} ({reference_time:.2f} s)",

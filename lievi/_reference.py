@@ -4,7 +4,7 @@ Left-invariant: `ṁ = ad_ξᵀ m + M(g)`, `ġ = g ξ̂`; right-invariant: `ṁ 
 `ġ = ξ̂ g`; with `ξ` the velocity of `m` (inverse Legendre map) and `M` the generalised
 force of the system's potential (zero for a free system). For the rigid body the first is
 Euler's equation `Π̇ = Π × Ω + M` (for a heavy top `M = m γ Γ × ρ`). Solved by scipy's DOP853 (scipy is a dependency of JAX),
-the yardstick of NOTES §3.2.
+the yardstick of docs/theory/checks.md#reference.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Conservation and structure diagnostics (NOTES §3).
+"""Conservation and structure diagnostics (docs/theory/checks.md).
 
 - `energy`, `casimirs`, `spatial_momentum`, `orthogonality_defect`: quantities the flow
   conserves (paper §3, §6), evaluated along a trajectory;
@@ -127,7 +127,7 @@ def lie_poisson_tensor(system: AbstractLieSystem, m: Float[Array, " d"]) -> Floa
 def poisson_defect(
     system: AbstractLieSystem, integrator: AbstractIntegrator, g, m: Float[Array, " d"], h
 ) -> Scalar:
-    """`max |D B(m) Dᵀ − B(m')|` for the momentum map `m ↦ m'` of one step (NOTES §3.4).
+    """`max |D B(m) Dᵀ − B(m')|` for the momentum map `m ↦ m'` of one step (docs/theory/checks.md#poisson).
 
     `D` is computed by `jax.jacfwd` (implicit differentiation through the Newton solve).
     """

@@ -27,7 +27,7 @@
 # | `Composition(method, 4 or 6)` | 4, 6 | symmetric composition (triple jump, Kahan–Li) |
 # | `PreprocessedMoserVeselov(order)` | 4, 6, 8, 10 | DMV with a modified step and an attitude correction (after Hairer–Vilmart 2006) |
 #
-# Test problems (NOTES §4): the Hairer–Vilmart body $I = (0.6, 0.8, 1.0)$ with
+# Test problems (docs/theory/test-problems.md): the Hairer–Vilmart body $I = (0.6, 0.8, 1.0)$ with
 # $y_0 = (1.8, 0.4, -0.9)$, $Q_0 = I_3$, $T = 10$, and the HLW body $I = (2, 1, 2/3)$ for the
 # long run. Errors are measured against DOP853 at rtol = atol = $10^{-13}$ (itself about
 # $10^{-13}$ accurate). The full benchmark, with both Hairer–Vilmart bodies, the HLW body and

@@ -12,7 +12,7 @@ ROUNDOFF_F32 = 1e-4
 
 
 def hlw_problem():
-    """Hairer–Lubich–Wanner rigid body (NOTES §4)."""
+    """Hairer–Lubich–Wanner rigid body (docs/theory/test-problems.md)."""
     body = lievi.RigidBody(jnp.array([2.0, 1.0, 2.0 / 3.0]))
     m0 = jnp.array([np.cos(1.1), 0.0, np.sin(1.1)])
     return body, jnp.eye(3), m0

@@ -1,4 +1,4 @@
-"""Order of accuracy and long-time behaviour (NOTES §3.2, §3.3; the paper's open question).
+"""Order of accuracy and long-time behaviour (docs/theory/checks.md; the paper's open question).
 
 The order is fitted by regression of log error on log h against a DOP853 reference
 (rtol = atol = 1e-13), as diffrax's order tests do. Both charts are second order: the

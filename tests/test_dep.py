@@ -1,4 +1,4 @@
-"""The DEP/DLP integrator against the checks of NOTES §3 (float64).
+"""The DEP/DLP integrator against the checks of docs/theory/checks.md (float64).
 
 DEL residual by autodiff (Theorem 2.1 / 2.3), the right/left mirror, conservation of
 Casimirs and spatial momentum (§3, §6), the Poisson property (Proposition 3.1), and
@@ -44,7 +44,7 @@ def _skewed_lagrangian(xi):
 
 @pytest.mark.parametrize("integrator", INTEGRATORS, ids=INTEGRATOR_IDS)
 def test_right_invariant_is_mirrored_left_invariant(integrator):
-    """Right run of (g, μ) under l = left run of (g⁻¹, −μ) under l̃(ξ) = l(−ξ) (NOTES §1)."""
+    """Right run of (g, μ) under l = left run of (g⁻¹, −μ) under l̃(ξ) = l(−ξ) (docs/theory/conventions.md)."""
     _, g0, m0 = hlw_problem()
     g0 = lievi.SO3.exp(jnp.array([0.3, -0.2, 0.5]))
     m0 = 0.5 * m0

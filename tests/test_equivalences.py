@@ -1,4 +1,4 @@
-"""The paper's equivalence theorems for the rigid body (NOTES §3.5).
+"""The paper's equivalence theorems for the rigid body (docs/theory/checks.md#equivalences).
 
 - Theorem 5.1: the DEP algorithm (5.4), an algorithm on G only, and the Moser–Veselov
   algorithm (5.6) on G and so(n)* give the same iterates. The DEP side is built here

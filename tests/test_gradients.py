@@ -1,4 +1,4 @@
-"""Derivatives of whole trajectories (issue 4): `grad`, `jacfwd`, `jacrev`, `vmap` through
+"""Derivatives of whole trajectories: `grad`, `jacfwd`, `jacrev`, `vmap` through
 `simulate` with respect to the inertia, Π₀, g₀ (through the exponential chart) and h.
 
 The Newton solve of every DEP (both charts) and Moser–Veselov step is differentiated by the implicit function theorem at

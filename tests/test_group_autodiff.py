@@ -1,6 +1,6 @@
 """Derivatives of the group maps: finite where others give NaN, and correct.
 
-NOTES §2 lists the failures seen elsewhere: NaN gradients of log at θ = π and of exp at
+docs/theory/closed-forms.md lists the failures seen elsewhere: NaN gradients of log at θ = π and of exp at
 the identity (both branches of a `jnp.where` are differentiated), and Taylor branches
 that do not join the exact forms. Here, in float32 and float64:
 

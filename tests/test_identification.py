@@ -1,4 +1,4 @@
-"""`lievi.fit_inertia`: recover the inertia from observed orientations (issue 4).
+"""`lievi.fit_inertia`: recover the inertia from observed orientations.
 
 Acceptance (float64): noise-free orientations of the HLW body (T = 20, h = 0.05, sampled
 every 10 steps) give the principal moments to ≤ 1e-6 relative after the gauge fixing (the

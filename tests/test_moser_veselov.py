@@ -1,4 +1,4 @@
-"""`MoserVeselov` against the checks of NOTES §3 (float64 unless stated).
+"""`MoserVeselov` against the checks of docs/theory/checks.md (float64 unless stated).
 
 The implicit equation `ΩᵀΛ − ΛΩ = hΠ̂` to ≤ 1e-14, the DEL residual of its discrete
 Lagrangian by autodiff (Theorem 2.1), consistency of the discrete Legendre transform with
@@ -49,7 +49,7 @@ def mv_equation_residual(system, m, h):
 
 
 def test_lambda_of_rigid_body():
-    """`I₁ = Λ₂ + Λ₃`, `I₂ = Λ₁ + Λ₃`, `I₃ = Λ₁ + Λ₂` (NOTES §1)."""
+    """`I₁ = Λ₂ + Λ₃`, `I₂ = Λ₁ + Λ₃`, `I₃ = Λ₁ + Λ₂` (docs/theory/conventions.md)."""
     body, _, _ = hlw_problem()
     Lambda = jnp.diag(moser_veselov_Lambda(body))
     expected = jnp.array([Lambda[1] + Lambda[2], Lambda[0] + Lambda[2], Lambda[0] + Lambda[1]])

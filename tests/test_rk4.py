@@ -1,4 +1,4 @@
-"""The RK4 baseline: fourth order, and visibly not structure-preserving (NOTES §3.2–§3.3)."""
+"""The RK4 baseline: fourth order, and visibly not structure-preserving (docs/theory/checks.md)."""
 
 import jax.numpy as jnp
 import numpy as np

@@ -1,7 +1,7 @@
 """SO(3) closed forms: values against scipy and against the generic matrix-group code.
 
 Float64 unless a test says otherwise. The angles include the places where closed forms
-break elsewhere (NOTES §2): 0, tiny angles, both sides of the Taylor switches (θ² = 1e-3
+break elsewhere (docs/theory/closed-forms.md): 0, tiny angles, both sides of the Taylor switches (θ² = 1e-3
 for exp/dexp/dexpinv, tan²θ = 1e-3 for log, in float64), and θ → π, where `sin θ`
 carries no axis information. Compilation dominates the run time, so every method runs
 once, in one jitted function per dtype on one batch of samples, and the tests check that
@@ -227,7 +227,7 @@ def test_son3_coordinates_are_so3_coordinates():
 )
 def test_closed_form_matches_generic(method):
     """On the SOn(3) samples of test_son (0, 1e-9, 1e-4, both sides of θ² = 1e-3, planes
-    at 3 and π − 1e-7, random): a wrong Taylor coefficient (NOTES §2) shows here, because
+    at 3 and π − 1e-7, random): a wrong Taylor coefficient (docs/theory/closed-forms.md) shows here, because
     the generic forms use no series."""
     np.testing.assert_allclose(
         _closed_on_son3_samples()[method], test_son._report(3)[method], rtol=0, atol=ROUNDOFF

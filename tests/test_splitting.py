@@ -1,6 +1,6 @@
 """The explicit Lie–Poisson splitting (paper §6): order, symmetry, conservation, Poisson.
 
-NOTES §3: order by regression against DOP853, Casimirs / spatial momentum to round-off
+docs/theory/checks.md: order by regression against DOP853, Casimirs / spatial momentum to round-off
 over 1e4 steps, the Poisson property of the momentum map, SO(n), full inertia tensors,
 bad input, float32, derivatives.
 """

@@ -6,7 +6,7 @@ principal moments `I` (diagonal inertia), written for throughput over many bodie
 - **structure of arrays**: every vector or matrix component is its own `(B,)` array with
   the batch as the minor (contiguous) axis, so XLA emits long elementwise loops that it
   vectorises and fuses into a few kernels; batched 3×3 `matmul`/`solve`/`jacfwd` on
-  `(B, 3, 3)` arrays vectorise poorly on CPU (NOTES §5);
+  `(B, 3, 3)` arrays vectorise poorly on CPU (docs/benchmarks.md#yardsticks);
 - **closed forms**: the residual `r(ξ) = dφ⁻¹(ξ)ᵀ I ξ/h − Π_k` and its 3×3 Jacobian are
   written out by hand (derived below; the tests check them against `jax.jacfwd` of the
   generic residual) and the Newton system is solved by Cramer's rule;
@@ -16,7 +16,7 @@ principal moments `I` (diagonal inertia), written for throughput over many bodie
   to round-off for `θ ≤ π` (the exp chart's domain) and free of cancellation:
   `S(u) = sin φ/φ`, `C(u) = cos φ`, `P(u) = (S − C)/u`, hence
   `sin θ/θ = S C`, `(1 − cos θ)/θ² = S²/2` and the `dexpinv` coefficient
-  `(1 − (θ/2)cot(θ/2))/θ² = P/(4S)` (NOTES §2);
+  `(1 − (θ/2)cot(θ/2))/θ² = P/(4S)` (docs/theory/closed-forms.md);
 - **a Newton policy for batches**: a fixed number of Newton iterations (no convergence
   test, so no lane waits and nothing breaks the fusion), then one residual check per
   body; only if some body is still above its tolerance does a `while_loop` continue —

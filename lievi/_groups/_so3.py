@@ -1,4 +1,4 @@
-"""SO(3) in closed form (NOTES §2), NaN-free in values and gradients.
+"""SO(3) in closed form (docs/theory/closed-forms.md), NaN-free in values and gradients.
 
 Every trigonometric coefficient is a function of `θ² = |x|²` with a Taylor branch near
 θ = 0. Both branches of a `jnp.where` are differentiated in reverse mode, so the exact
@@ -166,7 +166,7 @@ class SO3Group(AbstractSpecialOrthogonal):
         return jnp.eye(3, dtype=x.dtype) + _cosc(t2) * X + _sinc3(t2) * (X @ X)
 
     def dexpinv(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
-        """`I − x̂/2 + (1/θ²)(1 − (θ/2)cot(θ/2)) x̂²` (NOTES §2)."""
+        """`I − x̂/2 + (1/θ²)(1 − (θ/2)cot(θ/2)) x̂²` (docs/theory/closed-forms.md)."""
         t2 = _dot(x, x)[..., None, None]
         X = self.hat(x)
         return jnp.eye(3, dtype=x.dtype) - X / 2 + _dexpinv_coefficient(t2) * (X @ X)
@@ -187,7 +187,7 @@ class SO3Group(AbstractSpecialOrthogonal):
         return alpha * (jnp.eye(3, dtype=x.dtype) + self.hat(x) / 2)
 
     def dcayinv(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
-        """`I − x̂/2 + x xᵀ/4` (NOTES §1)."""
+        """`I − x̂/2 + x xᵀ/4` (docs/theory/closed-forms.md)."""
         return jnp.eye(3, dtype=x.dtype) - self.hat(x) / 2 + _outer(x, x) / 4
 
 

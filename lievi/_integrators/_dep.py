@@ -8,7 +8,7 @@ Discrete Lagrangian, in a chart `φ` of the group: `exp` as in (4.7), or the Cay
 
 Writing `F_k = φ(ξ_k)` for the increment and `dφ⁻¹` for the inverse of the
 right-trivialised derivative of `φ`, the DEP equation (2.4)/(2.5), i.e. (4.8) for the
-exponential chart, becomes in momentum form (NOTES §1)
+exponential chart, becomes in momentum form (docs/theory/conventions.md)
 
     left:  Π_k = dφ⁻¹(ξ_k)ᵀ ∇l(ξ_k/h),        Π_{k+1} = Ad_{F_k}ᵀ Π_k    (DLP, 3.3),
                                              g_{k+1} = g_k F_k           (2.9);

@@ -1,7 +1,7 @@
 """The Moser–Veselov discretization of the (generalized) rigid body (paper §5, (5.4)–(5.6)).
 
 For the left-invariant generalized rigid body on SO(n) with inertia operator
-`J(ξ) = Λξ + ξΛ`, the Moser–Veselov step from `(g_k, Π_k)` is (NOTES §1)
+`J(ξ) = Λξ + ξΛ`, the Moser–Veselov step from `(g_k, Π_k)` is (docs/theory/conventions.md)
 
     Ωᵀ Λ − Λ Ω = h Π̂_k,   Ω ∈ SO(n)          (the second line of (5.6); DEP (5.4)),
     Π̂_{k+1} = Ω Π̂_k Ωᵀ                         (the first line of (5.6); DLP (5.5)),
