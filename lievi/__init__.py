@@ -11,6 +11,8 @@ from ._batch._simulate_batch import has_fast_path as has_fast_path
 from ._batch._simulate_batch import shard_batch as shard_batch
 from ._batch._simulate_batch import simulate_batch as simulate_batch
 from ._groups._base import MatrixLieGroup as MatrixLieGroup
+from ._groups._se3 import SE3 as SE3
+from ._groups._se3 import SE3Group as SE3Group
 from ._groups._so3 import SO3 as SO3
 from ._groups._so3 import SO3Group as SO3Group
 from ._groups._son import SOn as SOn
@@ -33,6 +35,7 @@ from ._systems._base import AbstractLieSystem as AbstractLieSystem
 from ._systems._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
 from ._systems._lie_lagrangian import LieLagrangian as LieLagrangian
 from ._systems._rigid_body import RigidBody as RigidBody
+from ._systems._se3_body import RigidBodySE3 as RigidBodySE3
 
 try:
     __version__ = version("lievi")
