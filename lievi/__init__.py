@@ -11,6 +11,10 @@ from ._batch._simulate_batch import has_fast_path as has_fast_path
 from ._batch._simulate_batch import shard_batch as shard_batch
 from ._batch._simulate_batch import simulate_batch as simulate_batch
 from ._groups._base import MatrixLieGroup as MatrixLieGroup
+from ._groups._interop import from_jaxlie as from_jaxlie
+from ._groups._interop import to_jaxlie as to_jaxlie
+from ._groups._interop import twist_from_jaxlie as twist_from_jaxlie
+from ._groups._interop import twist_to_jaxlie as twist_to_jaxlie
 from ._groups._se3 import SE3 as SE3
 from ._groups._se3 import SE3Group as SE3Group
 from ._groups._so3 import SO3 as SO3
