@@ -45,6 +45,9 @@ from ._systems._potential import UniformGravity as UniformGravity
 from ._systems._rigid_body import RigidBody as RigidBody
 from ._systems._rigid_body import heavy_top as heavy_top
 from ._systems._se3_body import RigidBodySE3 as RigidBodySE3
+from ._systems._se3_potentials import CentralGravity as CentralGravity
+from ._systems._se3_potentials import UniformGravitySE3 as UniformGravitySE3
+from ._systems._se3_potentials import full_body_problem as full_body_problem
 
 try:
     __version__ = version("lievi")

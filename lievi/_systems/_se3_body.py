@@ -13,6 +13,11 @@ Leonard, *Stability of a bottom-heavy underwater vehicle*, Automatica 33 (1997))
 `se(3)*` with Casimirs `|P|²` and `P·Π` (`lievi.SE3.casimirs`). For a body in vacuum
 with its origin at the centre of mass, `M = diag(J, m I)`; then `P = m v` is constant in
 space and `Π` obeys Euler's equations.
+
+A potential `V(g)` adds the body-frame wrench `M(g) = −d/dε V(g exp(ε e_i))` (torque,
+force; `AbstractLieSystem.force`) to the right-hand side (paper §7): uniform gravity
+(`lievi.UniformGravitySE3`), or the central gravity of a planet on a mass distribution
+(`lievi.CentralGravity`, the full body problem).
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from .._checks import check_finite, check_spd, is_concrete
 from .._groups._base import MatrixLieGroup
 from .._groups._se3 import SE3
 from ._base import AbstractLieSystem
+from ._potential import AbstractPotential, as_potential
 
 
 def _inertia_matrix(inertia):
@@ -69,6 +75,8 @@ class RigidBodySE3(AbstractLieSystem):
     - `mass`: the mass, a scalar `> 0`.
     - `tensor`: a symmetric positive definite `(6, 6)` tensor `M` in the twist order
       `(ω, v)`: `l(ξ) = ½ ξᵀ M ξ`. A pytree leaf, so `jax.grad` and `jax.vmap` reach it.
+    - `potential`: `None` (free motion), a `lievi.AbstractPotential` of the 4×4 pose such
+      as `lievi.UniformGravitySE3` or `lievi.CentralGravity`, or any callable `V(g)`.
 
     Momentum coordinates are `m = (Π, P)`: angular momentum about the body origin and
     linear momentum, both in the body frame. `lievi.diagnostics.spatial_momentum` gives
@@ -77,10 +85,11 @@ class RigidBodySE3(AbstractLieSystem):
     """
 
     tensor: Float[Array, "6 6"]
+    potential: AbstractPotential | None
     group: MatrixLieGroup = eqx.field(static=True)
     side: str = eqx.field(static=True)
 
-    def __init__(self, inertia=None, mass=None, *, tensor=None):
+    def __init__(self, inertia=None, mass=None, *, tensor=None, potential=None):
         if tensor is None:
             if inertia is None or mass is None:
                 raise ValueError(
@@ -91,6 +100,7 @@ class RigidBodySE3(AbstractLieSystem):
         elif inertia is not None or mass is not None:
             raise ValueError("Give either `tensor` or `inertia` and `mass`, not both.")
         self.tensor = tensor
+        self.potential = as_potential(potential)
         self.group = SE3
         self.side = "left"
 
