@@ -44,6 +44,30 @@ def _inertia_matrix(inertia):
     return jnp.diag(inertia) if inertia.ndim == 1 else inertia
 
 
+def _spd_solve(M: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " k"]:
+    """`M⁻¹ b` for a small SPD `M` by an unrolled Cholesky factorisation.
+
+    Written with scalar operations so that XLA fuses it into a few instructions; a LAPACK
+    call per solve (`jnp.linalg.solve`) costs more than the rest of an RK4 stage on CPU,
+    especially under `vmap`.
+    """
+    k = b.shape[-1]
+    M = (M + M.T) / 2  # reads both triangles: the derivative is the symmetric one
+    L = [[None] * k for _ in range(k)]
+    for j in range(k):
+        diagonal = M[j, j] - sum(L[j][i] * L[j][i] for i in range(j))
+        L[j][j] = jnp.sqrt(diagonal)
+        for r in range(j + 1, k):
+            L[r][j] = (M[r, j] - sum(L[r][i] * L[j][i] for i in range(j))) / L[j][j]
+    y = [None] * k
+    for r in range(k):  # L y = b
+        y[r] = (b[r] - sum(L[r][i] * y[i] for i in range(r))) / L[r][r]
+    x = [None] * k
+    for r in reversed(range(k)):  # Lᵀ x = y
+        x[r] = (y[r] - sum(L[i][r] * x[i] for i in range(r + 1, k))) / L[r][r]
+    return jnp.stack(x)
+
+
 def rigid_body_tensor(inertia, mass) -> Float[Array, "6 6"]:
     """`diag(J, m I)`: the 6×6 kinetic tensor of a body with its origin at the centre of mass."""
     J = _inertia_matrix(inertia)
@@ -130,7 +154,7 @@ class RigidBodySE3(AbstractLieSystem):
         return jnp.asarray(self.tensor) @ xi
 
     def velocity(self, m: Float[Array, "6"]) -> Float[Array, "6"]:
-        return jnp.linalg.solve(jnp.asarray(self.tensor), m)
+        return _spd_solve(jnp.asarray(self.tensor, jnp.result_type(self.tensor, m)), m)
 
     def energy(self, m: Float[Array, "6"]) -> Scalar:
         return jnp.dot(m, self.velocity(m)) / 2
