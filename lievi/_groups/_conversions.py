@@ -9,8 +9,8 @@ quaternion `q = w + x i + y j + z k` (Hamilton) stands for the same rotation as
 
 and the storage order is part of every name: `_wxyz` scalar-first (jaxlie), `_xyzw`
 scalar-last (scipy). Every function is a pure `jax.numpy` function that accepts leading
-batch axes and is differentiable, except the scipy/jaxlie adapters, which import their
-library on first use.
+batch axes and is differentiable, except the scipy adapters, which import scipy on
+first use (`lievi.to_jaxlie` / `from_jaxlie` are in `_interop.py`).
 """
 
 from __future__ import annotations
@@ -297,23 +297,3 @@ def from_scipy_rotation(rotation, dtype=None) -> Float[Array, "*batch 3 3"]:
     **Returns:** `(3, 3)` or `(N, 3, 3)`, from the quaternions so as exact as they are.
     """
     return quaternion_xyzw_to_matrix(jnp.asarray(rotation.as_quat(), dtype=dtype))
-
-
-def to_jaxlie(g: Float[Array, "*batch 3 3"]):
-    """A `jaxlie.SO3` holding the rotations `g` (leading batch axes kept).
-
-    jaxlie stores scalar-first quaternions (`wxyz`), so this is
-    `jaxlie.SO3(wxyz=matrix_to_quaternion_wxyz(g))`; differentiable, works under `jit`.
-    Needs the optional dependency jaxlie (`pip install jaxlie`).
-    """
-    try:
-        import jaxlie
-    except ImportError as error:  # pragma: no cover - depends on the environment
-        raise ImportError("`lievi.to_jaxlie` needs jaxlie: `pip install jaxlie`.") from error
-    _check_last("g", g, (3, 3), "a rotation matrix")
-    return jaxlie.SO3(wxyz=matrix_to_quaternion_wxyz(jnp.asarray(g)))
-
-
-def from_jaxlie(rotation) -> Float[Array, "*batch 3 3"]:
-    """Rotation matrices `g` of a `jaxlie.SO3` (from its `wxyz` quaternions)."""
-    return quaternion_wxyz_to_matrix(rotation.wxyz)
