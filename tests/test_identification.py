@@ -239,3 +239,151 @@ def test_thousand_bodies_in_one_call():
     converged = np.asarray(fit.converged)
     assert np.mean(converged[excited]) > 0.95
     assert np.quantile(err[excited & converged], 0.99) <= NOISY_RTOL, np.quantile(err, [0.5, 0.9, 0.99, 1.0])
+
+
+# ---- fit_system: any subset of a system's parameters ----------------------------------
+
+TOP_INERTIA = jnp.array([2.0, 1.0, 2.0 / 3.0])
+TOP_RHO = jnp.array([0.3, -0.2, 0.5])  # off-axis centre of mass
+TOP_G0 = SO3.exp(jnp.array([0.4, -0.3, 0.2]))
+TOP_M0 = jnp.array([np.cos(1.1), 0.0, np.sin(1.1)])
+TOP_GUESS = lievi.heavy_top(jnp.array([1.5, 1.2, 1.0]), 1.0, jnp.array([0.0, 0.0, 0.3]), gravity=1.0)
+TOP_PARAMS = lambda s: (s.inertia, s.potential.center_of_mass)  # noqa: E731
+
+
+def _observe_top(n_steps, every=EVERY):
+    top = lievi.heavy_top(TOP_INERTIA, 1.0, TOP_RHO, gravity=1.0)
+    return lievi.simulate(top, lievi.DEP(), TOP_G0, TOP_M0, h=H, n_steps=n_steps, save_every=every).g
+
+
+def _gauge_free_errors(fit):
+    """With Π₀ unknown only the ratios I / tr I and m ρ / tr I are observable (the
+    scaling (I, Π₀, mρ) ↦ c(I, Π₀, mρ) leaves the orientations unchanged): relative error
+    of the moments (per moment) and of the centre of mass (in norm)."""
+    inertia, rho = (np.asarray(x) for x in fit.params)
+    scale = float(jnp.sum(TOP_INERTIA)) / inertia.sum(-1, keepdims=True)
+    err_inertia = np.abs(inertia * scale / np.asarray(TOP_INERTIA) - 1).max(-1)
+    err_rho = np.linalg.norm(rho * scale - np.asarray(TOP_RHO), axis=-1) / np.linalg.norm(TOP_RHO)
+    return err_inertia, err_rho
+
+
+def test_heavy_top_inertia_and_center_of_mass_noise_free():
+    """Inertia and centre of mass (mass known) of an asymmetric heavy top, Π₀ and g₀ unknown."""
+    observed = _observe_top(200)
+    fit = lievi.fit_system(TOP_GUESS, observed, h=H, sample_every=EVERY, params=TOP_PARAMS)
+    assert bool(fit.converged), fit.messages()
+    assert isinstance(fit.system, lievi.RigidBody) and isinstance(fit.system.potential, lievi.UniformGravity)
+    assert fit.system.potential.mass == 1.0  # not fitted
+    err_inertia, err_rho = _gauge_free_errors(fit)
+    assert err_inertia <= CLEAN_RTOL and err_rho <= CLEAN_RTOL, (err_inertia, err_rho)
+    # Every fitted entry identifiable, reported with the structure of `params`.
+    flags_inertia, flags_rho = fit.identifiable
+    assert np.all(np.asarray(flags_inertia)) and np.all(np.asarray(flags_rho))
+    assert np.all(np.asarray(fit.identifiable_m0)) and np.all(np.asarray(fit.identifiable_g0))
+    assert np.isfinite(float(fit.condition))
+
+
+@pytest.mark.slow
+def test_heavy_top_noisy_and_known_momentum():
+    """1% noise on the rotation vectors: ≤ 2e-2; with Π₀ and g₀ known there is no gauge
+    and the absolute inertia and centre of mass come out (noise-free: ≤ 1e-6)."""
+    clean = _observe_top(N_STEPS)
+    rng = np.random.default_rng(5)
+    noisy = _noisy(clean, rng)
+    fit = lievi.fit_system(
+        TOP_GUESS, noisy, h=H, sample_every=EVERY, params=TOP_PARAMS, orientation_weight=_noise_weights(noisy)
+    )
+    err_inertia, err_rho = _gauge_free_errors(fit)
+    assert err_inertia <= NOISY_RTOL and err_rho <= NOISY_RTOL, (err_inertia, err_rho)
+    assert max(err_inertia, err_rho) > 1e-5  # the noise did reach the fit
+    assert int(fit.failed_samples) == 0 and np.all(np.asarray(fit.identifiable[0]))
+
+    known = lievi.fit_system(
+        TOP_GUESS, clean, h=H, sample_every=EVERY, params=TOP_PARAMS, m0=TOP_M0, g0=TOP_G0
+    )
+    assert bool(known.converged), known.messages()
+    assert known.identifiable_m0 is None and known.identifiable_g0 is None
+    np.testing.assert_allclose(np.asarray(known.params[0]), np.asarray(TOP_INERTIA), rtol=CLEAN_RTOL)
+    np.testing.assert_allclose(np.asarray(known.params[1]), np.asarray(TOP_RHO), rtol=CLEAN_RTOL)
+
+
+# ---- honest reports: unidentifiable data ----------------------------------------------
+
+SHORT, SHORT_EVERY = 40, 5  # 9 samples
+
+
+def _free_orientations(m0):
+    body, _, _ = hlw_problem()
+    return lievi.simulate(body, lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=SHORT, save_every=SHORT_EVERY).g
+
+
+def test_unidentifiable_data_is_reported():
+    """A body spinning about a principal axis reveals only Π₁/I₁, a body at rest nothing:
+    neither fit may claim convergence, and the report names the undetermined moments."""
+    spin = jnp.array([1.3, 0.0, 0.0])
+    observed = jnp.stack([_free_orientations(spin), _free_orientations(jnp.zeros(3))])
+    fit = lievi.fit_inertia(observed, h=H, sample_every=SHORT_EVERY, inertia=GUESS, max_iters=50)
+    np.testing.assert_array_equal(np.asarray(fit.converged), False)
+    np.testing.assert_array_equal(np.asarray(fit.reason), lievi.FIT_REASONS.unidentifiable)
+    assert "do not determine" in fit.messages()[0]
+    # Π₀ unknown, trace held: I₁ trades against I₂ + I₃ and Π₀ (scaling), I₂ against I₃.
+    np.testing.assert_array_equal(np.asarray(fit.identifiable), False)
+    assert np.all(np.isinf(np.asarray(fit.condition)))
+    # Π₀'s transverse components are determined (they would make the body precess).
+    np.testing.assert_array_equal(np.asarray(fit.identifiable_m0[0]), [False, True, True])
+
+    # Π₀ known: I₁ is determined by the spin rate, I₂ and I₃ are not.
+    known = lievi.fit_inertia(
+        observed[0], h=H, sample_every=SHORT_EVERY, inertia=GUESS, m0=spin, g0=jnp.eye(3), max_iters=50
+    )
+    assert not bool(known.converged) and int(known.reason) == lievi.FIT_REASONS.unidentifiable
+    np.testing.assert_array_equal(np.asarray(known.identifiable), [True, False, False])
+    assert float(known.inertia[0]) == pytest.approx(float(hlw_problem()[0].inertia[0]), rel=1e-8)
+
+    # The positive control: a tumbling body on the same short record is identifiable.
+    tumbling = lievi.fit_inertia(
+        _free_orientations(hlw_problem()[2]), h=H, sample_every=SHORT_EVERY, inertia=GUESS, max_iters=50
+    )
+    assert int(tumbling.reason) in (lievi.FIT_REASONS.converged, lievi.FIT_REASONS.max_iters)
+    assert np.all(np.asarray(tumbling.identifiable)) and np.isfinite(float(tumbling.condition))
+
+
+# ---- bad input: clear errors up front -------------------------------------------------
+
+
+def _bad_input_cases():
+    R = _free_orientations(hlw_problem()[2])
+    flip = jnp.diag(jnp.array([1.0, 1.0, -1.0]))
+    return [
+        ("h", dict(h=0.0)),
+        ("h", dict(h=float("nan"))),
+        ("m0", dict(m0=jnp.array([1.0, jnp.nan, 0.0]))),
+        ("g0", dict(g0=2 * jnp.eye(3))),
+        ("orientations", dict(orientations=2 * R)),
+        ("orientations", dict(orientations=R @ flip)),  # det −1
+        ("gtol", dict(gtol=-1.0)),
+        ("learning_rate", dict(learning_rate=float("nan"), optimizer="adam")),
+        ("trace", dict(trace=-3.0)),
+        ("trace", dict(trace=float("nan"))),
+    ], R
+
+
+@pytest.mark.parametrize("case", range(10))
+def test_bad_fit_inputs(case):
+    cases, R = _bad_input_cases()
+    name, kwargs = cases[case]
+    args = dict(orientations=R, h=H, sample_every=SHORT_EVERY, inertia=GUESS) | kwargs
+    with pytest.raises(ValueError, match=f"`{name}`"):
+        lievi.fit_inertia(**args)
+
+
+def test_bad_fit_system_params():
+    R = _free_orientations(hlw_problem()[2])
+    with pytest.raises(ValueError, match="`params`"):
+        lievi.fit_system(TOP_GUESS, R, h=H, sample_every=SHORT_EVERY, params=lambda s: s.group)
+    with pytest.raises(ValueError, match="`params`"):
+        lievi.fit_system(TOP_GUESS, R, h=H, sample_every=SHORT_EVERY, params=lambda s: s.nothing)
+    with pytest.raises(ValueError, match="`params`.*twice"):
+        lievi.fit_system(TOP_GUESS, R, h=H, sample_every=SHORT_EVERY, params=lambda s: (s.inertia, s.inertia))
+    with pytest.raises(ValueError, match="`system`"):
+        lievi.fit_system(jnp.ones(3), R, h=H, sample_every=SHORT_EVERY)
