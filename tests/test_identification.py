@@ -267,6 +267,7 @@ def _gauge_free_errors(fit):
     return err_inertia, err_rho
 
 
+@pytest.mark.slow
 def test_heavy_top_inertia_and_center_of_mass_noise_free():
     """Inertia and centre of mass (mass known) of an asymmetric heavy top, Π₀ and g₀ unknown."""
     observed = _observe_top(120, every=6)  # T = 6, 21 samples
