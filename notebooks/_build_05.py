@@ -78,6 +78,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
+plt.rcParams["figure.dpi"] = 64  # small stored figures
 import lievi
 from lievi import diagnostics as dg
 
