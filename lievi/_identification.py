@@ -464,9 +464,9 @@ def fit_system(
             f"`horizons` must increase from ≥ 2 to the number of samples ({n_samples}), got {horizons}."
         )
 
-    cast = lambda x: None if x is None else jnp.asarray(x, dtype)  # noqa: E731
+    cast = lambda x: None if x is None else jnp.asarray(x, dtype)
     n_bodies = int(np.prod(batch_shape)) if batch_shape else 1
-    flat = lambda x: None if x is None else jnp.reshape(x, (n_bodies,) + jnp.shape(x)[len(batch_shape) :])  # noqa: E731
+    flat = lambda x: None if x is None else jnp.reshape(x, (n_bodies,) + jnp.shape(x)[len(batch_shape) :])
     data = dict(
         orientations=cast(orientations),
         angular_velocities=cast(angular_velocities),
@@ -979,7 +979,7 @@ def _iterate(config, check_every, carry, dynamic, data, h):
     n_total = int(carry.it.shape[0])
     if check_every >= config.max_iters:
         return _advance(config, config.max_iters, carry, dynamic, data, h)
-    take = lambda tree, idx: jax.tree.map(lambda x: x[idx], tree)  # noqa: E731
+    take = lambda tree, idx: jax.tree.map(lambda x: x[idx], tree)
     while True:
         finished = np.asarray(carry.finished(config))
         active = np.flatnonzero(~finished)
@@ -993,4 +993,4 @@ def _iterate(config, check_every, carry, dynamic, data, h):
             continue
         sub = _advance(config, check_every, take(carry, idx), take(dynamic, idx), take(data, idx), h)
         sub = take(sub, np.arange(active.size))
-        carry = jax.tree.map(lambda full, part: full.at[active].set(part), carry, sub)
+        carry = jax.tree.map(lambda full, part, rows=active: full.at[rows].set(part), carry, sub)

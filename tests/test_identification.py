@@ -248,7 +248,7 @@ TOP_RHO = jnp.array([0.3, -0.2, 0.5])  # off-axis centre of mass
 TOP_G0 = SO3.exp(jnp.array([0.4, -0.3, 0.2]))
 TOP_M0 = jnp.array([np.cos(1.1), 0.0, np.sin(1.1)])
 TOP_GUESS = lievi.heavy_top(jnp.array([1.5, 1.2, 1.0]), 1.0, jnp.array([0.0, 0.0, 0.3]), gravity=1.0)
-TOP_PARAMS = lambda s: (s.inertia, s.potential.center_of_mass)  # noqa: E731
+TOP_PARAMS = lambda s: (s.inertia, s.potential.center_of_mass)
 
 
 def _observe_top(n_steps, every=EVERY):
@@ -355,16 +355,16 @@ def _bad_input_cases():
     R = _free_orientations(hlw_problem()[2])
     flip = jnp.diag(jnp.array([1.0, 1.0, -1.0]))
     return [
-        ("h", dict(h=0.0)),
-        ("h", dict(h=float("nan"))),
-        ("m0", dict(m0=jnp.array([1.0, jnp.nan, 0.0]))),
-        ("g0", dict(g0=2 * jnp.eye(3))),
-        ("orientations", dict(orientations=2 * R)),
-        ("orientations", dict(orientations=R @ flip)),  # det −1
-        ("gtol", dict(gtol=-1.0)),
-        ("learning_rate", dict(learning_rate=float("nan"), optimizer="adam")),
-        ("trace", dict(trace=-3.0)),
-        ("trace", dict(trace=float("nan"))),
+        ("h", {"h": 0.0}),
+        ("h", {"h": float("nan")}),
+        ("m0", {"m0": jnp.array([1.0, jnp.nan, 0.0])}),
+        ("g0", {"g0": 2 * jnp.eye(3)}),
+        ("orientations", {"orientations": 2 * R}),
+        ("orientations", {"orientations": R @ flip}),  # det −1
+        ("gtol", {"gtol": -1.0}),
+        ("learning_rate", {"learning_rate": float("nan"), "optimizer": "adam"}),
+        ("trace", {"trace": -3.0}),
+        ("trace", {"trace": float("nan")}),
     ], R
 
 
@@ -372,7 +372,7 @@ def _bad_input_cases():
 def test_bad_fit_inputs(case):
     cases, R = _bad_input_cases()
     name, kwargs = cases[case]
-    args = dict(orientations=R, h=H, sample_every=SHORT_EVERY, inertia=GUESS) | kwargs
+    args = {"orientations": R, "h": H, "sample_every": SHORT_EVERY, "inertia": GUESS} | kwargs
     with pytest.raises(ValueError, match=f"`{name}`"):
         lievi.fit_inertia(**args)
 
