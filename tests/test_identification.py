@@ -1,10 +1,15 @@
-"""`lievi.fit_inertia`: recover the inertia from observed orientations (issue 4).
+"""`lievi.fit_inertia` / `lievi.fit_system`: recover parameters from observed orientations.
 
 Acceptance (float64): noise-free orientations of the HLW body (T = 20, h = 0.05, sampled
 every 10 steps) give the principal moments to ≤ 1e-6 relative after the gauge fixing (the
 trace is held; Π₀ and g₀ are unknown and fitted); with 1% noise on the observed rotation
 vectors ≤ 2e-2; many bodies in one call under `vmap`. The default test fits 3 bodies in one
 call (HLW clean, HLW noisy, 1 random realisable body); 1000 bodies is a `slow` test.
+
+`fit_system` (any subset of a system's parameters): a heavy top's inertia and centre of
+mass (mass known) noise-free ≤ 1e-6 and with 1% noise ≤ 2e-2 (`slow`: compile-bound);
+honest reports on unidentifiable data (spin about a principal axis, a body at rest, Π₀
+known with I₂, I₃ undetermined); bad input rejected up front.
 """
 
 import jax
