@@ -79,7 +79,7 @@ def test_demo_subprocess():
         text=True,
         encoding="utf-8",
         env=env,
-        timeout=120,
+        timeout=600,  # a hang guard; the run compiles every integrator (slow on a loaded machine)
     )
     assert proc.returncode == 0, proc.stderr
     lines = proc.stdout.splitlines()
