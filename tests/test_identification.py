@@ -401,8 +401,8 @@ def test_rounds_drop_finished_bodies_without_changing_results():
     rng = np.random.default_rng(4)
     inertias, momenta = _random_bodies(rng, 5)
     observed = jax.vmap(lambda i, m: _free_orientations_of(i, m))(inertias, momenta)
-    one = lievi.fit_inertia(observed, h=H, sample_every=SHORT_EVERY, inertia=GUESS, max_iters=80)
-    rounds = lievi.fit_inertia(observed, h=H, sample_every=SHORT_EVERY, inertia=GUESS, max_iters=80, check_every=3)
+    one = lievi.fit_inertia(observed, h=H, sample_every=SHORT_EVERY, inertia=GUESS, max_iters=150, gtol=1e-6)
+    rounds = lievi.fit_inertia(observed, h=H, sample_every=SHORT_EVERY, inertia=GUESS, max_iters=150, gtol=1e-6, check_every=3)
     assert len(set(np.asarray(one.iterations).tolist())) > 1  # bodies finish at different times
     np.testing.assert_array_equal(np.asarray(rounds.iterations), np.asarray(one.iterations))
     np.testing.assert_array_equal(np.asarray(rounds.reason), np.asarray(one.reason))
