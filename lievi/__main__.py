@@ -2,8 +2,9 @@
 
 Commands:
 
-- `demo`: every integrator on the Hairer–Lubich–Wanner rigid body, with errors against a
-  reference solution, conservation drifts and timings (`python -m lievi demo --help`).
+- `demo`: every integrator on the Hairer–Lubich–Wanner rigid body (or, with
+  `--problem heavy-top`, an asymmetric heavy top), with errors against a reference
+  solution, the energy error, conservation drifts and timings (`python -m lievi demo --help`).
 
 To add a command, add an entry to `_COMMANDS`: its name, a one-line help, a function
 that adds its options to an `argparse` parser, and the name of a module in `lievi`
@@ -19,7 +20,8 @@ import sys
 # name -> (help, module with `add_arguments(parser)` and `main(args) -> int`)
 _COMMANDS = {
     "demo": (
-        "run every integrator on the HLW rigid body and print errors, drifts and timings",
+        "run every integrator on the HLW rigid body (or --problem heavy-top) and print "
+        "errors, drifts and timings",
         "lievi._demo",
     ),
 }

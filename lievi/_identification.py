@@ -1,39 +1,60 @@
-"""Inertia identification: fit a rigid body to observed orientations / angular velocities.
+"""System identification: fit chosen parameters of a system to observed orientations /
+angular velocities.
 
-The model is the discrete trajectory itself: `simulate(RigidBody(I), integrator, g₀, Π₀)`
-sampled every `sample_every` steps, differentiated end to end (each Newton solve by the
-implicit function theorem, `_newton.py`). The loss is the mean over samples of
+The model is the discrete trajectory itself: `simulate(system, integrator, g₀, m₀)` sampled
+every `sample_every` steps, differentiated end to end (each Newton solve by the implicit
+function theorem, `_newton.py`). The loss is the weighted mean over samples of the squared
+residuals
 
-    w_R ‖g_k − R_k‖_F²  +  w_Ω ‖I⁻¹Π_k − Ω_k‖²,
+    r_k = ( √w_R (g_k − R_k),  √w_Ω (Ω_k − Ω̂_k) ),     Ω_k = velocity(m_k),
 
-minimised over unconstrained parameters with optax (L-BFGS with a zoom line search, or
-Adam). A parametrisation keeps the inertia symmetric positive definite, and on request
-physically realisable (the triangle inequalities `I₁ ≤ I₂ + I₃`, …): the inertia of a mass
-distribution with second-moment matrix `Σ = ∫ x xᵀ dm ≻ 0` is `I = tr(Σ)·1 − Σ`; with
-`Σ = diag(Λ)` this is the paper's `I₁ = Λ₂ + Λ₃, I₂ = Λ₁ + Λ₃, I₃ = Λ₁ + Λ₂` (§5).
+minimised with optax (L-BFGS with a zoom line search, or Adam) over any subset of the
+system's parameters (chosen by a `where` function, as in `eqx.tree_at`) together with the
+initial state when it is unknown. The fitted leaves are optimised in unconstrained
+coordinates: the inertia of a rigid body through a parametrisation that keeps it symmetric
+positive definite, and on request physically realisable (the triangle inequalities
+`I₁ ≤ I₂ + I₃`, …): the inertia of a mass distribution with second-moment matrix
+`Σ = ∫ x xᵀ dm ≻ 0` is `I = tr(Σ)·1 − Σ`; with `Σ = diag(Λ)` this is the paper's
+`I₁ = Λ₂ + Λ₃, I₂ = Λ₁ + Λ₃, I₃ = Λ₁ + Λ₂` (§5). Every other fitted leaf is fitted as is.
 
-**Gauge.** Scaling `(I, Π₀) ↦ (cI, cΠ₀)` leaves every discrete increment unchanged (the DEP
-equation `Π_k = dφ⁻¹(ξ_k)ᵀ I ξ_k/h` is homogeneous of degree one in `(I, Π)`), hence every
-orientation `g_k` and every angular velocity `I⁻¹Π_k`. When Π₀ is unknown only `I` up to
-scale is observable, and the fit fixes the gauge explicitly: the trace of the inertia is
-held at `trace` (default: the trace of the initial guess). With Π₀ known there is no gauge
-freedom and the scale is fitted too.
+**Gauge.** Scaling `(I, Π₀, V) ↦ (cI, cΠ₀, cV)` leaves every discrete increment unchanged
+(the DEP equation `Π_k = dφ⁻¹(ξ_k)ᵀ I ξ_k/h − (h/2)·dV` is homogeneous of degree one in
+`(I, Π, V)`), hence every orientation `g_k` and every angular velocity `I⁻¹Π_k`. When Π₀ is
+unknown and the inertia is fitted (with the potential's scale, e.g. `m ρ` of gravity,
+fitted too or no potential at all) only the ratios are observable, and the fit fixes the
+gauge explicitly: the trace of the inertia is held at `trace`. With Π₀ known, or a fixed
+potential, the scale is fitted too.
 
-**Failures.** A trial inertia can make a step fail (e.g. a rotation ≥ π in one step). Such
+**Identifiability.** At the solution the Jacobian `J` of the residuals with respect to the
+fitted physical parameters (restricted to the gauge) is computed by forward-mode autodiff.
+Its columns are scaled to unit norm (so units do not matter); a singular value of the
+scaled `J` below `identifiability_rtol` times the largest is a direction in which the data
+do not determine the parameters (a flat valley of the loss: a body spinning about a
+principal axis does not reveal its other two moments; a body at rest reveals none). A
+parameter is reported unidentifiable when such a direction moves it, and the fit then says
+`converged=False` with the reason, whatever the optimiser's stopping test said.
+
+**Failures.** A trial parameter can make a step fail (e.g. a rotation ≥ π in one step). Such
 samples are not dropped (that would reward failing) but charged a fixed penalty — the
 largest possible orientation error, `‖g − R‖_F² ≤ 8`, and `4 max_k ‖Ω_k‖²` for velocities —
 whose gradient is zero; the count of failed samples is reported at every iteration.
+
+**Batches.** Leading batch axes on the observations fit many bodies in one call (`jax.vmap`
+of the optimisation). Under `vmap` a loop runs until its slowest member is done, so large
+batches are run in rounds of `check_every` iterations: after each round the bodies that
+have finished leave the batch and the others continue in a smaller one.
 """
 
 from __future__ import annotations
 
-import functools
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int
 
 from ._checks import check_finite, is_concrete
@@ -41,36 +62,98 @@ from ._groups._so3 import SO3
 from ._integrators._base import AbstractIntegrator
 from ._integrators._dep import DEP
 from ._simulate import simulate
+from ._systems._base import AbstractLieSystem
 from ._systems._rigid_body import RigidBody
 
 _ORIENTATION_PENALTY = 8.0  # max ‖g − R‖_F² over rotations g, R
 
 
-class InertiaFit(eqx.Module):
-    """The result of `fit_inertia` (leading batch axes when several bodies were fitted).
+class FIT_REASONS:
+    """Why a fit stopped: `SystemFit.reason` codes and their messages."""
+
+    converged = 0
+    max_iters = 1
+    failed_samples = 2
+    unidentifiable = 3
+    nonfinite = 4
+
+    messages = (
+        "converged: ‖∇loss‖_∞ ≤ gtol, every sample valid, every fitted parameter identifiable.",
+        "not converged: `max_iters` reached with ‖∇loss‖_∞ > gtol. Raise `max_iters`, give a "
+        "better initial guess, or shorten the first horizon stage.",
+        "not converged: some samples fail to simulate at the final parameters (see "
+        "`failed_samples`; a step left the chart's domain). Reduce the model step `h` or "
+        "improve the initial guess.",
+        "not converged: the data do not determine every fitted parameter (see "
+        "`identifiable`): the Gauss–Newton matrix JᵀJ of the residuals is singular at the "
+        "solution. Observe a motion that excites every axis, fix the unidentifiable "
+        "parameters, or give the initial momentum.",
+        "not converged: the loss is not finite.",
+    )
+
+    @classmethod
+    def message(cls, code) -> str:
+        return cls.messages[int(code)]
+
+
+class SystemFit(eqx.Module):
+    """The result of `fit_system` / `fit_inertia` (leading batch axes when several bodies
+    were fitted).
 
     **Attributes:**
 
-    - `inertia`: fitted principal moments `(3,)`, or the tensor `(3, 3)` with `tensor=True`.
+    - `system`: the fitted system (its array leaves carry the batch axes). For a rigid
+      body, `inertia` is a shortcut to `system.inertia`.
+    - `params`: the fitted parameters, `params(system)` (same structure as `where` returns).
     - `m0`, `g0`: the initial momentum and orientation used (fitted if they were unknown).
     - `loss`: final loss; `loss_history`: loss at every iteration, shape `(max_iters + 1,)`,
       NaN after the last iteration taken.
     - `failed_history`: number of failed (penalised) samples at every iteration, −1 after
       the last; `failed_samples`: at the final parameters (0 for a usable fit).
-    - `iterations`, `converged` (‖∇loss‖_∞ ≤ `gtol` and no failed sample), `result`: the
-      `RESULTS` code of the final simulation.
+    - `iterations`: optimiser iterations taken.
+    - `converged`: `reason == FIT_REASONS.converged`: ‖∇loss‖_∞ ≤ `gtol`, no failed sample,
+      and every fitted parameter identifiable.
+    - `reason`: a `lievi.FIT_REASONS` code; `messages()` turns it into text.
+    - `identifiable`: per fitted parameter entry, whether the data determine it (same
+      structure as `params`, boolean arrays); `identifiable_m0`, `identifiable_g0` for the
+      fitted initial state (`None` when it was given).
+    - `singular_values`: of the column-scaled residual Jacobian at the solution, largest
+      first; `condition`: the ratio of the largest to the smallest (inf when singular).
+    - `result`: the `RESULTS` code of the final simulation.
     """
 
-    inertia: Float[Array, "*batch 3"] | Float[Array, "*batch 3 3"]
-    m0: Float[Array, "*batch 3"]
-    g0: Float[Array, "*batch 3 3"]
+    system: AbstractLieSystem
+    params: object
+    m0: Float[Array, "*batch d"]
+    g0: Float[Array, "*batch n n"]
     loss: Float[Array, "*batch"]
     loss_history: Float[Array, "*batch iters"]
     failed_history: Int[Array, "*batch iters"]
     failed_samples: Int[Array, "*batch"]
     iterations: Int[Array, "*batch"]
     converged: Bool[Array, "*batch"]
+    reason: Int[Array, "*batch"]
+    identifiable: object
+    identifiable_m0: Bool[Array, "*batch d"] | None
+    identifiable_g0: Bool[Array, "*batch 3"] | None
+    singular_values: Float[Array, "*batch p"]
+    condition: Float[Array, "*batch"]
     result: Int[Array, "*batch"]
+
+    @property
+    def inertia(self):
+        """The fitted inertia, `system.inertia` (rigid bodies)."""
+        return self.system.inertia
+
+    def messages(self) -> list[str] | str:
+        """`FIT_REASONS.message` of `reason` (a list over the batch)."""
+        reason = np.asarray(self.reason)
+        if reason.ndim == 0:
+            return FIT_REASONS.message(reason)
+        return [FIT_REASONS.message(r) for r in reason.ravel()]
+
+
+InertiaFit = SystemFit  # the result of `fit_inertia` (earlier name, kept)
 
 
 # ---- parametrisations: unconstrained θ ↔ inertia --------------------------------------
@@ -120,7 +203,318 @@ def _trace(inertia):
     return jnp.sum(inertia) if inertia.ndim == 1 else jnp.trace(inertia)
 
 
+class _Leaf(eqx.Module):
+    """How one fitted leaf is parametrised: `kind` is "free", "moments" or "tensor"."""
+
+    index: int = eqx.field(static=True)
+    kind: str = eqx.field(static=True)
+    shape: tuple = eqx.field(static=True)
+
+
+class _Marker:
+    def __init__(self, index):
+        self.index = index
+
+
+def _selected_indices(system, where, what="params") -> tuple[int, ...]:
+    """Flat leaf indices of `system` that `where(system)` selects (no repeats)."""
+    leaves, treedef = jax.tree.flatten(system)
+    marked = jax.tree.unflatten(treedef, [_Marker(i) for i in range(len(leaves))])
+    try:
+        chosen = where(marked)
+    except Exception as error:
+        raise ValueError(f"`{what}` could not be applied to the system: {error}") from error
+    chosen = jax.tree.leaves(chosen, is_leaf=lambda x: isinstance(x, _Marker))
+    if not chosen or not all(isinstance(x, _Marker) for x in chosen):
+        raise ValueError(
+            f"`{what}` must return leaves of the system (arrays, e.g. `lambda s: s.inertia` or "
+            "`lambda s: (s.inertia, s.potential.center_of_mass)`), and at least one."
+        )
+    indices = tuple(x.index for x in chosen)
+    if len(set(indices)) != len(indices):
+        raise ValueError(f"`{what}` selects a leaf twice.")
+    return indices
+
+
 # ---- the fit --------------------------------------------------------------------------
+
+
+def fit_system(
+    system: AbstractLieSystem,
+    orientations: Float[Array, "*batch S n n"] | None = None,
+    angular_velocities: Float[Array, "*batch S d"] | None = None,
+    *,
+    h,
+    sample_every: int,
+    params: Callable = lambda s: s.inertia,
+    m0=None,
+    g0=None,
+    system_axis: int | None = None,
+    realisable: bool = False,
+    trace=None,
+    integrator: AbstractIntegrator = DEP(),
+    optimizer: str | optax.GradientTransformation = "lbfgs",
+    learning_rate: float = 1e-2,
+    max_iters: int = 500,
+    gtol: float | None = None,
+    horizons: tuple[int, ...] | None = None,
+    orientation_weight=1.0,
+    velocity_weight=1.0,
+    identifiability_rtol: float | None = None,
+    check_every: int | None = None,
+) -> SystemFit:
+    """Fit chosen parameters of `system` (and Π₀, g₀ when unknown) to observations.
+
+    Sample `k` (`k = 0, …, S − 1`) is taken at step `k·sample_every`, time `k·sample_every·h`.
+    Leading batch axes on the observations fit many bodies at once; the other arrays are
+    shared or carry the same batch axes.
+
+    **Arguments:**
+
+    - `system`: the model with the initial guess of the fitted parameters and the known
+      values of the others, e.g. `lievi.heavy_top(I_guess, mass, ρ_guess)`.
+    - `orientations`: observed attitudes `R_k`, shape `(*batch, S, n, n)` (noisy rotation
+      vectors `r_k` become `lievi.SO3.exp(r_k)`); rotations to 1e-6.
+    - `angular_velocities`: observed velocities `Ω_k = velocity(m_k)` (body angular
+      velocities `I⁻¹Π_k` for a rigid body), `(*batch, S, d)`. Give at least one of the two.
+    - `h`, `sample_every`: step size of the model and steps between samples.
+    - `params`: a function selecting the fitted leaves, as `where` of `eqx.tree_at`:
+      `lambda s: s.inertia` (default), `lambda s: (s.inertia, s.potential.center_of_mass)`,
+      … A rigid body's `inertia` stays positive definite (principal moments `(3,)` or a
+      tensor `(3, 3)`, by its shape); other leaves are unconstrained.
+    - `m0`: the known initial momentum, or `None` to fit it (initial guess from the first
+      two samples). Then, if the inertia is fitted, the gauge is fixed by its trace.
+    - `g0`: the known initial orientation, or `None` to fit it (initial guess `R_0`).
+    - `system_axis`: `None` (one initial guess for every body) or `0` (every array leaf of
+      `system` carries the batch axes first, e.g. `jax.vmap(lievi.RigidBody)(guesses)`).
+    - `realisable`: constrain the inertia to physically realisable ones (triangle inequalities).
+    - `trace`: the gauge (> 0), used only when it applies; default the trace of the guess.
+    - `integrator`: the model integrator (default `DEP()`, exponential chart).
+    - `optimizer`: `"lbfgs"` (`optax.lbfgs`, zoom line search), `"adam"` (`optax.adam` at
+      `learning_rate`), or any `optax.GradientTransformation` (used as `update(g, s, p)`).
+    - `max_iters`, `gtol`: stop when `‖∇loss‖_∞ ≤ gtol` (gradient in the unconstrained
+      parameters; default 1e-11 in float64, 1e-4 in float32 — where round-off in a
+      400-step simulation already puts the gradient at the optimum near 2e-5) or after
+      `max_iters`.
+    - `horizons`: continuation in the observed horizon. Over many periods the loss is far
+      from convex in the parameters (a wrong inertia puts the trajectory out of phase), so
+      the fit first uses only the first `horizons[0]` samples, then the first
+      `horizons[1]`, …, each stage started from the previous one's solution and run until
+      `‖∇loss‖_∞ ≤ √gtol` (the last stage: `gtol`). Default: 4, 8, 16, … up to `S`. One
+      compilation for all stages (the stage only changes a mask).
+    - `orientation_weight`, `velocity_weight`: `w_R`, `w_Ω` of the loss: scalars, or one
+      weight per sample, shape `(S,)` or `(*batch, S)`. With Gaussian noise of known size
+      `σ_k` on sample `k`, `w_k = 1/σ_k²` makes the fit the maximum-likelihood estimate.
+    - `identifiability_rtol`: a singular value of the column-scaled residual Jacobian below
+      this times the largest marks an unidentifiable direction (default `ε^(1/3)` of the
+      dtype: 6e-6 in float64, 5e-3 in float32).
+    - `check_every`: batched fits run in rounds of this many iterations, after each of
+      which finished bodies leave the batch (default 20 for 64 bodies or more; otherwise
+      one round). Results do not depend on it.
+
+    **Returns:** a `SystemFit`.
+    """
+    if not isinstance(system, AbstractLieSystem):
+        raise ValueError(f"`system` must be a lievi system (e.g. lievi.RigidBody), got {type(system).__name__}.")
+    if orientations is None and angular_velocities is None:
+        raise ValueError("Give `orientations` and/or `angular_velocities` to fit to.")
+    if g0 is None and orientations is None:
+        raise ValueError("`g0` is needed when no `orientations` are observed.")
+    for name, value, low in (("sample_every", sample_every, 1), ("max_iters", max_iters, 1)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            raise ValueError(f"`{name}` must be an integer ≥ {low}, got {value!r}.")
+    if check_every is not None and (
+        isinstance(check_every, bool) or not isinstance(check_every, (int, np.integer)) or check_every < 1
+    ):
+        raise ValueError(f"`check_every` must be None or an integer ≥ 1, got {check_every!r}.")
+    if isinstance(optimizer, str) and optimizer not in ("lbfgs", "adam"):
+        raise ValueError(f"`optimizer` must be 'lbfgs', 'adam' or an optax transformation, got {optimizer!r}.")
+    for name, value in (("learning_rate", learning_rate), ("gtol", gtol), ("identifiability_rtol", identifiability_rtol)):
+        if value is None:
+            continue
+        if jnp.ndim(value) != 0 or not is_concrete(value) or not np.isfinite(float(value)):
+            raise ValueError(f"`{name}` must be a finite Python number, got {value!r}.")
+        if float(value) < 0 or (name != "gtol" and float(value) == 0):
+            raise ValueError(f"`{name}` must be {'≥' if name == 'gtol' else '>'} 0, got {float(value)}.")
+    if jnp.ndim(h) != 0:
+        raise ValueError(f"`h` must be a scalar step size, got shape {jnp.shape(h)}.")
+    if is_concrete(h):
+        check_finite("h", h)
+        if not float(h) > 0:
+            raise ValueError(f"`h` must be > 0, got {float(h)}; pass a positive step size.")
+    if system_axis not in (None, 0):
+        raise ValueError(f"`system_axis` must be None or 0, got {system_axis!r}.")
+
+    group = system.group
+    n, d = group.matrix_dim, group.algebra_dim
+    obs = orientations if orientations is not None else angular_velocities
+    obs_core = 3 if orientations is not None else 2
+    batch_shape = tuple(jnp.shape(obs)[: jnp.ndim(obs) - obs_core])
+    n_samples = jnp.shape(obs)[len(batch_shape)]
+    if n_samples < 2:
+        raise ValueError(f"need at least 2 samples per body, got {n_samples}.")
+    if orientations is not None:
+        _check_trailing("orientations", orientations, batch_shape, (n_samples, n, n))
+        _check_rotations("orientations", orientations, group)
+    if angular_velocities is not None:
+        _check_trailing("angular_velocities", angular_velocities, batch_shape, (n_samples, d))
+    if g0 is None and n != 3:
+        raise ValueError("Fitting `g0` is implemented on SO(3); give `g0` for other groups.")
+    m0 = None if m0 is None else _batched("m0", m0, batch_shape, (d,))
+    g0 = None if g0 is None else _batched("g0", g0, batch_shape, (n, n))
+    if m0 is not None:
+        check_finite("m0", m0)
+    if g0 is not None:
+        check_finite("g0", g0)
+        _check_rotations("g0", g0, group)
+    trace = None if trace is None else _batched("trace", trace, batch_shape, ())
+    if trace is not None:
+        check_finite("trace", trace)
+        if is_concrete(trace) and np.any(np.asarray(trace) <= 0):
+            raise ValueError(f"`trace` (the gauge) must be > 0, got {np.asarray(trace)}.")
+    weights = []
+    for name, w in (("orientation_weight", orientation_weight), ("velocity_weight", velocity_weight)):
+        w = jnp.broadcast_to(w, (n_samples,)) if jnp.ndim(w) == 0 else w
+        w = _batched(name, w, batch_shape, (n_samples,))
+        check_finite(name, w)
+        if is_concrete(w) and np.any(np.asarray(w) < 0):
+            raise ValueError(f"`{name}` must be ≥ 0.")
+        weights.append(w)
+
+    # ---- the fitted leaves and their parametrisations
+    indices = _selected_indices(system, params)
+    leaves, treedef = jax.tree.flatten(system)
+    inertia_index = None
+    if isinstance(system, RigidBody):
+        inertia_index = _selected_indices(system, lambda s: s.inertia, "inertia")[0]
+    fitted = []
+    for i in indices:
+        value = leaves[i]
+        if not is_concrete(value):
+            raise ValueError("The fitted parameters' initial guesses must be concrete arrays, not traced.")
+        if not eqx.is_array_like(value) or not np.isrealobj(np.asarray(value)):
+            raise ValueError(f"`params` selected a leaf that is not a real array: {type(value).__name__}.")
+        value = np.asarray(value, float)
+        core = value.shape[len(batch_shape) :] if system_axis == 0 else value.shape
+        if system_axis == 0 and value.shape[: len(batch_shape)] != batch_shape:
+            raise ValueError(
+                f"with `system_axis=0` every fitted leaf must carry the batch axes {batch_shape} first, "
+                f"got shape {value.shape}."
+            )
+        check_finite("params", value)
+        if i == inertia_index:
+            kind = "tensor" if core == (3, 3) else "moments"
+            if kind == "moments" and core != (3,):
+                raise ValueError(f"`inertia` must have shape (3,) or (3, 3), got {core}.")
+        else:
+            kind = "free"
+        fitted.append(_Leaf(i, kind, tuple(core)))
+    fitted = tuple(fitted)
+    if realisable and not any(f.kind != "free" for f in fitted):
+        raise ValueError("`realisable=True` constrains the inertia, which is not among the fitted `params`.")
+
+    dtype = jnp.result_type(
+        *[x for x in (orientations, angular_velocities, m0, g0, h) if x is not None],
+        *[x for x in leaves if eqx.is_inexact_array(x)],
+        float,
+    )
+    # The system's arrays (and the fitted leaves, whatever their type) become the batched
+    # dynamic part; the rest (functions, static fields) is closed over.
+    leaves = list(leaves)
+    for f in fitted:
+        leaves[f.index] = jnp.asarray(leaves[f.index], dtype)
+    system = jax.tree.unflatten(treedef, leaves)
+    dynamic, static = eqx.partition(system, eqx.is_array)
+    if system_axis is None:
+        dynamic = jax.tree.map(lambda x: jnp.broadcast_to(x, batch_shape + jnp.shape(x)), dynamic)
+
+    theta0 = []
+    for f in fitted:
+        value = np.asarray(leaves[f.index], float)
+        value = np.broadcast_to(value, batch_shape + f.shape) if system_axis is None else value
+        if f.kind == "free":
+            theta0.append(jnp.asarray(value, dtype))
+        else:
+            flat = value.reshape((-1,) + f.shape)
+            theta = np.stack([_from_inertia(x, f.kind == "tensor", realisable) for x in flat])
+            theta0.append(jnp.asarray(theta.reshape(batch_shape + theta.shape[1:]), dtype))
+    inertia_leaf = next((f for f in fitted if f.kind != "free"), None)
+    gauge = (
+        m0 is None
+        and inertia_leaf is not None
+        and (system.potential is None or any(f.kind == "free" for f in fitted))
+    )
+    if gauge and trace is None:
+        guess = np.asarray(leaves[inertia_leaf.index], float)
+        guess = np.broadcast_to(guess, batch_shape + inertia_leaf.shape) if system_axis is None else guess
+        trace = np.trace(guess, axis1=-2, axis2=-1) if inertia_leaf.kind == "tensor" else guess.sum(-1)
+    trace = jnp.asarray(trace, dtype) if gauge else None
+
+    if gtol is None:
+        # float32: the gradient's round-off floor (≈ 2e-5 at the optimum of a 400-step
+        # HLW fit, measured) must lie below the tolerance.
+        gtol = 1e-11 if jnp.finfo(dtype).bits >= 64 else 1e-4
+    if identifiability_rtol is None:
+        identifiability_rtol = float(jnp.finfo(dtype).eps) ** (1 / 3)
+    if horizons is None:
+        horizons = tuple(min(4 * 2**i, n_samples) for i in range(int(np.ceil(np.log2(max(n_samples / 4, 1)))) + 1))
+    horizons = tuple(int(x) for x in horizons)
+    if not horizons or horizons[-1] != n_samples or any(b <= a for a, b in zip(horizons, horizons[1:])) or horizons[0] < 2:
+        raise ValueError(
+            f"`horizons` must increase from ≥ 2 to the number of samples ({n_samples}), got {horizons}."
+        )
+
+    cast = lambda x: None if x is None else jnp.asarray(x, dtype)
+    n_bodies = int(np.prod(batch_shape)) if batch_shape else 1
+    flat = lambda x: None if x is None else jnp.reshape(x, (n_bodies,) + jnp.shape(x)[len(batch_shape) :])
+    data = dict(
+        orientations=cast(orientations),
+        angular_velocities=cast(angular_velocities),
+        m0=cast(m0),
+        g0=cast(g0),
+        trace=trace,
+        weights=tuple(map(cast, weights)),
+    )
+    data = jax.tree.map(flat, data)
+    dynamic = jax.tree.map(flat, dynamic)
+    theta0 = [flat(t) for t in theta0]
+
+    config = _Config(
+        static=static,
+        fitted=fitted,
+        integrator=integrator,
+        sample_every=int(sample_every),
+        n_samples=int(n_samples),
+        realisable=bool(realisable),
+        optimizer=optimizer,
+        learning_rate=float(learning_rate),
+        max_iters=int(max_iters),
+        gtol=float(gtol),
+        horizons=horizons,
+        rtol=float(identifiability_rtol),
+    )
+    h = jnp.asarray(h, dtype)
+    carry = _start(config, theta0, dynamic, data, h)
+    if check_every is None:
+        check_every = 20 if n_bodies >= 64 else int(max_iters)
+    carry = _iterate(config, int(check_every), carry, dynamic, data, h)
+    out = _finish(config, carry, dynamic, data, h)
+    out = jax.tree.map(lambda x: jnp.reshape(x, batch_shape + jnp.shape(x)[1:]), out)
+    fitted_system = _replace_leaves(config, eqx.combine(out.system, static), out.params)
+    flag_tree = _replace_leaves(config, eqx.combine(out.system, static), out.identifiable)
+    return eqx.tree_at(
+        lambda f: (f.system, f.params, f.identifiable),
+        out,
+        (fitted_system, params(fitted_system), params(flag_tree)),
+        is_leaf=lambda x: x is None,
+    )
+
+
+def _replace_leaves(config, system, values):
+    leaves, treedef = jax.tree.flatten(system)
+    for f, v in zip(config.fitted, values):
+        leaves[f.index] = v
+    return jax.tree.unflatten(treedef, leaves)
 
 
 def fit_inertia(
@@ -143,143 +537,68 @@ def fit_inertia(
     horizons: tuple[int, ...] | None = None,
     orientation_weight=1.0,
     velocity_weight=1.0,
-) -> InertiaFit:
-    """Fit the inertia (and Π₀, g₀ when unknown) of rigid bodies to observations.
+    identifiability_rtol: float | None = None,
+    check_every: int | None = None,
+) -> SystemFit:
+    """Fit the inertia (and Π₀, g₀ when unknown) of free rigid bodies to observations.
 
-    Sample `k` (`k = 0, …, S − 1`) is taken at step `k·sample_every`, time `k·sample_every·h`.
-    Leading batch axes on the observations fit many bodies at once in one compiled call
-    (`jax.vmap` of the whole optimisation); the other arrays are shared or carry the same
-    batch axes.
+    `fit_system(lievi.RigidBody(inertia), …, params=lambda s: s.inertia)`; see `fit_system`
+    for every argument and the report.
 
-    **Arguments:**
+    **Arguments** (beyond `fit_system`'s):
 
-    - `orientations`: observed attitudes `R_k ∈ SO(3)`, shape `(*batch, S, 3, 3)` (noisy
-      rotation vectors `r_k` become `lievi.SO3.exp(r_k)`).
-    - `angular_velocities`: observed body angular velocities `Ω_k = I⁻¹Π_k`, `(*batch, S, 3)`.
-      Give at least one of the two.
-    - `h`, `sample_every`: step size of the model and steps between samples.
-    - `inertia`: initial guess, principal moments `(3,)` (or a tensor `(3, 3)` with `tensor=True`).
-    - `m0`: the known initial body momentum, or `None` to fit it (initial guess from the
-      first two samples). Then the gauge is fixed by holding the trace of the inertia.
-    - `g0`: the known initial orientation, or `None` to fit it (initial guess `R_0`).
+    - `inertia`: initial guess, principal moments `(3,)` (or a tensor `(3, 3)` with
+      `tensor=True`), shared or one per body `(*batch, 3)`.
     - `tensor`: fit a full SPD tensor (6 parameters) instead of principal moments (3).
-    - `realisable`: constrain to physically realisable inertias (triangle inequalities).
-    - `trace`: the gauge, used only when `m0 is None`; default the trace of `inertia`.
-    - `integrator`: the model integrator (default `DEP()`, exponential chart).
-    - `optimizer`: `"lbfgs"` (`optax.lbfgs`, zoom line search), `"adam"` (`optax.adam` at
-      `learning_rate`), or any `optax.GradientTransformation` (used as `update(g, s, p)`).
-    - `max_iters`, `gtol`: stop when `‖∇loss‖_∞ ≤ gtol` (gradient in the unconstrained
-      parameters; default 1e-11 in float64, 1e-4 in float32 — where round-off in a
-      400-step simulation already puts the gradient at the optimum near 2e-5) or after
-      `max_iters`.
-    - `horizons`: continuation in the observed horizon. Over many periods the loss is far
-      from convex in the inertia (a wrong inertia puts the trajectory out of phase), so the
-      fit first uses only the first `horizons[0]` samples, then the first `horizons[1]`, …,
-      each stage started from the previous one's solution and run until
-      `‖∇loss‖_∞ ≤ √gtol` (the last stage: `gtol`). Default: 4, 8, 16, … up to `S`. One
-      compilation for all stages (the stage only changes a mask).
-    - `orientation_weight`, `velocity_weight`: `w_R`, `w_Ω` of the loss: scalars, or one
-      weight per sample, shape `(S,)` or `(*batch, S)`. With Gaussian noise of known size
-      `σ_k` on sample `k`, `w_k = 1/σ_k²` makes the fit the maximum-likelihood estimate.
 
-    **Returns:** an `InertiaFit`.
+    **Returns:** a `SystemFit` (`fit.inertia` is the fitted inertia).
     """
-    if orientations is None and angular_velocities is None:
-        raise ValueError("Give `orientations` and/or `angular_velocities` to fit to.")
-    if g0 is None and orientations is None:
-        raise ValueError("`g0` is needed when no `orientations` are observed.")
-    if isinstance(sample_every, bool) or not isinstance(sample_every, (int, np.integer)) or sample_every < 1:
-        raise ValueError(f"`sample_every` must be an integer ≥ 1, got {sample_every!r}.")
-    if isinstance(max_iters, bool) or not isinstance(max_iters, (int, np.integer)) or max_iters < 1:
-        raise ValueError(f"`max_iters` must be an integer ≥ 1, got {max_iters!r}.")
-    if isinstance(optimizer, str) and optimizer not in ("lbfgs", "adam"):
-        raise ValueError(f"`optimizer` must be 'lbfgs', 'adam' or an optax transformation, got {optimizer!r}.")
-
     obs = orientations if orientations is not None else angular_velocities
-    obs_core = 3 if orientations is not None else 2
-    batch_shape = jnp.shape(obs)[: jnp.ndim(obs) - obs_core]
-    n_samples = jnp.shape(obs)[len(batch_shape)]
-    if n_samples < 2:
-        raise ValueError(f"need at least 2 samples per body, got {n_samples}.")
-    if orientations is not None:
-        _check_trailing("orientations", orientations, batch_shape, (n_samples, 3, 3))
-    if angular_velocities is not None:
-        _check_trailing("angular_velocities", angular_velocities, batch_shape, (n_samples, 3))
-    inertia_core = (3, 3) if tensor else (3,)
-    inertia = _batched("inertia", inertia, batch_shape, inertia_core)
-    m0 = None if m0 is None else _batched("m0", m0, batch_shape, (3,))
-    g0 = None if g0 is None else _batched("g0", g0, batch_shape, (3, 3))
-    trace = None if trace is None else _batched("trace", trace, batch_shape, ())
-    weights = []
-    for name, w in (("orientation_weight", orientation_weight), ("velocity_weight", velocity_weight)):
-        w = jnp.broadcast_to(w, (n_samples,)) if jnp.ndim(w) == 0 else w
-        w = _batched(name, w, batch_shape, (n_samples,))
-        check_finite(name, w)
-        if is_concrete(w) and np.any(np.asarray(w) < 0):
-            raise ValueError(f"`{name}` must be ≥ 0.")
-        weights.append(w)
-
-    dtype = jnp.result_type(*[x for x in (orientations, angular_velocities, inertia, m0, g0, h) if x is not None], float)
-    cast = lambda x: None if x is None else jnp.asarray(x, dtype)  # noqa: E731
-    orientations, angular_velocities, m0, g0, trace = map(cast, (orientations, angular_velocities, m0, g0, trace))
-    weights = tuple(map(cast, weights))
+    if obs is None:
+        raise ValueError("Give `orientations` and/or `angular_velocities` to fit to.")
+    core = (3, 3) if tensor else (3,)
+    batch_shape = tuple(jnp.shape(obs)[: jnp.ndim(obs) - (3 if orientations is not None else 2)])
+    inertia = _batched("inertia", inertia, batch_shape, core)
     if not is_concrete(inertia):
         raise ValueError("`inertia` (the initial guess) must be a concrete array, not traced.")
     check_finite("inertia", inertia)
-    theta0 = np.apply_along_axis(
-        lambda x: _from_inertia(x.reshape(inertia_core), tensor, realisable),
-        -1,
-        np.asarray(inertia).reshape(batch_shape + (-1,)),
-    )
-    if trace is None and m0 is None:
-        guess = np.asarray(inertia, float)
-        trace = jnp.asarray(np.trace(guess, axis1=-2, axis2=-1) if tensor else guess.sum(-1), dtype)
-    if gtol is None:
-        # float32: the gradient's round-off floor (≈ 2e-5 at the optimum of a 400-step
-        # HLW fit, measured) must lie below the tolerance.
-        gtol = 1e-11 if jnp.finfo(dtype).bits >= 64 else 1e-4
-    if horizons is None:
-        horizons = tuple(min(4 * 2**i, n_samples) for i in range(int(np.ceil(np.log2(max(n_samples / 4, 1)))) + 1))
-    horizons = tuple(int(x) for x in horizons)
-    if not horizons or horizons[-1] != n_samples or any(b <= a for a, b in zip(horizons, horizons[1:])) or horizons[0] < 2:
-        raise ValueError(
-            f"`horizons` must increase from ≥ 2 to the number of samples ({n_samples}), got {horizons}."
-        )
-
-    static = dict(
-        integrator=integrator,
-        sample_every=int(sample_every),
-        n_samples=int(n_samples),
-        tensor=tensor,
-        realisable=realisable,
-        optimizer=optimizer,
-        learning_rate=learning_rate,
-        max_iters=int(max_iters),
-        gtol=float(gtol),
-        horizons=horizons,
-    )
-    return _run(
-        tuple(sorted(static.items())),
-        len(batch_shape),
-        jnp.asarray(theta0, dtype),
+    if jnp.shape(inertia) == core:
+        system, axis = RigidBody(jnp.asarray(np.asarray(inertia, float)) if tensor else inertia), None
+        _from_inertia(inertia, tensor, realisable)  # the guess's own error message first
+    else:
+        flat = np.asarray(inertia, float).reshape((-1,) + core)
+        for x in flat:
+            _from_inertia(x, tensor, realisable)
+        make = RigidBody
+        for _ in batch_shape:
+            make = jax.vmap(make)
+        system, axis = make(jnp.asarray(inertia)), 0
+    return fit_system(
+        system,
         orientations,
         angular_velocities,
-        m0,
-        g0,
-        trace,
-        weights,
-        jnp.asarray(h, dtype),
+        h=h,
+        sample_every=sample_every,
+        params=lambda s: s.inertia,
+        m0=m0,
+        g0=g0,
+        system_axis=axis,
+        realisable=realisable,
+        trace=trace,
+        integrator=integrator,
+        optimizer=optimizer,
+        learning_rate=learning_rate,
+        max_iters=max_iters,
+        gtol=gtol,
+        horizons=horizons,
+        orientation_weight=orientation_weight,
+        velocity_weight=velocity_weight,
+        identifiability_rtol=identifiability_rtol,
+        check_every=check_every,
     )
 
 
-@eqx.filter_jit
-def _run(static: tuple, n_batch: int, *args):
-    # `static` (hashable: integrator, flags, optimiser) and `n_batch` are compile-time
-    # constants, so repeated fits of the same shapes reuse one compilation.
-    fit = functools.partial(_fit_one, **dict(static))
-    for _ in range(n_batch):  # every argument but h carries the batch axes
-        fit = jax.vmap(fit, in_axes=(0, 0, 0, 0, 0, 0, 0, None))
-    return fit(*args)
+# ---- argument helpers -----------------------------------------------------------------
 
 
 def _check_trailing(name, x, batch_shape, core):
@@ -289,6 +608,23 @@ def _check_trailing(name, x, batch_shape, core):
             f"{core}), got {tuple(jnp.shape(x))}."
         )
     check_finite(name, x)
+
+
+def _check_rotations(name, x, group):
+    """Every `(n, n)` matrix of `x` in the group (orthogonal, det +1) to 1e-6 (float64)."""
+    if not is_concrete(x):
+        return
+    x = np.asarray(x)
+    tol = max(1e-6, 100 * float(np.finfo(x.dtype).eps)) if np.issubdtype(x.dtype, np.floating) else 1e-6
+    with jax.ensure_compile_time_eval():
+        defect = np.asarray(group.membership_defect(jnp.asarray(x, float)))
+    if np.any(defect > tol):
+        worst = np.unravel_index(np.argmax(defect), defect.shape)
+        raise ValueError(
+            f"`{name}` must hold rotation matrices (orthogonal, det +1); entry {tuple(int(i) for i in worst)} "
+            f"has membership defect {float(defect.max()):.3g} > {tol:.1g}. Orthonormalise with a "
+            "QR or polar decomposition, or build them with lievi.SO3.exp(rotation_vectors)."
+        )
 
 
 def _batched(name, x, batch_shape, core):
@@ -304,177 +640,357 @@ def _batched(name, x, batch_shape, core):
     )
 
 
-def _fit_one(
-    theta0,
-    orientations,
-    angular_velocities,
-    m0_known,
-    g0_known,
-    trace,
-    weights,
-    h,
-    *,
-    integrator,
-    sample_every,
-    n_samples,
-    tensor,
-    realisable,
-    optimizer,
-    learning_rate,
-    max_iters,
-    gtol,
-    horizons,
-):
-    dtype = theta0.dtype
-    n_steps = (n_samples - 1) * sample_every
-    w_orientation, w_velocity = weights  # per sample, (S,)
+# ---- one body: model, loss, optimiser state -------------------------------------------
 
-    def inertia_of(params):
-        inertia = _to_inertia(params["theta"], tensor, realisable)
-        if m0_known is None:  # gauge: fix the trace (see the module docstring)
-            inertia = inertia * (trace / _trace(inertia))
-        return inertia
 
-    def g0_of(params):
-        return g0_known if g0_known is not None else orientations[0] @ SO3.exp(params["g0_chart"])
+class _Config(eqx.Module):
+    """Everything static about a fit (hashable: one compilation per configuration)."""
 
-    def m0_of(params):
-        return m0_known if m0_known is not None else params["m0"]
+    static: AbstractLieSystem = eqx.field(static=True)
+    fitted: tuple = eqx.field(static=True)
+    integrator: AbstractIntegrator = eqx.field(static=True)
+    sample_every: int = eqx.field(static=True)
+    n_samples: int = eqx.field(static=True)
+    realisable: bool = eqx.field(static=True)
+    optimizer: object = eqx.field(static=True)
+    learning_rate: float = eqx.field(static=True)
+    max_iters: int = eqx.field(static=True)
+    gtol: float = eqx.field(static=True)
+    horizons: tuple = eqx.field(static=True)
+    rtol: float = eqx.field(static=True)
 
-    sample_index = jnp.arange(n_samples)
+    # -- the model
+    def leaf_values(self, theta, data):
+        """Physical values of the fitted leaves from unconstrained θ (gauge applied)."""
+        values = []
+        for f, t in zip(self.fitted, theta):
+            if f.kind == "free":
+                values.append(t)
+                continue
+            inertia = _to_inertia(t, f.kind == "tensor", self.realisable)
+            if data["trace"] is not None:  # the gauge (see the module docstring)
+                inertia = inertia * (data["trace"] / _trace(inertia))
+            values.append(inertia)
+        return values
 
-    def loss_terms(params, horizon):
+    def system_of(self, values, dynamic):
+        system = eqx.combine(dynamic, self.static)
+        leaves, treedef = jax.tree.flatten(system)
+        for f, v in zip(self.fitted, values):
+            leaves[f.index] = v
+        return jax.tree.unflatten(treedef, leaves)
+
+    def residuals(self, system, m0, g0, data, h, horizon):
+        """Weighted residual vector, failed-sample penalty, count of failed samples, result."""
+        n_steps = (self.n_samples - 1) * self.sample_every
+        sol = simulate(system, self.integrator, g0, m0, h=h, n_steps=n_steps, save_every=self.sample_every, throw=False)
+        dtype = sol.m.dtype
+        valid = jnp.all(jnp.isfinite(sol.m), axis=-1) & jnp.all(jnp.isfinite(sol.g), axis=(-2, -1))
+        counted = (jnp.arange(self.n_samples) < horizon).astype(dtype)
+        parts, penalty = [], jnp.zeros((), dtype)
+        w_orientation, w_velocity = data["weights"]
+        if data["orientations"] is not None:
+            R = data["orientations"]
+            # double where: a failed (NaN) sample never enters arithmetic, so no NaN gradient
+            g = jnp.where(valid[:, None, None], sol.g, R)
+            weight = w_orientation * counted / jnp.sum(counted)  # weighted mean over this stage
+            parts.append((jnp.sqrt(weight)[:, None, None] * (g - R)).ravel())
+            penalty = penalty + jnp.sum(jnp.where(valid, 0.0, weight * _ORIENTATION_PENALTY))
+        if data["angular_velocities"] is not None:
+            W = data["angular_velocities"]
+            m = jnp.where(valid[:, None], sol.m, 0.0)
+            omega = jnp.where(valid[:, None], jax.vmap(system.velocity)(m), W)
+            weight = w_velocity * counted / jnp.sum(counted)
+            parts.append((jnp.sqrt(weight)[:, None] * (omega - W)).ravel())
+            worst = 4 * jnp.max(jnp.sum(W**2, axis=-1))
+            penalty = penalty + jnp.sum(jnp.where(valid, 0.0, weight * worst))
+        failed = jnp.sum(~valid & (counted > 0)).astype(jnp.int32)
+        return jnp.concatenate(parts), penalty, failed, sol.result
+
+    def unpack(self, params, dynamic, data):
+        values = self.leaf_values(params["theta"], data)
+        m0 = data["m0"] if data["m0"] is not None else params["m0"]
+        g0 = data["g0"] if data["g0"] is not None else data["orientations"][0] @ SO3.exp(params["g0_chart"])
+        return values, m0, g0
+
+    def loss_terms(self, params, dynamic, data, h, horizon):
         # optax's zoom line search scales by a float64 step size when x64 is on, which
         # would promote float32 trial points (and the whole simulation) to float64.
+        dtype = h.dtype
         params = jax.tree.map(lambda x: x.astype(dtype), params)
-        counted = sample_index < horizon
-        inertia = inertia_of(params)
-        body = RigidBody(inertia)
-        sol = simulate(
-            body, integrator, g0_of(params), m0_of(params), h=h, n_steps=n_steps, save_every=sample_every, throw=False
-        )
-        valid = jnp.all(jnp.isfinite(sol.m), axis=-1)
-        counted = counted.astype(dtype)
-        total = jnp.zeros((), dtype)
-        if orientations is not None:
-            # double where: a failed (NaN) sample never enters arithmetic, so no NaN gradient
-            g = jnp.where(valid[:, None, None], sol.g, orientations)
-            err = jnp.sum((g - orientations) ** 2, axis=(-2, -1))
-            weight = w_orientation * counted / jnp.sum(counted)  # weighted mean over this stage
-            total = total + jnp.sum(weight * jnp.where(valid, err, _ORIENTATION_PENALTY))
-        if angular_velocities is not None:
-            m = jnp.where(valid[:, None], sol.m, 0.0)
-            omega = jax.vmap(body.velocity)(m)
-            omega = jnp.where(valid[:, None], omega, angular_velocities)
-            err = jnp.sum((omega - angular_velocities) ** 2, axis=-1)
-            penalty = 4 * jnp.max(jnp.sum(angular_velocities**2, axis=-1))
-            weight = w_velocity * counted / jnp.sum(counted)
-            total = total + jnp.sum(weight * jnp.where(valid, err, penalty))
-        return total, (jnp.sum(~valid & (counted > 0)), sol.result)
+        values, m0, g0 = self.unpack(params, dynamic, data)
+        r, penalty, failed, result = self.residuals(self.system_of(values, dynamic), m0, g0, data, h, horizon)
+        return jnp.sum(r**2) + penalty, (failed, result)
 
-    # Initial parameters. Unknown Π₀: from the first two samples, Π₀ ≈ I·Ω₀.
-    params = {"theta": theta0}
-    if m0_known is None:
-        inertia0 = inertia_of(params)
-        if orientations is not None:
-            omega0 = SO3.log(orientations[0].T @ orientations[1]) / (sample_every * h)
+    # -- the optimiser
+    def opt(self):
+        if isinstance(self.optimizer, str) and self.optimizer == "lbfgs":
+            return optax.lbfgs()
+        if isinstance(self.optimizer, str):
+            return optax.adam(self.learning_rate)
+        return self.optimizer
+
+    @property
+    def use_lbfgs(self):
+        return isinstance(self.optimizer, str) and self.optimizer == "lbfgs"
+
+    @property
+    def stage_gtol(self):
+        return max(self.gtol, np.sqrt(self.gtol)) if len(self.horizons) > 1 else self.gtol
+
+
+def _gnorm(grad):
+    return jnp.max(jnp.stack([jnp.max(jnp.abs(g)) for g in jax.tree.leaves(grad)]))
+
+
+def _measure(config, params, dynamic, data, h, stage):
+    horizon = jnp.asarray(config.horizons)[stage]
+    grad_fn = jax.value_and_grad(config.loss_terms, has_aux=True)
+    (value, (failed, result)), grad = grad_fn(params, dynamic, data, h, horizon)
+    return value, failed, result, _gnorm(grad)
+
+
+def _stage_done(config, value, failed, gnorm, stage):
+    last = len(config.horizons) - 1
+    tol = jnp.where(stage == last, config.gtol, config.stage_gtol)
+    return (gnorm <= tol) & (failed == 0) & jnp.isfinite(value)
+
+
+class _Carry(eqx.Module):
+    params: dict
+    opt_state: object
+    stage: Array
+    it: Array
+    history: Array
+    failed_history: Array
+    done: Array  # the current stage's stopping test holds
+
+    def finished(self, config):
+        last = len(config.horizons) - 1
+        return (self.done & (self.stage == last)) | (self.it >= config.max_iters)
+
+
+def _start_one(config, theta0, dynamic, data, h):
+    dtype = h.dtype
+    params = {"theta": list(theta0)}
+    if data["m0"] is None:  # unknown Π₀: from the first two samples, Π₀ ≈ legendre(Ω₀)
+        values = config.leaf_values(params["theta"], data)
+        system = config.system_of(values, dynamic)
+        if data["orientations"] is not None:
+            R = data["orientations"]
+            omega0 = SO3.log(R[0].T @ R[1]) / (config.sample_every * h)
         else:
-            omega0 = angular_velocities[0]
-        params["m0"] = inertia0 @ omega0 if inertia0.ndim == 2 else inertia0 * omega0
-    if g0_known is None:
+            omega0 = data["angular_velocities"][0]
+        params["m0"] = system.legendre(omega0).astype(dtype)
+    if data["g0"] is None:
         params["g0_chart"] = jnp.zeros(3, dtype)
-
-    use_lbfgs = isinstance(optimizer, str) and optimizer == "lbfgs"
-    if use_lbfgs:
-        opt = optax.lbfgs()
-
-        def update(params, state, horizon):
-            loss = lambda p: loss_terms(p, horizon)[0]  # noqa: E731
-            value, grad = optax.value_and_grad_from_state(loss)(params, state=state)
-            updates, state = opt.update(grad, state, params, value=value, grad=grad, value_fn=loss)
-            return optax.apply_updates(params, updates), state
-
-    else:
-        opt = optax.adam(learning_rate) if isinstance(optimizer, str) else optimizer
-
-        def update(params, state, horizon):
-            grad = jax.grad(lambda p: loss_terms(p, horizon)[0])(params)
-            updates, state = opt.update(grad, state, params)
-            return optax.apply_updates(params, updates), state
-
-    value_grad_aux = jax.value_and_grad(loss_terms, has_aux=True)
-    horizon_of = jnp.asarray(horizons)
-    last_stage = len(horizons) - 1
-    stage_gtol = max(gtol, np.sqrt(gtol)) if len(horizons) > 1 else gtol
-
-    def measure(params, stage):
-        (value, (failed, result)), grad = value_grad_aux(params, horizon_of[stage])
-        gnorm = jnp.max(jnp.stack([jnp.max(jnp.abs(g)) for g in jax.tree.leaves(grad)]))
-        return value, failed.astype(jnp.int32), result, gnorm
-
-    def stage_done(value, failed, gnorm, stage):
-        tol = jnp.where(stage == last_stage, gtol, stage_gtol)
-        return (gnorm <= tol) & (failed == 0) & jnp.isfinite(value)
-
-    history = jnp.full(max_iters + 1, jnp.nan, dtype)
-    failed_history = jnp.full(max_iters + 1, -1, jnp.int32)
     stage = jnp.asarray(0, jnp.int32)
-    value, failed, result, gnorm = measure(params, stage)
-    init = (
-        params,
-        opt.init(params),
-        stage,
-        jnp.asarray(0, jnp.int32),
-        history.at[0].set(value),
-        failed_history.at[0].set(failed),
-        stage_done(value, failed, gnorm, stage),
+    value, failed, _, gnorm = _measure(config, params, dynamic, data, h, stage)
+    return _Carry(
+        params=params,
+        opt_state=config.opt().init(params),
+        stage=stage,
+        it=jnp.asarray(0, jnp.int32),
+        history=jnp.full(config.max_iters + 1, jnp.nan, dtype).at[0].set(value),
+        failed_history=jnp.full(config.max_iters + 1, -1, jnp.int32).at[0].set(failed),
+        done=_stage_done(config, value, failed, gnorm, stage),
     )
 
-    def cond(carry):
-        _, _, stage, it, _, _, done = carry
-        return ~(done & (stage == last_stage)) & (it < max_iters)
 
-    def body(carry):
-        params, opt_state, stage, it, history, failed_history, done = carry
+def _advance_one(config, n_iters, carry, dynamic, data, h):
+    """Up to `n_iters` more optimiser iterations (fewer if the fit finishes)."""
+    opt = config.opt()
+    last = len(config.horizons) - 1
+    horizon_of = jnp.asarray(config.horizons)
+    stop_at = carry.it + n_iters
+
+    def loss_at(horizon):
+        return lambda p: config.loss_terms(p, dynamic, data, h, horizon)[0]
+
+    def update(params, state, horizon):
+        loss = loss_at(horizon)
+        if config.use_lbfgs:
+            value, grad = optax.value_and_grad_from_state(loss)(params, state=state)
+            updates, state = opt.update(grad, state, params, value=value, grad=grad, value_fn=loss)
+        else:
+            updates, state = opt.update(jax.grad(loss)(params), state, params)
+        return optax.apply_updates(params, updates), state
+
+    def cond(c):
+        return ~c.finished(config) & (c.it < stop_at)
+
+    def body(c):
         # A finished stage hands its solution to the next, longer horizon (fresh optimiser
         # state: the loss has changed).
-        advance = done & (stage < last_stage)
-        stage = jnp.where(advance, stage + 1, stage)
-        fresh = opt.init(params)
-        opt_state = jax.tree.map(lambda a, b: jnp.where(advance, a, b), fresh, opt_state)
-        params, opt_state = update(params, opt_state, horizon_of[stage])
-        if use_lbfgs:
+        advance = c.done & (c.stage < last)
+        stage = jnp.where(advance, c.stage + 1, c.stage)
+        fresh = opt.init(c.params)
+        opt_state = jax.tree.map(lambda a, b: jnp.where(advance, a, b), fresh, c.opt_state)
+        params, opt_state = update(c.params, opt_state, horizon_of[stage])
+        if config.use_lbfgs:
             # The line search already evaluated loss and gradient at the accepted point.
             value = optax.tree.get(opt_state, "value")
-            grad = optax.tree.get(opt_state, "grad")
-            gnorm = jnp.max(jnp.stack([jnp.max(jnp.abs(g)) for g in jax.tree.leaves(grad)]))
-            failed = loss_terms(params, horizon_of[stage])[1][0].astype(jnp.int32)
+            gnorm = _gnorm(optax.tree.get(opt_state, "grad"))
+            failed = config.loss_terms(params, dynamic, data, h, horizon_of[stage])[1][0]
         else:
-            value, failed, _, gnorm = measure(params, stage)
-        it = it + 1
-        return (
-            params,
-            opt_state,
-            stage,
-            it,
-            history.at[it].set(value),
-            failed_history.at[it].set(failed),
-            stage_done(value, failed, gnorm, stage),
+            value, failed, _, gnorm = _measure(config, params, dynamic, data, h, stage)
+        it = c.it + 1
+        return _Carry(
+            params=params,
+            opt_state=opt_state,
+            stage=stage,
+            it=it,
+            history=c.history.at[it].set(value),
+            failed_history=c.failed_history.at[it].set(failed),
+            done=_stage_done(config, value, failed, gnorm, stage),
         )
 
-    params, _, stage, iterations, history, failed_history, done = jax.lax.while_loop(cond, body, init)
-    converged = done & (stage == last_stage)
-    value, failed, result, _ = measure(params, jnp.asarray(last_stage, jnp.int32))
-    return InertiaFit(
-        inertia=inertia_of(params),
-        m0=m0_of(params),
-        g0=g0_of(params),
+    return jax.lax.while_loop(cond, body, carry)
+
+
+def _identifiability(config, params, dynamic, data, h):
+    """Singular values of the column-scaled residual Jacobian (in the physical fitted
+    parameters, restricted to the gauge) and, per parameter entry, whether it lies off
+    every (near-)null direction."""
+    dtype = h.dtype
+    values, m0, g0 = config.unpack(params, dynamic, data)
+    physical = {"values": values}
+    if data["m0"] is None:
+        physical["m0"] = m0
+    if data["g0"] is None:
+        physical["g0_chart"] = params["g0_chart"].astype(dtype)
+    flat, unravel = ravel_pytree(physical)
+    horizon = config.horizons[-1]
+
+    def residual(p):
+        phys = unravel(p)
+        # a tensor is perturbed symmetrically (its lower entries mirror the upper ones)
+        vals = [
+            jnp.triu(v) + jnp.triu(v, 1).T if f.kind == "tensor" else v for f, v in zip(config.fitted, phys["values"])
+        ]
+        m = phys.get("m0", m0)
+        g = g0 if "g0_chart" not in phys else data["orientations"][0] @ SO3.exp(phys["g0_chart"])
+        return config.residuals(config.system_of(vals, dynamic), m, g, data, h, horizon)[0]
+
+    def marks(kind_value):
+        """A vector over the physical coordinates from one array per fitted leaf."""
+        tree = {"values": [kind_value(f) for f in config.fitted]}
+        for key in ("m0", "g0_chart"):
+            if key in physical:
+                tree[key] = np.zeros(jnp.shape(physical[key]))
+        return np.concatenate([np.ravel(np.asarray(x, float)) for x in jax.tree.leaves(tree)])  # ravel_pytree's order
+
+    # Admissible perturbations: upper-triangular entries of tensors; with the gauge, the
+    # inertia's trace held.
+    lower = marks(lambda f: np.tril(np.ones((3, 3)), -1) if f.kind == "tensor" else np.zeros(f.shape))
+    keep = np.flatnonzero(lower == 0)
+    basis = np.eye(flat.shape[0])[:, keep]
+    if data["trace"] is not None:
+        c = marks(lambda f: np.eye(3) if f.kind == "tensor" else np.ones(f.shape) * (f.kind == "moments"))[keep]
+        _, _, vt = np.linalg.svd(c[None, :])
+        basis = basis @ vt[1:].T  # an orthonormal basis of the trace-preserving directions
+    basis = jnp.asarray(basis, dtype)
+    jacobian = jax.jacfwd(residual)(flat)
+    sensitivity = jnp.linalg.norm(jacobian, axis=0)  # per physical coordinate
+    J = jacobian @ basis
+    scale = jnp.linalg.norm(J, axis=0)
+    dead = scale == 0
+    scale = jnp.where(dead, 1.0, scale)
+    _, s, vt = jnp.linalg.svd(J / scale, full_matrices=False)
+    full_rank = jnp.all(s > config.rtol * s[0]) & ~jnp.any(dead)
+    null = jnp.where((s <= config.rtol * s[0])[:, None], vt, 0.0)  # near-null directions, scaled
+    null = (null / scale) @ basis.T  # in the physical coordinates
+    # Each physical coordinate in units of its own sensitivity; each direction normalised.
+    weighted = null * jnp.where(sensitivity > 0, sensitivity, 1.0)
+    weighted = weighted / jnp.maximum(jnp.linalg.norm(weighted, axis=1, keepdims=True), jnp.finfo(dtype).tiny)
+    moved = (jnp.max(jnp.abs(weighted), axis=0) > 0.05) | (sensitivity == 0)
+    moved = unravel(moved.astype(dtype))
+    moved["values"] = [
+        (v + v.T) > 0 if f.kind == "tensor" else v > 0 for f, v in zip(config.fitted, moved["values"])
+    ]
+    flags = jax.tree.map(lambda x: ~(x > 0), moved)
+    condition = jnp.where(full_rank, s[0] / s[-1], jnp.inf)
+    return flags, s, condition, full_rank
+
+
+def _finish_one(config, carry, dynamic, data, h):
+    last = jnp.asarray(len(config.horizons) - 1, jnp.int32)
+    value, failed, result, _ = _measure(config, carry.params, dynamic, data, h, last)
+    values, m0, g0 = config.unpack(carry.params, dynamic, data)
+    flags, s, condition, full_rank = _identifiability(config, carry.params, dynamic, data, h)
+    optimised = carry.done & (carry.stage == last)
+    reason = jnp.select(
+        [~jnp.isfinite(value), failed > 0, ~full_rank, optimised],
+        [FIT_REASONS.nonfinite, FIT_REASONS.failed_samples, FIT_REASONS.unidentifiable, FIT_REASONS.converged],
+        FIT_REASONS.max_iters,
+    ).astype(jnp.int32)
+    # `system`, `params`, `identifiable` are assembled outside the compiled function (the
+    # user's `where` is not part of the compilation key): here the fitted leaves' values
+    # and flags.
+    return SystemFit(
+        system=dynamic,
+        params=values,
+        m0=m0,
+        g0=g0,
         loss=value,
-        loss_history=history,
-        failed_history=failed_history,
+        loss_history=carry.history,
+        failed_history=carry.failed_history,
         failed_samples=failed,
-        iterations=iterations,
-        converged=converged,
+        iterations=carry.it,
+        converged=reason == FIT_REASONS.converged,
+        reason=reason,
+        identifiable=flags["values"],
+        identifiable_m0=flags.get("m0"),
+        identifiable_g0=flags.get("g0_chart"),
+        singular_values=s,
+        condition=condition,
         result=result,
     )
 
+
+# ---- the batch: compiled stages, finished bodies leave between rounds -----------------
+
+
+@eqx.filter_jit
+def _start(config, theta0, dynamic, data, h):
+    return jax.vmap(lambda t, dyn, dat: _start_one(config, t, dyn, dat, h))(theta0, dynamic, data)
+
+
+@eqx.filter_jit
+def _advance(config, n_iters, carry, dynamic, data, h):
+    return jax.vmap(lambda c, dyn, dat: _advance_one(config, n_iters, c, dyn, dat, h))(carry, dynamic, data)
+
+
+@eqx.filter_jit
+def _finish(config, carry, dynamic, data, h):
+    return jax.vmap(lambda c, dyn, dat: _finish_one(config, c, dyn, dat, h))(carry, dynamic, data)
+
+
+def _bucket(n_active: int, n_total: int) -> int:
+    """Compiled batch sizes: the full batch, then powers of 4 (few compilations)."""
+    size = 1
+    while size < n_active:
+        size *= 4
+    return min(size, n_total)
+
+
+def _iterate(config, check_every, carry, dynamic, data, h):
+    """Run the optimiser in rounds; after each, the finished bodies leave the batch."""
+    n_total = int(carry.it.shape[0])
+    if check_every >= config.max_iters:
+        return _advance(config, config.max_iters, carry, dynamic, data, h)
+    take = lambda tree, idx: jax.tree.map(lambda x: x[idx], tree)
+    while True:
+        finished = np.asarray(carry.finished(config))
+        active = np.flatnonzero(~finished)
+        if active.size == 0:
+            return carry
+        size = _bucket(active.size, n_total)
+        idx = np.concatenate([active, np.full(size - active.size, active[0])])
+        if size == n_total and active.size == n_total:
+            sub = _advance(config, check_every, carry, dynamic, data, h)
+            carry = sub
+            continue
+        sub = _advance(config, check_every, take(carry, idx), take(dynamic, idx), take(data, idx), h)
+        sub = take(sub, np.arange(active.size))
+        carry = jax.tree.map(lambda full, part, rows=active: full.at[rows].set(part), carry, sub)

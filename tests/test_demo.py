@@ -79,7 +79,7 @@ def test_demo_subprocess():
         text=True,
         encoding="utf-8",
         env=env,
-        timeout=120,
+        timeout=600,  # a hang guard; the run compiles every integrator (slow on a loaded machine)
     )
     assert proc.returncode == 0, proc.stderr
     lines = proc.stdout.splitlines()
@@ -95,3 +95,61 @@ def test_cli_rejects_bad_arguments():
     for argv in (["demo", "--steps", "0"], ["demo", "--h", "-1"], ["demo", "--h", "nan"], []):
         with pytest.raises(SystemExit):
             parser.parse_args(argv)
+
+
+def test_demo_heavy_top(tmp_path, capsys):
+    """`--problem heavy-top`: every integrator that takes a potential, the heavy top's
+    Casimirs |Γ|² and Π·Γ kept to round-off by the Lie–Poisson integrators, the energy
+    (with V) bounded, the DEL residual (with V) at round-off."""
+    table = tmp_path / "top.json"
+    args = build_parser().parse_args(["demo", "--problem", "heavy-top", "--steps", "40", "--json", str(table)])
+    assert _demo.main(args) == 0
+    out = capsys.readouterr().out
+    assert "heavy top" in out and "Π·Γ" in out
+    document = json.loads(table.read_text(encoding="utf-8"))
+    assert document["problem"]["name"] == "asymmetric heavy top"
+    assert document["problem"]["center_of_mass"] == list(_demo.CENTER_OF_MASS)
+    rows = {row["integrator"]: row for row in document["rows"]}
+    expected = [name for name, i in _demo.INTEGRATORS if not isinstance(i, _demo.lievi.PreprocessedMoserVeselov)]
+    assert list(rows) == expected
+    for name, row in rows.items():
+        assert row["result"] == 0 and 0 < row["error_m"] < 0.1, name
+        assert 0 < row["energy_drift"] < 1e-2, name  # bounded O(h²) energy error, V included
+        if name == "RK4 (non-geometric)":
+            assert row["gamma_norm_defect"] > 1e-12  # RK4 leaves the group
+        else:
+            assert row["gamma_norm_defect"] <= 1e-12
+            assert row["vertical_momentum_drift"] <= 1e-12, name
+        if row["del_residual_max"] is not None:
+            assert row["del_residual_max"] <= 1e-12, name
+
+
+def test_demo_checks_output_paths_before_the_run(tmp_path, capsys, monkeypatch):
+    """A bad --json/--plot path is reported before any computation (exit status 2)."""
+    ran = []
+    monkeypatch.setattr(_demo, "run_integrator", lambda *a, **k: ran.append(a))
+    missing = tmp_path / "no" / "such" / "dir" / "out.json"
+    args = build_parser().parse_args(["demo", "--steps", "3", "--json", str(missing), "--plot", str(tmp_path)])
+    assert _demo.main(args) == 2
+    err = capsys.readouterr().err
+    assert "--json" in err and "does not exist" in err
+    assert "--plot" in err and "is a directory" in err
+    assert not ran
+
+
+def test_demo_bad_json_keeps_the_plot(tmp_path, capsys, monkeypatch):
+    """A --json that fails while writing (after the checks) does not lose the --plot."""
+    pytest.importorskip("matplotlib")
+
+    def fail(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(_demo, "write_json", fail)
+    plot = tmp_path / "demo.png"
+    args = build_parser().parse_args(
+        ["demo", "--steps", "3", "--json", str(tmp_path / "t.json"), "--plot", str(plot)]
+    )
+    assert _demo.main(args) == 1
+    captured = capsys.readouterr()
+    assert "disk full" in captured.err and "--json" in captured.err
+    assert plot.exists() and plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
