@@ -1,64 +1,43 @@
-"""Generate `05_heavy_top.ipynb` from the cells below.
+# ---
+# jupyter:
+#   jupytext:
+#     formats: ipynb,py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3 (ipykernel)
+#     language: python
+#     name: python3
+# ---
 
-Run from anywhere:
+# %% [markdown]
+# # 05 — The heavy top and the 3-D pendulum: potentials and broken symmetry
+#
+# A rigid body with a fixed point in uniform gravity has the Lagrangian
+# $L(g, \Omega) = \tfrac12 \Omega^\top I \Omega - m\gamma\, e_3\cdot(g\rho)$: the potential
+# breaks the symmetry of the free body down to rotations about the vertical (the paper's §7,
+# with the advected parameter $\Gamma = g^\top e_3$, the vertical seen from the body). In lievi
+# it is `lievi.heavy_top(inertia, mass, center_of_mass, gravity)`, i.e.
+# `lievi.RigidBody(inertia, potential=lievi.UniformGravity(...))`; the torque
+# $m\gamma\,\Gamma\times\rho$ comes from the potential by autodiff, and every integrator takes
+# it (the variational ones as half kick, free step, half kick).
+#
+# This notebook shows
+#
+# 1. the sleeping Lagrange top (stable above the critical spin, falling below it);
+# 2. the nutating Lagrange top, with its three exact discrete conservation laws;
+# 3. the chaotic asymmetric top, through a Poincaré section;
+# 4. the energy behaviour of every integrator over long runs;
+# 5. the 3-D (spherical) pendulum.
 
-    python notebooks/_build_05.py            # write the notebook without outputs
-    python notebooks/_build_05.py --execute  # ... and execute it at full size, saving the
-                                             # outputs (figures) so GitHub shows them
+# %% [markdown]
+# **Sizes.** With `LIEVI_NOTEBOOK_SMALL=1` (as the test suite does) the notebook runs at a
+# small size; the stored outputs are from a full-size run.
 
-`LIEVI_NOTEBOOK_SMALL=1` runs the notebook at a small size (what `tests/test_notebooks.py`
-does); do not set it with `--execute`.
-"""
-
-import os
-import sys
-from pathlib import Path
-
-import nbformat
-from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
-
-HERE = Path(__file__).resolve().parent
-TARGET = HERE / "05_heavy_top.ipynb"
-
-
-def md(text: str):
-    return new_markdown_cell(text.strip("\n"))
-
-
-def code(text: str, tags=()):
-    cell = new_code_cell(text.strip("\n"))
-    if tags:
-        cell.metadata["tags"] = list(tags)
-    return cell
-
-
-cells = [
-    md(r"""
-# 05 — The heavy top and the 3-D pendulum: potentials and broken symmetry
-
-A rigid body with a fixed point in uniform gravity has the Lagrangian
-$L(g, \Omega) = \tfrac12 \Omega^\top I \Omega - m\gamma\, e_3\cdot(g\rho)$: the potential
-breaks the symmetry of the free body down to rotations about the vertical (the paper's §7,
-with the advected parameter $\Gamma = g^\top e_3$, the vertical seen from the body). In lievi
-it is `lievi.heavy_top(inertia, mass, center_of_mass, gravity)`, i.e.
-`lievi.RigidBody(inertia, potential=lievi.UniformGravity(...))`; the torque
-$m\gamma\,\Gamma\times\rho$ comes from the potential by autodiff, and every integrator takes
-it (the variational ones as half kick, free step, half kick).
-
-This notebook shows
-
-1. the sleeping Lagrange top (stable above the critical spin, falling below it);
-2. the nutating Lagrange top, with its three exact discrete conservation laws;
-3. the chaotic asymmetric top, through a Poincaré section;
-4. the energy behaviour of every integrator over long runs;
-5. the 3-D (spherical) pendulum.
-"""),
-    md(r"""
-**Sizes.** With `LIEVI_NOTEBOOK_SMALL=1` (as the test suite does) the notebook runs at a
-small size; the stored outputs are from a full-size run.
-"""),
-    code(
-        r"""
+# %% tags=["parameters"]
 import os
 
 SMALL = os.environ.get("LIEVI_NOTEBOOK_SMALL", "0") not in ("", "0")
@@ -68,10 +47,8 @@ N_TOP = 1_000 if SMALL else 5_000  # steps of the Lagrange-top runs (T = 20 or 1
 N_CHAOS = 4_000 if SMALL else 40_000  # steps per orbit of the Poincaré section
 N_ORBITS = 3 if SMALL else 6
 N_LONG = 2_000 if SMALL else 40_000  # steps of the energy comparison (h = 0.05)
-""",
-        tags=("parameters",),
-    ),
-    code(r"""
+
+# %%
 import jax
 import jax.numpy as jnp
 import matplotlib.pyplot as plt
@@ -86,16 +63,17 @@ from lievi import diagnostics as dg
 def vertical(sol):
     # Γ = gᵀe₃: the world's vertical in body coordinates (the advected parameter)
     return np.asarray(sol.g[:, 2, :])
-"""),
-    md(r"""
-## 1. The sleeping top
 
-A symmetric top ($I_1 = I_2$, centre of mass on the symmetry axis at height $\ell$) spinning
-upright about its axis "sleeps" when the spin is fast enough, $\Pi_3^2 > 4 I_1 m\gamma\ell$
-(the Maxwell–Klein criterion): the upright state is then stable. Below it the top falls.
-Both runs start upright with a tiny transverse kick.
-"""),
-    code(r"""
+
+# %% [markdown]
+# ## 1. The sleeping top
+#
+# A symmetric top ($I_1 = I_2$, centre of mass on the symmetry axis at height $\ell$) spinning
+# upright about its axis "sleeps" when the spin is fast enough, $\Pi_3^2 > 4 I_1 m\gamma\ell$
+# (the Maxwell–Klein criterion): the upright state is then stable. Below it the top falls.
+# Both runs start upright with a tiny transverse kick.
+
+# %%
 inertia = jnp.array([1.0, 1.0, 0.4])
 mass, ell = 2.0, 0.6
 top = lievi.heavy_top(inertia, mass, jnp.array([0.0, 0.0, ell]), gravity=1.0)
@@ -113,18 +91,18 @@ ax.legend()
 plt.show()
 assert tilts[1.3].max() < 1.0  # stays upright
 assert tilts[0.7].max() > 30.0  # falls
-"""),
-    md(r"""
-## 2. The nutating Lagrange top
 
-Tilted and spinning, the axis of a Lagrange top precesses about the vertical and nods
-(nutation) between two tilts. The variational integrators are equivariant under the
-symmetry that is left — rotations about the vertical in space and about the figure axis in
-the body — so by the discrete Noether theorem they keep the vertical angular momentum
-$e_3\cdot(g\Pi) = \Pi\cdot\Gamma$ and the spin $\Pi_3$ exactly, and $|\Gamma|^2 = 1$ (the
-attitude stays a rotation), all to round-off.
-"""),
-    code(r"""
+# %% [markdown]
+# ## 2. The nutating Lagrange top
+#
+# Tilted and spinning, the axis of a Lagrange top precesses about the vertical and nods
+# (nutation) between two tilts. The variational integrators are equivariant under the
+# symmetry that is left — rotations about the vertical in space and about the figure axis in
+# the body — so by the discrete Noether theorem they keep the vertical angular momentum
+# $e_3\cdot(g\Pi) = \Pi\cdot\Gamma$ and the spin $\Pi_3$ exactly, and $|\Gamma|^2 = 1$ (the
+# attitude stays a rotation), all to round-off.
+
+# %%
 g0 = lievi.SO3.exp(jnp.array([0.5, 0.0, 0.0]))  # axis tilted by 0.5 rad
 m0 = jnp.array([0.0, 0.0, 2.5])
 sol = lievi.simulate(top, lievi.DEP(), g0, m0, h=H, n_steps=N_TOP)
@@ -146,18 +124,18 @@ axes[1].legend()
 plt.show()
 for name in ("|Γ|² − 1", "Π·Γ", "Π₃"):
     assert drifts[name].max() < 1e-12, name
-"""),
-    md(r"""
-## 3. The asymmetric top: chaos in a Poincaré section
 
-With $I = (2, 1, 2/3)$ and an off-axis centre of mass the top is not integrable. The reduced
-dynamics lives on $(\Pi, \Gamma)$ with the Casimirs $|\Gamma|^2 = 1$ and $\Pi\cdot\Gamma$ fixed,
-and the energy: a 3-dimensional level set. A Poincaré section — every crossing of
-$\Pi_2 = 0$ upwards, plotted in $(\Gamma_1, \Gamma_2)$ — shows regular orbits as curves and
-chaotic ones as scattered clouds. Orbits are started with $\Pi\cdot\Gamma = 0$ from
-different tilts, with the splitting (explicit, symmetric) at $h = 0.02$.
-"""),
-    code(r"""
+# %% [markdown]
+# ## 3. The asymmetric top: chaos in a Poincaré section
+#
+# With $I = (2, 1, 2/3)$ and an off-axis centre of mass the top is not integrable. The reduced
+# dynamics lives on $(\Pi, \Gamma)$ with the Casimirs $|\Gamma|^2 = 1$ and $\Pi\cdot\Gamma$ fixed,
+# and the energy: a 3-dimensional level set. A Poincaré section — every crossing of
+# $\Pi_2 = 0$ upwards, plotted in $(\Gamma_1, \Gamma_2)$ — shows regular orbits as curves and
+# chaotic ones as scattered clouds. Orbits are started with $\Pi\cdot\Gamma = 0$ from
+# different tilts, with the splitting (explicit, symmetric) at $h = 0.02$.
+
+# %%
 asym = lievi.heavy_top(jnp.array([2.0, 1.0, 2 / 3]), 1.0, jnp.array([0.3, -0.2, 0.5]), gravity=1.0)
 
 
@@ -184,15 +162,15 @@ for k in range(N_ORBITS):
     assert np.max(np.abs(np.sum(m * gamma, 1))) < 1e-12
 ax.set(xlabel="Γ₁", ylabel="Γ₂", aspect="equal", title="Poincaré section Π₂ = 0 ↑ of the asymmetric top")
 plt.show()
-"""),
-    md(r"""
-## 4. Energy over long runs, every integrator
 
-Symplectic (variational or Lie–Poisson splitting) integrators keep the energy error bounded
-and oscillating, with no drift, for very long times (backward error analysis); the
-non-geometric RK4 drifts. Asymmetric top, $h = 0.05$.
-"""),
-    code(r"""
+# %% [markdown]
+# ## 4. Energy over long runs, every integrator
+#
+# Symplectic (variational or Lie–Poisson splitting) integrators keep the energy error bounded
+# and oscillating, with no drift, for very long times (backward error analysis); the
+# non-geometric RK4 drifts. Asymmetric top, $h = 0.05$.
+
+# %%
 g0 = lievi.SO3.exp(jnp.array([0.4, -0.3, 0.2]))
 m0 = jnp.array([np.cos(1.1), 0.0, np.sin(1.1)])
 E0 = float(dg.energy(asym, m0, g0))
@@ -220,15 +198,15 @@ for name, err in errors.items():
     print(f"{name:28s} max |E − E₀| first tenth {err[:tenth].max():.2e}, last tenth {err[-tenth:].max():.2e}")
     if "RK4" not in name:  # bounded: no growth from the first to the last tenth
         assert err[-tenth:].max() <= 1.5 * err[:tenth].max() + 1e-13, name
-"""),
-    md(r"""
-## 5. The 3-D pendulum
 
-A slender rod on a spherical joint — the inertia about the pivot, the centre of mass far
-from it — is a spherical pendulum with a spinning bob. The tip traces the familiar rosette;
-energy stays bounded, the attitude a rotation.
-"""),
-    code(r"""
+# %% [markdown]
+# ## 5. The 3-D pendulum
+#
+# A slender rod on a spherical joint — the inertia about the pivot, the centre of mass far
+# from it — is a spherical pendulum with a spinning bob. The tip traces the familiar rosette;
+# energy stays bounded, the attitude a rotation.
+
+# %%
 length, mass = 1.0, 1.0
 inertia = jnp.array([mass * length**2 / 3, mass * length**2 / 3, 1e-2])
 pendulum = lievi.heavy_top(inertia, mass, jnp.array([0.0, 0.0, -length / 2]), gravity=9.81)
@@ -245,41 +223,3 @@ axes[1].set(xlabel="t", ylabel="(E − E₀)/|E₀|", title="relative energy err
 plt.show()
 assert np.max(np.abs(energy - energy[0])) / abs(energy[0]) < 1e-3
 assert float(jnp.max(dg.orthogonality_defect(pendulum, sol.g))) < 1e-12
-"""),
-]
-
-nb = new_notebook(
-    cells=cells,
-    metadata={
-        "kernelspec": {
-            "name": "python3",
-            "display_name": "Python 3 (ipykernel)",
-            "language": "python",
-        },
-        "language_info": {"name": "python"},
-    },
-)
-for index, cell in enumerate(nb.cells):  # stable ids: regenerating gives no spurious diff
-    cell.id = f"cell-{index:02d}"
-
-
-def execute(notebook) -> None:
-    """Execute at full size with the `python3` kernel; drop per-cell timing metadata."""
-    import nbclient
-
-    if os.environ.get("LIEVI_NOTEBOOK_SMALL", "0") not in ("", "0"):
-        raise SystemExit("unset LIEVI_NOTEBOOK_SMALL: the stored outputs are the full-size run")
-    client = nbclient.NotebookClient(
-        notebook, timeout=1800, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}
-    )
-    client.execute()
-    for cell in notebook.cells:
-        cell.metadata.pop("execution", None)
-
-
-if __name__ == "__main__":
-    nbformat.validate(nb)
-    if "--execute" in sys.argv[1:]:
-        execute(nb)
-    nbformat.write(nb, TARGET)
-    print(f"wrote {TARGET}")
