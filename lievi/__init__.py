@@ -10,6 +10,9 @@ from . import diagnostics as diagnostics
 from ._batch._simulate_batch import has_fast_path as has_fast_path
 from ._batch._simulate_batch import shard_batch as shard_batch
 from ._batch._simulate_batch import simulate_batch as simulate_batch
+from ._forcing import AbstractForcing as AbstractForcing
+from ._forcing import Control as Control
+from ._forcing import ForceLaw as ForceLaw
 from ._groups._base import MatrixLieGroup as MatrixLieGroup
 from ._groups._so3 import SO3 as SO3
 from ._groups._so3 import SO3Group as SO3Group

@@ -225,8 +225,14 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
         h_mod, angle = preprocessing(system, m0, h, self.order_)
         return PreprocessedMoserVeselov(self.order_, self.method, _prepared=(h, h_mod, angle))
 
-    def step(self, system: AbstractLieSystem, g, m, h: Scalar):
+    def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
         _check_system(system)
+        if force is not None:
+            raise ValueError(
+                "`forcing`: PreprocessedMoserVeselov is exact to its order for the free rigid "
+                "body only (its preprocessing uses the free body's energy and Casimir). Use "
+                "`lievi.Composition(lievi.MoserVeselov(), order)` or `lievi.DEP()` with forcing."
+            )
         if self.h_modified is None:
             h_mod, angle = preprocessing(system, m, h, self.order_)
         else:
