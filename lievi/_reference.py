@@ -81,7 +81,7 @@ def reference_solution(
     if piecewise:
         ys = [y0]
         for k in range(len(ts) - 1):
-            data = jax.tree.map(lambda x: jnp.asarray(x[k], jnp.float64), per_step)
+            data = jax.tree.map(lambda x, k=k: jnp.asarray(x[k], jnp.float64), per_step)
             ys.append(solve(ts[k : k + 2], ys[-1], data)[-1])
         y = np.stack(ys)
     else:
