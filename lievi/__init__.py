@@ -36,6 +36,7 @@ from ._simulate import simulate as simulate
 from ._systems._base import AbstractLieSystem as AbstractLieSystem
 from ._systems._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
 from ._systems._lie_lagrangian import LieLagrangian as LieLagrangian
+from ._systems._neural_potential import NeuralPotential as NeuralPotential
 from ._systems._potential import AbstractPotential as AbstractPotential
 from ._systems._potential import PotentialFunction as PotentialFunction
 from ._systems._potential import UniformGravity as UniformGravity
