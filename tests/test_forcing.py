@@ -382,3 +382,7 @@ def test_float32_forced_run():
     ref = lievi.simulate(body, lievi.DEP(), jnp.eye(3), M0, h=0.1, n_steps=n, forcing=lievi.Control(u.astype(jnp.float64)))
     assert sol.m.dtype == jnp.float32
     assert float(jnp.max(jnp.abs(sol.m - ref.m))) <= 1e-4
+    # A float64 constant inside a force law does not promote the float32 run.
+    law = lievi.ForceLaw(lambda t, g, m, c: -c * m / INERTIA)
+    sol = lievi.simulate(body, lievi.DEP(), jnp.eye(3, dtype=jnp.float32), M0.astype(jnp.float32), h=jnp.float32(0.1), n_steps=n, forcing=law, args=0.2)
+    assert sol.m.dtype == jnp.float32 and int(sol.result) == int(lievi.RESULTS.successful)

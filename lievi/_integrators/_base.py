@@ -102,13 +102,17 @@ class AbstractKickIntegrator(AbstractIntegrator):
 
 
 def _checked_force(force, t, g, m):
+    """`force(t, g, m)`, of the momentum's shape, in the momentum's dtype.
+
+    The run's dtype is that of the state (a float64 constant inside a force law must not
+    turn a float32 run into a float64 one halfway through a step)."""
     value = force(t, g, m)
     if jnp.shape(value) != jnp.shape(m):
         raise ValueError(
             f"`forcing`: the force must have the shape of the momentum {jnp.shape(m)}, got "
             f"{jnp.shape(value)}."
         )
-    return value
+    return jnp.asarray(value, m.dtype)
 
 
 def forced_end_kick(force: AbstractStepForce, t, g, m_minus, h, result_before=RESULTS.successful):
@@ -125,7 +129,7 @@ def forced_end_kick(force: AbstractStepForce, t, g, m_minus, h, result_before=RE
         return m, StepInfo(jnp.asarray(RESULTS.successful, jnp.int32), jnp.zeros((), jnp.int32), zero)
 
     def residual(m):
-        return m - m_minus - h / 2 * force(t, g, m)
+        return m - m_minus - h / 2 * _checked_force(force, t, g, m)
 
     guess = m_minus + h / 2 * _checked_force(force, t, g, m_minus)
     tolerance = END_KICK_ULPS * jnp.finfo(m_minus.dtype).eps * (1 + jnp.max(jnp.abs(m_minus)))

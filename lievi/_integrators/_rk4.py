@@ -42,7 +42,7 @@ def euler_poincare_vector_field(system: AbstractLieSystem, g, m, force=None, t=0
     if system.potential is not None:
         m_dot = m_dot + system.force(g)
     if force is not None:
-        m_dot = m_dot + force(t, g, m)
+        m_dot = m_dot + jnp.asarray(force(t, g, m), m_dot.dtype)
     return g_dot, m_dot
 
 
