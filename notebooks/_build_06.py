@@ -68,8 +68,8 @@ N_TRAJ = 2 if SMALL else 8  # training trajectories
 WINDOW = 5 if SMALL else 10  # rollout length of the loss, steps
 STRIDE = 5  # one window every 5 observations
 NOISE = 1e-3  # on Π and on the rotation vector of g
-OPT_STEPS = 15 if SMALL else 600  # Adam steps, the same for both models
-N_TEST = 1 if SMALL else 3  # held-out trajectories, predicted over 10 × T_train
+OPT_STEPS = 15 if SMALL else 500  # Adam steps, the same for both models
+N_TEST = 1 if SMALL else 2  # held-out trajectories, predicted over 10 × T_train
 """,
         tags=("parameters",),
     ),
