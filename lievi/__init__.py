@@ -14,6 +14,12 @@ from ._forcing import AbstractForcing as AbstractForcing
 from ._forcing import Control as Control
 from ._forcing import ForceLaw as ForceLaw
 from ._groups._base import MatrixLieGroup as MatrixLieGroup
+from ._groups._interop import from_jaxlie as from_jaxlie
+from ._groups._interop import to_jaxlie as to_jaxlie
+from ._groups._interop import twist_from_jaxlie as twist_from_jaxlie
+from ._groups._interop import twist_to_jaxlie as twist_to_jaxlie
+from ._groups._se3 import SE3 as SE3
+from ._groups._se3 import SE3Group as SE3Group
 from ._groups._so3 import SO3 as SO3
 from ._groups._so3 import SO3Group as SO3Group
 from ._groups._son import SOn as SOn
@@ -42,6 +48,10 @@ from ._systems._potential import PotentialFunction as PotentialFunction
 from ._systems._potential import UniformGravity as UniformGravity
 from ._systems._rigid_body import RigidBody as RigidBody
 from ._systems._rigid_body import heavy_top as heavy_top
+from ._systems._se3_body import RigidBodySE3 as RigidBodySE3
+from ._systems._se3_potentials import CentralGravity as CentralGravity
+from ._systems._se3_potentials import UniformGravitySE3 as UniformGravitySE3
+from ._systems._se3_potentials import full_body_problem as full_body_problem
 
 try:
     __version__ = version("lievi")
