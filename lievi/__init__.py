@@ -10,6 +10,9 @@ from . import diagnostics as diagnostics
 from ._batch._simulate_batch import has_fast_path as has_fast_path
 from ._batch._simulate_batch import shard_batch as shard_batch
 from ._batch._simulate_batch import simulate_batch as simulate_batch
+from ._forcing import AbstractForcing as AbstractForcing
+from ._forcing import Control as Control
+from ._forcing import ForceLaw as ForceLaw
 from ._groups._base import MatrixLieGroup as MatrixLieGroup
 from ._groups._conversions import euler_to_matrix as euler_to_matrix
 from ._groups._conversions import from_scipy_rotation as from_scipy_rotation
@@ -54,6 +57,7 @@ from ._simulate import simulate as simulate
 from ._systems._base import AbstractLieSystem as AbstractLieSystem
 from ._systems._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
 from ._systems._lie_lagrangian import LieLagrangian as LieLagrangian
+from ._systems._neural_potential import NeuralPotential as NeuralPotential
 from ._systems._potential import AbstractPotential as AbstractPotential
 from ._systems._potential import PotentialFunction as PotentialFunction
 from ._systems._potential import UniformGravity as UniformGravity

@@ -2,7 +2,8 @@
 
 Left-invariant: `ṁ = ad_ξᵀ m + M(g)`, `ġ = g ξ̂`; right-invariant: `ṁ = −ad_ξᵀ m + M(g)`,
 `ġ = ξ̂ g`; with `ξ` the velocity of `m` (inverse Legendre map) and `M` the generalised
-force of the system's potential (zero for a free system). For the rigid body the first is
+force of the system's potential (zero for a free system), plus an external force if given
+(`lievi.Control`, `lievi.ForceLaw`). For the rigid body the first is
 Euler's equation `Π̇ = Π × Ω + M` (for a heavy top `M = m γ Γ × ρ`). Solved by scipy's DOP853 (scipy is a dependency of JAX),
 the yardstick of docs/theory/checks.md#reference.
 """
@@ -14,17 +15,30 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from ._forcing import as_forcing
 from ._integrators._rk4 import euler_poincare_vector_field
 from ._systems._base import AbstractLieSystem
 
 
 def reference_solution(
-    system: AbstractLieSystem, g0, m0, ts, *, rtol: float = 1e-13, atol: float = 1e-13
+    system: AbstractLieSystem,
+    g0,
+    m0,
+    ts,
+    *,
+    rtol: float = 1e-13,
+    atol: float = 1e-13,
+    forcing=None,
+    args=None,
 ):
     """Solve the Euler–Poincaré equations of `system` to `rtol`/`atol` with DOP853.
 
     **Arguments:** `g0 (n, n)`, `m0 (d,)`, `ts`: increasing times starting at the
     initial time. Needs 64-bit JAX (`jax.config.update("jax_enable_x64", True)`).
+    `forcing`, `args`: an external force as for `lievi.simulate`, added to `ṁ`. With a
+    `lievi.Control(u)` the times `ts` are the step times: `u[k]` is held on
+    `[ts[k], ts[k+1]]` (so `len(ts) = len(u) + 1`) and each interval is solved separately,
+    so the jumps of the control do not spoil the accuracy.
 
     **Returns:** `(g, m)` as NumPy arrays of shapes `(len(ts), n, n)` and `(len(ts), d)`.
     """
@@ -35,25 +49,41 @@ def reference_solution(
         )
     group = system.group
     n, d = group.matrix_dim, group.algebra_dim
+    forcing = as_forcing(forcing)
+    ts = np.asarray(ts, dtype=float)
+    per_step = None if forcing is None else forcing.per_step()
+    piecewise = bool(jax.tree.leaves(per_step))
+    if forcing is not None:
+        forcing.check(system, len(ts) - 1, jnp.float64, args)  # the step grid, for a control
 
     @jax.jit
-    def rhs(y):
+    def rhs(t, y, data):
         m, g = y[:d], y[d:].reshape(n, n)
-        g_dot, m_dot = euler_poincare_vector_field(system, g, m)
+        force = None if forcing is None else forcing.at_step(data, args)
+        g_dot, m_dot = euler_poincare_vector_field(system, g, m, force, t)
         return jnp.concatenate([m_dot, g_dot.reshape(-1)])
 
-    ts = np.asarray(ts, dtype=float)
+    def solve(t_eval, y0, data):
+        sol = solve_ivp(
+            lambda t, y: np.asarray(rhs(t, jnp.asarray(y), data)),
+            (t_eval[0], t_eval[-1]),
+            y0,
+            method="DOP853",
+            t_eval=t_eval,
+            rtol=rtol,
+            atol=atol,
+        )
+        if not sol.success:
+            raise RuntimeError(f"reference_solution: DOP853 failed: {sol.message}")
+        return sol.y.T
+
     y0 = np.concatenate([np.asarray(m0, float), np.asarray(g0, float).reshape(-1)])
-    sol = solve_ivp(
-        lambda t, y: np.asarray(rhs(jnp.asarray(y))),
-        (ts[0], ts[-1]),
-        y0,
-        method="DOP853",
-        t_eval=ts,
-        rtol=rtol,
-        atol=atol,
-    )
-    if not sol.success:
-        raise RuntimeError(f"reference_solution: DOP853 failed: {sol.message}")
-    y = sol.y.T
+    if piecewise:
+        ys = [y0]
+        for k in range(len(ts) - 1):
+            data = jax.tree.map(lambda x, k=k: jnp.asarray(x[k], jnp.float64), per_step)
+            ys.append(solve(ts[k : k + 2], ys[-1], data)[-1])
+        y = np.stack(ys)
+    else:
+        y = solve(ts, y0, per_step)
     return y[:, d:].reshape(-1, n, n), y[:, :d]

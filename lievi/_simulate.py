@@ -11,6 +11,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ._checks import check_finite, is_concrete
+from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator, AbstractVariationalIntegrator
 from ._results import RESULTS
 from ._systems._base import AbstractLieSystem
@@ -116,6 +117,8 @@ def simulate(
     throw: bool = True,
     checkpoint: bool | int = False,
     progress_meter: bool | str = False,
+    forcing=None,
+    args=None,
 ) -> Solution:
     """Integrate `system` with `integrator` from `(g0, m0)` for `n_steps` steps of size `h`.
 
@@ -148,6 +151,12 @@ def simulate(
       otherwise, `False` (default) reports nothing. Updated about every 1% of the steps from
       inside the compiled loop (`jax.debug.callback`), so it also works under an outer
       `jit`; no effect on values.
+    - `forcing`: an external generalised force (for the rigid body, the body torque):
+      `lievi.Control(u)` with `u` of shape `(n_steps, d)` held over each step,
+      `lievi.ForceLaw(fn)` with `fn(t, g, m, args)` (feedback, damping), or a tuple of
+      them (added). Enters the step through the discrete Lagrange–d'Alembert principle
+      (see `lievi.AbstractKickIntegrator`). Step `k` runs from `t_k = t0 + k·h`.
+    - `args`: passed unchanged to a force law (as diffrax's `args`).
 
     **Returns:** a `Solution`.
 
@@ -166,6 +175,11 @@ def simulate(
     if (m0 is None) == (g1 is None):
         raise ValueError("Give exactly one of `m0` (initial momentum) and `g1` (second configuration).")
     system.check_element("g0", g0)
+    if g1 is not None and forcing is not None:
+        raise ValueError(
+            "`g1` with `forcing`: the forced discrete Legendre transform needs the force at "
+            "the first step; pass the initial momentum `m0` instead."
+        )
     if g1 is not None:
         if not isinstance(integrator, AbstractVariationalIntegrator):
             raise ValueError("`g1` needs a variational integrator (one with a discrete Lagrangian).")
@@ -176,7 +190,10 @@ def simulate(
     system.check_momentum("m0", m0)
     segment = _checkpoint_segment(checkpoint, n_steps, save_every)
     progress = _progress_kind(progress_meter)
+    forcing = as_forcing(forcing)
     dtype = state_dtype(system, g0, m0, h)
+    if forcing is not None:
+        forcing.check(system, n_steps, dtype, args)
     solution = _simulate(
         system,
         integrator,
@@ -188,6 +205,8 @@ def simulate(
         save_every,
         segment,
         progress,
+        forcing,
+        args,
     )
     if throw:
         result = eqx.branched_error_if(
@@ -234,16 +253,17 @@ def _checkpoint_segment(checkpoint, n_steps: int, save_every: int) -> int | None
     return int(checkpoint)
 
 
-def _scan_in_segments(body, carry, length: int, segment: int | None):
-    """`lax.scan(body, carry, None, length)`, in `jax.checkpoint`-ed chunks of `segment`."""
+def _scan_in_segments(body, carry, length: int, segment: int | None, xs=None):
+    """`lax.scan(body, carry, xs, length)`, in `jax.checkpoint`-ed chunks of `segment`."""
     if segment is None or segment >= length:
-        return jax.lax.scan(body, carry, None, length=length)
+        return jax.lax.scan(body, carry, xs, length=length)
 
     @jax.checkpoint
-    def chunk(carry, _):
-        return jax.lax.scan(body, carry, None, length=segment)
+    def chunk(carry, xs):
+        return jax.lax.scan(body, carry, xs, length=segment)
 
-    carry, ys = jax.lax.scan(chunk, carry, None, length=length // segment)
+    xs = jax.tree.map(lambda x: x.reshape((length // segment, segment) + x.shape[1:]), xs)
+    carry, ys = jax.lax.scan(chunk, carry, xs, length=length // segment)
     return carry, jax.tree.map(lambda y: y.reshape((length,) + y.shape[2:]), ys)
 
 
@@ -326,13 +346,19 @@ def _simulate(
     save_every: int,
     segment: int | None = None,
     progress: str | None = None,
+    forcing=None,
+    args=None,
 ) -> Solution:
     nan = jnp.asarray(jnp.nan, m0.dtype)
     _report_progress(progress, jnp.asarray(0, jnp.int32), n_steps)
 
-    def one_step(carry, _):
+    def one_step(carry, data):
         g, m, result, failed_step, k = carry
-        g_next, m_next, info = integrator.step(system, g, m, h)
+        if forcing is None:
+            g_next, m_next, info = integrator.step(system, g, m, h)
+        else:
+            force = forcing.at_step(data, args)
+            g_next, m_next, info = integrator.step(system, g, m, h, force, t0 + k * h)
         newly_failed = (result == RESULTS.successful) & (info.result != RESULTS.successful)
         failed_step = jnp.where(newly_failed, k, failed_step)
         result = RESULTS.first_failure(result, info.result)
@@ -348,8 +374,8 @@ def _simulate(
     inner = segment if segment is not None and segment < save_every else None
     outer = segment // save_every if segment is not None and segment > save_every else None
 
-    def one_save(carry, _):
-        carry, (iterations, residuals) = _scan_in_segments(one_step, carry, save_every, inner)
+    def one_save(carry, data):
+        carry, (iterations, residuals) = _scan_in_segments(one_step, carry, save_every, inner, data)
         g, m, result = carry[0], carry[1], carry[2]
         # No silent numbers past the failed step.
         ok = result == RESULTS.successful
@@ -359,7 +385,15 @@ def _simulate(
     int32 = jnp.int32
     init = (g0, m0, jnp.asarray(RESULTS.successful, int32), jnp.asarray(-1, int32), jnp.asarray(0, int32))
     n_saves = n_steps // save_every
-    final, (gs, ms, iterations, total, residuals) = _scan_in_segments(one_save, init, n_saves, outer)
+    # Per-step forcing data (a control sequence), scanned over, not indexed: reverse mode
+    # then accumulates one row of the cotangent per step.
+    per_step = None if forcing is None else forcing.per_step()
+    per_step = jax.tree.map(
+        lambda x: jnp.asarray(x, m0.dtype).reshape((n_saves, save_every) + jnp.shape(x)[1:]), per_step
+    )
+    final, (gs, ms, iterations, total, residuals) = _scan_in_segments(
+        one_save, init, n_saves, outer, per_step
+    )
     _, _, result, failed_step, _ = final
     ts = t0 + h * save_every * jnp.arange(n_saves + 1, dtype=m0.dtype)
     stats = {

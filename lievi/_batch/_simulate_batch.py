@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._checks import check_finite, is_concrete
+from .._forcing import as_forcing
 from .._integrators._base import AbstractIntegrator
 from .._integrators._dep import DEP, default_tolerance
 from .._integrators._moser_veselov import MoserVeselov
@@ -93,6 +94,8 @@ def simulate_batch(
     fixed_iterations: int | None = None,
     unroll: int = 1,
     throw: bool = True,
+    forcing=None,
+    args=None,
 ) -> Solution:
     """Integrate a batch of `B` bodies: `jax.vmap(simulate)` with a fast path.
 
@@ -128,6 +131,10 @@ def simulate_batch(
       cost; it multiplies the compiled code, hence the compile time, by `unroll`.
     - `throw`: raise if any body failed. With `throw=False` each body's `result` says
       whether it succeeded; a failed body does not stop the others.
+    - `forcing`, `args`: an external force, as for `lievi.simulate`. A `lievi.Control(u)`
+      with `u` of shape `(batch, n_steps, d)` gives each body its own control sequence;
+      of shape `(n_steps, d)`, one shared by all. A force law and `args` are shared.
+      Forced runs take the generic path.
 
     **Returns:** a `Solution` whose fields have a leading batch axis: `ts` `(B, T)`, `g`
     `(B, T, n, n)`, `m` `(B, T, d)`, `result` `(B,)`, `stats[...]` `(B, …)` — as
@@ -182,9 +189,22 @@ def simulate_batch(
                 "Pass rotation matrices, e.g. orthonormalise with a QR or polar decomposition."
             )
 
+    forcing = as_forcing(forcing)
+    if forcing is not None:
+        for x in jax.tree.leaves(forcing.per_step()):
+            if jnp.ndim(x) == 3 and jnp.shape(x)[0] != batch:
+                raise ValueError(
+                    f"`forcing`: a per-body control must have shape (batch, n_steps, d) with "
+                    f"batch = {batch}, got {jnp.shape(x)}."
+                )
+            check_finite("forcing", x)
     dtype = state_dtype(system, g0, m0, h)
     g0, m0, h = jnp.asarray(g0, dtype), jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
-    if fast and has_fast_path(system, integrator, system_axis):
+    if forcing is not None:
+        solution = _simulate_vmap(
+            system, integrator, g0, m0, h, n_steps, save_every, save, system_axis, forcing, args
+        )
+    elif fast and has_fast_path(system, integrator, system_axis):
         solution = _simulate_fast(
             system, integrator, g0, m0, h, n_steps, save_every, save, fixed_iterations, unroll
         )
@@ -221,14 +241,28 @@ def _keep(solution: Solution, save) -> Solution:
 
 
 @eqx.filter_jit
-def _simulate_vmap(system, integrator, g0, m0, h, n_steps, save_every, save, system_axis):
-    def one(system, g0, m0, h):
+def _simulate_vmap(
+    system, integrator, g0, m0, h, n_steps, save_every, save, system_axis, forcing=None, args=None
+):
+    def one(system, g0, m0, h, forcing):
         return simulate(
-            system, integrator, g0, m0, h=h, n_steps=n_steps, save_every=save_every, throw=False
+            system,
+            integrator,
+            g0,
+            m0,
+            h=h,
+            n_steps=n_steps,
+            save_every=save_every,
+            throw=False,
+            forcing=forcing,
+            args=args,
         )
 
     h_axis = None if h.ndim == 0 else 0
-    solution = jax.vmap(one, in_axes=(system_axis, 0, 0, h_axis))(system, g0, m0, h)
+    forcing_axes = None if forcing is None else forcing.batch_axes()
+    solution = jax.vmap(one, in_axes=(system_axis, 0, 0, h_axis, forcing_axes))(
+        system, g0, m0, h, forcing
+    )
     if h_axis is None:
         solution = eqx.tree_at(lambda s: s.ts, solution, jnp.broadcast_to(solution.ts, (g0.shape[0],) + solution.ts.shape[1:]))
     stats = dict(solution.stats)

@@ -15,8 +15,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int, Scalar
 
+from .._forcing import AbstractStepForce
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
+from ._newton import newton_solve
 
 
 class StepInfo(eqx.Module):
@@ -40,9 +42,19 @@ class AbstractIntegrator(eqx.Module):
 
     @abc.abstractmethod
     def step(
-        self, system: AbstractLieSystem, g: Float[Array, "n n"], m: Float[Array, " d"], h: Scalar
+        self,
+        system: AbstractLieSystem,
+        g: Float[Array, "n n"],
+        m: Float[Array, " d"],
+        h: Scalar,
+        force: AbstractStepForce | None = None,
+        t: Scalar = 0.0,
     ) -> tuple[Float[Array, "n n"], Float[Array, " d"], StepInfo]:
-        """Advance `(g_k, m_k)` to `(g_{k+1}, m_{k+1})`."""
+        """Advance `(g_k, m_k)` at time `t = t_k` to `(g_{k+1}, m_{k+1})`.
+
+        `force`, if given, is the external generalised force over the step, a callable
+        `force(t, g, m) -> (d,)` (see `lievi.Control`, `lievi.ForceLaw`).
+        """
 
 
 class AbstractKickIntegrator(AbstractIntegrator):
@@ -56,6 +68,11 @@ class AbstractKickIntegrator(AbstractIntegrator):
     a splitting it is the symmetric Strang composition with the exact flow of `V`. Either
     way symmetric and second order when the free step is, and nothing changes for a free
     system (the kicks are skipped at trace time).
+
+    An external force (`force`; `lievi.Control`, `lievi.ForceLaw`) adds the discrete
+    Lagrange–d'Alembert forces to these kicks: `f_k⁻ = (h/2) f(t_k, g_k, m_k)` to the
+    first, `f_k⁺ = (h/2) f(t_{k+1}, g_{k+1}, m_{k+1})` to the last (implicit if `f`
+    depends on `m`; see `lievi/_forcing.py`). The step stays symmetric and second order.
     """
 
     @abc.abstractmethod
@@ -64,15 +81,68 @@ class AbstractKickIntegrator(AbstractIntegrator):
     ) -> tuple[Float[Array, "n n"], Float[Array, " d"], StepInfo]:
         """The step of the system without its potential."""
 
-    def step(self, system: AbstractLieSystem, g, m, h: Scalar):
-        if system.potential is None:
+    def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
+        if system.potential is None and force is None:
             return self.free_step(system, g, m, h)
-        g_next, m_next, info = self.free_step(system, g, system.kick(g, m, h / 2), h)
+        m_plus = system.kick(g, m, h / 2)
+        if force is not None:
+            # The discrete Lagrange–d'Alembert force at g_k: f_k⁻ = (h/2) f(t_k, g_k, m_k).
+            m_plus = m_plus + h / 2 * _checked_force(force, t, g, m)
+        g_next, m_next, info = self.free_step(system, g, m_plus, h)
         m_next = system.kick(g_next, m_next, h / 2)
+        iterations, residual, result = info.iterations, info.residual, info.result
+        if force is not None:
+            m_next, kick = forced_end_kick(force, t + h, g_next, m_next, h, info.result)
+            iterations, residual = iterations + kick.iterations, jnp.maximum(residual, kick.residual)
+            result = RESULTS.first_failure(result, kick.result)
         # A non-finite potential or force shows up only after the free step's own checks.
-        nonfinite = (info.result == RESULTS.successful) & ~jnp.all(jnp.isfinite(m_next))
-        result = jnp.where(nonfinite, RESULTS.nonfinite, info.result)
-        return g_next, m_next, StepInfo(result, info.iterations, info.residual)
+        nonfinite = (result == RESULTS.successful) & ~jnp.all(jnp.isfinite(m_next))
+        result = jnp.where(nonfinite, RESULTS.nonfinite, result)
+        return g_next, m_next, StepInfo(result, iterations, residual)
+
+
+def _checked_force(force, t, g, m):
+    """`force(t, g, m)`, of the momentum's shape, in the momentum's dtype.
+
+    The run's dtype is that of the state (a float64 constant inside a force law must not
+    turn a float32 run into a float64 one halfway through a step)."""
+    value = force(t, g, m)
+    if jnp.shape(value) != jnp.shape(m):
+        raise ValueError(
+            f"`forcing`: the force must have the shape of the momentum {jnp.shape(m)}, got "
+            f"{jnp.shape(value)}."
+        )
+    return jnp.asarray(value, m.dtype)
+
+
+def forced_end_kick(force: AbstractStepForce, t, g, m_minus, h, result_before=RESULTS.successful):
+    """`m` with `m = m⁻ + (h/2) f(t, g, m)`: the end-of-step discrete force `f_k⁺`.
+
+    Explicit when the force does not depend on the momentum (a held control); otherwise
+    an implicit Euler half step solved by Newton's method from the explicit guess,
+    differentiated implicitly. Returns `(m, StepInfo)`; a solve that does not converge is
+    reported as `RESULTS.newton_not_converged`.
+    """
+    zero = jnp.zeros((), m_minus.dtype)
+    if not force.depends_on_momentum():
+        m = m_minus + h / 2 * _checked_force(force, t, g, m_minus)
+        return m, StepInfo(jnp.asarray(RESULTS.successful, jnp.int32), jnp.zeros((), jnp.int32), zero)
+
+    def residual(m):
+        return m - m_minus - h / 2 * _checked_force(force, t, g, m)
+
+    guess = m_minus + h / 2 * _checked_force(force, t, g, m_minus)
+    tolerance = END_KICK_ULPS * jnp.finfo(m_minus.dtype).eps * (1 + jnp.max(jnp.abs(m_minus)))
+    m, info = newton_solve(residual, guess, tolerance, END_KICK_MAX_STEPS)
+    ok = info.converged | (result_before != RESULTS.successful)
+    result = jnp.where(ok, RESULTS.successful, RESULTS.newton_not_converged)
+    return m, StepInfo(result.astype(jnp.int32), info.iterations, info.residual)
+
+
+# The end-of-step kick's Newton solve: stop at 64 ulps of |m| (the residual cannot be
+# computed more accurately), report failure after 20 iterations.
+END_KICK_ULPS = 64
+END_KICK_MAX_STEPS = 20
 
 
 class AbstractVariationalIntegrator(AbstractKickIntegrator):

@@ -144,12 +144,15 @@ class Composition(AbstractIntegrator):
     def is_symmetric(self) -> bool:
         return True
 
-    def step(self, system: AbstractLieSystem, g, m, h: Scalar):
+    def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
         gammas = jnp.asarray(self.coefficients, dtype=m.dtype)
+        # Each stage starts where the previous ones ended (negative coefficients step back).
+        starts = t + h * (jnp.cumsum(gammas) - gammas)
 
-        def stage(carry, gamma):
+        def stage(carry, stage_data):
+            gamma, start = stage_data
             g, m, result, iterations, residual = carry
-            g, m, info = self.method.step(system, g, m, gamma * h)
+            g, m, info = self.method.step(system, g, m, gamma * h, force, start)
             result = RESULTS.first_failure(result, info.result)
             iterations = iterations + info.iterations
             residual = jnp.maximum(residual, info.residual)
@@ -164,5 +167,5 @@ class Composition(AbstractIntegrator):
         )
         # A `scan` over the stages, not a Python loop: the inner step (a Newton solve for
         # the implicit methods) is traced and compiled once instead of up to nine times.
-        (g, m, result, iterations, residual), _ = jax.lax.scan(stage, init, gammas)
+        (g, m, result, iterations, residual), _ = jax.lax.scan(stage, init, (gammas, starts))
         return g, m, StepInfo(result, iterations, residual)

@@ -291,8 +291,14 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
         prepared = self.prepare(system, m0, h)
         return modified_body(system, prepared.alpha, prepared.beta), self.method
 
-    def step(self, system: AbstractLieSystem, g, m, h: Scalar):
+    def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
         _check_system(system)
+        if force is not None:
+            raise ValueError(
+                "`forcing`: PreprocessedMoserVeselov is exact to its order for the free rigid "
+                "body only (its preprocessing uses the free body's energy and Casimir). Use "
+                "`lievi.Composition(lievi.MoserVeselov(), order)` or `lievi.DEP()` with forcing."
+            )
         if self.alpha is None:
             alpha, beta = preprocessing(system, m, h, self.order_)
         else:

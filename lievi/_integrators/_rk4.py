@@ -7,7 +7,8 @@ velocity of `m` (inverse Legendre map),
     right-invariant:  ṁ = −ad_ξᵀ m + M(g),   ġ = ξ̂ g,
 
 with `M` the generalised force of the system's potential (zero for a free system;
-`AbstractLieSystem.force`).
+`AbstractLieSystem.force`), plus any external force `f(t, g, m)` (`lievi.Control`,
+`lievi.ForceLaw`; a held control is constant over the step).
 
 RK4 treats `(g, m)` as a point of `R^{n×n} × R^d`: fourth order, explicit, and nothing
 else. `g` drifts off the group, the momentum off its coadjoint orbit (Casimirs drift) and
@@ -27,8 +28,11 @@ from .._systems._base import AbstractLieSystem
 from ._base import AbstractIntegrator, StepInfo
 
 
-def euler_poincare_vector_field(system: AbstractLieSystem, g, m):
-    """`(ġ, ṁ)` of the Euler–Poincaré equations with reconstruction."""
+def euler_poincare_vector_field(system: AbstractLieSystem, g, m, force=None, t=0.0):
+    """`(ġ, ṁ)` of the Euler–Poincaré equations with reconstruction.
+
+    `force`: an external generalised force `force(t, g, m)` added to `ṁ` (or `None`).
+    """
     group = system.group
     xi = system.velocity(m)
     if system.side == "left":
@@ -37,6 +41,8 @@ def euler_poincare_vector_field(system: AbstractLieSystem, g, m):
         g_dot, m_dot = group.hat(xi) @ g, -group.ad(xi).T @ m
     if system.potential is not None:
         m_dot = m_dot + system.force(g)
+    if force is not None:
+        m_dot = m_dot + jnp.asarray(force(t, g, m), m_dot.dtype)
     return g_dot, m_dot
 
 
@@ -50,23 +56,23 @@ class RK4(AbstractIntegrator):
     def order(self) -> int:
         return 4
 
-    def step(self, system: AbstractLieSystem, g, m, h: Scalar):
+    def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
         group = system.group
         n, d = group.matrix_dim, group.algebra_dim
         check_shape("g", g, (n, n), f"a {n}×{n} group element")
         check_shape("m", m, (d,), f"momentum coordinates of dimension {d}")
 
-        def f(y):
-            return euler_poincare_vector_field(system, *y)
+        def f(s, y):
+            return euler_poincare_vector_field(system, *y, force=force, t=s)
 
         def axpy(a, k, y):
             return jax.tree.map(lambda ki, yi: yi + a * ki, k, y)
 
         y = (g, m)
-        k1 = f(y)
-        k2 = f(axpy(h / 2, k1, y))
-        k3 = f(axpy(h / 2, k2, y))
-        k4 = f(axpy(h, k3, y))
+        k1 = f(t, y)
+        k2 = f(t + h / 2, axpy(h / 2, k1, y))
+        k3 = f(t + h / 2, axpy(h / 2, k2, y))
+        k4 = f(t + h, axpy(h, k3, y))
         g_next, m_next = jax.tree.map(
             lambda yi, a, b, c, e: yi + h / 6 * (a + 2 * b + 2 * c + e), y, k1, k2, k3, k4
         )
