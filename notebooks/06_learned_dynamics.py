@@ -1,63 +1,42 @@
-"""Generate `06_learned_dynamics.ipynb` from the cells below.
+# ---
+# jupyter:
+#   jupytext:
+#     formats: ipynb,py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3 (ipykernel)
+#     language: python
+#     name: python3
+# ---
 
-Run from anywhere:
+# %% [markdown]
+# # 06 — Learned dynamics: a neural potential inside a variational integrator
+#
+# A heavy top (a rigid body with a fixed point in gravity, paper §7) is observed: noisy
+# attitudes $g_k$ and body momenta $\Pi_k$ every $h = 0.05$ along a few short trajectories.
+# Its inertia is known, the potential — how gravity acts — is not. Two models learn it from
+# the same data with the same optimiser and the same number of steps:
+#
+# - **the variational model**: `lievi.RigidBody(I, potential=lievi.NeuralPotential(...))`,
+#   the Lagrangian $l(\Omega) - V_\theta(g)$ with $V_\theta$ an `eqx.nn.MLP`, rolled out by
+#   the exponential-chart DEP integrator (the torque is $-dV_\theta$ by autodiff);
+# - **a black-box neural ODE**: $\dot y = F_\theta(y)$ for $y = (\Pi, g)$ in
+#   $\mathbb{R}^{12}$, an `eqx.nn.MLP`, rolled out by diffrax's Tsit5 at the same step.
+#
+# Both are trained by differentiating short rollouts (windows of a few steps from observed
+# states) against the observations. Then both predict **10× the training horizon** from
+# held-out initial states, and we compare the torque each has learned, the prediction error
+# and the true energy along the predictions.
 
-    python notebooks/_build_06.py            # write the notebook without outputs
-    python notebooks/_build_06.py --execute  # ... and execute it at full size, saving the
-                                             # outputs (figures) so GitHub shows them
+# %% [markdown]
+# **Sizes.** With `LIEVI_NOTEBOOK_SMALL=1` (as the test suite does) the notebook runs at a
+# small size; the stored outputs are from a full-size run.
 
-`LIEVI_NOTEBOOK_SMALL=1` runs the notebook at a small size (what `tests/test_notebooks.py`
-does); do not set it with `--execute`.
-"""
-
-import os
-import sys
-from pathlib import Path
-
-import nbformat
-from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
-
-HERE = Path(__file__).resolve().parent
-TARGET = HERE / "06_learned_dynamics.ipynb"
-
-
-def md(text: str):
-    return new_markdown_cell(text.strip("\n"))
-
-
-def code(text: str, tags=()):
-    cell = new_code_cell(text.strip("\n"))
-    if tags:
-        cell.metadata["tags"] = list(tags)
-    return cell
-
-
-cells = [
-    md(r"""
-# 06 — Learned dynamics: a neural potential inside a variational integrator
-
-A heavy top (a rigid body with a fixed point in gravity, paper §7) is observed: noisy
-attitudes $g_k$ and body momenta $\Pi_k$ every $h = 0.05$ along a few short trajectories.
-Its inertia is known, the potential — how gravity acts — is not. Two models learn it from
-the same data with the same optimiser and the same number of steps:
-
-- **the variational model**: `lievi.RigidBody(I, potential=lievi.NeuralPotential(...))`,
-  the Lagrangian $l(\Omega) - V_\theta(g)$ with $V_\theta$ an `eqx.nn.MLP`, rolled out by
-  the exponential-chart DEP integrator (the torque is $-dV_\theta$ by autodiff);
-- **a black-box neural ODE**: $\dot y = F_\theta(y)$ for $y = (\Pi, g)$ in
-  $\mathbb{R}^{12}$, an `eqx.nn.MLP`, rolled out by diffrax's Tsit5 at the same step.
-
-Both are trained by differentiating short rollouts (windows of a few steps from observed
-states) against the observations. Then both predict **10× the training horizon** from
-held-out initial states, and we compare the torque each has learned, the prediction error
-and the true energy along the predictions.
-"""),
-    md(r"""
-**Sizes.** With `LIEVI_NOTEBOOK_SMALL=1` (as the test suite does) the notebook runs at a
-small size; the stored outputs are from a full-size run.
-"""),
-    code(
-        r"""
+# %% tags=["parameters"]
 import os
 
 SMALL = os.environ.get("LIEVI_NOTEBOOK_SMALL", "0") not in ("", "0")
@@ -70,10 +49,8 @@ STRIDE = 5  # one window every 5 observations
 NOISE = 1e-3  # on Π and on the rotation vector of g
 OPT_STEPS = 15 if SMALL else 500  # Adam steps, the same for both models
 N_TEST = 1 if SMALL else 2  # held-out trajectories, predicted over 10 × T_train
-""",
-        tags=("parameters",),
-    ),
-    code(r"""
+
+# %%
 import time
 
 import diffrax
@@ -88,20 +65,20 @@ jax.config.update("jax_enable_x64", True)
 
 import lievi
 
-%config InlineBackend.figure_formats = ["png"]
+# %config InlineBackend.figure_formats = ["png"]
 plt.rcParams.update({"figure.dpi": 100, "axes.grid": True, "grid.alpha": 0.3})
 print("lievi", lievi.__version__, "| jax", jax.__version__, "| SMALL =", SMALL)
-"""),
-    md(r"""
-## The true system and the data
 
-An asymmetric heavy top, $I = (1, 1.2, 0.6)$, centre of mass $\rho = (0.1, -0.1, 0.6)$,
-$m = \gamma = 1$: $V(g) = m\gamma\,\rho\cdot\Gamma$ with $\Gamma = g^\top e_3$ the vertical
-in the body frame. The ground truth is a fourth-order composition of DEP at $h/4$; the
-observations add Gaussian noise of size $10^{-3}$ to $\Pi$ and to the rotation vector of
-$g$.
-"""),
-    code(r"""
+# %% [markdown]
+# ## The true system and the data
+#
+# An asymmetric heavy top, $I = (1, 1.2, 0.6)$, centre of mass $\rho = (0.1, -0.1, 0.6)$,
+# $m = \gamma = 1$: $V(g) = m\gamma\,\rho\cdot\Gamma$ with $\Gamma = g^\top e_3$ the vertical
+# in the body frame. The ground truth is a fourth-order composition of DEP at $h/4$; the
+# observations add Gaussian noise of size $10^{-3}$ to $\Pi$ and to the rotation vector of
+# $g$.
+
+# %%
 INERTIA = jnp.array([1.0, 1.2, 0.6])
 TRUE = lievi.heavy_top(INERTIA, 1.0, jnp.array([0.1, -0.1, 0.6]), gravity=1.0)
 T_TRAIN = H * N_TRAIN_STEPS
@@ -129,16 +106,16 @@ M0 = jnp.stack([m[k] for _, m in observed for k in starts])
 G_OBS = jnp.stack([g[k : k + WINDOW + 1] for g, _ in observed for k in starts])
 M_OBS = jnp.stack([m[k : k + WINDOW + 1] for _, m in observed for k in starts])
 print(f"{N_TRAJ} trajectories of T = {T_TRAIN:g}, {len(G0)} windows of {WINDOW} steps")
-"""),
-    md(r"""
-## The two models and their losses
 
-The variational model sees only $\Gamma = g^\top e_3$ (`features="vertical"`): the
-potential of a body in a uniform field depends on nothing else, and saying so is the kind
-of prior knowledge a structured model can take. (`features="entries"`, the default, feeds
-all nine entries of $g$.) The neural ODE gets the full state and a wider network.
-"""),
-    code(r"""
+# %% [markdown]
+# ## The two models and their losses
+#
+# The variational model sees only $\Gamma = g^\top e_3$ (`features="vertical"`): the
+# potential of a body in a uniform field depends on nothing else, and saying so is the kind
+# of prior knowledge a structured model can take. (`features="entries"`, the default, feeds
+# all nine entries of $g$.) The neural ODE gets the full state and a wider network.
+
+# %%
 variational = lievi.RigidBody(
     INERTIA, potential=lievi.NeuralPotential(3, key=jax.random.PRNGKey(0), features="vertical", width_size=32, depth=2)
 )
@@ -211,21 +188,21 @@ plt.semilogy(variational_history, label="variational (NeuralPotential + DEP)")
 plt.semilogy(neural_ode_history, label="neural ODE (diffrax Tsit5)")
 plt.xlabel("Adam step"), plt.ylabel("training loss"), plt.legend()
 plt.title("Same data, same optimiser, same number of steps");
-"""),
-    md(r"""
-## Held-out torque and long-horizon prediction
 
-On held-out trajectories (new initial states, never seen in training) we compare
+# %% [markdown]
+# ## Held-out torque and long-horizon prediction
+#
+# On held-out trajectories (new initial states, never seen in training) we compare
+#
+# - the **torque**: the variational model's is $-dV_\theta$ (`system.force(g)`); the neural
+#   ODE's is what its $\dot\Pi$ implies, $F_\theta(y)_\Pi - \Pi\times\Omega$; relative RMS
+#   error against the true $m\gamma\,\Gamma\times\rho$ along the held-out trajectory;
+# - the **prediction** over $10\,T_{\text{train}}$ from the held-out initial state: the
+#   distance $\|g(t) - g_{\text{true}}(t)\|_F$;
+# - the **true energy** $\tfrac12\Pi\cdot I^{-1}\Pi + V(g)$ along each prediction, its
+#   error relative to the energy scale $\tfrac12\Pi_0\cdot I^{-1}\Pi_0 + m\gamma|\rho|$.
 
-- the **torque**: the variational model's is $-dV_\theta$ (`system.force(g)`); the neural
-  ODE's is what its $\dot\Pi$ implies, $F_\theta(y)_\Pi - \Pi\times\Omega$; relative RMS
-  error against the true $m\gamma\,\Gamma\times\rho$ along the held-out trajectory;
-- the **prediction** over $10\,T_{\text{train}}$ from the held-out initial state: the
-  distance $\|g(t) - g_{\text{true}}(t)\|_F$;
-- the **true energy** $\tfrac12\Pi\cdot I^{-1}\Pi + V(g)$ along each prediction, its
-  error relative to the energy scale $\tfrac12\Pi_0\cdot I^{-1}\Pi_0 + m\gamma|\rho|$.
-"""),
-    code(r"""
+# %%
 N_LONG = 10 * N_TRAIN_STEPS
 
 
@@ -272,8 +249,8 @@ for i in range(N_TEST):
 
 for key in rows[0]:
     print(f"{key:42s}", "  ".join(f"{row[key]:10.3g}" for row in rows))
-"""),
-    code(r"""
+
+# %%
 fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
 for curve, style in zip(curves, ("-", "--", ":")):
     for name, colour in (("variational", "C0"), ("neural ODE", "C1")):
@@ -287,8 +264,8 @@ axes[0].set_ylabel(r"$\|g(t) - g_{\mathrm{true}}(t)\|_F$")
 axes[1].set_ylabel(r"$|E(t) - E_0|$ (true energy)")
 axes[0].set_title("prediction error, 10× the training horizon")
 axes[1].set_title("energy along the prediction");
-"""),
-    code(r"""
+
+# %%
 # What the figures show, asserted (the test suite runs this notebook).
 for row in rows:
     # Energy: bounded for the variational model, drifting for the neural ODE.
@@ -298,57 +275,19 @@ for row in rows:
         assert row["torque error, variational"] < row["torque error, neural ODE"], row
         assert row["max |E − E0| / scale, variational"] < 0.1, row
         assert row["‖g − g_true‖ at 10 T_train, variational"] < row["‖g − g_true‖ at 10 T_train, neural ODE"], row
-"""),
-    md(r"""
-## What this shows
 
-- With the same data and budget, the variational model recovers the torque of gravity to a
-  few per cent on held-out states; the neural ODE, which must learn the kinematics
-  $\dot g = g\hat\Omega$ and the gyroscopic term $\Pi\times\Omega$ too, does not.
-- Over 10× the training horizon the variational model's **true** energy error stays
-  bounded: it is a symplectic integrator of its own learned Lagrangian, whose energy
-  therefore oscillates without drift, so the true energy is off only by the error of the
-  learned $V_\theta$ (and an O(h²) oscillation); $g$ stays on SO(3) to round-off. The
-  neural ODE's energy drifts and its $g$ leaves the group (the table's last rows).
-- The pattern is an API path, not a notebook trick: `lievi.NeuralPotential` is an
-  `AbstractPotential`, so any lievi system takes it, `lievi.simulate` rolls it out, and
-  `jax.grad` trains it through the implicit solves (see `docs/forcing.md`). A learned force
-  law (e.g. unknown damping) fits the same way with `lievi.ForceLaw` and an `eqx.Module`.
-"""),
-]
-
-nb = new_notebook(
-    cells=cells,
-    metadata={
-        "kernelspec": {
-            "name": "python3",
-            "display_name": "Python 3 (ipykernel)",
-            "language": "python",
-        },
-        "language_info": {"name": "python"},
-    },
-)
-for index, cell in enumerate(nb.cells):  # stable ids: regenerating gives no spurious diff
-    cell.id = f"cell-{index:02d}"
-
-
-def execute(notebook) -> None:
-    """Execute at full size with the `python3` kernel; drop per-cell timing metadata."""
-    import nbclient
-
-    if os.environ.get("LIEVI_NOTEBOOK_SMALL", "0") not in ("", "0"):
-        raise SystemExit("unset LIEVI_NOTEBOOK_SMALL: the stored outputs are the full-size run")
-    client = nbclient.NotebookClient(
-        notebook, timeout=3000, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}
-    )
-    client.execute()
-    for cell in notebook.cells:
-        cell.metadata.pop("execution", None)
-
-
-if __name__ == "__main__":
-    nbformat.validate(nb)
-    if "--execute" in sys.argv[1:]:
-        execute(nb)
-    nbformat.write(nb, TARGET)
-    print(f"wrote {TARGET}")
+# %% [markdown]
+# ## What this shows
+#
+# - With the same data and budget, the variational model recovers the torque of gravity to a
+#   few per cent on held-out states; the neural ODE, which must learn the kinematics
+#   $\dot g = g\hat\Omega$ and the gyroscopic term $\Pi\times\Omega$ too, does not.
+# - Over 10× the training horizon the variational model's **true** energy error stays
+#   bounded: it is a symplectic integrator of its own learned Lagrangian, whose energy
+#   therefore oscillates without drift, so the true energy is off only by the error of the
+#   learned $V_\theta$ (and an O(h²) oscillation); $g$ stays on SO(3) to round-off. The
+#   neural ODE's energy drifts and its $g$ leaves the group (the table's last rows).
+# - The pattern is an API path, not a notebook trick: `lievi.NeuralPotential` is an
+#   `AbstractPotential`, so any lievi system takes it, `lievi.simulate` rolls it out, and
+#   `jax.grad` trains it through the implicit solves (see `docs/forcing.md`). A learned force
+#   law (e.g. unknown damping) fits the same way with `lievi.ForceLaw` and an `eqx.Module`.
