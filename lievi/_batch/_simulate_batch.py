@@ -19,7 +19,8 @@ import numpy as np
 
 from .._checks import check_finite, is_concrete
 from .._integrators._base import AbstractIntegrator
-from .._integrators._dep import DEP, default_tolerance
+from .._integrators._dep import DEP
+from .._integrators._newton import newton_tolerance
 from .._integrators._moser_veselov import MoserVeselov
 from .._integrators._rk4 import RK4
 from .._integrators._splitting import LiePoissonSplitting
@@ -248,9 +249,7 @@ def _simulate_fast(
     inverse_inertia = tuple(1 / jnp.broadcast_to(inertia[..., i], (batch,)) for i in range(3))
     g = tuple(g0[:, i, j] for i in range(3) for j in range(3))
     Pi = tuple(m0[:, i] for i in range(3))
-    eps = default_tolerance(dtype)
-    rtol = eps if getattr(integrator, "rtol", None) is None else integrator.rtol
-    atol = eps if getattr(integrator, "atol", None) is None else integrator.atol
+    rtol, atol = getattr(integrator, "rtol", None), getattr(integrator, "atol", None)
     nan = jnp.asarray(jnp.nan, dtype)
     int32 = jnp.int32
 
@@ -264,7 +263,7 @@ def _simulate_fast(
             # Explicit: no Newton iterations, zero residual (as the per-body `StepInfo`).
             iterations, residual = jnp.zeros((batch,), int32), jnp.zeros((batch,), dtype)
         else:
-            tolerance = atol + rtol * _fast_so3._max_abs(Pi)
+            tolerance = newton_tolerance(_fast_so3._max_abs(Pi), dtype, rtol, atol)
             g_next, Pi_next, step_result, iterations, residual = _fast_so3.dep_step(
                 chart, g, Pi, A, tolerance, fixed_iterations, integrator.max_steps
             )

@@ -35,7 +35,7 @@ from jaxtyping import Array, Float, Scalar
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from ._base import AbstractVariationalIntegrator, StepInfo
-from ._newton import newton_solve
+from ._newton import newton_solve, newton_tolerance
 
 CHARTS = ("exp", "cayley")
 
@@ -45,11 +45,6 @@ def _chart(group, chart: str):
     if chart == "exp":
         return group.exp, group.log, group.dexpinv
     return group.cay, group.cayinv, group.dcayinv
-
-
-def default_tolerance(dtype) -> float:
-    # The residual cannot be computed more accurately than a few ulps of |m|.
-    return 64 * float(jnp.finfo(dtype).eps)
 
 
 class DEP(AbstractVariationalIntegrator):
@@ -66,8 +61,10 @@ class DEP(AbstractVariationalIntegrator):
       Moser–Veselov/Lewis–Simo scheme (5.7) itself uses a different discrete Lagrangian,
       `tr((I − F)Λ)/h` (on SO(3): `½ξᵀIξ / (h(1 + |ξ|²/4))` with `F = cay(ξ)`), so its
       iterates differ from these at O(h³) per step.
-    - `rtol`, `atol`: the Newton solve stops when `‖residual‖_∞ ≤ atol + rtol·‖m‖_∞`.
-      Default: 64 ulps of the dtype for both.
+    - `rtol`, `atol`: the Newton solve stops when `‖residual‖_∞ ≤ atol + rtol·‖m‖_∞`
+      (momentum units). Default: `rtol` = 64 ulps of the dtype, `atol` = 0 — a relative
+      test, so the computed trajectory does not depend on the units (see
+      `lievi._integrators._newton.newton_tolerance`).
     - `max_steps`: maximum Newton iterations per step; exceeding it is reported as
       `RESULTS.newton_not_converged`.
     """
@@ -109,10 +106,7 @@ class DEP(AbstractVariationalIntegrator):
         def residual(xi):
             return dchart_inverse(sign * xi).T @ system.legendre(xi / h) - m
 
-        eps_tol = default_tolerance(m.dtype)
-        rtol = eps_tol if self.rtol is None else self.rtol
-        atol = eps_tol if self.atol is None else self.atol
-        tolerance = atol + rtol * jnp.max(jnp.abs(m))
+        tolerance = newton_tolerance(jnp.max(jnp.abs(m)), m.dtype, self.rtol, self.atol)
         # Explicit-Euler guess `h·ξ(m)`: O(h²) from the root, so Newton needs few steps.
         return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps)
 

@@ -51,8 +51,7 @@ from .._systems._base import AbstractLieSystem
 from .._systems._generalized_rigid_body import GeneralizedRigidBody
 from .._systems._rigid_body import RigidBody
 from ._base import AbstractVariationalIntegrator, StepInfo
-from ._dep import default_tolerance
-from ._newton import newton_solve
+from ._newton import newton_solve, newton_tolerance
 
 
 def check_rigid_body(method: str, system: AbstractLieSystem) -> None:
@@ -116,8 +115,8 @@ class MoserVeselov(AbstractVariationalIntegrator):
     **Arguments:**
 
     - `rtol`, `atol`: the Newton solve stops when the residual of `J(X)/h − (I − X/2)Π̂(I + X/2)`
-      (momentum units) satisfies `‖r‖_∞ ≤ atol + rtol·‖Π‖_∞`. Default: 64 ulps of the dtype
-      for both.
+      (momentum units) satisfies `‖r‖_∞ ≤ atol + rtol·‖Π‖_∞`. Default: `rtol` = 64 ulps of
+      the dtype, `atol` = 0 (a relative test: the step does not depend on the units).
     - `max_steps`: maximum Newton iterations per step; exceeding it is reported as
       `RESULTS.newton_not_converged`.
     """
@@ -160,10 +159,7 @@ class MoserVeselov(AbstractVariationalIntegrator):
             X = group.hat(x)
             return system.legendre(x) / h - group.vee((eye - X / 2) @ M @ (eye + X / 2))
 
-        eps_tol = default_tolerance(m.dtype)
-        rtol = eps_tol if self.rtol is None else self.rtol
-        atol = eps_tol if self.atol is None else self.atol
-        tolerance = atol + rtol * jnp.max(jnp.abs(m))
+        tolerance = newton_tolerance(jnp.max(jnp.abs(m)), m.dtype, self.rtol, self.atol)
         return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps)
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar):
