@@ -42,7 +42,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
 
+from .._checks import check_scalar, step_size_valid
 from .._groups._so3 import SO3
+from .._results import RESULTS
 from .._simulate import state_dtype
 from .._systems._base import AbstractLieSystem
 from .._systems._rigid_body import RigidBody
@@ -188,7 +190,7 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     runs call `prepare(system, m0, h)` once: it returns a copy that stores them, and whose
     step then costs one DMV step and one 3×3 rotation. A prepared integrator must be used
     with that same `h` (and on the trajectory of `m0`, or any state with the same energy
-    and Casimir).
+    and Casimir; another momentum is reported as `RESULTS.invalid_input`).
     """
 
     order_: int = eqx.field(static=True)
@@ -196,6 +198,7 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     h_prepared: Array | None
     h_modified: Array | None
     angle: Array | None
+    invariants: Array | None = None
 
     def __init__(self, order: int = 6, method: MoserVeselov | None = None, *, _prepared=None):
         if isinstance(order, bool) or order not in ORDERS:
@@ -205,7 +208,10 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
             raise ValueError(f"`method` must be a lievi.MoserVeselov, got {type(method).__name__}.")
         self.order_ = order
         self.method = method
-        self.h_prepared, self.h_modified, self.angle = _prepared or (None, None, None)
+        prepared = _prepared or (None, None, None, None)
+        self.h_prepared, self.h_modified, self.angle = prepared[:3]
+        # (Casimir |m0|², energy H(m0)): the trajectory the series belong to.
+        self.invariants = prepared[3] if len(prepared) > 3 else None
 
     def order(self) -> int:
         return self.order_
@@ -219,11 +225,15 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     ) -> PreprocessedMoserVeselov:
         """A copy with `h'` and `φ` computed once for step `h` on the trajectory of `m0`."""
         _check_system(system)
+        check_scalar("h", h, positive=True)
         system.check_momentum("m0", m0)
         dtype = state_dtype(system, m0, h)
         m0, h = jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
         h_mod, angle = preprocessing(system, m0, h, self.order_)
-        return PreprocessedMoserVeselov(self.order_, self.method, _prepared=(h, h_mod, angle))
+        invariants = jnp.stack([jnp.dot(m0, m0), system.energy(m0)])
+        return PreprocessedMoserVeselov(
+            self.order_, self.method, _prepared=(h, h_mod, angle, invariants)
+        )
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar):
         _check_system(system)
@@ -244,7 +254,24 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
         norm = jnp.sqrt(jnp.dot(m_next, m_next))
         safe_norm = jnp.where(norm > 0, norm, 1.0)
         g_next = g_next @ SO3.exp(-angle * m_next / safe_norm)
-        return g_next, m_next, StepInfo(info.result, info.iterations, info.residual)
+        result = info.result
+        if self.h_modified is not None:
+            result = jnp.where(self._prepared_for(system, m), result, RESULTS.invalid_input)
+        return g_next, m_next, StepInfo(result, info.iterations, info.residual)
+
+    def _prepared_for(self, system, m):
+        """Whether the prepared series belong to this state: a valid prepared `h`, and
+        the Casimir and energy of `m` equal those of the prepared `m0` (DMV keeps both to
+        round-off; √ε relative allows for their drift over very long runs). Another
+        momentum would silently give a low-order step."""
+        valid_h = step_size_valid(self.h_prepared)
+        if self.invariants is None:
+            return valid_h
+        tolerance = jnp.sqrt(jnp.finfo(m.dtype).eps)
+        casimir, energy = self.invariants.astype(m.dtype)
+        same_casimir = jnp.abs(jnp.dot(m, m) - casimir) <= tolerance * casimir
+        same_energy = jnp.abs(system.energy(m) - energy) <= tolerance * energy
+        return valid_h & same_casimir & same_energy
 
 
 def _check_system(system) -> None:
