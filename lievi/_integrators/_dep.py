@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Scalar
 
 from .._results import RESULTS
@@ -77,7 +78,12 @@ class DEP(AbstractVariationalIntegrator):
     def __check_init__(self):
         if self.chart not in CHARTS:
             raise ValueError(f"`chart` must be one of {CHARTS}, got {self.chart!r}.")
-        if not isinstance(self.max_steps, int) or self.max_steps < 1:
+        # Any integer type (NumPy's too, as `n_steps` accepts), not bool.
+        if (
+            isinstance(self.max_steps, bool)
+            or not isinstance(self.max_steps, (int, np.integer))
+            or self.max_steps < 1
+        ):
             raise ValueError(f"`max_steps` must be a positive integer, got {self.max_steps!r}.")
         for name in ("rtol", "atol"):
             value = getattr(self, name)
