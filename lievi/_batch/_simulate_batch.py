@@ -48,6 +48,8 @@ def _fast_step(system, integrator):
     """The structure-of-arrays step for `(system, integrator)`, or None if there is none."""
     if not isinstance(system, RigidBody) or jnp.ndim(system.inertia) not in (1, 2):
         return None
+    if system.potential is not None:  # the structure-of-arrays steps are torque-free
+        return None
     if isinstance(integrator, DEP):
         return integrator.chart
     if isinstance(integrator, MoserVeselov):
@@ -61,7 +63,7 @@ def _fast_step(system, integrator):
 
 def has_fast_path(system: AbstractLieSystem, integrator: AbstractIntegrator, system_axis=None) -> bool:
     """Whether `simulate_batch` has a structure-of-arrays fast path for this pair."""
-    if not isinstance(system, RigidBody):
+    if not isinstance(system, RigidBody) or system.potential is not None:
         return False
     principal = jnp.ndim(system.inertia) == (1 if system_axis is None else 2)
     return principal and _fast_step(system, integrator) is not None

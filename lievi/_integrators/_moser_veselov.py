@@ -145,7 +145,7 @@ class MoserVeselov(AbstractVariationalIntegrator):
         # −L_d(g₁, g₀; −h) = tr((I − g₁ᵀg₀)Λ)/h = L_d(g₀, g₁; h): tr(AᵀΛ) = tr(AΛ).
         return True
 
-    def discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
+    def kinetic_discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
         """`tr((I − g₀ᵀg₁)Λ)/h`, Moser–Veselov's `tr(g_k Λ g_{k+1}ᵀ)` up to scale and shift."""
         check_rigid_body("MoserVeselov", system)
         Lambda = moser_veselov_Lambda(system)
@@ -187,7 +187,7 @@ class MoserVeselov(AbstractVariationalIntegrator):
         tolerance = newton_tolerance(jnp.max(jnp.abs(m)), m.dtype, self.rtol, self.atol)
         return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps)
 
-    def step(self, system: AbstractLieSystem, g, m, h: Scalar):
+    def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
         check_rigid_body("MoserVeselov", system)
         _check_pair_sums("MoserVeselov", system)
         group = system.group
