@@ -71,7 +71,10 @@ def check_scalar(name: str, x, *, positive: bool = False) -> None:
 
 def check_real_dtype(name: str, x) -> None:
     """Reject complex, bool and non-numeric arrays (they would be cast silently)."""
-    dtype = jnp.result_type(x) if not isinstance(x, (str, bytes)) else None
+    if isinstance(x, (str, bytes)):
+        dtype = None
+    else:
+        dtype = np.asarray(x).dtype if isinstance(x, (list, tuple)) else jnp.result_type(x)
     if dtype is None or not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
         raise ValueError(f"`{name}` must hold real numbers, got {'a string' if dtype is None else dtype}.")
 

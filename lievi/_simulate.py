@@ -142,8 +142,10 @@ def simulate(
     valid = valid & input_valid(system, g0, m0, h, t0)
     solution = _simulate(system, integrator, g0, m0, h, t0, n_steps, save_every, segment, valid)
     if throw:
-        result = eqx.branched_error_if(
-            solution.result,
+        # The check rides on every output (not only `result`): under the caller's `jit`
+        # a check on an unused output would be dead code and dropped silently.
+        solution = eqx.branched_error_if(
+            solution,
             solution.result != RESULTS.successful,
             solution.result,
             [
@@ -152,7 +154,6 @@ def simulate(
                 for msg in RESULTS.messages
             ],
         )
-        solution = eqx.tree_at(lambda s: s.result, solution, result)
     return solution
 
 

@@ -213,8 +213,10 @@ def simulate_batch(
     if throw:
         failed = solution.result != RESULTS.successful
         first = jnp.max(jnp.where(failed, solution.result, 0))
-        result = eqx.branched_error_if(
-            solution.result,
+        # The check rides on every output (not only `result`): under the caller's `jit`
+        # a check on an unused output would be dead code and dropped silently.
+        solution = eqx.branched_error_if(
+            solution,
             jnp.any(failed),
             first,
             [
@@ -223,7 +225,6 @@ def simulate_batch(
                 for msg in RESULTS.messages
             ],
         )
-        solution = eqx.tree_at(lambda s: s.result, solution, result)
     return solution
 
 

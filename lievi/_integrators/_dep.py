@@ -67,6 +67,11 @@ def _chart(group, chart: str):
     return group.cay, group.cayinv, group.dcayinv
 
 
+def _as_int(value):
+    """NumPy integers become Python ints (a static field must not hold a NumPy scalar)."""
+    return int(value) if isinstance(value, np.integer) else value
+
+
 class DEP(AbstractVariationalIntegrator):
     """Discrete Euler–Poincaré integrator with the discrete Lie–Poisson update.
 
@@ -92,7 +97,7 @@ class DEP(AbstractVariationalIntegrator):
     chart: str = eqx.field(default="exp", static=True)
     rtol: float | None = eqx.field(default=None, static=True)
     atol: float | None = eqx.field(default=None, static=True)
-    max_steps: int = eqx.field(default=20, static=True)
+    max_steps: int = eqx.field(default=20, static=True, converter=_as_int)
 
     def __check_init__(self):
         if self.chart not in CHARTS:

@@ -51,6 +51,7 @@ from .._systems._base import AbstractLieSystem
 from .._systems._generalized_rigid_body import GeneralizedRigidBody
 from .._systems._rigid_body import RigidBody
 from ._base import AbstractVariationalIntegrator, StepInfo
+from ._dep import _as_int
 from ._newton import newton_solve, newton_tolerance
 
 
@@ -123,7 +124,7 @@ class MoserVeselov(AbstractVariationalIntegrator):
 
     rtol: float | None = eqx.field(default=None, static=True)
     atol: float | None = eqx.field(default=None, static=True)
-    max_steps: int = eqx.field(default=20, static=True)
+    max_steps: int = eqx.field(default=20, static=True, converter=_as_int)
 
     def __check_init__(self):
         # Any integer type (NumPy's too, as `n_steps` accepts), not bool.
@@ -168,7 +169,8 @@ class MoserVeselov(AbstractVariationalIntegrator):
 
     def on_branch(self, system: AbstractLieSystem, m: Float[Array, " d"], h: Scalar, x):
         """The branch rule: `x` is the root continued from `h → 0` — certified by the
-        symmetric part of the residual's Jacobian being positive definite at `x`.
+        symmetric part of the residual's Jacobian (times `sign h`) being positive definite
+        at `x`.
 
         The residual is quadratic in `x`, so its Jacobian is affine and the set where its
         symmetric part is positive definite is convex; on a convex set a map with a
@@ -177,7 +179,8 @@ class MoserVeselov(AbstractVariationalIntegrator):
         outside that set (another root of the quadratic, or the branch past its fold) is
         reported as `RESULTS.step_too_large`, on both the generic and the batched path.
         """
-        jacobian = jax.jacfwd(self.residual(system, m, h))(x)
+        # Times sign(h): a negative step (an inner stage of `Composition`) has J ≈ J/h < 0.
+        jacobian = jax.jacfwd(self.residual(system, m, h))(x) * jnp.sign(h)
         symmetric = (jacobian + jacobian.T) / 2
         return jnp.all(jnp.isfinite(jnp.linalg.cholesky(symmetric)))
 
