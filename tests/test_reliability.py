@@ -31,22 +31,23 @@ def test_tolerance_is_relative_scaled_body_gives_same_trajectory(name, c):
     small-unit body "converged" at the explicit-Euler guess with 0 iterations."""
     integrator = IMPLICIT[name]
     body, g0, m0 = hlw_problem()
-    ref = lievi.simulate(body, integrator, g0, m0, h=0.1, n_steps=20)
-    scaled = lievi.simulate(lievi.RigidBody(body.inertia * c), integrator, g0, m0 * c, h=0.1, n_steps=20)
+    # n_steps = 4 as in test_properties.py: the compiled runs are shared.
+    ref = lievi.simulate(body, integrator, g0, m0, h=0.1, n_steps=4)
+    scaled = lievi.simulate(lievi.RigidBody(body.inertia * c), integrator, g0, m0 * c, h=0.1, n_steps=4)
     assert int(scaled.result) == 0
     assert int(scaled.stats["total_newton_iterations"]) == int(ref.stats["total_newton_iterations"])
     np.testing.assert_allclose(scaled.g, ref.g, atol=1e-12)
     np.testing.assert_allclose(scaled.m / c, ref.m, atol=1e-12)
 
 
-@pytest.mark.parametrize("c", [1e-4, 1e4])
+@pytest.mark.parametrize("c", [1e-4])
 def test_tolerance_is_relative_float32_satellite_units(c):
     body, g0, m0 = hlw_problem()
     f32 = jnp.float32
     inertia, g0, m0 = body.inertia.astype(f32), g0.astype(f32), m0.astype(f32)
     for integrator in (lievi.DEP(), lievi.MoserVeselov()):
-        ref = lievi.simulate(lievi.RigidBody(inertia), integrator, g0, m0, h=0.1, n_steps=20)
-        scaled = lievi.simulate(lievi.RigidBody(inertia * c), integrator, g0, m0 * c, h=0.1, n_steps=20)
+        ref = lievi.simulate(lievi.RigidBody(inertia), integrator, g0, m0, h=0.1, n_steps=4)
+        scaled = lievi.simulate(lievi.RigidBody(inertia * c), integrator, g0, m0 * c, h=0.1, n_steps=4)
         assert scaled.g.dtype == f32
         np.testing.assert_allclose(scaled.g, ref.g, atol=1e-5)
 
@@ -55,8 +56,8 @@ def test_tolerance_time_rescaling_invariance():
     """`(h, Π) → (h/c, cΠ)`: the same increments, hence the same attitudes."""
     body, g0, m0 = hlw_problem()
     for integrator in (lievi.DEP(), lievi.MoserVeselov()):
-        ref = lievi.simulate(body, integrator, g0, m0, h=0.1, n_steps=20)
-        fast = lievi.simulate(body, integrator, g0, m0 * 1e9, h=0.1 / 1e9, n_steps=20)
+        ref = lievi.simulate(body, integrator, g0, m0, h=0.1, n_steps=4)
+        fast = lievi.simulate(body, integrator, g0, m0 * 1e9, h=0.1 / 1e9, n_steps=4)
         np.testing.assert_allclose(fast.g, ref.g, atol=1e-12)
 
 
@@ -70,8 +71,9 @@ def _hlw_batch(inertias):
     return bodies, jnp.broadcast_to(g0, (B, 3, 3)), jnp.broadcast_to(m0, (B, 3))
 
 
-@pytest.mark.parametrize("integrator", [lievi.DEP(), lievi.RK4()], ids=["dep", "rk4"])
-@pytest.mark.parametrize("fast", [True, False])
+@pytest.mark.parametrize(
+    "integrator, fast", [(lievi.RK4(), True), (lievi.DEP(), False)], ids=["rk4-fast", "dep-generic"]
+)
 def test_vmapped_bodies_with_bad_inertia_fail_alone(integrator, fast):
     """The README idiom `jax.vmap(lievi.RigidBody)(inertias)` skips the eager check; the
     body with inertia (−1, 1, 1) must still fail, and only it."""
@@ -84,32 +86,17 @@ def test_vmapped_bodies_with_bad_inertia_fail_alone(integrator, fast):
     assert np.all(np.isfinite(np.asarray(sol.m[0])))
 
 
-def test_jitted_simulate_reports_bad_traced_inputs():
-    body, g0, m0 = hlw_problem()
+def test_throw_inside_jit_is_not_dropped():
+    """Per-input traced checks are in `test_properties.py`; here: with `throw=True` inside
+    the caller's `jit`, a failure raises even when only `g`/`m` are used."""
+    _, g0, m0 = hlw_problem()
 
     @jax.jit
-    def result(inertia, g0, m0, h):
-        return lievi.simulate(lievi.RigidBody(inertia), lievi.MoserVeselov(), g0, m0, h=h, n_steps=2, throw=False).result
+    def attitude(inertia):
+        return lievi.simulate(lievi.RigidBody(inertia), lievi.DEP(), g0, m0, h=0.1, n_steps=2).g
 
-    good = (body.inertia, g0, m0, 0.1)
-    assert int(result(*good)) == 0
-    cases = {
-        "inertia": jnp.array([-1.0, 1.0, 1.0]),
-        "g0 NaN": jnp.full((3, 3), jnp.nan),
-        "g0 = 2I": 2 * jnp.eye(3),
-        "reflection": jnp.diag(jnp.array([1.0, 1.0, -1.0])),
-        "h = 0": 0.0,
-        "h < 0": -0.1,
-    }
-    slots = {"inertia": 0, "g0 NaN": 1, "g0 = 2I": 1, "reflection": 1, "h = 0": 3, "h < 0": 3}
-    for name, value in cases.items():
-        args = list(good)
-        args[slots[name]] = value
-        assert int(result(*args)) == lievi.RESULTS.invalid_input, name
     with pytest.raises(Exception, match="input is invalid"):
-        jax.jit(lambda i: lievi.simulate(lievi.RigidBody(i), lievi.DEP(), g0, m0, h=0.1, n_steps=2).m)(
-            jnp.array([-1.0, 1.0, 1.0])
-        )
+        attitude(jnp.array([-1.0, 1.0, 1.0])).block_until_ready()
 
 
 class _NaNAttitude(lievi.RK4):

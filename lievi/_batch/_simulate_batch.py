@@ -130,6 +130,11 @@ def simulate_batch(
     - `throw`: raise if any body failed. With `throw=False` each body's `result` says
       whether it succeeded; a failed body does not stop the others.
 
+    Both paths apply the same checks as `simulate`, per body: a bad value of a body's
+    system, `g0`, `m0` or `h` gives `RESULTS.invalid_input` (also when they are traced,
+    e.g. a vmapped system), a non-finite `g` or `m` gives `RESULTS.nonfinite`, and a step
+    past `integrator.step_bound()` gives `RESULTS.step_too_large` (docs/guarantees.md).
+
     **Returns:** a `Solution` whose fields have a leading batch axis: `ts` `(B, T)`, `g`
     `(B, T, n, n)`, `m` `(B, T, d)`, `result` `(B,)`, `stats[...]` `(B, …)` — as
     `jax.vmap(simulate)` would give. On the fast path `stats["newton_iterations"]`
