@@ -1,9 +1,9 @@
 """Argument checks that raise `ValueError` naming the argument and the fix.
 
-Checks on *values* (positivity, orthogonality, NaN) run only when the value is concrete,
-i.e. when the function is called eagerly. Under `jit`/`vmap`/`grad` the values are
-tracers; there a NaN or an impossible step still surfaces through the `result` code of
-the solve (see `lievi.RESULTS`), never as a silent number.
+Checks on *values* (positivity, orthogonality, NaN) raise only when the value is
+concrete, i.e. when the function is called eagerly. Under `jit`/`vmap`/`grad` the values
+are tracers; there the same checks run inside the computation (`input_valid`) and a bad
+value gives `RESULTS.invalid_input` for that body — never a silent number.
 """
 
 from __future__ import annotations
@@ -29,7 +29,9 @@ def check_finite(name: str, x) -> None:
 
 
 def check_spd(name: str, matrix) -> None:
-    """Symmetric positive definite, for a concrete (…, k, k) array."""
+    """Symmetric positive definite, for a concrete (…, k, k) array (the dtype is checked
+    for traced arrays too; their values are checked by `input_valid`)."""
+    check_real_dtype(name, matrix)
     if not is_concrete(matrix):
         return
     m = np.asarray(matrix, dtype=float)
@@ -41,3 +43,56 @@ def check_spd(name: str, matrix) -> None:
             f"`{name}` must be positive definite (all eigenvalues > 0); got eigenvalues "
             f"{np.linalg.eigvalsh(m)}."
         )
+
+
+def check_scalar(name: str, x, *, positive: bool = False) -> None:
+    """Reject strings, bools, complex and non-scalar values; concrete values must be
+    finite (and, with `positive`, a normal number > 0)."""
+    if isinstance(x, (str, bytes)) or isinstance(x, (bool, np.bool_)):
+        raise ValueError(f"`{name}` must be a real number, got {x!r}.")
+    dtype = jnp.result_type(x)
+    if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
+        raise ValueError(f"`{name}` must be a real number, got dtype {dtype}.")
+    if jnp.ndim(x) != 0:
+        raise ValueError(f"`{name}` must be a scalar, got shape {jnp.shape(x)}.")
+    if is_concrete(x):
+        check_finite(name, x)
+        if positive:
+            value = float(x)
+            tiny = float(jnp.finfo(jnp.result_type(x, float)).tiny)
+            if not value > 0:
+                raise ValueError(f"`{name}` must be > 0, got {value}; pass a positive step size.")
+            if value < tiny:
+                raise ValueError(
+                    f"`{name}` = {value} is subnormal (below {tiny:.3g}); pass a normal "
+                    "positive step size."
+                )
+
+
+def check_real_dtype(name: str, x) -> None:
+    """Reject complex, bool and non-numeric arrays (they would be cast silently)."""
+    if isinstance(x, (str, bytes)):
+        dtype = None
+    else:
+        dtype = np.asarray(x).dtype if isinstance(x, (list, tuple)) else jnp.result_type(x)
+    if dtype is None or not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
+        raise ValueError(f"`{name}` must hold real numbers, got {'a string' if dtype is None else dtype}.")
+
+
+def step_size_valid(h):
+    """Traceable: `h` is a finite normal number > 0 (per body)."""
+    tiny = jnp.finfo(jnp.result_type(h, float)).tiny
+    return jnp.isfinite(h) & (h >= tiny)
+
+
+def input_valid(system, g0, m0, h, t0=0.0):
+    """Traceable validity of a run's inputs: the system's parameters, `g0` in the group,
+    finite `m0`, `t0`, and a positive normal `h`. A boolean array (`simulate` turns
+    `False` into `RESULTS.invalid_input`)."""
+    return (
+        system.parameters_valid()
+        & system.element_valid(g0)
+        & jnp.all(jnp.isfinite(m0))
+        & step_size_valid(h)
+        & jnp.isfinite(t0)
+    )

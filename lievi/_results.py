@@ -15,18 +15,27 @@ class RESULTS:
 
     successful = 0
     newton_not_converged = 1
-    step_too_large = 2
+    step_too_large = 2  # also: past the method's documented step bound (docs/guarantees.md)
     nonfinite = 3
+    invalid_input = 4
 
     messages = (
         "",
         "the Newton solve of the implicit step did not reach its tolerance within "
         "`max_steps` iterations. Reduce the step size `h`, or raise `max_steps` / loosen "
         "`rtol`, `atol` of the integrator.",
-        "the step's group increment left the domain of the chart (rotation angle ≥ π for "
-        "the exponential chart). Reduce the step size `h`, or use chart='cayley'.",
+        "the step is too large for the method: the angle turned in one step, h·|ξ| with "
+        "ξ the velocity, exceeds the method's bound (`integrator.step_bound()`), or the "
+        "increment left the domain of the chart (rotation angle ≥ π for the exponential "
+        "chart), or the Moser–Veselov root is off the branch that continues h → 0. Reduce "
+        "the step size `h`.",
         "a NaN or inf appeared in the state or the solve. Check the inputs (initial "
         "state, inertia, h) for NaN/inf, or reduce the step size `h`.",
+        "an input is invalid (checked per body, also under jit/vmap): the system's "
+        "parameters (e.g. an inertia that is not symmetric positive definite, or NaN), "
+        "`g0`/`g1` not in the group (for SO(n): ‖gᵀg − I‖ + |det g − 1| > 1e-6) or not "
+        "finite, `m0` or `t0` not finite, `h` not a positive normal number, or a prepared "
+        "integrator used with another step size or on another trajectory. Fix the input.",
     )
 
     @classmethod

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ._checks import check_finite, is_concrete
+from ._checks import check_real_dtype, check_scalar, input_valid, is_concrete
 from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator, AbstractVariationalIntegrator
 from ._results import RESULTS
@@ -95,12 +95,7 @@ def _check_integer(name: str, value, minimum: int) -> int:
 
 
 def _check_step_size(h) -> None:
-    if jnp.ndim(h) != 0:
-        raise ValueError(f"`h` must be a scalar step size, got shape {jnp.shape(h)}.")
-    if is_concrete(h):
-        check_finite("h", h)
-        if not float(h) > 0:
-            raise ValueError(f"`h` must be > 0, got {float(h)}; pass a positive step size.")
+    check_scalar("h", h, positive=True)
 
 
 def simulate(
@@ -137,7 +132,10 @@ def simulate(
       Legendre transform `−D₁L_d(g0, g1)`.
     - `t0`: initial time.
     - `throw`: if a step fails (see `RESULTS`), raise an error saying what to do; with
-      `throw=False` the failure is returned in `Solution.result` instead.
+      `throw=False` the failure is returned in `Solution.result` instead. Inside your own
+      `jax.jit` the error is raised by Equinox's runtime check and reaches you wrapped in
+      `JaxRuntimeError` (lievi's message is in its text); wrap with `eqx.filter_jit` for
+      a readable error, or pass `throw=False` and read `result`.
     - `checkpoint`: memory of reverse-mode differentiation (`jax.grad`). `False` (default)
       stores every step's internals, O(`n_steps`) memory. `True` splits the run into
       segments of about √`n_steps` steps, each wrapped in `jax.checkpoint`: the backward
@@ -163,30 +161,49 @@ def simulate(
     The run computes in the promoted dtype of `g0`, `m0`, `h` and the system's parameters
     (NumPy rules: float32 throughout needs a float32 system too).
 
-    Shapes, `h`, `n_steps`, `save_every` and concrete values of `g0`, `m0` are checked
-    eagerly and raise `ValueError`. Under `jax.vmap` (many bodies) use `throw=False` to
-    let a batch carry on and read the per-body `result`.
+    Shapes, dtypes, `h`, `t0`, `n_steps`, `save_every` and concrete values of `g0`,
+    `m0` and the system's parameters are checked eagerly and raise `ValueError`. The same
+    value checks run inside the computation, so under `jit`/`vmap` a bad value (an
+    inertia that is not positive definite, `g0` not a rotation, NaN, `h ≤ 0`) gives
+    `RESULTS.invalid_input` for that body, never `successful`. Every step is also checked
+    for a non-finite `g` or `m` (`RESULTS.nonfinite`) and against the integrator's step
+    bound (`RESULTS.step_too_large`, see `AbstractIntegrator.step_bound`). Under
+    `jax.vmap` (many bodies) use `throw=False` to let a batch carry on and read the
+    per-body `result`.
     """
     n_steps = _check_integer("n_steps", n_steps, 1)
     save_every = _check_integer("save_every", save_every, 1)
     if n_steps % save_every:
         raise ValueError(f"`save_every` ({save_every}) must divide `n_steps` ({n_steps}).")
     _check_step_size(h)
+    check_scalar("t0", t0)
     if (m0 is None) == (g1 is None):
         raise ValueError("Give exactly one of `m0` (initial momentum) and `g1` (second configuration).")
+    g0 = _as_array("g0", g0)
     system.check_element("g0", g0)
     if g1 is not None and forcing is not None:
         raise ValueError(
             "`g1` with `forcing`: the forced discrete Legendre transform needs the force at "
             "the first step; pass the initial momentum `m0` instead."
         )
+    valid = jnp.asarray(True)
     if g1 is not None:
         if not isinstance(integrator, AbstractVariationalIntegrator):
             raise ValueError("`g1` needs a variational integrator (one with a discrete Lagrangian).")
+        g1 = _as_array("g1", g1)
         system.check_element("g1", g1)
         dtype = state_dtype(system, g0, g1, h)
         g0, g1 = jnp.asarray(g0, dtype), jnp.asarray(g1, dtype)
         m0 = integrator.momentum_from_configurations(system, g0, g1, jnp.asarray(h, dtype))
+        if is_concrete(m0) and not np.all(np.isfinite(np.asarray(m0))):
+            raise ValueError(
+                "the momentum of the discrete trajectory through (`g0`, `g1`) is not finite: "
+                "the increment g0⁻¹g1 is outside the domain of the integrator's chart (e.g. a "
+                "half-turn for chart='cayley' or the Moser–Veselov Lagrangian). Pass `g1` "
+                "closer to `g0` (a smaller step) or pass `m0` instead."
+            )
+        valid = system.element_valid(g1)
+    m0 = _as_array("m0", m0)
     system.check_momentum("m0", m0)
     segment = _checkpoint_segment(checkpoint, n_steps, save_every)
     progress = _progress_kind(progress_meter)
@@ -194,23 +211,18 @@ def simulate(
     dtype = state_dtype(system, g0, m0, h)
     if forcing is not None:
         forcing.check(system, n_steps, dtype, args)
+    g0, m0, h, t0 = (jnp.asarray(x, dtype) for x in (g0, m0, h, t0))
+    # The eager checks above raise for concrete values; this repeats them inside the
+    # computation, so a traced bad value (under jit/vmap) is reported per body.
+    valid = valid & input_valid(system, g0, m0, h, t0)
     solution = _simulate(
-        system,
-        integrator,
-        jnp.asarray(g0, dtype),
-        jnp.asarray(m0, dtype),
-        jnp.asarray(h, dtype),
-        jnp.asarray(t0, dtype),
-        n_steps,
-        save_every,
-        segment,
-        progress,
-        forcing,
-        args,
+        system, integrator, g0, m0, h, t0, n_steps, save_every, segment, valid, progress, forcing, args
     )
     if throw:
-        result = eqx.branched_error_if(
-            solution.result,
+        # The check rides on every output (not only `result`): under the caller's `jit`
+        # a check on an unused output would be dead code and dropped silently.
+        solution = eqx.branched_error_if(
+            solution,
             solution.result != RESULTS.successful,
             solution.result,
             [
@@ -219,8 +231,13 @@ def simulate(
                 for msg in RESULTS.messages
             ],
         )
-        solution = eqx.tree_at(lambda s: s.result, solution, result)
     return solution
+
+
+def _as_array(name: str, x):
+    """Lists and tuples are accepted like arrays; complex, bool and strings are not."""
+    check_real_dtype(name, x)
+    return jnp.asarray(x)
 
 
 def state_dtype(system, *arrays):
@@ -229,6 +246,16 @@ def state_dtype(system, *arrays):
     for float32 throughout, pass float32 parameters too)."""
     params = [x for x in jax.tree.leaves(system) if eqx.is_inexact_array(x)]
     return jnp.result_type(*arrays, *params, float)
+
+
+def checked_step_result(integrator, system, m, h, g_next, m_next, result):
+    """The step's own code, completed by the checks every method gets: a non-finite `g`
+    or `m` is `nonfinite` (not only the momentum: a NaN attitude is caught too), and a
+    step beyond `integrator.step_bound()` is `step_too_large`, whatever the solve said."""
+    finite = jnp.all(jnp.isfinite(g_next)) & jnp.all(jnp.isfinite(m_next))
+    result = jnp.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
+    too_large = integrator.step_too_large(system, m, h)
+    return jnp.where(too_large, RESULTS.step_too_large, result).astype(jnp.int32)
 
 
 def _checkpoint_segment(checkpoint, n_steps: int, save_every: int) -> int | None:
@@ -345,6 +372,7 @@ def _simulate(
     n_steps: int,
     save_every: int,
     segment: int | None = None,
+    valid=True,
     progress: str | None = None,
     forcing=None,
     args=None,
@@ -359,9 +387,10 @@ def _simulate(
         else:
             force = forcing.at_step(data, args)
             g_next, m_next, info = integrator.step(system, g, m, h, force, t0 + k * h)
-        newly_failed = (result == RESULTS.successful) & (info.result != RESULTS.successful)
+        step_result = checked_step_result(integrator, system, m, h, g_next, m_next, info.result)
+        newly_failed = (result == RESULTS.successful) & (step_result != RESULTS.successful)
         failed_step = jnp.where(newly_failed, k, failed_step)
-        result = RESULTS.first_failure(result, info.result)
+        result = RESULTS.first_failure(result, step_result)
         ok = result == RESULTS.successful
         # After a failure the carried state stays at the last good one: later steps then
         # run on finite numbers, so their (unused) derivatives are finite and a failure
@@ -383,7 +412,8 @@ def _simulate(
         return carry, (g, m, jnp.max(iterations), jnp.sum(iterations), jnp.max(residuals))
 
     int32 = jnp.int32
-    init = (g0, m0, jnp.asarray(RESULTS.successful, int32), jnp.asarray(-1, int32), jnp.asarray(0, int32))
+    result0 = jnp.where(valid, RESULTS.successful, RESULTS.invalid_input).astype(int32)
+    init = (g0, m0, result0, jnp.where(valid, -1, 0).astype(int32), jnp.asarray(0, int32))
     n_saves = n_steps // save_every
     # Per-step forcing data (a control sequence), scanned over, not indexed: reverse mode
     # then accumulates one row of the cotangent per step.

@@ -266,8 +266,11 @@ def test_gradient_finite_when_a_step_fails():
         g = jnp.where(valid[:, None, None], sol.g, 0.0)
         return jnp.sum(W_G[:21] * g), (sol.result, sol.stats["failed_step"])
 
+    # A momentum off the principal plane: |Ω| grows along the orbit, so the step first
+    # passes the step bound (h|Ω| ≤ π, docs/guarantees.md) a few steps in.
+    m0 = jnp.array([np.cos(1.1), 0.3, np.sin(1.1)])
     grad = jax.jit(jax.grad(loss, has_aux=True))
-    value, (result, failed_step) = grad(body.inertia, 2.75)  # fails at step 5
+    value, (result, failed_step) = grad(body.inertia, 2.26)  # fails at step 5
     assert int(result) == lievi.RESULTS.step_too_large and int(failed_step) > 0
     assert np.all(np.isfinite(np.asarray(value)))
     assert np.max(np.abs(np.asarray(value))) > 0  # the steps before the failure count

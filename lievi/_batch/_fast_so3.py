@@ -214,6 +214,22 @@ def _moser_veselov_by_scalar_newton(Pi, A, iterations: int):
     )
 
 
+def moser_veselov_on_branch(x, Pi, A):
+    """`MoserVeselov.on_branch` in closed form: the symmetric part of the Jacobian,
+    `B = A − ¼(x·Π)1 − ⅛(xΠᵀ + Πxᵀ)`, is positive definite (Sylvester's criterion)."""
+    s = _dot(x, Pi)
+    b = [[-(x[i] * Pi[j] + Pi[i] * x[j]) / 8 for j in range(3)] for i in range(3)]
+    for i in range(3):
+        b[i][i] = b[i][i] + A[i] - s / 4
+    minor2 = b[0][0] * b[1][1] - b[0][1] * b[1][0]
+    det = (
+        b[0][0] * (b[1][1] * b[2][2] - b[1][2] * b[2][1])
+        - b[0][1] * (b[1][0] * b[2][2] - b[1][2] * b[2][0])
+        + b[0][2] * (b[1][0] * b[2][1] - b[1][1] * b[2][0])
+    )
+    return (b[0][0] > 0) & (minor2 > 0) & (det > 0)
+
+
 def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: int):
     """Newton for the DEP equation on a batch: `fixed_iterations`, then a check.
 
@@ -233,6 +249,10 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
             xi = tuple(xi[i] - delta[i] for i in range(3))
     r, _ = _residual(chart, xi, Pi, A, False)
     norm = _max_abs(r)
+    if restartable:
+        # A root of the quartic off the branch rule (`moser_veselov_on_branch`) is not
+        # the generic path's root: such a body restarts from the explicit-Euler guess.
+        norm = jnp.where(moser_veselov_on_branch(xi, Pi, A), norm, jnp.inf)
     iterations = jnp.full(norm.shape, fixed, jnp.int32)
 
     def active(norm, iterations):
@@ -263,11 +283,15 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
         guess_norm = _max_abs(_residual(chart, guess, Pi, A, False)[0])
         back = ~(norm <= tolerance) & ~(norm <= guess_norm)
         xi = tuple(jnp.where(back, guess[i], xi[i]) for i in range(3))
-        return xi, jnp.where(back, guess_norm, norm), iterations
+        # A restarted body gets the generic path's full budget of `max_steps` Newton
+        # steps from the guess, so both paths end on the same iterate.
+        return (xi, jnp.where(back, guess_norm, norm), jnp.where(back, 0, iterations)), back
 
     def tail(carry):
         if restartable:
-            carry = restart(carry)
+            carry, back = restart(carry)
+            xi, norm, iterations = jax.lax.while_loop(cond, body, carry)
+            return xi, norm, iterations + jnp.where(back, fixed, 0)
         return jax.lax.while_loop(cond, body, carry)
 
     if max_steps > fixed:
@@ -311,6 +335,9 @@ def dep_step(chart, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int):
     Pi_next = tuple(Pi[i] - a * xp[i] + b * (xi[i] * dp - t * Pi[i]) for i in range(3))
 
     result = jnp.where(converged, RESULTS.successful, RESULTS.newton_not_converged)
+    if chart == "moser-veselov":
+        off_branch = converged & ~moser_veselov_on_branch(xi, Pi, A)
+        result = jnp.where(off_branch, RESULTS.step_too_large, result)
     if chart == "exp":
         # Beyond the injectivity radius of exp (angle π) the root is on another branch.
         result = jnp.where(t >= math.pi**2, RESULTS.step_too_large, result)

@@ -17,11 +17,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import check_finite, is_concrete
+from .._checks import check_finite, check_real_dtype, input_valid, is_concrete
 from .._forcing import as_forcing
 from .._integrators._base import AbstractIntegrator
-from .._integrators._dep import DEP, default_tolerance
+from .._integrators._dep import DEP
 from .._integrators._moser_veselov import MoserVeselov
+from .._integrators._newton import newton_tolerance
 from .._integrators._rk4 import RK4
 from .._integrators._splitting import LiePoissonSplitting
 from .._results import RESULTS
@@ -136,6 +137,11 @@ def simulate_batch(
       of shape `(n_steps, d)`, one shared by all. A force law and `args` are shared.
       Forced runs take the generic path.
 
+    Both paths apply the same checks as `simulate`, per body: a bad value of a body's
+    system, `g0`, `m0` or `h` gives `RESULTS.invalid_input` (also when they are traced,
+    e.g. a vmapped system), a non-finite `g` or `m` gives `RESULTS.nonfinite`, and a step
+    past `integrator.step_bound()` gives `RESULTS.step_too_large` (docs/guarantees.md).
+
     **Returns:** a `Solution` whose fields have a leading batch axis: `ts` `(B, T)`, `g`
     `(B, T, n, n)`, `m` `(B, T, d)`, `result` `(B,)`, `stats[...]` `(B, …)` — as
     `jax.vmap(simulate)` would give. On the fast path `stats["newton_iterations"]`
@@ -148,6 +154,10 @@ def simulate_batch(
     save_every = n_steps if save_every is None else _check_integer("save_every", save_every, 1)
     if n_steps % save_every:
         raise ValueError(f"`save_every` ({save_every}) must divide `n_steps` ({n_steps}).")
+    if isinstance(save, str):
+        raise ValueError(
+            f"`save` must be a sequence of field names, e.g. ('g', 'm'), got the string {save!r}."
+        )
     save = tuple(save)
     unknown = set(save) - set(SAVE_FIELDS)
     if unknown:
@@ -158,9 +168,16 @@ def simulate_batch(
         fixed_iterations = _check_integer("fixed_iterations", fixed_iterations, 1)
     unroll = _check_integer("unroll", unroll, 1)
     n, d = system.group.matrix_dim, system.group.algebra_dim
+    for name, x in (("g0", g0), ("m0", m0), ("h", h)):
+        if isinstance(x, (bool, np.bool_)):
+            raise ValueError(f"`{name}` must hold real numbers, got {x!r}.")
+        check_real_dtype(name, x)
+    g0, m0 = jnp.asarray(g0), jnp.asarray(m0)
     _check_batch("g0", g0, (n, n), "one group element per body")
     _check_batch("m0", m0, (d,), "one momentum per body")
     batch = jnp.shape(g0)[0]
+    if batch == 0:
+        raise ValueError("the batch is empty (`g0` has 0 bodies); pass at least one body.")
     if jnp.shape(m0)[0] != batch:
         raise ValueError(f"`g0` and `m0` must have the same batch size, got {batch} and {jnp.shape(m0)[0]}.")
     if jnp.ndim(h) not in (0, 1) or (jnp.ndim(h) == 1 and jnp.shape(h)[0] != batch):
@@ -169,6 +186,9 @@ def simulate_batch(
         check_finite("h", h)
         if not np.all(np.asarray(h) > 0):
             raise ValueError("`h` must be > 0 for every body; pass positive step sizes.")
+        tiny = float(jnp.finfo(jnp.result_type(h, float)).tiny)
+        if np.any(np.asarray(h) < tiny):
+            raise ValueError(f"`h` has subnormal values (below {tiny:.3g}); pass normal step sizes.")
     if system_axis == 0:
         sizes = {jnp.shape(x)[0] for x in jax.tree_util.tree_leaves(eqx.filter(system, eqx.is_array))}
         if sizes != {batch}:
@@ -205,16 +225,23 @@ def simulate_batch(
             system, integrator, g0, m0, h, n_steps, save_every, save, system_axis, forcing, args
         )
     elif fast and has_fast_path(system, integrator, system_axis):
+        # The traced input checks of `simulate`, per body (the generic path runs them
+        # inside `simulate`): a bad body starts with `RESULTS.invalid_input`.
+        valid = jax.vmap(input_valid, in_axes=(system_axis, 0, 0, None if h.ndim == 0 else 0))(
+            system, g0, m0, h
+        )
         solution = _simulate_fast(
-            system, integrator, g0, m0, h, n_steps, save_every, save, fixed_iterations, unroll
+            system, integrator, g0, m0, h, n_steps, save_every, save, fixed_iterations, unroll, valid
         )
     else:
         solution = _simulate_vmap(system, integrator, g0, m0, h, n_steps, save_every, save, system_axis)
     if throw:
         failed = solution.result != RESULTS.successful
         first = jnp.max(jnp.where(failed, solution.result, 0))
-        result = eqx.branched_error_if(
-            solution.result,
+        # The check rides on every output (not only `result`): under the caller's `jit`
+        # a check on an unused output would be dead code and dropped silently.
+        solution = eqx.branched_error_if(
+            solution,
             jnp.any(failed),
             first,
             [
@@ -223,7 +250,6 @@ def simulate_batch(
                 for msg in RESULTS.messages
             ],
         )
-        solution = eqx.tree_at(lambda s: s.result, solution, result)
     return solution
 
 
@@ -272,7 +298,8 @@ def _simulate_vmap(
 
 @eqx.filter_jit
 def _simulate_fast(
-            system, integrator, g0, m0, h, n_steps, save_every, save, fixed_iterations, unroll
+            system, integrator, g0, m0, h, n_steps, save_every, save, fixed_iterations, unroll,
+            valid=True,
         ):
     chart = _fast_step(system, integrator)
     if fixed_iterations is None:
@@ -284,11 +311,22 @@ def _simulate_fast(
     inverse_inertia = tuple(1 / jnp.broadcast_to(inertia[..., i], (batch,)) for i in range(3))
     g = tuple(g0[:, i, j] for i in range(3) for j in range(3))
     Pi = tuple(m0[:, i] for i in range(3))
-    eps = default_tolerance(dtype)
-    rtol = eps if getattr(integrator, "rtol", None) is None else integrator.rtol
-    atol = eps if getattr(integrator, "atol", None) is None else integrator.atol
+    rtol, atol = getattr(integrator, "rtol", None), getattr(integrator, "atol", None)
     nan = jnp.asarray(jnp.nan, dtype)
     int32 = jnp.int32
+    step_bound = integrator.step_bound()
+
+    def _checked_step_result(g_next, Pi_next, Pi, step_result):
+        """As `lievi._simulate.checked_step_result`: a non-finite `g` or `Π` is `nonfinite`,
+        a step beyond `integrator.step_bound()` (`h·|I⁻¹Π|`) is `step_too_large`."""
+        finite = jnp.isfinite(g_next[0])
+        for x in (*g_next[1:], *Pi_next):
+            finite = finite & jnp.isfinite(x)
+        ok = step_result == RESULTS.successful
+        step_result = jnp.where(ok & ~finite, RESULTS.nonfinite, step_result)
+        omega2 = sum((Pi[i] * inverse_inertia[i]) ** 2 for i in range(3))
+        too_large = jnp.abs(h) * jnp.sqrt(omega2) > step_bound
+        return jnp.where(too_large, RESULTS.step_too_large, step_result).astype(int32)
 
     def one_step(carry, _):
         (g, Pi, result, failed_step, k), (total, most, worst) = carry
@@ -300,10 +338,11 @@ def _simulate_fast(
             # Explicit: no Newton iterations, zero residual (as the per-body `StepInfo`).
             iterations, residual = jnp.zeros((batch,), int32), jnp.zeros((batch,), dtype)
         else:
-            tolerance = atol + rtol * _fast_so3._max_abs(Pi)
+            tolerance = newton_tolerance(_fast_so3._max_abs(Pi), dtype, rtol, atol)
             g_next, Pi_next, step_result, iterations, residual = _fast_so3.dep_step(
                 chart, g, Pi, A, tolerance, fixed_iterations, integrator.max_steps
             )
+        step_result = _checked_step_result(g_next, Pi_next, Pi, step_result)
         newly_failed = (result == RESULTS.successful) & (step_result != RESULTS.successful)
         failed_step = jnp.where(newly_failed, k, failed_step)
         result = RESULTS.first_failure(result, step_result)
@@ -339,8 +378,8 @@ def _simulate_fast(
     init = (
         g,
         Pi,
-        jnp.full((batch,), RESULTS.successful, int32),
-        jnp.full((batch,), -1, int32),
+        jnp.broadcast_to(jnp.where(valid, RESULTS.successful, RESULTS.invalid_input), (batch,)).astype(int32),
+        jnp.broadcast_to(jnp.where(valid, -1, 0), (batch,)).astype(int32),
         jnp.asarray(0, int32),
     )
     final, out = jax.lax.scan(one_save, init, None, length=n_steps // save_every)
@@ -378,6 +417,8 @@ def shard_batch(tree, devices=None):
     Scalars are replicated. The batch size must be a multiple of the number of devices.
     """
     devices = jax.local_devices() if devices is None else list(devices)
+    if not devices:
+        raise ValueError("`devices` is empty; pass at least one device (default: all local devices).")
     mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
     split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())

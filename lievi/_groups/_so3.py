@@ -57,7 +57,12 @@ def _sinc3(t2):  # (θ − sin θ) / θ³
 def _dexpinv_coefficient(t2):  # (1 − (θ/2) cot(θ/2)) / θ²
     def exact(s):
         half = jnp.sqrt(s) / 2
-        return (1 - half * jnp.cos(half) / jnp.sin(half)) / s
+        sin = jnp.sin(half)
+        # dexpinv is singular at θ = 2πk (k ≥ 1): there sin(θ/2) is round-off, and the
+        # quotient would be a huge finite number (~1e16); report it as non-finite.
+        singular = jnp.abs(sin) <= 4 * jnp.finfo(s.dtype).eps * half
+        value = (1 - half * jnp.cos(half) / jnp.where(singular, 1.0, sin)) / s
+        return jnp.where(singular, jnp.inf, value)
 
     return _series_or_exact(t2, exact, (1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160))
 

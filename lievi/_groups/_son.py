@@ -91,7 +91,19 @@ class AbstractSpecialOrthogonal(MatrixLieGroup):
         return jnp.stack(traces, axis=-1)
 
     def log(self, g: Float[Array, "*batch n n"], iterations: int = 1):
-        """Principal logarithm for rotation angles below π.
+        """Principal logarithm: `x` with `exp(x) = g`, every rotation angle in `[0, π]`.
+
+        Contract: `g` must be a rotation (use `log_checked` for input that may not be one:
+        it returns NaN for a non-rotation). The result is *verified*: `exp(x) = g` to a
+        few hundred ulps, or the result is NaN — never a wrong finite number. Away from
+        half-turns `x` comes from the polar/Gregory route below; where that route loses
+        accuracy (a rotation angle within ~1e-5 of π) it comes from the symmetric-part
+        formula `_log_half_turn`, exact up to and at π (for an exact half-turn, one of the
+        equally valid logarithms). A rotation with two or more angles at π within
+        round-off of each other (e.g. `−I` in SO(4)) has no well-conditioned logarithm;
+        there the result may be NaN.
+
+        Away from half-turns:
 
         `x = 2³ log(g^{1/8})`: three principal square roots (polar factors of `I + g`)
         bring every rotation angle below π/8, where the Gregory series
@@ -108,9 +120,76 @@ class AbstractSpecialOrthogonal(MatrixLieGroup):
         formula `dexp(2z) = ½(I + Ad_{exp z}) dexp(z)`. Further steps use `exp` and
         `dexpinv`.
 
-        At an angle of exactly π (where the principal logarithm is not unique) the result
-        is not finite; `SO3` handles that case in closed form.
+        At an angle of exactly π the principal logarithm is not unique; this route is not
+        finite there, and the half-turn route takes over.
         """
+        x = self._log_polar(g, iterations)
+        accurate = self._log_accurate(g, x)
+        # Near a half-turn: the symmetric-part route, polished by one Newton step from a
+        # constant start (its derivative is then the exact derivative of log, as above).
+        x0 = jax.lax.stop_gradient(self._log_half_turn(g))
+        x_half = x0 + jnp.einsum(
+            "...ab,...b->...a", self.dexpinv(-x0), self.vee(self.inverse(self.exp(x0)) @ g)
+        )
+        x = jnp.where(accurate[..., None], x, x_half)
+        verified = accurate | self._log_accurate(g, x)
+        return jnp.where(verified[..., None], x, jnp.nan)
+
+    def log_checked(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch d"]:
+        """`log(g)`, or NaN where `g` is not a rotation (membership defect
+        `‖gᵀg − I‖_F + |det g − 1|` above 1e-6, or a few hundred ulps in float32)."""
+        bound = max(1e-6, 64 * float(jnp.finfo(g.dtype).eps))
+        inside = self.membership_defect(g) <= bound
+        eye = jnp.eye(self.matrix_dim, dtype=g.dtype)
+        safe = jnp.where(inside[..., None, None], g, eye)
+        return jnp.where(inside[..., None], self.log(safe), jnp.nan)
+
+    def _log_accurate(self, g, x):
+        """`‖exp(x) − g‖_max` within a few hundred ulps (per batch element)."""
+        eps = jnp.finfo(g.dtype).eps
+        error = jnp.max(jnp.abs(self.exp(x) - g), axis=(-2, -1))
+        return jnp.all(jnp.isfinite(x), axis=-1) & (error <= 256 * self.matrix_dim * eps)
+
+    def _log_half_turn(self, g):
+        """The logarithm from the symmetric and skew parts, accurate up to and at π.
+
+        For `g = exp(X)`: `S = (g + gᵀ)/2 = cos X`, `K = (g − gᵀ)/2 = sin X`, and `X`
+        commutes with both. In an eigenbasis `V` of `S` (eigenvalues `cos θ`), `K̃ = VᵀKV`
+        is block diagonal over equal eigenvalues, each row `a` of norm `sin θ_a`;
+        `θ_a = atan2(‖K̃_a‖, c_a)` is accurate to an ulp at every angle (unlike `acos c`
+        or `asin s`), and `X̃ = θ K̃ / sin θ` blockwise. At an exact half-turn (`K̃ ≈ 0`
+        on an eigenvalue −1) the plane's orientation is free: the eigenvectors are paired
+        and each pair rotated by π. Eigenvectors are not differentiable at repeated
+        eigenvalues; the caller takes no derivative through this function.
+        """
+        dtype = g.dtype
+        eps = jnp.finfo(dtype).eps
+        S = (g + jnp.swapaxes(g, -1, -2)) / 2
+        K = (g - jnp.swapaxes(g, -1, -2)) / 2
+        c, V = jnp.linalg.eigh(S)
+        Kt = jnp.swapaxes(V, -1, -2) @ K @ V
+        # Entries between different eigenvalues are round-off (exactly 0 for exact input):
+        # dropped, also from the row norms (for a small sin θ they would bias it).
+        same = jnp.abs(c[..., :, None] - c[..., None, :]) <= jnp.sqrt(eps)
+        Kt = jnp.where(same, Kt, 0.0)
+        s = jnp.sqrt(jnp.sum(Kt * Kt, axis=-1))
+        theta = jnp.arctan2(s, c)
+        half = (s <= 16 * eps) & (c < 0)
+        psi = jnp.where(s > 0, theta / jnp.where(s > 0, s, 1.0), 1.0)
+        Xt = Kt * (psi[..., :, None] + psi[..., None, :]) / 2
+        # Exact half-turns: pair eigenvectors (0, 1), (2, 3), … of the eigenvalue −1
+        # (sorted first by `eigh`; its multiplicity is even on SO(n)).
+        n = self.matrix_dim
+        pair = np.zeros((n, n))
+        for a in range(0, n - 1, 2):
+            pair[a + 1, a], pair[a, a + 1] = 1.0, -1.0
+        both = half[..., :, None] & half[..., None, :]
+        Xt = jnp.where(both, jnp.pi * jnp.asarray(pair, dtype), Xt)
+        X = V @ Xt @ jnp.swapaxes(V, -1, -2)
+        return self.vee(X)
+
+    def _log_polar(self, g, iterations: int):
+        """The polar/Gregory route of `log` with `iterations` Newton steps (see `log`)."""
         # Loops are `fori_loop`s rather than Python loops: that compiles several times faster.
         dtype = g.dtype
         eye = jnp.eye(self.matrix_dim, dtype=dtype)

@@ -9,6 +9,7 @@ diagnostics check the discrete Euler–Lagrange equations (2.1) by autodiff.
 from __future__ import annotations
 
 import abc
+import math
 
 import equinox as eqx
 import jax
@@ -55,6 +56,22 @@ class AbstractIntegrator(eqx.Module):
         `force`, if given, is the external generalised force over the step, a callable
         `force(t, g, m) -> (d,)` (see `lievi.Control`, `lievi.ForceLaw`).
         """
+
+    def step_bound(self) -> float:
+        """The largest angle `h·|ξ|` a step may turn (`ξ` the velocity of the current
+        momentum, `|ξ|` its algebra norm, an upper bound of the largest rotation angle
+        per unit time on SO(n)). Default π: a rotation sampled at π or more per step is
+        aliased (its increment is indistinguishable from a shorter turn the other way),
+        so no one-step method can resolve it. `simulate` and `simulate_batch` report
+        `RESULTS.step_too_large` for a step beyond it (docs/guarantees.md)."""
+        return math.pi
+
+    def step_too_large(self, system: AbstractLieSystem, m: Float[Array, " d"], h: Scalar):
+        """Whether a step of size `h` from momentum `m` exceeds `step_bound()` (traceable).
+
+        A NaN momentum is not "too large" (it is reported as `nonfinite`)."""
+        xi = system.velocity(m)
+        return jnp.abs(h) * jnp.sqrt(jnp.sum(xi * xi)) > self.step_bound()
 
 
 class AbstractKickIntegrator(AbstractIntegrator):

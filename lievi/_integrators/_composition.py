@@ -144,6 +144,10 @@ class Composition(AbstractIntegrator):
     def is_symmetric(self) -> bool:
         return True
 
+    def step_bound(self) -> float:
+        # The longest stage is max|γ_i|·h; each stage must obey the inner method's bound.
+        return self.method.step_bound() / max(abs(c) for c in self.coefficients)
+
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
         gammas = jnp.asarray(self.coefficients, dtype=m.dtype)
         # Each stage starts where the previous ones ended (negative coefficients step back).

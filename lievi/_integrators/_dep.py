@@ -49,12 +49,13 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Scalar
 
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from ._base import AbstractVariationalIntegrator, StepInfo
-from ._newton import newton_solve
+from ._newton import newton_solve, newton_tolerance
 
 CHARTS = ("exp", "cayley")
 
@@ -66,9 +67,9 @@ def _chart(group, chart: str):
     return group.cay, group.cayinv, group.dcayinv
 
 
-def default_tolerance(dtype) -> float:
-    # The residual cannot be computed more accurately than a few ulps of |m|.
-    return 64 * float(jnp.finfo(dtype).eps)
+def _as_int(value):
+    """NumPy integers become Python ints (a static field must not hold a NumPy scalar)."""
+    return int(value) if isinstance(value, np.integer) else value
 
 
 class DEP(AbstractVariationalIntegrator):
@@ -85,8 +86,10 @@ class DEP(AbstractVariationalIntegrator):
       Moser–Veselov/Lewis–Simo scheme (5.7) itself uses a different discrete Lagrangian,
       `tr((I − F)Λ)/h` (on SO(3): `½ξᵀIξ / (h(1 + |ξ|²/4))` with `F = cay(ξ)`), so its
       iterates differ from these at O(h³) per step.
-    - `rtol`, `atol`: the Newton solve stops when `‖residual‖_∞ ≤ atol + rtol·‖m‖_∞`.
-      Default: 64 ulps of the dtype for both.
+    - `rtol`, `atol`: the Newton solve stops when `‖residual‖_∞ ≤ atol + rtol·‖m‖_∞`
+      (momentum units). Default: `rtol` = 64 ulps of the dtype, `atol` = 0 — a relative
+      test, so the computed trajectory does not depend on the units (see
+      `lievi._integrators._newton.newton_tolerance`).
     - `max_steps`: maximum Newton iterations per step; exceeding it is reported as
       `RESULTS.newton_not_converged`.
     """
@@ -94,12 +97,17 @@ class DEP(AbstractVariationalIntegrator):
     chart: str = eqx.field(default="exp", static=True)
     rtol: float | None = eqx.field(default=None, static=True)
     atol: float | None = eqx.field(default=None, static=True)
-    max_steps: int = eqx.field(default=20, static=True)
+    max_steps: int = eqx.field(default=20, static=True, converter=_as_int)
 
     def __check_init__(self):
         if self.chart not in CHARTS:
             raise ValueError(f"`chart` must be one of {CHARTS}, got {self.chart!r}.")
-        if not isinstance(self.max_steps, int) or self.max_steps < 1:
+        # Any integer type (NumPy's too, as `n_steps` accepts), not bool.
+        if (
+            isinstance(self.max_steps, bool)
+            or not isinstance(self.max_steps, (int, np.integer))
+            or self.max_steps < 1
+        ):
             raise ValueError(f"`max_steps` must be a positive integer, got {self.max_steps!r}.")
         for name in ("rtol", "atol"):
             value = getattr(self, name)
@@ -128,10 +136,7 @@ class DEP(AbstractVariationalIntegrator):
         def residual(xi):
             return dchart_inverse(sign * xi).T @ system.legendre(xi / h) - m
 
-        eps_tol = default_tolerance(m.dtype)
-        rtol = eps_tol if self.rtol is None else self.rtol
-        atol = eps_tol if self.atol is None else self.atol
-        tolerance = atol + rtol * jnp.max(jnp.abs(m))
+        tolerance = newton_tolerance(jnp.max(jnp.abs(m)), m.dtype, self.rtol, self.atol)
         # Explicit-Euler guess `h·ξ(m)`: O(h²) from the root, so Newton needs few steps.
         return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps)
 

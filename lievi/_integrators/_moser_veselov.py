@@ -51,8 +51,8 @@ from .._systems._base import AbstractLieSystem
 from .._systems._generalized_rigid_body import GeneralizedRigidBody
 from .._systems._rigid_body import RigidBody
 from ._base import AbstractVariationalIntegrator, StepInfo
-from ._dep import default_tolerance
-from ._newton import newton_solve
+from ._dep import _as_int
+from ._newton import newton_solve, newton_tolerance
 
 
 def check_rigid_body(method: str, system: AbstractLieSystem) -> None:
@@ -116,18 +116,23 @@ class MoserVeselov(AbstractVariationalIntegrator):
     **Arguments:**
 
     - `rtol`, `atol`: the Newton solve stops when the residual of `J(X)/h − (I − X/2)Π̂(I + X/2)`
-      (momentum units) satisfies `‖r‖_∞ ≤ atol + rtol·‖Π‖_∞`. Default: 64 ulps of the dtype
-      for both.
+      (momentum units) satisfies `‖r‖_∞ ≤ atol + rtol·‖Π‖_∞`. Default: `rtol` = 64 ulps of
+      the dtype, `atol` = 0 (a relative test: the step does not depend on the units).
     - `max_steps`: maximum Newton iterations per step; exceeding it is reported as
       `RESULTS.newton_not_converged`.
     """
 
     rtol: float | None = eqx.field(default=None, static=True)
     atol: float | None = eqx.field(default=None, static=True)
-    max_steps: int = eqx.field(default=20, static=True)
+    max_steps: int = eqx.field(default=20, static=True, converter=_as_int)
 
     def __check_init__(self):
-        if not isinstance(self.max_steps, int) or self.max_steps < 1:
+        # Any integer type (NumPy's too, as `n_steps` accepts), not bool.
+        if (
+            isinstance(self.max_steps, bool)
+            or not isinstance(self.max_steps, (int, np.integer))
+            or self.max_steps < 1
+        ):
             raise ValueError(f"`max_steps` must be a positive integer, got {self.max_steps!r}.")
         for name in ("rtol", "atol"):
             value = getattr(self, name)
@@ -149,21 +154,40 @@ class MoserVeselov(AbstractVariationalIntegrator):
         eye = jnp.eye(increment.shape[-1], dtype=increment.dtype)
         return jnp.trace((eye - increment) @ Lambda) / h
 
-    def solve_increment(self, system: AbstractLieSystem, m: Float[Array, " d"], h: Scalar):
-        """Solve `J(X) = h (I − X/2) Π̂ (I + X/2)` for the Cayley coordinates `x` of `F = Ωᵀ`."""
+    @staticmethod
+    def residual(system: AbstractLieSystem, m: Float[Array, " d"], h: Scalar):
+        """`x ↦ J(x)/h − vee((I − X/2) Π̂ (I + X/2))`, in momentum units like DEP's."""
         group = system.group
         M = group.hat(m)
         eye = jnp.eye(group.matrix_dim, dtype=m.dtype)
 
         def residual(x):
-            # Divided by h: the residual is in momentum units, like DEP's.
             X = group.hat(x)
             return system.legendre(x) / h - group.vee((eye - X / 2) @ M @ (eye + X / 2))
 
-        eps_tol = default_tolerance(m.dtype)
-        rtol = eps_tol if self.rtol is None else self.rtol
-        atol = eps_tol if self.atol is None else self.atol
-        tolerance = atol + rtol * jnp.max(jnp.abs(m))
+        return residual
+
+    def on_branch(self, system: AbstractLieSystem, m: Float[Array, " d"], h: Scalar, x):
+        """The branch rule: `x` is the root continued from `h → 0` — certified by the
+        symmetric part of the residual's Jacobian (times `sign h`) being positive definite
+        at `x`.
+
+        The residual is quadratic in `x`, so its Jacobian is affine and the set where its
+        symmetric part is positive definite is convex; on a convex set a map with a
+        positive definite symmetric Jacobian is injective. So there is at most one root
+        there, and for small `h` (Jacobian ≈ `J/h`) it is the root near `h I⁻¹Π`. A root
+        outside that set (another root of the quadratic, or the branch past its fold) is
+        reported as `RESULTS.step_too_large`, on both the generic and the batched path.
+        """
+        # Times sign(h): a negative step (an inner stage of `Composition`) has J ≈ J/h < 0.
+        jacobian = jax.jacfwd(self.residual(system, m, h))(x) * jnp.sign(h)
+        symmetric = (jacobian + jacobian.T) / 2
+        return jnp.all(jnp.isfinite(jnp.linalg.cholesky(symmetric)))
+
+    def solve_increment(self, system: AbstractLieSystem, m: Float[Array, " d"], h: Scalar):
+        """Solve `J(X) = h (I − X/2) Π̂ (I + X/2)` for the Cayley coordinates `x` of `F = Ωᵀ`."""
+        residual = self.residual(system, m, h)
+        tolerance = newton_tolerance(jnp.max(jnp.abs(m)), m.dtype, self.rtol, self.atol)
         return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps)
 
     def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
@@ -180,6 +204,9 @@ class MoserVeselov(AbstractVariationalIntegrator):
         # whatever the Newton residual.
         m_next = group.vee(F.T @ group.hat(m) @ F)
         result = jnp.where(info.converged, RESULTS.successful, RESULTS.newton_not_converged)
+        # One branch rule on every path (see `on_branch`): a root off it is a failure.
+        off_branch = info.converged & ~self.on_branch(system, m, h, x)
+        result = jnp.where(off_branch, RESULTS.step_too_large, result)
         finite = jnp.isfinite(info.residual) & jnp.all(jnp.isfinite(m_next))
         result = jnp.where(finite, result, RESULTS.nonfinite)
         return g_next, m_next, StepInfo(result, info.iterations, info.residual)

@@ -17,6 +17,29 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int, Scalar
 
 
+def newton_tolerance(scale, dtype, rtol: float | None = None, atol: float | None = None):
+    """The stopping tolerance of every implicit step: `atol + rtol·scale`, relative by default.
+
+    `scale` is the size of the terms of the equation (for the DEP and Moser–Veselov
+    equations in momentum form: `‖m‖_∞`, which the Legendre term matches at the root).
+    The default is *relative*: `rtol` = 64 ulps of `dtype`, `atol` = 0, so the test — and
+    hence the computed step — is invariant under a change of units, `(I, m) → (cI, cm)`
+    and `(h, m) → (h/c, cm)`, for every `c`. An absolute default would let the
+    explicit-Euler guess "converge" with no iteration for a body in small units.
+    The floor is the smallest normal number of `dtype`: for `m = 0` the guess `ξ = 0` is
+    the exact root (residual exactly 0), and for `m ≠ 0` the residual of the guess is
+    not below it unless `m` itself is at the underflow threshold.
+
+    The same function sets the tolerance of the batched fast path, so both entry points
+    stop on the same test.
+    """
+    eps_tol = 64 * float(jnp.finfo(dtype).eps)
+    rtol = eps_tol if rtol is None else rtol
+    atol = 0.0 if atol is None else atol
+    floor = float(jnp.finfo(dtype).tiny)
+    return jnp.maximum(atol + rtol * scale, floor)
+
+
 class NewtonInfo(eqx.Module):
     """What a Newton solve did: iterations taken, final residual ∞-norm, convergence."""
 

@@ -58,11 +58,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
 
+from .._checks import check_scalar, step_size_valid
 from .._groups._so3 import SO3
+from .._results import RESULTS
 from .._simulate import state_dtype
 from .._systems._base import AbstractLieSystem
 from .._systems._rigid_body import RigidBody
-from ._base import AbstractIntegrator
+from ._base import AbstractIntegrator, StepInfo
 from ._moser_veselov import MoserVeselov
 
 ORDERS = (4, 6, 8, 10)
@@ -240,7 +242,8 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     ~10⁶ flops at order 10). For long runs call `prepare(system, m0, h)` once: it returns a copy that stores them, and whose
     step then costs one DMV step. A prepared integrator must be used with that same `h`
     (an error otherwise, also under `jit`) and on the trajectory of `m0` (or any state with
-    the same energy and Casimir). `equivalent_moser_veselov(system, m0, h)` returns the
+    the same energy and Casimir; another momentum is reported as `RESULTS.invalid_input`).
+    `equivalent_moser_veselov(system, m0, h)` returns the
     modified body itself, for `MoserVeselov` fast paths such as `lievi.simulate_batch`'s.
     """
 
@@ -249,6 +252,7 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     h_prepared: Array | None
     alpha: Array | None
     beta: Array | None
+    invariants: Array | None = None
 
     def __init__(self, order: int = 6, method: MoserVeselov | None = None, *, _prepared=None):
         if isinstance(order, bool) or order not in ORDERS:
@@ -258,7 +262,10 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
             raise ValueError(f"`method` must be a lievi.MoserVeselov, got {type(method).__name__}.")
         self.order_ = order
         self.method = method
-        self.h_prepared, self.alpha, self.beta = _prepared or (None, None, None)
+        prepared = _prepared or (None, None, None, None)
+        self.h_prepared, self.alpha, self.beta = prepared[:3]
+        # (Casimir |m0|², energy H(m0)): the trajectory the prepared moments belong to.
+        self.invariants = prepared[3] if len(prepared) > 3 else None
 
     def order(self) -> int:
         return self.order_
@@ -274,11 +281,15 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     ) -> PreprocessedMoserVeselov:
         """A copy with `α(h)` and `β(h)` computed once for step `h` on the trajectory of `m0`."""
         _check_system(system)
+        check_scalar("h", h, positive=True)
         system.check_momentum("m0", m0)
         dtype = state_dtype(system, m0, h)
         m0, h = jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
         alpha, beta = preprocessing(system, m0, h, self.order_)
-        return PreprocessedMoserVeselov(self.order_, self.method, _prepared=(h, alpha, beta))
+        invariants = jnp.stack([jnp.dot(m0, m0), system.energy(m0)])
+        return PreprocessedMoserVeselov(
+            self.order_, self.method, _prepared=(h, alpha, beta, invariants)
+        )
 
     def equivalent_moser_veselov(
         self, system: AbstractLieSystem, m0: Float[Array, "3"], h
@@ -311,7 +322,25 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
                 "`.prepare(system, m0, h)` with the `h` you simulate with.",
             )
             alpha, beta = self.alpha.astype(m.dtype), self.beta.astype(m.dtype)
-        return self.method.step(modified_body(system, alpha, beta), g, m, h)
+        g_next, m_next, info = self.method.step(modified_body(system, alpha, beta), g, m, h)
+        if self.alpha is None:
+            return g_next, m_next, info
+        result = jnp.where(self._prepared_for(system, m), info.result, RESULTS.invalid_input)
+        return g_next, m_next, StepInfo(result, info.iterations, info.residual)
+
+    def _prepared_for(self, system, m):
+        """Whether the prepared moments belong to this state: a valid prepared `h`, and
+        the Casimir and energy of `m` equal those of the prepared `m0` (DMV keeps both to
+        round-off; √ε relative allows for their drift over very long runs). Another
+        momentum would silently give a low-order step."""
+        valid_h = step_size_valid(self.h_prepared)
+        if self.invariants is None:
+            return valid_h
+        tolerance = jnp.sqrt(jnp.finfo(m.dtype).eps)
+        casimir, energy = self.invariants.astype(m.dtype)
+        same_casimir = jnp.abs(jnp.dot(m, m) - casimir) <= tolerance * casimir
+        same_energy = jnp.abs(system.energy(m) - energy) <= tolerance * energy
+        return valid_h & same_casimir & same_energy
 
 
 def _check_system(system) -> None:

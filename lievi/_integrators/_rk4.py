@@ -18,6 +18,8 @@ structure-preserving methods are compared against (the tests measure it over T =
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 from jaxtyping import Scalar
@@ -55,6 +57,11 @@ class RK4(AbstractIntegrator):
 
     def order(self) -> int:
         return 4
+
+    def step_bound(self) -> float:
+        # Stability of RK4 on the imaginary axis (rotation at rate |Ω|): |R(iy)| ≤ 1 iff
+        # y ≤ 2√2; beyond it `g` and `m` grow geometrically (det g → −4e4 was seen).
+        return 2 * math.sqrt(2)
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
         group = system.group

@@ -124,6 +124,25 @@ class AbstractLieSystem(eqx.Module):
                     f"({self.group.membership_hint()})."
                 )
 
+    def parameters_valid(self):
+        """A boolean array: the parameters are admissible (here: finite). Traceable, so
+        `simulate` checks it under `jit`/`vmap` too and reports `RESULTS.invalid_input`."""
+        valid = jnp.asarray(True)
+        for leaf in jax.tree.leaves(self):
+            if eqx.is_inexact_array(leaf):
+                valid = valid & jnp.all(jnp.isfinite(leaf))
+        return valid
+
+    def element_valid(self, g):
+        """A boolean array: `g` is a finite group element (membership defect ≤ 1e-6, the
+        bound of `check_element`; a few hundred ulps in float32). Traceable."""
+        dtype = jnp.result_type(g, float)
+        g = jnp.asarray(g, dtype)
+        bound = max(1e-6, 64 * float(jnp.finfo(dtype).eps))
+        finite = jnp.all(jnp.isfinite(g))
+        safe = jnp.where(finite, g, jnp.eye(g.shape[-1], dtype=dtype))
+        return finite & (self.group.membership_defect(safe) <= bound)
+
     def check_momentum(self, name: str, m) -> None:
         """Raise `ValueError` unless `m` is a finite `(d,)` momentum."""
         d = self.group.algebra_dim

@@ -53,6 +53,10 @@ class GeneralizedRigidBody(AbstractLieSystem):
                     f"inertia operator); smallest pair sum is {pair_sums.min():.3g}."
                 )
 
+    def parameters_valid(self):
+        """Finite `Λ` with `Λᵢ + Λⱼ > 0` for all `i ≠ j` (traceable)."""
+        return super().parameters_valid() & jnp.all(self.plane_inertia > 0)
+
     @property
     def plane_inertia(self) -> Float[Array, " d"]:
         """`Λᵢ + Λⱼ` for each plane `(i, j)`, in the coordinate order of `SOn`."""

@@ -40,6 +40,8 @@ class LieLagrangian(AbstractLieSystem):
     def __check_init__(self):
         if self.side not in SIDES:
             raise ValueError(f"`side` must be one of {SIDES}, got {self.side!r}.")
+        if not callable(self.l):
+            raise ValueError(f"`l` must be a callable reduced Lagrangian ξ ↦ l(ξ), got {self.l!r}.")
         if not isinstance(self.group, MatrixLieGroup):
             raise ValueError(f"`group` must be a lievi MatrixLieGroup, got {type(self.group)}.")
 

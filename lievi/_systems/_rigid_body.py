@@ -52,6 +52,16 @@ class RigidBody(AbstractLieSystem):
             )
         check_spd("inertia", self.inertia_tensor)
 
+    def parameters_valid(self):
+        """Finite, symmetric and positive definite inertia (traceable; see `check_spd`)."""
+        tensor = self.inertia_tensor
+        finite = jnp.all(jnp.isfinite(tensor))
+        tensor = jnp.where(finite, tensor, jnp.eye(3, dtype=tensor.dtype))
+        scale = jnp.max(jnp.abs(tensor))
+        symmetric = jnp.all(jnp.abs(tensor - tensor.T) <= 1e-10 * scale)
+        positive = jnp.min(jnp.linalg.eigvalsh((tensor + tensor.T) / 2)) > 0
+        return super().parameters_valid() & finite & symmetric & positive
+
     @property
     def inertia_tensor(self) -> Float[Array, "3 3"]:
         inertia = jnp.asarray(self.inertia)
