@@ -21,6 +21,7 @@ import math
 import jax.numpy as jnp
 
 from .._results import RESULTS
+from ._kernel import AbstractBatchKernel
 
 
 def _pi_over_two_parts():
@@ -163,3 +164,31 @@ def rk4_step(g, Pi, h, inverse_inertia):
     g_next = combine(g, k1[0], k2[0], k3[0], k4[0])
     Pi_next = combine(Pi, k1[1], k2[1], k3[1], k4[1])
     return g_next, Pi_next, _finite_result(Pi_next, g_next)
+
+
+def _explicit_info(Pi):
+    # Explicit: no Newton iterations, zero residual (as the per-body `StepInfo`).
+    return jnp.zeros(jnp.shape(Pi[0]), jnp.int32), jnp.zeros(jnp.shape(Pi[0]), Pi[0].dtype)
+
+
+class SplittingKernel(AbstractBatchKernel):
+    """`splitting_step` for `LiePoissonSplitting`; differentiable by plain autodiff."""
+
+    def prepare(self, inertia, h):
+        return tuple(moment / h for moment in inertia)
+
+    def step(self, params, g, Pi, alive):
+        g_next, Pi_next, result = splitting_step(g, Pi, params)
+        return (g_next, Pi_next, result, *_explicit_info(Pi))
+
+
+class RK4Kernel(AbstractBatchKernel):
+    """`rk4_step` for `RK4`; differentiable by plain autodiff."""
+
+    def prepare(self, inertia, h):
+        return h, tuple(1 / moment for moment in inertia)
+
+    def step(self, params, g, Pi, alive):
+        h, inverse_inertia = params
+        g_next, Pi_next, result = rk4_step(g, Pi, h, inverse_inertia)
+        return (g_next, Pi_next, result, *_explicit_info(Pi))

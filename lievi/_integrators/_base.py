@@ -43,6 +43,15 @@ class AbstractIntegrator(eqx.Module):
     ) -> tuple[Float[Array, "n n"], Float[Array, " d"], StepInfo]:
         """Advance `(g_k, m_k)` to `(g_{k+1}, m_{k+1})`."""
 
+    def batch_kernel(self):
+        """This method's structure-of-arrays step for batches of rigid bodies with principal
+        moments (an `AbstractBatchKernel`), or `None` where it has none.
+
+        `simulate_batch` runs it when the system has principal moments
+        (`AbstractLieSystem.principal_moments`); it computes the iterates of `step`.
+        """
+        return None
+
 
 class AbstractVariationalIntegrator(AbstractIntegrator):
     """An integrator defined by a discrete Lagrangian `L_d(g_k, g_{k+1})` (paper §2)."""

@@ -32,6 +32,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
+from .._batch._fast_so3 import NewtonKernel
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from ._base import AbstractVariationalIntegrator, StepInfo
@@ -93,6 +94,9 @@ class DEP(AbstractVariationalIntegrator):
     def is_symmetric(self) -> bool:
         # The adjoint Lagrangian −L_d(g_{k+1}, g_k; −h) equals L_d: φ⁻¹(F⁻¹) = −φ⁻¹(F).
         return True
+
+    def batch_kernel(self):
+        return NewtonKernel(self.chart, self.rtol, self.atol, self.max_steps)
 
     def discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
         group = system.group

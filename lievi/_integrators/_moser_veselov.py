@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
 
+from .._batch._fast_so3 import NewtonKernel
 from .._checks import check_shape, is_concrete
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
@@ -140,6 +141,9 @@ class MoserVeselov(AbstractVariationalIntegrator):
     def is_symmetric(self) -> bool:
         # −L_d(g₁, g₀; −h) = tr((I − g₁ᵀg₀)Λ)/h = L_d(g₀, g₁; h): tr(AᵀΛ) = tr(AΛ).
         return True
+
+    def batch_kernel(self):
+        return NewtonKernel("moser-veselov", self.rtol, self.atol, self.max_steps)
 
     def discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
         """`tr((I − g₀ᵀg₁)Λ)/h`, Moser–Veselov's `tr(g_k Λ g_{k+1}ᵀ)` up to scale and shift."""

@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Scalar
 
+from .._batch._fast_explicit import RK4Kernel
 from .._checks import check_shape
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
@@ -42,6 +43,9 @@ class RK4(AbstractIntegrator):
 
     def order(self) -> int:
         return 4
+
+    def batch_kernel(self):
+        return RK4Kernel()
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar):
         group = system.group

@@ -40,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Scalar
 
+from .._batch._fast_explicit import SplittingKernel
 from .._checks import check_shape
 from .._groups._son import _planes
 from .._results import RESULTS
@@ -103,6 +104,9 @@ class LiePoissonSplitting(AbstractIntegrator):
     def is_symmetric(self) -> bool:
         # A palindromic (Strang) product of exact flows: Φ_{−h} = Φ_h⁻¹.
         return True
+
+    def batch_kernel(self):
+        return SplittingKernel()
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar):
         check_rigid_body("LiePoissonSplitting", system)

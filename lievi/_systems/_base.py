@@ -55,6 +55,12 @@ class AbstractLieSystem(eqx.Module):
         xi = self.velocity(m)
         return jnp.dot(m, xi) - self.lagrangian(xi)
 
+    def principal_moments(self, batched: bool = False):
+        """Principal moments of inertia `(3,)` (`(B, 3)` for a batch of systems built with
+        `jax.vmap`, `batched=True`) if this is a rigid body on SO(3) whose fast batched
+        steps apply (`AbstractIntegrator.batch_kernel`), else `None`."""
+        return None
+
     def check_element(self, name: str, g) -> None:
         """Raise `ValueError` unless `g` is an `(n, n)` finite element of the group."""
         n = self.group.matrix_dim

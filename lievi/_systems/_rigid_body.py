@@ -49,6 +49,10 @@ class RigidBody(AbstractLieSystem):
         inertia = jnp.asarray(self.inertia)
         return jnp.diag(inertia) if inertia.ndim == 1 else inertia
 
+    def principal_moments(self, batched: bool = False):
+        inertia = jnp.asarray(self.inertia)
+        return inertia if inertia.ndim == 1 + batched else None
+
     def lagrangian(self, xi: Float[Array, "3"]) -> Scalar:
         return jnp.dot(xi, self.legendre(xi)) / 2
 
