@@ -19,9 +19,10 @@ import decimal
 import math
 
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 
 from .._results import RESULTS
-from ._kernel import AbstractBatchKernel
+from ._kernel import ROOT_NAME, AbstractBatchKernel
 
 
 def _pi_over_two_parts():
@@ -90,7 +91,9 @@ def _rotation_about_axis(p: int, alpha, one):
     """`F = exp(α ê_p)` as 9 arrays, row-major; with `(q, r)` the axes after `p` in cyclic
     order, `F e_q = cos α e_q + sin α e_r`, `F e_r = −sin α e_q + cos α e_r`."""
     q, r = (p + 1) % 3, (p + 2) % 3
-    s, c = materialise(sincos(alpha), one)
+    # Tagged like a Newton root: reverse mode keeps them instead of re-evaluating the
+    # polynomials (the most expensive part of the step) in the backward pass.
+    s, c = checkpoint_name(materialise(sincos(alpha), one), ROOT_NAME)
     F = {(p, p): 1.0, (q, q): c, (r, q): s, (q, r): -s, (r, r): c}
     return tuple(F.get((i, j), 0.0) for i in range(3) for j in range(3))
 

@@ -318,6 +318,12 @@ def differentiable_increment(chart, Pi, A, tolerance, fixed_iterations: int, max
     xi, iterations, norm, converged = solve_increment(
         chart, *stopped, fixed_iterations, max_steps, alive
     )
+    # A diverged solve (reported through the residual) continues from the finite
+    # explicit-Euler guess: the implicit derivative is then evaluated at a finite point,
+    # so a failed step whose output is masked contributes 0, not NaN, to a gradient.
+    finite = jnp.isfinite(xi[0]) & jnp.isfinite(xi[1]) & jnp.isfinite(xi[2])
+    guess = _explicit_euler_guess(*stopped[:2])
+    xi = tuple(jnp.where(finite, x, x0) for x, x0 in zip(xi, guess))
     xi = _at_root(chart, jax.lax.stop_gradient(xi), Pi, A)
     return checkpoint_name(xi, ROOT_NAME), iterations, norm, converged
 

@@ -168,7 +168,9 @@ class MoserVeselov(AbstractVariationalIntegrator):
         rtol = eps_tol if self.rtol is None else self.rtol
         atol = eps_tol if self.atol is None else self.atol
         tolerance = atol + rtol * jnp.max(jnp.abs(m))
-        return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps)
+        # The rigid body's hand-written residual and Jacobian, where it has them.
+        closed_form = system.closed_form_residual("moser-veselov", m, h)
+        return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps, closed_form)
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar):
         check_rigid_body("MoserVeselov", system)

@@ -52,6 +52,10 @@ class RK4(AbstractIntegrator):
         n, d = group.matrix_dim, group.algebra_dim
         check_shape("g", g, (n, n), f"a {n}×{n} group element")
         check_shape("m", m, (d,), f"momentum coordinates of dimension {d}")
+        fast = system.kernel_step(self.batch_kernel(), g, m, h)
+        if fast is not None:  # closed forms on components (the rigid body, principal moments)
+            g_next, m_next, result, iterations, residual = fast
+            return g_next, m_next, StepInfo(result, iterations, residual)
 
         def f(y):
             return euler_poincare_vector_field(system, *y)

@@ -115,6 +115,10 @@ class LiePoissonSplitting(AbstractIntegrator):
         n, d = group.matrix_dim, group.algebra_dim
         check_shape("g", g, (n, n), f"an element of SO({n})")
         check_shape("m", m, (d,), f"momentum coordinates of so({n})*")
+        fast = system.kernel_step(self.batch_kernel(), g, m, h)
+        if fast is not None:  # closed forms on components (the rigid body, principal moments)
+            g_next, m_next, result, iterations, residual = fast
+            return g_next, m_next, StepInfo(result, iterations, residual)
         moments, Q = _principal_frame(system)
         if Q is not None:
             g, m = g @ Q, Q.T @ m
