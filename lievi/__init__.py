@@ -17,6 +17,7 @@ from ._groups._son import SOn as SOn
 from ._identification import InertiaFit as InertiaFit
 from ._identification import fit_inertia as fit_inertia
 from ._integrators._base import AbstractIntegrator as AbstractIntegrator
+from ._integrators._base import AbstractKickIntegrator as AbstractKickIntegrator
 from ._integrators._base import AbstractVariationalIntegrator as AbstractVariationalIntegrator
 from ._integrators._base import StepInfo as StepInfo
 from ._integrators._composition import Composition as Composition
@@ -32,7 +33,11 @@ from ._simulate import simulate as simulate
 from ._systems._base import AbstractLieSystem as AbstractLieSystem
 from ._systems._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
 from ._systems._lie_lagrangian import LieLagrangian as LieLagrangian
+from ._systems._potential import AbstractPotential as AbstractPotential
+from ._systems._potential import PotentialFunction as PotentialFunction
+from ._systems._potential import UniformGravity as UniformGravity
 from ._systems._rigid_body import RigidBody as RigidBody
+from ._systems._rigid_body import heavy_top as heavy_top
 
 try:
     __version__ = version("lievi")

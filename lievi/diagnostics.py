@@ -28,9 +28,22 @@ def _batched(fn, core_ndim: int, x):
     return fn(x)
 
 
-def energy(system: AbstractLieSystem, m: Float[Array, "*batch d"]) -> Float[Array, "*batch"]:
-    """The Hamiltonian `H(m)` (for the rigid body `½ Πᵀ I⁻¹ Π`)."""
-    return _batched(system.energy, 1, m)
+def energy(
+    system: AbstractLieSystem, m: Float[Array, "*batch d"], g: Float[Array, "*batch n n"] | None = None
+) -> Float[Array, "*batch"]:
+    """The total energy `H(m) + V(g)` (for the rigid body `½ Πᵀ I⁻¹ Π + V(g)`).
+
+    `g` is needed, and required, when the system has a potential.
+    """
+    kinetic = _batched(system.energy, 1, m)
+    if system.potential is None:
+        return kinetic
+    if g is None:
+        raise ValueError(
+            "energy: the system has a potential, so its energy depends on the attitude: pass "
+            "`g` (e.g. `energy(system, sol.m, sol.g)`)."
+        )
+    return kinetic + _batched(system.potential_energy, 2, g)
 
 
 def casimirs(system: AbstractLieSystem, m: Float[Array, "*batch d"]) -> Float[Array, "*batch k"]:

@@ -38,6 +38,8 @@ def _fast_kernel(system, integrator, system_axis, fixed_iterations=None):
     moments = system.principal_moments(batched=system_axis is not None)
     if kernel is None or moments is None:
         return None
+    if system.potential is not None:  # the structure-of-arrays steps are torque-free
+        return None
     if fixed_iterations is not None:
         kernel = kernel.with_fixed_iterations(fixed_iterations)
     return kernel, moments

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int, Scalar
 
+from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 
 
@@ -53,14 +54,58 @@ class AbstractIntegrator(eqx.Module):
         return None
 
 
-class AbstractVariationalIntegrator(AbstractIntegrator):
+class AbstractKickIntegrator(AbstractIntegrator):
+    """An integrator whose step, for a system with a potential, is kick – free step – kick.
+
+    The step is `m⁺ = m_k + (h/2) M(g_k)`, `(g_{k+1}, m⁻) = free_step(g_k, m⁺)`,
+    `m_{k+1} = m⁻ + (h/2) M(g_{k+1})` with `M` the system's generalised force
+    (`AbstractLieSystem.kick`). For a variational method with discrete Lagrangian
+    `L_d − (h/2)(V(g_k) + V(g_{k+1}))` this *is* its discrete Euler–Lagrange equation in
+    momentum form (the discrete Legendre transforms `∓D_{1,2}L_d` pick up `∓(h/2)dV`); for
+    a splitting it is the symmetric Strang composition with the exact flow of `V`. Either
+    way symmetric and second order when the free step is, and nothing changes for a free
+    system (the kicks are skipped at trace time).
+    """
+
+    @abc.abstractmethod
+    def free_step(
+        self, system: AbstractLieSystem, g: Float[Array, "n n"], m: Float[Array, " d"], h: Scalar
+    ) -> tuple[Float[Array, "n n"], Float[Array, " d"], StepInfo]:
+        """The step of the system without its potential."""
+
+    def step(self, system: AbstractLieSystem, g, m, h: Scalar):
+        if system.potential is None:
+            return self.free_step(system, g, m, h)
+        g_next, m_next, info = self.free_step(system, g, system.kick(g, m, h / 2), h)
+        m_next = system.kick(g_next, m_next, h / 2)
+        # A non-finite potential or force shows up only after the free step's own checks.
+        nonfinite = (info.result == RESULTS.successful) & ~jnp.all(jnp.isfinite(m_next))
+        result = jnp.where(nonfinite, RESULTS.nonfinite, info.result)
+        return g_next, m_next, StepInfo(result, info.iterations, info.residual)
+
+
+class AbstractVariationalIntegrator(AbstractKickIntegrator):
     """An integrator defined by a discrete Lagrangian `L_d(g_k, g_{k+1})` (paper §2)."""
 
     @abc.abstractmethod
+    def kinetic_discrete_lagrangian(
+        self, system: AbstractLieSystem, g0: Float[Array, "n n"], g1: Float[Array, "n n"], h: Scalar
+    ) -> Scalar:
+        """`L_d` of the reduced Lagrangian `l(ξ)` alone (the free system)."""
+
     def discrete_lagrangian(
         self, system: AbstractLieSystem, g0: Float[Array, "n n"], g1: Float[Array, "n n"], h: Scalar
     ) -> Scalar:
-        """`L_d(g_k, g_{k+1})`."""
+        """`L_d(g_k, g_{k+1})`: the kinetic part minus `(h/2)(V(g_k) + V(g_{k+1}))`.
+
+        The trapezoidal potential term makes the step kick – free step – kick (see
+        `AbstractKickIntegrator`); it is the Lie group variational integrator of Lee, Leok
+        and McClamroch for the exponential/Cayley charts.
+        """
+        kinetic = self.kinetic_discrete_lagrangian(system, g0, g1, h)
+        if system.potential is None:
+            return kinetic
+        return kinetic - h / 2 * (system.potential_energy(g0) + system.potential_energy(g1))
 
     def momentum_from_configurations(
         self, system: AbstractLieSystem, g0: Float[Array, "n n"], g1: Float[Array, "n n"], h: Scalar

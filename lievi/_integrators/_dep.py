@@ -1,4 +1,4 @@
-"""The discrete Euler–Poincaré / discrete Lie–Poisson integrator (paper §2–§4, (4.8)).
+"""The discrete Euler–Poincaré / discrete Lie–Poisson integrator (paper §2–§4, (4.8); §7).
 
 Discrete Lagrangian, in a chart `φ` of the group: `exp` as in (4.7), or the Cayley map
 `cay`, the choice the paper discusses after (5.7), second order by Lewis–Simo [LS 96]:
@@ -14,6 +14,25 @@ exponential chart, becomes in momentum form (NOTES §1)
                                              g_{k+1} = g_k F_k           (2.9);
     right: μ_k = dφ⁻¹(−ξ_k)ᵀ ∇l(ξ_k/h),       μ_{k+1} = Ad_{F_k⁻¹}ᵀ μ_k   (DLP, 3.2),
                                              g_{k+1} = F_k g_k            (2.8).
+
+With a potential `V(g)` (paper §7; `L(g, ξ) = l(ξ) − V(g)`) the discrete Lagrangian is
+
+    L_d(g_k, g_{k+1}) = h·l(φ⁻¹(g_k⁻¹ g_{k+1})/h) − (h/2)(V(g_k) + V(g_{k+1})),
+
+the Lie group variational integrator of Lee, Leok and McClamroch (there for the exponential
+chart on SO(3)). Its discrete Legendre transforms `Π_k = −D₁L_d`, `Π_{k+1} = D₂L_d`
+(trivialised on the side of the symmetry) pick up `± (h/2) dV`, so with `M = −dV` the
+generalised force (the body torque; `AbstractLieSystem.force`) the step reads, left-invariant,
+
+    Π_k⁺ = Π_k + (h/2) M(g_k),                          (kick)
+    Π_k⁺ = dφ⁻¹(ξ_k)ᵀ ∇l(ξ_k/h),   F_k = φ(ξ_k),      (the free DEP equation above)
+    g_{k+1} = g_k F_k,   Π_{k+1} = Ad_{F_k}ᵀ Π_k⁺ + (h/2) M(g_{k+1})        (kick),
+
+and the same with the right-trivialised force for right-invariant systems: the free step
+between two half kicks (`AbstractKickIntegrator`). When `V` depends on `g` only through an
+advected vector, e.g. the vertical `Γ = gᵀe₃` of a heavy top, the pair `(Π_k, Γ_k)` with
+`Γ_{k+1} = F_kᵀ Γ_k` evolves on its own: the discrete reduction of the paper's §7
+(Bobenko–Suris), and `|Γ|²` and `Π·Γ` are conserved exactly.
 
 The implicit equation for `ξ_k` is solved by Newton's method (`_newton.py`); the
 momentum update and reconstruction are explicit. The momentum is advanced by the
@@ -98,7 +117,7 @@ class DEP(AbstractVariationalIntegrator):
     def batch_kernel(self):
         return NewtonKernel(self.chart, self.rtol, self.atol, self.max_steps)
 
-    def discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
+    def kinetic_discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
         group = system.group
         _, chart_inverse, _ = _chart(group, self.chart)
         increment = group.inverse(g0) @ g1 if system.side == "left" else g1 @ group.inverse(g0)
@@ -123,7 +142,7 @@ class DEP(AbstractVariationalIntegrator):
         closed_form = system.closed_form_residual(self.chart, m, h) if system.side == "left" else None
         return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps, closed_form)
 
-    def step(self, system: AbstractLieSystem, g, m, h: Scalar):
+    def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
         # A system that runs the structure-of-arrays step on itself (the rigid body with
         # principal moments) takes it: the same iterates, closed forms throughout, and under
         # `jax.vmap` the batched kernel. No fixed iterations: one body stops at convergence.

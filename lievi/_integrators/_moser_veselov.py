@@ -145,7 +145,7 @@ class MoserVeselov(AbstractVariationalIntegrator):
     def batch_kernel(self):
         return NewtonKernel("moser-veselov", self.rtol, self.atol, self.max_steps)
 
-    def discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
+    def kinetic_discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
         """`tr((I − g₀ᵀg₁)Λ)/h`, Moser–Veselov's `tr(g_k Λ g_{k+1}ᵀ)` up to scale and shift."""
         check_rigid_body("MoserVeselov", system)
         Lambda = moser_veselov_Lambda(system)
@@ -172,7 +172,7 @@ class MoserVeselov(AbstractVariationalIntegrator):
         closed_form = system.closed_form_residual("moser-veselov", m, h)
         return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps, closed_form)
 
-    def step(self, system: AbstractLieSystem, g, m, h: Scalar):
+    def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
         check_rigid_body("MoserVeselov", system)
         _check_pair_sums("MoserVeselov", system)
         group = system.group

@@ -254,5 +254,12 @@ def _check_system(system) -> None:
             f"`lievi.RigidBody`, got {type(system).__name__}. For SO(n) use `lievi.MoserVeselov` "
             "or `lievi.Composition(lievi.MoserVeselov(), order)`."
         )
+    if system.potential is not None:
+        raise ValueError(
+            "PreprocessedMoserVeselov is exact to its order for the free rigid body only (its "
+            "preprocessing uses the free body's energy and Casimir): a system with a potential "
+            "would run at order 2. Use `lievi.Composition(lievi.MoserVeselov(), order)` or "
+            "`lievi.Composition(lievi.DEP(), order)`."
+        )
 
 

@@ -3,8 +3,11 @@
 The continuous equations (the ones `lievi.reference_solution` solves) are, with `ξ` the
 velocity of `m` (inverse Legendre map),
 
-    left-invariant:   ṁ = ad_ξᵀ m,    ġ = g ξ̂;
-    right-invariant:  ṁ = −ad_ξᵀ m,   ġ = ξ̂ g.
+    left-invariant:   ṁ = ad_ξᵀ m + M(g),    ġ = g ξ̂;
+    right-invariant:  ṁ = −ad_ξᵀ m + M(g),   ġ = ξ̂ g,
+
+with `M` the generalised force of the system's potential (zero for a free system;
+`AbstractLieSystem.force`).
 
 RK4 treats `(g, m)` as a point of `R^{n×n} × R^d`: fourth order, explicit, and nothing
 else. `g` drifts off the group, the momentum off its coadjoint orbit (Casimirs drift) and
@@ -30,8 +33,12 @@ def euler_poincare_vector_field(system: AbstractLieSystem, g, m):
     group = system.group
     xi = system.velocity(m)
     if system.side == "left":
-        return g @ group.hat(xi), group.ad(xi).T @ m
-    return group.hat(xi) @ g, -group.ad(xi).T @ m
+        g_dot, m_dot = g @ group.hat(xi), group.ad(xi).T @ m
+    else:
+        g_dot, m_dot = group.hat(xi) @ g, -group.ad(xi).T @ m
+    if system.potential is not None:
+        m_dot = m_dot + system.force(g)
+    return g_dot, m_dot
 
 
 class RK4(AbstractIntegrator):
@@ -52,7 +59,8 @@ class RK4(AbstractIntegrator):
         n, d = group.matrix_dim, group.algebra_dim
         check_shape("g", g, (n, n), f"a {n}×{n} group element")
         check_shape("m", m, (d,), f"momentum coordinates of dimension {d}")
-        fast = system.kernel_step(self.batch_kernel(), g, m, h)
+        # The kernel integrates the free body: with a potential, the generic field.
+        fast = system.kernel_step(self.batch_kernel(), g, m, h) if system.potential is None else None
         if fast is not None:  # closed forms on components (the rigid body, principal moments)
             g_next, m_next, result, iterations, residual = fast
             return g_next, m_next, StepInfo(result, iterations, residual)

@@ -46,7 +46,7 @@ from .._groups._son import _planes
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from .._systems._generalized_rigid_body import GeneralizedRigidBody
-from ._base import AbstractIntegrator, StepInfo
+from ._base import AbstractKickIntegrator, StepInfo
 from ._moser_veselov import _check_pair_sums, check_rigid_body
 
 
@@ -86,7 +86,7 @@ def _sub_flow(carry, x):
     return (g @ F, F.T @ M @ F), None
 
 
-class LiePoissonSplitting(AbstractIntegrator):
+class LiePoissonSplitting(AbstractKickIntegrator):
     """Explicit symmetric (Strang) splitting of the rigid-body Hamiltonian (paper §6).
 
     Second order, symmetric, explicit; a Poisson map on `so(n)*` that keeps Casimirs and
@@ -108,7 +108,7 @@ class LiePoissonSplitting(AbstractIntegrator):
     def batch_kernel(self):
         return SplittingKernel()
 
-    def step(self, system: AbstractLieSystem, g, m, h: Scalar):
+    def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
         check_rigid_body("LiePoissonSplitting", system)
         _check_pair_sums("LiePoissonSplitting", system)
         group = system.group

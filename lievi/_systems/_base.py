@@ -1,10 +1,14 @@
-"""Lagrangian systems on a Lie group, reduced to the algebra (paper §2, §4.2).
+"""Lagrangian systems on a Lie group, reduced to the algebra (paper §2, §4.2, §7).
 
 A system is a reduced Lagrangian `l: g → R` on algebra coordinates together with the
 group and the side of the symmetry: `side="left"` for left-invariant systems such as
 the rigid body (`ξ = g⁻¹ġ`, body momentum `Π`), `side="right"` for right-invariant ones
 (`ξ = ġ g⁻¹`, spatial momentum `μ`). The momentum is `m = ∂l/∂ξ` (the Legendre map),
 written in the coordinates dual to the algebra basis.
+
+A system may carry a potential `V(g)` (paper §7: the symmetry is then only the subgroup
+that leaves `V` unchanged); the Lagrangian is `L(g, ξ) = l(ξ) − V(g)` and the integrators
+see `V` through `potential_energy`, `force` and `kick` below.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from jaxtyping import Array, Float, Scalar
 
 from .._checks import check_finite, check_shape, is_concrete
 from .._groups._base import MatrixLieGroup
+from ._potential import AbstractPotential
 
 SIDES = ("left", "right")
 
@@ -25,13 +30,31 @@ SIDES = ("left", "right")
 class AbstractLieSystem(eqx.Module):
     """A reduced Lagrangian system on a matrix Lie group.
 
-    Subclasses set `group` and `side` and implement `lagrangian`. The Legendre map, its
-    inverse and the energy have generic versions (autodiff and Newton) that quadratic
-    systems override with closed forms.
+    Subclasses set `group`, `side` and `potential` (`None` for a free system) and
+    implement `lagrangian`. The Legendre map, its inverse and the energy have generic
+    versions (autodiff and Newton) that quadratic systems override with closed forms.
     """
 
     group: eqx.AbstractVar[MatrixLieGroup]
     side: eqx.AbstractVar[str]
+    potential: eqx.AbstractVar[AbstractPotential | None]
+
+    def __check_init__(self):
+        if self.potential is None:
+            return
+        n = self.group.matrix_dim
+        probe = jax.ShapeDtypeStruct((n, n), jnp.result_type(float))
+        try:
+            out = jax.eval_shape(self.potential, probe)
+        except Exception as error:  # the user's function, any failure: say whose it is
+            raise ValueError(
+                f"`potential` could not be evaluated on an {n}×{n} group element: {error}"
+            ) from error
+        if getattr(out, "shape", None) != ():
+            raise ValueError(
+                f"`potential` must return a scalar V(g) for an {n}×{n} `g`, got "
+                f"{getattr(out, 'shape', type(out).__name__)}."
+            )
 
     @abc.abstractmethod
     def lagrangian(self, xi: Float[Array, " d"]) -> Scalar:
@@ -54,6 +77,36 @@ class AbstractLieSystem(eqx.Module):
         """Hamiltonian `H(m) = ⟨m, ξ⟩ − l(ξ)` with `ξ` the velocity of `m`."""
         xi = self.velocity(m)
         return jnp.dot(m, xi) - self.lagrangian(xi)
+
+    def potential_energy(self, g: Float[Array, "n n"]) -> Scalar:
+        """`V(g)`; zero for a free system."""
+        if self.potential is None:
+            return jnp.zeros((), jnp.result_type(g))
+        return self.potential(g)
+
+    def force(self, g: Float[Array, "n n"]) -> Float[Array, " d"]:
+        """The generalised force `M(g) = −dV` trivialised on the side of the symmetry.
+
+        Left-invariant: `M_i = −d/dε V(g exp(ε e_i))` (the body torque of a rigid body);
+        right-invariant: `M_i = −d/dε V(exp(ε e_i) g)`. By autodiff along the first-order
+        curve `g (I + ε ê_i)` (resp. `(I + ε ê_i) g`), which has the same derivative and
+        costs no exponential. Zero for a free system.
+        """
+        d = self.group.algebra_dim
+        if self.potential is None:
+            return jnp.zeros(d, jnp.result_type(g))
+
+        def along(eta):
+            E = self.group.hat(eta)
+            return self.potential(g + (g @ E if self.side == "left" else E @ g))
+
+        return -jax.grad(along)(jnp.zeros(d, jnp.result_type(g, float)))
+
+    def kick(self, g: Float[Array, "n n"], m: Float[Array, " d"], dt: Scalar) -> Float[Array, " d"]:
+        """`m + dt·M(g)`: the exact flow of the potential for a time `dt` (`g` is fixed)."""
+        if self.potential is None:
+            return m
+        return m + dt * self.force(g)
 
     def principal_moments(self, batched: bool = False):
         """Principal moments of inertia `(3,)` (`(B, 3)` for a batch of systems built with

@@ -17,6 +17,7 @@ from jaxtyping import Array, Float, Scalar
 from .._checks import check_finite, is_concrete
 from .._groups._son import SOn, _planes
 from ._base import AbstractLieSystem
+from ._potential import AbstractPotential, as_potential
 
 
 class GeneralizedRigidBody(AbstractLieSystem):
@@ -25,13 +26,17 @@ class GeneralizedRigidBody(AbstractLieSystem):
     **Arguments:**
 
     - `Lambda`: the diagonal of `Λ`, shape `(n,)`, with `Λᵢ + Λⱼ > 0` for all `i ≠ j`.
+    - `potential`: `None`, a `lievi.AbstractPotential` or a callable `V(g)` (see
+      `lievi.RigidBody`).
     """
 
     Lambda: Float[Array, " n"]
+    potential: AbstractPotential | None
     group: SOn = eqx.field(static=True)
     side: str = eqx.field(default="left", static=True)
 
-    def __init__(self, Lambda):
+    def __init__(self, Lambda, potential=None):
+        self.potential = as_potential(potential)
         shape = jnp.shape(Lambda)
         if len(shape) != 1 or shape[0] < 2:
             raise ValueError(f"`Lambda` must be a vector of shape (n,), n ≥ 2, got shape {shape}.")

@@ -9,6 +9,7 @@ from jaxtyping import Array, Float, Scalar
 
 from .._groups._base import MatrixLieGroup
 from ._base import SIDES, AbstractLieSystem
+from ._potential import AbstractPotential, as_potential
 
 
 class LieLagrangian(AbstractLieSystem):
@@ -21,16 +22,20 @@ class LieLagrangian(AbstractLieSystem):
       be strictly convex near the motion (regular Legendre map).
     - `side`: `"left"` for a left-invariant system (`ξ = g⁻¹ġ`), `"right"` for a
       right-invariant one (`ξ = ġg⁻¹`).
+    - `potential`: `None`, a `lievi.AbstractPotential` or a callable `V(g)`; the
+      Lagrangian is then `l(ξ) − V(g)` (paper §7).
     """
 
     group: MatrixLieGroup = eqx.field(static=True)
     side: str = eqx.field(static=True)
     l: Callable[[Float[Array, " d"]], Scalar]
+    potential: AbstractPotential | None
 
-    def __init__(self, group: MatrixLieGroup, l: Callable, side: str = "left"):
+    def __init__(self, group: MatrixLieGroup, l: Callable, side: str = "left", potential=None):
         self.group = group
         self.l = l
         self.side = side
+        self.potential = as_potential(potential)
 
     def __check_init__(self):
         if self.side not in SIDES:

@@ -1,7 +1,8 @@
-"""The free rigid body on SO(3) (left-invariant; paper §4.2 with n = 3).
+"""The rigid body on SO(3) (left-invariant; paper §4.2 with n = 3, §7 with a potential).
 
-`l(Ω) = ½ Ωᵀ I Ω`, body momentum `Π = I Ω`, energy `H(Π) = ½ Πᵀ I⁻¹ Π`. The Euler–Poincaré
-equations are Euler's equations `Π̇ = Π × Ω` with reconstruction `ġ = g Ω̂`.
+`l(Ω) = ½ Ωᵀ I Ω`, body momentum `Π = I Ω`, kinetic energy `H(Π) = ½ Πᵀ I⁻¹ Π`. The
+Euler–Poincaré equations are Euler's equations `Π̇ = Π × Ω + M(g)` with reconstruction
+`ġ = g Ω̂`, where `M` is the body torque of the potential (zero for the free body).
 """
 
 from __future__ import annotations
@@ -15,24 +16,31 @@ from .._checks import check_spd
 from .._groups._base import MatrixLieGroup
 from .._groups._so3 import SO3
 from ._base import AbstractLieSystem
+from ._potential import AbstractPotential, UniformGravity, as_potential
 
 
 class RigidBody(AbstractLieSystem):
-    """A free rigid body.
+    """A rigid body, free or in a potential.
 
     **Arguments:**
 
     - `inertia`: principal moments of inertia, shape `(3,)`, or a full symmetric positive
-      definite inertia tensor, shape `(3, 3)`, in the body frame. A pytree leaf, so
-      `jax.grad` and `jax.vmap` reach it.
+      definite inertia tensor, shape `(3, 3)`, in the body frame (about the fixed point
+      when there is one, e.g. for a heavy top). A pytree leaf, so `jax.grad` and
+      `jax.vmap` reach it.
+    - `potential`: `None` (the free body), a `lievi.AbstractPotential` such as
+      `lievi.UniformGravity`, or any callable `V(g)` of the attitude returning a scalar;
+      the torque is derived from it by autodiff.
     """
 
     inertia: Float[Array, "3"] | Float[Array, "3 3"]
+    potential: AbstractPotential | None
     group: MatrixLieGroup = eqx.field(static=True)
     side: str = eqx.field(static=True)
 
-    def __init__(self, inertia):
+    def __init__(self, inertia, potential=None):
         self.inertia = inertia
+        self.potential = as_potential(potential)
         self.group = SO3
         self.side = "left"
 
@@ -93,3 +101,14 @@ class RigidBody(AbstractLieSystem):
 
     def energy(self, m: Float[Array, "3"]) -> Scalar:
         return jnp.dot(m, self.velocity(m)) / 2
+
+
+def heavy_top(inertia, mass, center_of_mass, gravity=9.81) -> RigidBody:
+    """A heavy top: a rigid body with a fixed point in uniform gravity (paper §7).
+
+    `RigidBody(inertia, potential=UniformGravity(mass, center_of_mass, gravity))`, with
+    `inertia` about the fixed point and `center_of_mass` measured from it in the body
+    frame. A Lagrange top has `I₁ = I₂` and the centre of mass on the third axis; a long
+    arm (`|ρ|` large against the radius of gyration) makes it a 3-D pendulum.
+    """
+    return RigidBody(inertia, potential=UniformGravity(mass, center_of_mass, gravity))

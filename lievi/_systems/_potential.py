@@ -1,0 +1,120 @@
+"""Potentials `V(g)` on the group: the systems of the paper's §7 (broken symmetry).
+
+With a potential the Lagrangian is `L(g, ξ) = l(ξ) − V(g)`: it is invariant only under the
+subgroup that leaves `V` unchanged (for gravity: rotations about the vertical, `G^[ζ]` of
+§7 with the advected parameter `ζ` the vertical direction). The integrators see `V` only
+through its value (energy, discrete Lagrangian) and through the generalised force
+
+    M(g) = −d/dε V(g exp(ε e_i)) |_{ε=0}      (left-invariant systems; `exp(ε e_i) g` for right),
+
+the derivative of `V` trivialised on the side of the symmetry, computed by autodiff
+(`AbstractLieSystem.force`): a potential is just a scalar function, with no hand-written
+gradient. For the rigid body `M` is the body-frame torque.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Scalar
+
+from .._checks import check_finite, is_concrete
+
+
+class AbstractPotential(eqx.Module):
+    """A potential energy `V(g)` of a group element `g` (an `(n, n)` matrix).
+
+    Subclass it and implement `__call__`; array fields are pytree leaves, so `jax.grad`
+    and `jax.vmap` reach the potential's parameters (e.g. to identify them from data).
+    `V` must be a differentiable function of the matrix entries near the group: the force
+    is its derivative along the group's tangent directions.
+    """
+
+    @abc.abstractmethod
+    def __call__(self, g: Float[Array, "n n"]) -> Scalar:
+        """The potential energy at `g`."""
+
+
+class PotentialFunction(AbstractPotential):
+    """A potential given as any callable `fn(g) -> scalar`.
+
+    `fn` may be a plain function or an `eqx.Module` (e.g. an `eqx.nn.MLP` of the matrix
+    entries); in the latter case its parameters are pytree leaves of the system.
+    """
+
+    fn: Callable[[Float[Array, "n n"]], Scalar]
+
+    def __call__(self, g):
+        return self.fn(g)
+
+
+class UniformGravity(AbstractPotential):
+    """Uniform gravity on a body with a fixed point: `V(g) = m·γ·e_z·(g ρ)`.
+
+    `g` maps body coordinates to world coordinates, the world's vertical is its last axis
+    `e_z` (`e₃` on SO(3)), and `ρ` is the centre of mass in the body frame, measured from
+    the fixed point. The potential depends on `g` only through the body-frame vertical
+    `Γ = gᵀ e_z` (`V = m γ ρ·Γ`): the advected parameter of the paper's §7. The body torque
+    is `M = m γ Γ × ρ` on SO(3). With the inertia taken about the fixed point this is the
+    heavy top (and, for a long arm, the 3-D pendulum).
+
+    **Arguments:**
+
+    - `mass`: the mass `m ≥ 0`.
+    - `center_of_mass`: `ρ`, shape `(n,)` (the body frame; `(3,)` on SO(3)).
+    - `gravity`: the acceleration `γ` (default 9.81; pass 1 for nondimensional units).
+
+    Only the product `m ρ` enters the dynamics; `mass` and `center_of_mass` are separate
+    leaves for readability.
+    """
+
+    mass: Float[Array, ""]
+    center_of_mass: Float[Array, " n"]
+    gravity: Float[Array, ""]
+
+    def __init__(self, mass, center_of_mass, gravity=9.81):
+        self.mass = mass
+        self.center_of_mass = center_of_mass
+        self.gravity = gravity
+
+    def __check_init__(self):
+        if jnp.ndim(self.mass) != 0:
+            raise ValueError(f"`mass` must be a scalar, got shape {jnp.shape(self.mass)}.")
+        if jnp.ndim(self.gravity) != 0:
+            raise ValueError(f"`gravity` must be a scalar, got shape {jnp.shape(self.gravity)}.")
+        if jnp.ndim(self.center_of_mass) != 1:
+            raise ValueError(
+                "`center_of_mass` must be a vector in the body frame, shape (n,), got shape "
+                f"{jnp.shape(self.center_of_mass)}."
+            )
+        for name in ("mass", "center_of_mass", "gravity"):
+            value = getattr(self, name)
+            check_finite(name, value)
+            if is_concrete(value) and not np.isrealobj(np.asarray(value)):
+                raise ValueError(f"`{name}` must be real, got {np.asarray(value).dtype}.")
+        if is_concrete(self.mass) and not float(self.mass) >= 0:
+            raise ValueError(f"`mass` must be ≥ 0, got {float(self.mass)}.")
+
+    def __call__(self, g):
+        rho = jnp.asarray(self.center_of_mass)
+        return self.mass * self.gravity * jnp.dot(g[-1], rho)  # e_z·(g ρ) = (gᵀ e_z)·ρ
+
+    def vertical(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch n"]:
+        """The advected parameter `Γ = gᵀ e_z`: the world's vertical in body coordinates."""
+        return g[..., -1, :]
+
+
+def as_potential(potential) -> AbstractPotential | None:
+    """`None`, an `AbstractPotential`, or any callable `V(g)` (wrapped); else an error."""
+    if potential is None or isinstance(potential, AbstractPotential):
+        return potential
+    if callable(potential):
+        return PotentialFunction(potential)
+    raise ValueError(
+        "`potential` must be None, a lievi.AbstractPotential (e.g. lievi.UniformGravity) or a "
+        f"callable V(g) returning a scalar, got {type(potential).__name__}."
+    )
