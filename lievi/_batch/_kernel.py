@@ -19,6 +19,9 @@ from __future__ import annotations
 import abc
 
 import equinox as eqx
+import jax.numpy as jnp
+
+from .._results import RESULTS
 
 ROOT_NAME = "lievi_step_root"
 
@@ -47,3 +50,35 @@ class AbstractBatchKernel(eqx.Module):
         """The kernel with this many Newton iterations before its convergence check
         (`simulate_batch(fixed_iterations=...)`); explicit kernels ignore it."""
         return self
+
+
+class KickKernel(AbstractBatchKernel):
+    """A free kernel between two half kicks of a potential's torque (paper §7): the step of
+    `AbstractKickIntegrator` (`Π⁺ = Π + (h/2)M(g_k)`, free step, `Π_{k+1} = Π⁻ + (h/2)M(g_{k+1})`)
+    for a potential with a closed-form `rigid_body_torque` (e.g. `UniformGravity`)."""
+
+    free: AbstractBatchKernel
+    potential: eqx.Module
+
+    @staticmethod
+    def applies_to(potential) -> bool:
+        """Whether `potential` has a closed-form rigid-body torque."""
+        return potential.rigid_body_torque(tuple(jnp.zeros(()) for _ in range(9))) is not None
+
+    def with_fixed_iterations(self, fixed_iterations: int):
+        return KickKernel(self.free.with_fixed_iterations(fixed_iterations), self.potential)
+
+    def prepare(self, inertia, h):
+        return self.free.prepare(inertia, h), h / 2
+
+    def step(self, params, g, Pi, alive):
+        free_params, half = params
+        torque = self.potential.rigid_body_torque(g)
+        Pi = tuple(p + half * t for p, t in zip(Pi, torque))
+        g_next, Pi_next, result, iterations, residual = self.free.step(free_params, g, Pi, alive)
+        torque = self.potential.rigid_body_torque(g_next)
+        Pi_next = tuple(p + half * t for p, t in zip(Pi_next, torque))
+        # A non-finite torque shows up only after the free step's own checks.
+        finite = jnp.isfinite(Pi_next[0]) & jnp.isfinite(Pi_next[1]) & jnp.isfinite(Pi_next[2])
+        result = jnp.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
+        return g_next, Pi_next, result, iterations, residual

@@ -34,11 +34,9 @@ def _fast_kernel(system, integrator, system_axis, fixed_iterations=None):
     The integrator owns its structure-of-arrays step (`batch_kernel`), the system says
     whether it is a rigid body with principal moments (`principal_moments`).
     """
-    kernel = integrator.batch_kernel()
+    kernel = integrator.batch_kernel(system.potential)
     moments = system.principal_moments(batched=system_axis is not None)
     if kernel is None or moments is None:
-        return None
-    if system.potential is not None:  # the structure-of-arrays steps are torque-free
         return None
     if fixed_iterations is not None:
         kernel = kernel.with_fixed_iterations(fixed_iterations)

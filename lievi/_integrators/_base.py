@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int, Scalar
 
 from .._results import RESULTS
+from .._batch._kernel import KickKernel
 from .._systems._base import AbstractLieSystem
 
 
@@ -44,9 +45,10 @@ class AbstractIntegrator(eqx.Module):
     ) -> tuple[Float[Array, "n n"], Float[Array, " d"], StepInfo]:
         """Advance `(g_k, m_k)` to `(g_{k+1}, m_{k+1})`."""
 
-    def batch_kernel(self):
+    def batch_kernel(self, potential=None):
         """This method's structure-of-arrays step for batches of rigid bodies with principal
-        moments (an `AbstractBatchKernel`), or `None` where it has none.
+        moments in `potential` (`None`: free bodies), an `AbstractBatchKernel`, or `None`
+        where it has none.
 
         `simulate_batch` runs it when the system has principal moments
         (`AbstractLieSystem.principal_moments`); it computes the iterates of `step`.
@@ -72,6 +74,19 @@ class AbstractKickIntegrator(AbstractIntegrator):
         self, system: AbstractLieSystem, g: Float[Array, "n n"], m: Float[Array, " d"], h: Scalar
     ) -> tuple[Float[Array, "n n"], Float[Array, " d"], StepInfo]:
         """The step of the system without its potential."""
+
+    def free_batch_kernel(self):
+        """The structure-of-arrays `free_step` for batches of rigid bodies, or `None`."""
+        return None
+
+    def batch_kernel(self, potential=None):
+        free = self.free_batch_kernel()
+        if free is None or potential is None:
+            return free
+        if not KickKernel.applies_to(potential):
+            return None
+        # Kick – free step – kick, as `step`, where the potential has a closed-form torque.
+        return KickKernel(free, potential)
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar):
         if system.potential is None:

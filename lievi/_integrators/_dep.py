@@ -114,7 +114,7 @@ class DEP(AbstractVariationalIntegrator):
         # The adjoint Lagrangian −L_d(g_{k+1}, g_k; −h) equals L_d: φ⁻¹(F⁻¹) = −φ⁻¹(F).
         return True
 
-    def batch_kernel(self):
+    def free_batch_kernel(self):
         return NewtonKernel(self.chart, self.rtol, self.atol, self.max_steps)
 
     def kinetic_discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
@@ -146,7 +146,7 @@ class DEP(AbstractVariationalIntegrator):
         # A system that runs the structure-of-arrays step on itself (the rigid body with
         # principal moments) takes it: the same iterates, closed forms throughout, and under
         # `jax.vmap` the batched kernel. No fixed iterations: one body stops at convergence.
-        fast = system.kernel_step(self.batch_kernel().with_fixed_iterations(0), g, m, h)
+        fast = system.kernel_step(self.free_batch_kernel().with_fixed_iterations(0), g, m, h)
         if fast is not None:
             g_next, m_next, result, iterations, residual = fast
             return g_next, m_next, StepInfo(result, iterations, residual)

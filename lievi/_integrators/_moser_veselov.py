@@ -142,7 +142,7 @@ class MoserVeselov(AbstractVariationalIntegrator):
         # −L_d(g₁, g₀; −h) = tr((I − g₁ᵀg₀)Λ)/h = L_d(g₀, g₁; h): tr(AᵀΛ) = tr(AΛ).
         return True
 
-    def batch_kernel(self):
+    def free_batch_kernel(self):
         return NewtonKernel("moser-veselov", self.rtol, self.atol, self.max_steps)
 
     def kinetic_discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:

@@ -51,8 +51,8 @@ class RK4(AbstractIntegrator):
     def order(self) -> int:
         return 4
 
-    def batch_kernel(self):
-        return RK4Kernel()
+    def batch_kernel(self, potential=None):
+        return RK4Kernel() if potential is None else None
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar):
         group = system.group
@@ -60,7 +60,7 @@ class RK4(AbstractIntegrator):
         check_shape("g", g, (n, n), f"a {n}×{n} group element")
         check_shape("m", m, (d,), f"momentum coordinates of dimension {d}")
         # The kernel integrates the free body: with a potential, the generic field.
-        fast = system.kernel_step(self.batch_kernel(), g, m, h) if system.potential is None else None
+        fast = system.kernel_step(self.batch_kernel(system.potential), g, m, h)
         if fast is not None:  # closed forms on components (the rigid body, principal moments)
             g_next, m_next, result, iterations, residual = fast
             return g_next, m_next, StepInfo(result, iterations, residual)

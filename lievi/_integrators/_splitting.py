@@ -105,7 +105,7 @@ class LiePoissonSplitting(AbstractKickIntegrator):
         # A palindromic (Strang) product of exact flows: Φ_{−h} = Φ_h⁻¹.
         return True
 
-    def batch_kernel(self):
+    def free_batch_kernel(self):
         return SplittingKernel()
 
     def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
@@ -115,7 +115,7 @@ class LiePoissonSplitting(AbstractKickIntegrator):
         n, d = group.matrix_dim, group.algebra_dim
         check_shape("g", g, (n, n), f"an element of SO({n})")
         check_shape("m", m, (d,), f"momentum coordinates of so({n})*")
-        fast = system.kernel_step(self.batch_kernel(), g, m, h)
+        fast = system.kernel_step(self.free_batch_kernel(), g, m, h)
         if fast is not None:  # closed forms on components (the rigid body, principal moments)
             g_next, m_next, result, iterations, residual = fast
             return g_next, m_next, StepInfo(result, iterations, residual)
