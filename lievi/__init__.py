@@ -11,6 +11,12 @@ from ._batch._simulate_batch import has_fast_path as has_fast_path
 from ._batch._simulate_batch import shard_batch as shard_batch
 from ._batch._simulate_batch import simulate_batch as simulate_batch
 from ._groups._base import MatrixLieGroup as MatrixLieGroup
+from ._groups._interop import from_jaxlie as from_jaxlie
+from ._groups._interop import to_jaxlie as to_jaxlie
+from ._groups._interop import twist_from_jaxlie as twist_from_jaxlie
+from ._groups._interop import twist_to_jaxlie as twist_to_jaxlie
+from ._groups._se3 import SE3 as SE3
+from ._groups._se3 import SE3Group as SE3Group
 from ._groups._so3 import SO3 as SO3
 from ._groups._so3 import SO3Group as SO3Group
 from ._groups._son import SOn as SOn
@@ -38,6 +44,10 @@ from ._systems._potential import PotentialFunction as PotentialFunction
 from ._systems._potential import UniformGravity as UniformGravity
 from ._systems._rigid_body import RigidBody as RigidBody
 from ._systems._rigid_body import heavy_top as heavy_top
+from ._systems._se3_body import RigidBodySE3 as RigidBodySE3
+from ._systems._se3_potentials import CentralGravity as CentralGravity
+from ._systems._se3_potentials import UniformGravitySE3 as UniformGravitySE3
+from ._systems._se3_potentials import full_body_problem as full_body_problem
 
 try:
     __version__ = version("lievi")

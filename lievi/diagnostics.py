@@ -16,7 +16,6 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
-from ._groups._son import AbstractSpecialOrthogonal
 from ._integrators._base import AbstractIntegrator, AbstractVariationalIntegrator
 from ._systems._base import AbstractLieSystem
 
@@ -47,22 +46,12 @@ def energy(
 
 
 def casimirs(system: AbstractLieSystem, m: Float[Array, "*batch d"]) -> Float[Array, "*batch k"]:
-    """Casimir functions of the Lie–Poisson structure on `so(n)*`.
+    """Casimir functions of the Lie–Poisson structure on `g*` (the group's `casimirs`).
 
-    `−tr(m̂^{2k})/2` for `k = 1 … ⌊n/2⌋` (the odd traces vanish on skew matrices); on SO(3)
-    the single Casimir is `|Π|²`.
+    SO(n): `−tr(m̂^{2k})/2` for `k = 1 … ⌊n/2⌋` (on SO(3) the single Casimir `|Π|²`);
+    SE(3): `(|P|², P·Π)` for `m = (Π, P)`.
     """
-    group = system.group
-    if not isinstance(group, AbstractSpecialOrthogonal):
-        raise NotImplementedError("casimirs: only the SO(n) groups have Casimirs implemented.")
-    M = group.hat(m)
-    M2 = M @ M
-    power = M2  # m̂^{2k}
-    traces = []
-    for _ in range(group.matrix_dim // 2):
-        traces.append(-jnp.trace(power, axis1=-2, axis2=-1) / 2)
-        power = power @ M2
-    return jnp.stack(traces, axis=-1)
+    return system.group.casimirs(m)
 
 
 def spatial_momentum(

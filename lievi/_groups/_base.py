@@ -151,8 +151,22 @@ class MatrixLieGroup(eqx.Module):
         """`exp` is injective on `{x : |x| < exp_radius}` (∞ if unknown)."""
         return float("inf")
 
+    def exp_norm(self, x: Float[Array, "*batch d"]) -> Float[Array, "*batch"]:
+        """The size of `x` that `exp_radius` bounds (default: the Euclidean norm)."""
+        return jnp.linalg.norm(x, axis=-1)
+
+    # ---- Lie–Poisson structure -------------------------------------------------------------
+
+    def casimirs(self, m: Float[Array, "*batch d"]) -> Float[Array, "*batch k"]:
+        """Casimir functions of the Lie–Poisson structure on `g*` at `m`, where known."""
+        raise NotImplementedError(f"casimirs are not implemented for {type(self).__name__}.")
+
     # ---- checks ---------------------------------------------------------------------------
 
     def membership_defect(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch"]:
         """How far `g` is from the group (0 on the group). Generic groups: 0."""
         return jnp.zeros(g.shape[:-2], g.dtype)
+
+    def membership_hint(self) -> str:
+        """What a group element is and how to make one, for error messages."""
+        return "pass an element of the group"

@@ -72,6 +72,24 @@ class AbstractSpecialOrthogonal(MatrixLieGroup):
         orthogonality = jnp.linalg.norm(jnp.swapaxes(g, -1, -2) @ g - eye, axis=(-2, -1))
         return orthogonality + jnp.abs(jnp.linalg.det(g) - 1)
 
+    def membership_hint(self) -> str:
+        return (
+            "‖gᵀg − I‖ + |det g − 1| must vanish; pass a rotation matrix, e.g. orthonormalise "
+            "with a QR or polar decomposition"
+        )
+
+    def casimirs(self, m: Float[Array, "*batch d"]) -> Float[Array, "*batch k"]:
+        """`−tr(m̂^{2k})/2` for `k = 1 … ⌊n/2⌋` (the odd traces vanish on skew matrices);
+        on SO(3) the single Casimir is `|Π|²`."""
+        M = self.hat(m)
+        M2 = M @ M
+        power = M2  # m̂^{2k}
+        traces = []
+        for _ in range(self.matrix_dim // 2):
+            traces.append(-jnp.trace(power, axis1=-2, axis2=-1) / 2)
+            power = power @ M2
+        return jnp.stack(traces, axis=-1)
+
     def log(self, g: Float[Array, "*batch n n"], iterations: int = 1):
         """Principal logarithm for rotation angles below π.
 

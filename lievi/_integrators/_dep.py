@@ -165,7 +165,7 @@ class DEP(AbstractVariationalIntegrator):
         if self.chart == "exp":
             # Beyond the injectivity radius (angle π on SO(n)) the "root" belongs to
             # another branch of log and the step is meaningless.
-            too_large = jnp.linalg.norm(xi) >= group.exp_radius
+            too_large = group.exp_norm(xi) >= group.exp_radius
             result = jnp.where(too_large, RESULTS.step_too_large, result)
         finite = jnp.isfinite(info.residual) & jnp.all(jnp.isfinite(m_next))
         result = jnp.where(finite, result, RESULTS.nonfinite)

@@ -1,43 +1,59 @@
-"""The preprocessed discrete Moser–Veselov algorithm (after Hairer & Vilmart 2006).
+"""The preprocessed discrete Moser–Veselov algorithm (Hairer & Vilmart 2006).
 
-Hairer & Vilmart, J. Phys. A 39 (2006) 13225.
+E. Hairer and G. Vilmart, *Preprocessed discrete Moser–Veselov algorithm for the full
+dynamics of a rigid body*, J. Phys. A 39 (2006) 13225 (§2–§3).
 
-Why a modified step and one extra rotation suffice (our derivation; the tests check the
-order, not this argument). The DMV step of `lievi.MoserVeselov` on the free rigid body
-keeps the Casimir `C = |y|²` *and* the energy `H = ½ yᵀI⁻¹y` exactly (the tests check it),
-is symplectic on `T*SO(3)` and commutes with left rotations `Q ↦ RQ`. On each invariant
-torus of the (integrable) rigid body it is therefore a translation in the angle variables:
-it is the time-1 flow of a Hamiltonian `S_h(H, C)`, that is
+**The idea.** The DMV step of `lievi.MoserVeselov` on the free rigid body keeps the Casimir
+`C = |y|²` and the energy `H = ½ yᵀI⁻¹y` exactly, is symplectic on `T*SO(3)` and commutes
+with left rotations. On each invariant torus it is therefore a translation in the angle
+variables: the exact flow of a Hamiltonian `S_h(H, C)`. Since `H` moves the body along the
+torus and `C` only rotates the attitude about the body momentum, DMV with step `h` is the
+exact time-`h` flow of a rigid body whose inverse inertia is `α I⁻¹ + β·Id`, with `α`, `β`
+depending on `h`, `H`, `C` and the inertia. Conversely, DMV run with the *modified* inverse
+inertia
 
-    DMV_h(Q, y) = (Q · P(τ) · exp(ρ ŷ₁), y(τ)),       y₁ = y(τ),
+    Î⁻¹(h) = α(h) I⁻¹ + β(h) Id,      α = 1 + a₂h² + a₄h⁴ + …,   β = b₂h² + b₄h⁴ + …
 
-the exact flow over a modified time `τ = h + c₂h² + c₃h³ + …` (the flow of `H`) followed by
-a rotation of the attitude about the body momentum by the angle `ρ|y|` (the flow of `C`);
-`τ` and `ρ` depend only on `(h, H, C)`. Here `y(t)` is the exact momentum and `P(t)` the
-exact body propagator, `Ṗ = P Ω̂`, `P(0) = I`. (In Hairer–Vilmart's terms: DMV is the exact
-solution of a rigid body with modified moments of inertia, which is the same thing since
-DMV with moments `I/α` and step `h` is DMV with moments `I` and step `αh`.)
+(coefficients in `H`, `C` and the inertia; odd powers vanish because DMV is symmetric) is
+the exact flow of the body `I` over `h`, momentum *and* attitude. Hairer–Vilmart's
+preprocessed DMV of order `p` is DMV with `Î⁻¹` cut after `h^(p−2)`: the remainder
+perturbs the moments by `O(h^p)`, so the local error is `O(h^(p+1))`.
 
-Preprocessing. Run DMV with the step `h'` solving `τ(h') = h` (equivalently, moments
-`I·h/h'`) and undo the rotation: `Q_{k+1} = Q_k F_k exp(−ρ(h') ŷ_{k+1})`. With `τ` and `ρ`
-truncated after the power `h^p`, the local error is `O(h^{p+1})`: order `p`.
+**What is truncated, and why this choice.** Exactly the series `α(h)`, `β(h)` of the
+modified moments, after `h^(p−2)` — nothing else: the DMV step with the truncated `Î` is
+solved to round-off, and there is no separate attitude correction (`β` is it). This is
+the accurate place to cut. The same step could be written as DMV with a modified *step*
+`h'` plus an attitude rotation, `τ(h') = h` with `τ(s)` the exact-flow time reached by one
+DMV step of size `s`; but `τ` is a function of the DMV step and inherits its finite radius
+of convergence, and its coefficients grow fast with one sign (Hairer–Vilmart body
+`I = (0.6, 0.8, 1)`, `y = (1.8, 0.4, −0.9)`: `τ = s + 2.43s³ + 11.9s⁵ + 73.0s⁷ + 503s⁹ +
+3715s¹¹ + …`), so cutting it leaves a large remainder (at `h = 0.1`, T = 10: errors 6×
+(order 4) to 3×10⁵× (order 10) larger). The modified moments are functions of the exact
+flow's time, and their coefficients decay on the same problem (`α = 1 − 2.43h² + 1.94h⁴ −
+0.603h⁶ + 0.0995h⁸`, `β = 1.21h² − 1.73h⁴ + 0.624h⁶ − 0.109h⁸`); cutting them gives, step
+for step, the errors of Hairer–Vilmart's own code (`docs/preprocessed_dmv.md` has the
+table).
 
-How `τ` and `ρ` are obtained: by truncated power series in the DMV step `s`, computed in
-JAX at run time (so they are differentiable in the momentum, the inertia and `h`, and
-batch under `vmap`): the Taylor coefficients of the DMV step `(F(s), y₁(s))` follow from
-its Cayley-form equation `I x = s·vee((1 − X/2)Ŷ(1 + X/2))` by fixed-point iteration on
-series (each sweep fixes one more power), those of the exact flow from the recurrences
-`(k+1) y_{k+1} = Σ_j y_j × I⁻¹y_{k−j}`, `(k+1) P_{k+1} = Σ_j P_j (I⁻¹y_{k−j})^`; then
-`c_k` is fixed power by power by projecting the mismatch of `y₁(s)` and `y(τ(s))` on `ẏ(0)`,
-and `ρ` is read off `R = P(τ)ᵀF = exp(ρŷ₁)`: `y₁·vee(R − Rᵀ)/2 = |y| sin(ρ|y|)`.
-`tools/derive_preprocessed_dmv.py` checks the time-rescaling structure symbolically (sympy).
-The series depend only on `(h, H, C)`, so `prepare` computes them once per trajectory; the
-step then costs one DMV step plus one small rotation.
+**How `α`, `β` are computed.** Numerically, at run time, in JAX (so they differentiate in
+the momentum, the inertia and `h`, batch under `vmap`, and work for a full inertia tensor
+without an eigendecomposition): for the given `I⁻¹` and `y`, the Taylor coefficients in `h`
+of the DMV step `(F(h), y₁(h))` with a series-valued inverse inertia follow from its Cayley
+form `x = h Î⁻¹(h)·vee((1 − X/2)Ŷ(1 + X/2))` by fixed-point iteration on truncated series
+(each sweep fixes one power); those of the exact flow from `(k+1) y_{k+1} = Σ_j y_j ×
+I⁻¹y_{k−j}`, `(k+1) P_{k+1} = Σ_j P_j (I⁻¹y_{k−j})^` (`Ṗ = PΩ̂`). Then `a_k`, `b_k` are
+fixed power by power (`modified_moments_series`). At given `(H, C, I)` these numbers are
+Hairer–Vilmart's coefficients (their closed forms are polynomials in `h²H`, `h²C` with
+coefficients rational in the moments); `tools/derive_preprocessed_dmv.py` re-derives them
+in exact rational arithmetic, checks the structure (the other mismatch components vanish
+identically; odd powers vanish) and prints the polynomials. The series depend only on
+`(h, H, C)`, which the modified step keeps, so `prepare` computes them once per trajectory;
+the step then costs one DMV step on the modified body.
 """
 
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
@@ -46,7 +62,7 @@ from .._groups._so3 import SO3
 from .._simulate import state_dtype
 from .._systems._base import AbstractLieSystem
 from .._systems._rigid_body import RigidBody
-from ._base import AbstractIntegrator, StepInfo
+from ._base import AbstractIntegrator
 from ._moser_veselov import MoserVeselov
 
 ORDERS = (4, 6, 8, 10)
@@ -76,76 +92,109 @@ def _vee(M):
     return jnp.stack([M[..., 2, 1], M[..., 0, 2], M[..., 1, 0]], axis=-1)
 
 
-def dmv_series(inverse_inertia: Float[Array, "3 3"], y: Float[Array, "3"], degree: int):
+def dmv_series(inverse_inertia, y: Float[Array, "3"], degree: int):
     """Taylor coefficients in the step `s` of the DMV step: `(F(s), y₁(s))`, degree `degree`.
 
     `F = cay(x)`, `I x = s·vee((1 − X/2) Ŷ (1 + X/2))`, `y₁ = Fᵀy` (as in `MoserVeselov`).
+    `inverse_inertia`: a constant `(3, 3)` matrix, or a series `(degree + 1, 3, 3)` in `s`
+    (the modified inverse inertia `α(s) I⁻¹ + β(s)`). Fixed-point sweeps on truncated
+    series, each fixing one more power (a `fori_loop`: one compiled sweep).
     """
     n = degree + 1
     mask = jnp.asarray(_cauchy_mask(n), y.dtype)
     eye = jnp.eye(3, dtype=y.dtype)
+    if inverse_inertia.ndim == 2:
+        inverse_inertia = jnp.zeros((n, 3, 3), y.dtype).at[0].set(inverse_inertia)
+    inverse_inertia = inverse_inertia[:n]
     Y = _hat(y)
-    x = jnp.zeros((n, 3), y.dtype)
-    for _ in range(degree):  # each sweep fixes one more power of s
-        X = _hat(x)
-        left = eye[None] * (jnp.arange(n) == 0)[:, None, None] - X / 2
-        right = eye[None] * (jnp.arange(n) == 0)[:, None, None] + X / 2
-        middle = jnp.einsum("kab,bc->kac", left, Y)
-        inner = _mul(middle, right, mask, ("ab", "bc", "ac"))
-        x = _shift(jnp.einsum("ab,kb->ka", inverse_inertia, _vee(inner)))
-    X = _hat(x)
     one = eye[None] * (jnp.arange(n) == 0)[:, None, None]
+
+    def sweep_x(_, x):
+        X = _hat(x)
+        middle = jnp.einsum("kab,bc->kac", one - X / 2, Y)
+        inner = _mul(middle, one + X / 2, mask, ("ab", "bc", "ac"))
+        return _shift(_mul(inverse_inertia, _vee(inner), mask, ("ab", "b", "a")))
+
+    x = jax.lax.fori_loop(0, degree, sweep_x, jnp.zeros((n, 3), y.dtype))
+    X = _hat(x)
+
     # (1 − X/2) F = 1 + X/2  ⇔  F = 1 + X/2 + (X/2) F: one more power per sweep.
-    F = one
-    for _ in range(degree):
-        F = one + X / 2 + _mul(X / 2, F, mask, ("ab", "bc", "ac"))
+    def sweep_F(_, F):
+        return one + X / 2 + _mul(X / 2, F, mask, ("ab", "bc", "ac"))
+
+    F = jax.lax.fori_loop(0, degree, sweep_F, one)
     y1 = jnp.einsum("kba,b->ka", F, y)
     return F, y1
 
 
 def exact_series(inverse_inertia: Float[Array, "3 3"], y: Float[Array, "3"], degree: int):
-    """Taylor coefficients in `t` of the exact `y(t)` (Euler) and `P(t)` (`Ṗ = PΩ̂`)."""
-    ys = [y]
-    Ps = [jnp.eye(3, dtype=y.dtype)]
-    for k in range(degree):
-        omegas = [inverse_inertia @ yj for yj in ys]
-        ys.append(sum(jnp.cross(ys[j], omegas[k - j]) for j in range(k + 1)) / (k + 1))
-        Ps.append(sum(Ps[j] @ _hat(omegas[k - j]) for j in range(k + 1)) / (k + 1))
-    return jnp.stack(ys), jnp.stack(Ps)
-
-
-def _compose(coefficients, tau, mask, spec):
-    """`Σ_k a_k τ(s)^k` for a series `τ` with `τ_0 = 0`, truncated."""
-    result = jnp.zeros_like(coefficients)
-    power = jnp.zeros_like(tau).at[0].set(1.0)
-    for k in range(coefficients.shape[0]):
-        result = result + jnp.einsum(f"i,{spec}->i{spec}", power, coefficients[k])
-        power = _mul(power, tau, mask, ("", "", ""))
-    return result
-
-
-def modification_series(inverse_inertia, y, degree: int):
-    """`(τ, S)`: series in the DMV step `s` of the exact-flow time `τ(s)` of one DMV step,
-    and of `S(s) = y₁·vee(R − Rᵀ)/2 = |y| sin(ρ|y|)`, `R = P(τ)ᵀF` (module docstring)."""
+    """Taylor coefficients in `t` of the exact `y(t)` (Euler) and `P(t)` (`Ṗ = PΩ̂`):
+    `(k+1) y_{k+1} = Σ_j y_j × I⁻¹y_{k−j}`, `(k+1) P_{k+1} = Σ_j P_j (I⁻¹y_{k−j})^`."""
     n = degree + 1
     mask = jnp.asarray(_cauchy_mask(n), y.dtype)
-    F, y1 = dmv_series(inverse_inertia, y, degree)
-    ys, Ps = exact_series(inverse_inertia, y, degree)
+    ys = jnp.zeros((n, 3), y.dtype).at[0].set(y)
+    Ps = jnp.zeros((n, 3, 3), y.dtype).at[0].set(jnp.eye(3, dtype=y.dtype))
+
+    def recurrence(k, series):
+        ys, Ps = series
+        pairs = jax.lax.dynamic_index_in_dim(mask, k, axis=2, keepdims=False)  # i + j = k
+        omegas = ys @ inverse_inertia.T
+        y_next = jnp.einsum("ij,iab,jb->a", pairs, _hat(ys), omegas) / (k + 1)
+        P_next = jnp.einsum("ij,iab,jbc->ac", pairs, Ps, _hat(omegas)) / (k + 1)
+        return ys.at[k + 1].set(y_next), Ps.at[k + 1].set(P_next)
+
+    return jax.lax.fori_loop(0, degree, recurrence, (ys, Ps))
+
+
+def modified_moments_series(
+    inverse_inertia: Float[Array, "3 3"], y: Float[Array, "3"], degree: int
+):
+    """`(α, β)`: the Taylor coefficients in `h` (up to `h^degree`; odd powers are zero) of
+    the modification `I⁻¹ ↦ α(h) I⁻¹ + β(h)·Id` whose DMV step is the exact flow over `h`.
+
+    A change `δα h^k, δβ h^k` of the modified moments moves the Cayley coordinates `x` of
+    the step by `h^{k+1}(δα I⁻¹y + δβ y)`, hence `y₁` by `h^{k+1} δα ẏ(0)` and the attitude
+    mismatch `R = P(h)ᵀF` by the same vector (hatted), and nothing of lower order. So each
+    sweep reads `δα_k` off the momentum mismatch at `h^{k+1}` (projected on `ẏ(0)`) and
+    `δβ_k` off the component along `y` of the attitude mismatch, for even `k` (odd
+    coefficients vanish by symmetry); a sweep makes one more even power exact, so
+    `degree/2` sweeps suffice. The other components of
+    the mismatch vanish by the torus argument of the module docstring
+    (`tools/derive_preprocessed_dmv.py` checks it in exact arithmetic).
+    """
+    n = degree + 2  # the step is matched up to h^(degree + 1)
+    dtype = y.dtype
+    eye = jnp.eye(3, dtype=dtype)
+    mask = jnp.asarray(_cauchy_mask(n), dtype)
+    ys, Ps = exact_series(inverse_inertia, y, n - 1)
     velocity = ys[1]
     speed2 = jnp.dot(velocity, velocity)
-    # At a relative equilibrium (ẏ = 0) τ is not determined by y: take τ = s there; the
-    # rotation ρ then accounts for the whole attitude error (double `where`: safe gradients).
-    moving = speed2 > 1e3 * jnp.finfo(y.dtype).tiny
+    norm2 = jnp.dot(y, y)
+    spin_axis = inverse_inertia @ y
+    # At a relative equilibrium (ẏ = 0) α is not determined by y: keep α = 1 there; β then
+    # accounts for the whole attitude error (double `where`: safe gradients). At y = 0
+    # nothing moves and (α, β) = (1, 0).
+    moving = speed2 > 1e3 * jnp.finfo(dtype).tiny
     safe_speed2 = jnp.where(moving, speed2, 1.0)
-    tau = jnp.zeros(n, y.dtype).at[1].set(1.0)
-    for k in range(2, n):
-        mismatch = y1[k] - _compose(ys, tau, mask, "a")[k]
-        tau = tau.at[k].set(jnp.where(moving, jnp.dot(mismatch, velocity) / safe_speed2, 0.0))
-    P_tau = _compose(Ps, tau, mask, "ab")
-    R = _mul(jnp.swapaxes(P_tau, 1, 2), F, mask, ("ab", "bc", "ac"))
-    axis = _vee(R - jnp.swapaxes(R, 1, 2)) / 2
-    S = _mul(y1, axis, mask, ("a", "a", ""))
-    return tau, S
+    spinning = norm2 > 1e3 * jnp.finfo(dtype).tiny
+    safe_norm2 = jnp.where(spinning, norm2, 1.0)
+
+    def sweep(_, moments):
+        alpha, beta = moments
+        modified = alpha[:, None, None] * inverse_inertia + beta[:, None, None] * eye
+        F, y1 = dmv_series(modified, y, n - 1)
+        R = _mul(jnp.swapaxes(Ps, 1, 2), F, mask, ("ab", "bc", "ac"))
+        a = jnp.where(moving, (ys - y1) @ velocity / safe_speed2, 0.0)
+        rotation = -_vee(R - jnp.swapaxes(R, 1, 2)) / 2 - a[:, None] * spin_axis
+        b = jnp.where(spinning, rotation @ y / safe_norm2, 0.0)
+        # The mismatch at h^(k+1) corrects the coefficient of h^k, even k only: odd
+        # coefficients are zero, and updating them from a mismatch that still carries
+        # the error of lower even powers would spoil them.
+        return alpha.at[2:-1:2].add(a[3::2]), beta.at[2:-1:2].add(b[3::2])
+
+    alpha = jnp.zeros(n, dtype).at[0].set(1.0)
+    alpha, beta = jax.lax.fori_loop(0, degree // 2, sweep, (alpha, jnp.zeros(n, dtype)))
+    return alpha[: degree + 1], beta[: degree + 1]
 
 
 def _polyval(coefficients, s):
@@ -153,49 +202,53 @@ def _polyval(coefficients, s):
 
 
 def preprocessing(system: RigidBody, m: Float[Array, "3"], h: Scalar, order: int):
-    """`(h', φ)`: the DMV step `h'` with `τ(h') = h` and the correction angle `φ = ρ(h')|y|`,
-    with `τ`, `S` truncated after `h^order`."""
+    """`(α, β)` at step `h`: the modified moments `α I⁻¹ + β` truncated after `h^(order − 2)`."""
     inverse_inertia = jnp.linalg.inv(system.inertia_tensor.astype(m.dtype))
-    tau, S = modification_series(inverse_inertia, m, order)
-    # Newton on τ(h') = h from h' = h: τ(s) = s + O(s²), a few iterations reach round-off.
-    dtau = tau[1:] * jnp.arange(1, order + 1)
-    h_mod = h
-    for _ in range(6):
-        h_mod = h_mod - (_polyval(tau, h_mod) - h) / _polyval(dtau, h_mod)
-    norm = jnp.sqrt(jnp.dot(m, m))
-    safe_norm = jnp.where(norm > 0, norm, 1.0)
-    angle = jnp.where(norm > 0, jnp.arcsin(jnp.clip(_polyval(S, h_mod) / safe_norm, -1, 1)), 0.0)
-    return h_mod, angle
+    alpha, beta = modified_moments_series(inverse_inertia, m, order - 2)
+    return _polyval(alpha, h), _polyval(beta, h)
+
+
+def modified_body(system: RigidBody, alpha, beta) -> RigidBody:
+    """The rigid body with inverse inertia `α I⁻¹ + β·Id` (same principal axes)."""
+    inertia = jnp.asarray(system.inertia)
+    alpha, beta = alpha.astype(inertia.dtype), beta.astype(inertia.dtype)
+    if inertia.ndim == 1:
+        return RigidBody(1 / (alpha / inertia + beta))
+    eye = jnp.eye(3, dtype=inertia.dtype)
+    modified = jnp.linalg.inv(alpha * jnp.linalg.inv(inertia) + beta * eye)
+    return RigidBody((modified + modified.T) / 2)
 
 
 class PreprocessedMoserVeselov(AbstractIntegrator):
-    """DMV with a preprocessed step size and an attitude correction: orders 4, 6, 8, 10.
+    """Hairer–Vilmart's preprocessed DMV: orders 4, 6, 8, 10 for the free rigid body.
 
-    For the free rigid body on SO(3) (`lievi.RigidBody`, principal moments or a full
-    tensor). Each step is one `MoserVeselov` step with the modified step `h'` (equivalently,
-    modified moments of inertia `I·h/h'`, Hairer–Vilmart's preprocessing), followed by a
-    rotation of the attitude about the new body momentum by `−φ` (see the module
-    docstring). `h'` and `φ` depend only on `h`, the energy and the Casimir, which DMV keeps
-    exactly; Casimir, energy and spatial momentum are kept to round-off. Differentiable
-    (Newton by the implicit function theorem, the series by ordinary autodiff) and batched.
+    For `lievi.RigidBody` on SO(3) (principal moments or a full tensor). Each step is one
+    `MoserVeselov` step on the body with the modified inverse inertia
+    `α(h) I⁻¹ + β(h)·Id`, whose series in `h²` (coefficients in the energy, the Casimir and
+    the inertia) are cut after `h^(order − 2)` (module docstring: what is truncated and why
+    it is the accurate choice). Symmetric; Casimir, energy and spatial momentum are kept to
+    round-off (the modified body's energy `αH + βC/2` and `C` are DMV invariants, hence so
+    is `H`). Differentiable (Newton by the implicit function theorem, the series by
+    ordinary autodiff) and batched (`vmap`).
 
     **Arguments:**
 
-    - `order`: 4, 6, 8 or 10 (where the series for `h'` and `φ` are cut).
+    - `order`: 4, 6, 8 or 10 (the modified moments are cut after `h^(order − 2)`).
     - `method`: the inner `MoserVeselov` (its Newton tolerances).
 
-    `step` computes `h'` and `φ` from the current momentum (a few thousand flops). For long
-    runs call `prepare(system, m0, h)` once: it returns a copy that stores them, and whose
-    step then costs one DMV step and one 3×3 rotation. A prepared integrator must be used
-    with that same `h` (and on the trajectory of `m0`, or any state with the same energy
-    and Casimir).
+    `step` computes `α`, `β` from the current momentum (truncated-series arithmetic, up to
+    ~10⁶ flops at order 10). For long runs call `prepare(system, m0, h)` once: it returns a copy that stores them, and whose
+    step then costs one DMV step. A prepared integrator must be used with that same `h`
+    (an error otherwise, also under `jit`) and on the trajectory of `m0` (or any state with
+    the same energy and Casimir). `equivalent_moser_veselov(system, m0, h)` returns the
+    modified body itself, for `MoserVeselov` fast paths such as `lievi.simulate_batch`'s.
     """
 
     order_: int = eqx.field(static=True)
     method: MoserVeselov
     h_prepared: Array | None
-    h_modified: Array | None
-    angle: Array | None
+    alpha: Array | None
+    beta: Array | None
 
     def __init__(self, order: int = 6, method: MoserVeselov | None = None, *, _prepared=None):
         if isinstance(order, bool) or order not in ORDERS:
@@ -205,46 +258,54 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
             raise ValueError(f"`method` must be a lievi.MoserVeselov, got {type(method).__name__}.")
         self.order_ = order
         self.method = method
-        self.h_prepared, self.h_modified, self.angle = _prepared or (None, None, None)
+        self.h_prepared, self.alpha, self.beta = _prepared or (None, None, None)
 
     def order(self) -> int:
         return self.order_
 
     def is_symmetric(self) -> bool:
-        # h' and φ are odd in h (τ and ρ are), and depend on conserved quantities only.
+        # α and β are even in h and depend on the invariants H, C only, which the modified
+        # DMV step keeps: the step is DMV (symmetric) for a body that does not depend on
+        # the sign of h.
         return True
 
     def prepare(
         self, system: AbstractLieSystem, m0: Float[Array, "3"], h
     ) -> PreprocessedMoserVeselov:
-        """A copy with `h'` and `φ` computed once for step `h` on the trajectory of `m0`."""
+        """A copy with `α(h)` and `β(h)` computed once for step `h` on the trajectory of `m0`."""
         _check_system(system)
         system.check_momentum("m0", m0)
         dtype = state_dtype(system, m0, h)
         m0, h = jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
-        h_mod, angle = preprocessing(system, m0, h, self.order_)
-        return PreprocessedMoserVeselov(self.order_, self.method, _prepared=(h, h_mod, angle))
+        alpha, beta = preprocessing(system, m0, h, self.order_)
+        return PreprocessedMoserVeselov(self.order_, self.method, _prepared=(h, alpha, beta))
+
+    def equivalent_moser_veselov(
+        self, system: AbstractLieSystem, m0: Float[Array, "3"], h
+    ) -> tuple[RigidBody, MoserVeselov]:
+        """`(body, method)`: plain DMV on `body` takes the same steps as this integrator
+        prepared for `(system, m0, h)` — `body` has the modified inverse inertia
+        `α(h) I⁻¹ + β(h)·Id`. So any fast path for `MoserVeselov` (e.g. the batched one of
+        `lievi.simulate_batch`, with `jax.vmap` over `m0` and `system_axis=0`) runs the
+        preprocessed method at the cost of plain DMV."""
+        prepared = self.prepare(system, m0, h)
+        return modified_body(system, prepared.alpha, prepared.beta), self.method
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar):
         _check_system(system)
-        if self.h_modified is None:
-            h_mod, angle = preprocessing(system, m, h, self.order_)
+        if self.alpha is None:
+            alpha, beta = preprocessing(system, m, h, self.order_)
         else:
-            # The prepared series belong to one step size: a different `h` would silently
-            # give a low-order (wrong-time) step, so it is an error, also under `jit`.
+            # The prepared moments belong to one step size: a different `h` would silently
+            # give a low-order step, so it is an error, also under `jit`.
             h = eqx.error_if(
                 jnp.asarray(h, m.dtype),
                 jnp.abs(h - self.h_prepared) > 1e-12 * jnp.abs(self.h_prepared),
                 "PreprocessedMoserVeselov was prepared for another step size `h`: call "
                 "`.prepare(system, m0, h)` with the `h` you simulate with.",
             )
-            h_mod, angle = self.h_modified.astype(m.dtype), self.angle.astype(m.dtype)
-            h_mod = h_mod + 0 * h  # keeps the check in the computation graph
-        g_next, m_next, info = self.method.step(system, g, m, h_mod)
-        norm = jnp.sqrt(jnp.dot(m_next, m_next))
-        safe_norm = jnp.where(norm > 0, norm, 1.0)
-        g_next = g_next @ SO3.exp(-angle * m_next / safe_norm)
-        return g_next, m_next, StepInfo(info.result, info.iterations, info.residual)
+            alpha, beta = self.alpha.astype(m.dtype), self.beta.astype(m.dtype)
+        return self.method.step(modified_body(system, alpha, beta), g, m, h)
 
 
 def _check_system(system) -> None:
@@ -261,5 +322,3 @@ def _check_system(system) -> None:
             "would run at order 2. Use `lievi.Composition(lievi.MoserVeselov(), order)` or "
             "`lievi.Composition(lievi.DEP(), order)`."
         )
-
-

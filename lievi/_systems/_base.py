@@ -139,8 +139,7 @@ class AbstractLieSystem(eqx.Module):
             if defect > 1e-6:
                 raise ValueError(
                     f"`{name}` is not in the group: membership defect {defect:.3g} > 1e-6 "
-                    "(for SO(n): ‖gᵀg − I‖ + |det g − 1|). Pass a rotation matrix, e.g. "
-                    "orthonormalise with a QR or polar decomposition."
+                    f"({self.group.membership_hint()})."
                 )
 
     def check_momentum(self, name: str, m) -> None:
