@@ -96,7 +96,7 @@ def simulate_batch(
     - `fast`: use the structure-of-arrays fast path when there is one (the integrator's
       `batch_kernel`, for a system with `principal_moments`: today the rigid body with
       principal moments of inertia and `DEP` (both charts), `MoserVeselov`,
-      `LiePoissonSplitting` or `RK4`). Its iterates equal the generic path's to
+      `LiePoissonSplitting` or `RK4`; in `UniformGravity` (the heavy top) the first three). Its iterates equal the generic path's to
       round-off, and so do its derivatives: reverse mode (`jax.grad`, `jax.vjp`) goes
       through the fast path, implicit steps by the implicit function theorem at each
       step's converged root with the closed-form 3×3 Jacobian (the Newton iterations are
