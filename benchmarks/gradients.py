@@ -18,6 +18,16 @@ Writes `benchmarks/results/gradients.json` and `benchmarks/results/gradients.png
 
     python benchmarks/gradients.py           # N = 1e3, 3e3, 1e4, 3e4, 1e5 (several minutes)
     python benchmarks/gradients.py --quick   # N = 1e3, 1e4
+
+`--batch` measures instead batched gradients through `simulate_batch`'s fast path: random
+bodies (`benchmarks/throughput.py`'s), batch 1e5, 100 steps of h = 0.1, float64, a loss of
+the final state (fixed random weights on g and Π, summed over the bodies) differentiated
+with respect to every body's inertia, Π₀ and h. For every fast method: the forward cost,
+the cost of `value_and_grad` without and with `checkpoint=True`, their ratios (the
+acceptance figure: ≤ 5), and for reference the `fast=False` gradient (`jax.vmap(simulate)`)
+on a 10× smaller batch, as body-steps per second. Writes `gradients_batch.json`.
+
+    python benchmarks/gradients.py --batch [--bodies 100000] [--steps 100]
 """
 
 from __future__ import annotations
@@ -146,10 +156,133 @@ def plot(rows, path):
     fig.savefig(path, dpi=110)
 
 
+BATCH_METHODS = {
+    "DEP exp": lambda: lievi.DEP(chart="exp"),
+    "DEP cayley": lambda: lievi.DEP(chart="cayley"),
+    "Moser-Veselov": lambda: lievi.MoserVeselov(),
+    "splitting": lambda: lievi.LiePoissonSplitting(),
+    "RK4": lambda: lievi.RK4(),
+}
+
+
+def batch_loss(integrator, steps: int, fast: bool, checkpoint):
+    def loss(params, g0, weights):
+        sol = lievi.simulate_batch(
+            jax.vmap(lievi.RigidBody)(params["inertia"]), integrator, g0, params["m0"], h=params["h"],
+            n_steps=steps, system_axis=0, save=("g", "m"), fast=fast, throw=False, checkpoint=checkpoint,
+        )
+        return jnp.sum(weights[0] * sol.g[:, -1]) + jnp.sum(weights[1] * sol.m[:, -1])
+
+    return loss
+
+
+def batch_inputs(bodies: int):
+    sys_path = str(pathlib.Path(__file__).parent)
+    import sys
+
+    if sys_path not in sys.path:
+        sys.path.insert(0, sys_path)
+    from throughput import H as step, rigid_body_inputs
+
+    inertia, g0, m0 = rigid_body_inputs(bodies, jnp.float64)
+    rng = np.random.default_rng(7)
+    weights = (jnp.asarray(rng.normal(size=(bodies, 3, 3))), jnp.asarray(rng.normal(size=(bodies, 3))))
+    params = {"inertia": inertia, "m0": m0, "h": jnp.full((bodies,), step)}
+    return params, g0, weights
+
+
+def measure_batch(name: str, bodies: int, steps: int, repeats: int = 3):
+    integrator = BATCH_METHODS[name]()
+    params, g0, weights = batch_inputs(bodies)
+    args = (params, g0, weights)
+    fns = {
+        "forward": jax.jit(batch_loss(integrator, steps, True, False)),
+        "grad": jax.jit(jax.value_and_grad(batch_loss(integrator, steps, True, False))),
+        "grad_checkpoint": jax.jit(jax.value_and_grad(batch_loss(integrator, steps, True, True))),
+    }
+    row = {"method": name, "bodies": bodies, "steps": steps}
+    for key, fn in fns.items():
+        start = time.perf_counter()
+        exe = fn.lower(*args).compile()
+        row[f"compile_{key}_s"] = time.perf_counter() - start
+        row[f"temp_bytes_{key}"] = exe.memory_analysis().temp_size_in_bytes
+        fns[key] = exe
+    wall = {k: np.inf for k in fns}
+    cpu = {k: np.inf for k in fns}
+    for k, fn in fns.items():
+        jax.block_until_ready(fn(*args))  # warm-up
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            start_wall, start_cpu = time.perf_counter(), time.process_time()
+            jax.block_until_ready(fn(*args))
+            wall[k] = min(wall[k], time.perf_counter() - start_wall)
+            cpu[k] = min(cpu[k], time.process_time() - start_cpu)
+    for k in fns:
+        row[f"{k}_cpu_s"], row[f"{k}_wall_s"] = cpu[k], wall[k]
+        row[f"{k}_body_steps_per_s_wall"] = bodies * steps / wall[k]
+    row["ratio_grad"] = cpu["grad"] / cpu["forward"]
+    row["ratio_grad_checkpoint"] = cpu["grad_checkpoint"] / cpu["forward"]
+    row["ratio_grad_wall"] = wall["grad"] / wall["forward"]
+    # The generic gradient (jax.vmap(simulate)) on a 10× smaller batch, and the agreement.
+    small = max(bodies // 10, 1)
+    small_args = jax.tree.map(lambda x: x[:small], args)
+    generic = jax.jit(jax.value_and_grad(batch_loss(integrator, steps, False, False)))
+    fast_small = jax.jit(jax.value_and_grad(batch_loss(integrator, steps, True, False)))
+    reference = jax.block_until_ready(generic(*small_args))
+    start_wall, start_cpu = time.perf_counter(), time.process_time()
+    jax.block_until_ready(generic(*small_args))
+    row["generic_grad_bodies"] = small
+    row["generic_grad_wall_s"] = time.perf_counter() - start_wall
+    row["generic_grad_cpu_s"] = time.process_time() - start_cpu
+    row["generic_grad_body_steps_per_s_wall"] = small * steps / row["generic_grad_wall_s"]
+    mine = fast_small(*small_args)
+    row["grad_max_rel_diff_vs_generic"] = float(
+        max(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)) for a, b in zip(jax.tree.leaves(mine[1]), jax.tree.leaves(reference[1])))
+    )
+    return row
+
+
+def main_batch(args):
+    load_before = os.getloadavg()
+    rows = []
+    names = args.methods or list(BATCH_METHODS)
+    print(f"batched gradients through the fast path: {args.bodies} bodies, {args.steps} steps, float64; "
+          f"load average {load_before}")
+    print(f"{'method':<15}{'forward':>12}{'grad':>12}{'grad/fwd':>10}{'ckpt/fwd':>10}{'fwd bs/s':>11}{'grad bs/s':>11}"
+          f"{'generic grad bs/s':>19}{'rel diff':>10}")
+    out_path = RESULTS / "gradients_batch.json"
+    for name in names:
+        row = measure_batch(name, args.bodies, args.steps)
+        rows.append(row)
+        print(f"{name:<15}{row['forward_cpu_s']:>10.3f} s{row['grad_cpu_s']:>10.3f} s{row['ratio_grad']:>10.2f}"
+              f"{row['ratio_grad_checkpoint']:>10.2f}{row['forward_body_steps_per_s_wall']:>11.3g}"
+              f"{row['grad_body_steps_per_s_wall']:>11.3g}{row['generic_grad_body_steps_per_s_wall']:>19.3g}"
+              f"{row['grad_max_rel_diff_vs_generic']:>10.1e}", flush=True)
+        RESULTS.mkdir(exist_ok=True)
+        out = {
+            "device": str(jax.devices()[0]),
+            "jax": jax.__version__,
+            "command": "python benchmarks/gradients.py --batch " + f"--bodies {args.bodies} --steps {args.steps}",
+            "timing": "process CPU time (*_cpu_s; ratios use it) and wall time: best of 3 interleaved rounds after a warm-up, compile apart",
+            "cpu_count": os.cpu_count(),
+            "load_average_before": load_before,
+            "load_average_after": os.getloadavg(),
+            "rows": rows,
+        }
+        out_path.write_text(json.dumps(out, indent=2))
+    print(f"load average before {load_before}, after {os.getloadavg()}; wrote {out_path}")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="only N = 1e3 and 1e4")
+    parser.add_argument("--batch", action="store_true", help="batched gradients through the fast path")
+    parser.add_argument("--bodies", type=int, default=100_000)
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--methods", nargs="+", default=None, choices=list(BATCH_METHODS))
     args = parser.parse_args()
+    if args.batch:
+        return main_batch(args)
     sizes = [1_000, 10_000] if args.quick else [1_000, 3_000, 10_000, 30_000, 100_000]
     load_before = os.getloadavg()  # a shared machine: other processes inflate both times
     rows = []

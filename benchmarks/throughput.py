@@ -20,7 +20,10 @@ Writes `benchmarks/results/<out>.json` and `<out>.png`.
 `--acceptance` is the issue's CPU acceptance configuration alone (a few minutes): batch
 1e5, 100 steps, float64, final state only, every lievi method and diffrax Tsit5, checked
 against the targets (DEP exp ≥ 1e7, Moser–Veselov and splitting ≥ 3e7 body-steps/s, every
-method ≥ 10× diffrax), into `throughput_cpu_acceptance.json`. `--cpu-devices N` splits
+method ≥ 10× diffrax, `jax.vmap(simulate)` included), into `throughput_cpu_acceptance.json`,
+with each method's operation count per body-step (XLA's `cost_analysis`, as written and as
+executed after fusion) and the achieved fraction of the flop limit (`PEAK_FLOPS_PER_DEVICE`
+per XLA device). `--cpu-devices N` splits
 the host CPU into N XLA devices (`--xla_force_host_platform_device_count`) and shards the
 batch over them with `lievi.shard_batch` — XLA runs one device's work on one thread, so
 this is how a batch uses more than one core (every method, diffrax included, gets the
@@ -137,7 +140,24 @@ def check_against_generic(name, fn, dtype, steps: int):
 
 # The issue's CPU acceptance targets (float64, batch 1e5, 100 steps), body-steps/s.
 TARGETS = {"DEP exp": 1e7, "Moser-Veselov": 3e7, "splitting": 3e7}
-ACCEPTANCE_METHODS = ("DEP exp", "DEP cayley", "Moser-Veselov", "splitting", "RK4", "diffrax Tsit5")
+ACCEPTANCE_METHODS = ("DEP exp", "DEP cayley", "Moser-Veselov", "splitting", "RK4", "diffrax Tsit5",
+                      "DEP exp, vmap(simulate)")
+# The flop limit one XLA CPU device (one core) can reach in float64: 2.5 GHz × 16 flops per
+# cycle (two 4-wide FMA units). An assumption about this class of machine, stated, not
+# measured; the achieved fraction below is relative to it.
+PEAK_FLOPS_PER_DEVICE = 40e9
+
+
+def flops_per_body_step(fn, dtype, batch: int = 1000):
+    """XLA's own operation counts for one step of `fn`'s method (built with 1 step):
+    `(traced, executed)` per body-step — the program as written, and the optimised one
+    XLA runs (fusion may duplicate work, see `fusion_report.py`)."""
+    def count(analysis):
+        analysis = analysis[0] if isinstance(analysis, list) else analysis
+        return analysis["flops"] / batch
+
+    lowered = fn.lower(*rigid_body_inputs(batch, dtype))
+    return count(lowered.cost_analysis()), count(lowered.compile().cost_analysis())
 
 
 def acceptance_summary(records):
@@ -151,11 +171,22 @@ def acceptance_summary(records):
         ratio = rate / base if base else float("nan")
         target = TARGETS.get(name)
         verdict = "" if target is None else (" ≥ target" if rate >= target else " BELOW target")
-        lines.append({"method": name, "body_steps_per_s": rate, "target": target,
-                      "vs_diffrax_tsit5": ratio, "meets_target": None if target is None else rate >= target,
-                      "meets_10x_diffrax": ratio >= 10})
+        line = {"method": name, "body_steps_per_s": rate, "target": target,
+                "vs_diffrax_tsit5": ratio, "meets_target": None if target is None else rate >= target,
+                "meets_10x_diffrax": ratio >= 10}
+        one_step = methods(1).get(name)
+        if one_step is not None:
+            traced, executed = flops_per_body_step(one_step, jnp.float64)
+            peak = PEAK_FLOPS_PER_DEVICE * jax.device_count()
+            line.update({"flops_per_body_step_traced": traced, "flops_per_body_step_executed": executed,
+                         "flop_limit_body_steps_per_s": peak / traced,
+                         "fraction_of_flop_limit": rate * traced / peak,
+                         "executed_flops_fraction_of_peak": rate * executed / peak})
+        lines.append(line)
+        flops = (f"  {line['flops_per_body_step_traced']:6.0f} flops/body-step, {100 * line['fraction_of_flop_limit']:5.1f}% of the flop limit"
+                 if "fraction_of_flop_limit" in line else "")
         print(f"{name:<26}{rate:>12.3g}  target {target or '-':>8}{verdict:<14}"
-              f"{ratio:>8.1f}× diffrax Tsit5{'' if ratio >= 10 else ' (below 10×)'}")
+              f"{ratio:>8.1f}× diffrax Tsit5{'' if ratio >= 10 else ' (below 10×)'}{flops}")
     return lines
 
 

@@ -19,8 +19,10 @@ import decimal
 import math
 
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 
 from .._results import RESULTS
+from ._kernel import ROOT_NAME, AbstractBatchKernel
 
 
 def _pi_over_two_parts():
@@ -89,7 +91,9 @@ def _rotation_about_axis(p: int, alpha, one):
     """`F = exp(α ê_p)` as 9 arrays, row-major; with `(q, r)` the axes after `p` in cyclic
     order, `F e_q = cos α e_q + sin α e_r`, `F e_r = −sin α e_q + cos α e_r`."""
     q, r = (p + 1) % 3, (p + 2) % 3
-    s, c = materialise(sincos(alpha), one)
+    # Tagged like a Newton root: reverse mode keeps them instead of re-evaluating the
+    # polynomials (the most expensive part of the step) in the backward pass.
+    s, c = checkpoint_name(materialise(sincos(alpha), one), ROOT_NAME)
     F = {(p, p): 1.0, (q, q): c, (r, q): s, (q, r): -s, (r, r): c}
     return tuple(F.get((i, j), 0.0) for i in range(3) for j in range(3))
 
@@ -163,3 +167,31 @@ def rk4_step(g, Pi, h, inverse_inertia):
     g_next = combine(g, k1[0], k2[0], k3[0], k4[0])
     Pi_next = combine(Pi, k1[1], k2[1], k3[1], k4[1])
     return g_next, Pi_next, _finite_result(Pi_next, g_next)
+
+
+def _explicit_info(Pi):
+    # Explicit: no Newton iterations, zero residual (as the per-body `StepInfo`).
+    return jnp.zeros(jnp.shape(Pi[0]), jnp.int32), jnp.zeros(jnp.shape(Pi[0]), Pi[0].dtype)
+
+
+class SplittingKernel(AbstractBatchKernel):
+    """`splitting_step` for `LiePoissonSplitting`; differentiable by plain autodiff."""
+
+    def prepare(self, inertia, h):
+        return tuple(moment / h for moment in inertia)
+
+    def step(self, params, g, Pi, alive):
+        g_next, Pi_next, result = splitting_step(g, Pi, params)
+        return (g_next, Pi_next, result, *_explicit_info(Pi))
+
+
+class RK4Kernel(AbstractBatchKernel):
+    """`rk4_step` for `RK4`; differentiable by plain autodiff."""
+
+    def prepare(self, inertia, h):
+        return h, tuple(1 / moment for moment in inertia)
+
+    def step(self, params, g, Pi, alive):
+        h, inverse_inertia = params
+        g_next, Pi_next, result = rk4_step(g, Pi, h, inverse_inertia)
+        return (g_next, Pi_next, result, *_explicit_info(Pi))

@@ -17,6 +17,11 @@ principal moments `I` (diagonal inertia), written for throughput over many bodie
   `S(u) = sin φ/φ`, `C(u) = cos φ`, `P(u) = (S − C)/u`, hence
   `sin θ/θ = S C`, `(1 − cos θ)/θ² = S²/2` and the `dexpinv` coefficient
   `(1 − (θ/2)cot(θ/2))/θ² = P/(4S)` (docs/theory/closed-forms.md);
+- **implicit differentiation**: the converged root is passed through `_at_root`, whose
+  derivative is the implicit function theorem's `dξ = −J⁻¹ (∂r/∂Π dΠ + ∂r/∂A dA)` with
+  the closed-form `J` (Cramer's rule again, so the transposed solve of reverse mode costs
+  what a forward Newton iteration does); the Newton iterations themselves, and their
+  `while_loop`, run on `stop_gradient`-ed inputs and are never differentiated;
 - **a Newton policy for batches**: a fixed number of Newton iterations (no convergence
   test, so no lane waits and nothing breaks the fusion), then one residual check per
   body; only if some body is still above its tolerance does a `while_loop` continue —
@@ -38,12 +43,18 @@ then `F = φ(ξ) = 1 + a ξ̂ + b ξ̂²` (exp: `a = S C`, `b = S²/2`; Cayley: 
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 
 from .._results import RESULTS
+from .._integrators._newton import newton_tolerance
+from ._kernel import ROOT_NAME, AbstractBatchKernel
 
 # Power-series coefficients in u = φ², φ = θ/2. Eleven terms: the first omitted term is
 # below 1e-18 at φ = π/2 (θ = π).
@@ -230,12 +241,14 @@ def moser_veselov_on_branch(x, Pi, A):
     return (b[0][0] > 0) & (minor2 > 0) & (det > 0)
 
 
-def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: int):
+def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True):
     """Newton for the DEP equation on a batch: `fixed_iterations`, then a check.
 
     Returns `(ξ, iterations, residual ∞-norm, converged)`, all per body. For Moser–Veselov
     the fixed iterations are scalar Newton iterations (`_moser_veselov_by_scalar_newton`);
     any further ones, for the bodies still above tolerance, are Newton steps in `x`.
+    Bodies where `alive` is false (already failed) take no iterations past the fixed ones.
+    Not differentiable (a `while_loop`); `differentiable_increment` is.
     """
     fixed = min(fixed_iterations, max_steps)
     restartable = chart == "moser-veselov"
@@ -257,7 +270,7 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
 
     def active(norm, iterations):
         # Bodies stop at max_steps like `DEP`; a lane that has stopped is inactive.
-        return (norm > tolerance) & jnp.isfinite(norm) & (iterations < max_steps)
+        return alive & (norm > tolerance) & jnp.isfinite(norm) & (iterations < max_steps)
 
     def cond(carry):
         _, norm, iterations = carry
@@ -296,21 +309,60 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
 
     if max_steps > fixed:
         # The tail (and the restart's extra residual) only when some body needs it.
-        unfinished = jnp.any(~(norm <= tolerance))
+        unfinished = jnp.any(alive & ~(norm <= tolerance))
         xi, norm, iterations = jax.lax.cond(unfinished, tail, lambda c: c, (xi, norm, iterations))
     return xi, iterations, norm, norm <= tolerance
 
 
-def dep_step(chart, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _at_root(chart, xi, Pi, A):
+    """`ξ`, a root of `r(·; Π, A)`, with the derivative of the root as a function of `(Π, A)`."""
+    return xi
+
+
+@_at_root.defjvp
+def _at_root_jvp(chart, primals, tangents):
+    # Implicit function theorem: r(ξ(Π, A); Π, A) = 0 ⇒ J dξ = −(∂r/∂Π dΠ + ∂r/∂A dA).
+    # Linear in the tangents with coefficients from the primal point, so JAX transposes it
+    # for reverse mode; the transposed Cramer solve costs what the forward one does.
+    xi, Pi, A = primals
+    _, dPi, dA = tangents
+    _, dr = jax.jvp(lambda P, B: _residual(chart, xi, P, B, False)[0], (Pi, A), (dPi, dA))
+    _, J = _residual(chart, xi, Pi, A, True)
+    delta = _solve3(J, dr)
+    return xi, tuple(-d for d in delta)
+
+
+def differentiable_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True):
+    """`solve_increment` whose `ξ` differentiates by the implicit function theorem at the root.
+
+    The Newton iterations run on `stop_gradient`-ed inputs (so no `while_loop` is
+    differentiated); the root is tagged `ROOT_NAME` for `jax.checkpoint` policies.
+    """
+    stopped = jax.lax.stop_gradient((Pi, A, tolerance))
+    xi, iterations, norm, converged = solve_increment(
+        chart, *stopped, fixed_iterations, max_steps, alive
+    )
+    # A diverged solve (reported through the residual) continues from the finite
+    # explicit-Euler guess: the implicit derivative is then evaluated at a finite point,
+    # so a failed step whose output is masked contributes 0, not NaN, to a gradient.
+    finite = jnp.isfinite(xi[0]) & jnp.isfinite(xi[1]) & jnp.isfinite(xi[2])
+    guess = _explicit_euler_guess(*stopped[:2])
+    xi = tuple(jnp.where(finite, x, x0) for x, x0 in zip(xi, guess))
+    xi = _at_root(chart, jax.lax.stop_gradient(xi), Pi, A)
+    return checkpoint_name(xi, ROOT_NAME), iterations, norm, converged
+
+
+def dep_step(chart, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True):
     """One DEP + DLP + reconstruction step on structure-of-arrays state.
 
     `chart`: `"exp"`, `"cayley"` (`DEP`) or `"moser-veselov"` (`MoserVeselov`: the
     Cayley chart with the Moser–Veselov residual).
     `g`: 9 arrays (row-major), `Pi`: 3 arrays, `A = I/h`: 3 arrays (or scalars).
-    Returns `(g_next, Pi_next, result, iterations, residual)`.
+    Returns `(g_next, Pi_next, result, iterations, residual)`; reverse-mode differentiable.
     """
-    xi, iterations, norm, converged = solve_increment(
-        chart, Pi, A, tolerance, fixed_iterations, max_steps
+    xi, iterations, norm, converged = differentiable_increment(
+        chart, Pi, A, tolerance, fixed_iterations, max_steps, alive
     )
     t = _dot(xi, xi)
     if chart == "exp":
@@ -346,3 +398,42 @@ def dep_step(chart, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int):
         finite = finite & jnp.isfinite(p)
     result = jnp.where(finite, result, RESULTS.nonfinite)
     return g_next, Pi_next, result.astype(jnp.int32), iterations, norm
+
+
+# Newton iterations every body takes before the one convergence check, per chart. From
+# the explicit-Euler guess (O(h²) off the root) three quadratic steps reach 64 ulps for
+# nearly every body at |ξ| = h|Ω| ≲ 0.3; the Cayley-chart DEP needs a fourth for a few
+# bodies in 10⁴ (h = 0.1, the random bodies of `benchmarks/throughput.py`), and as one
+# such body sends the whole batch into the tail, four fixed iterations are faster there
+# (measured). Moser–Veselov's fixed iterations are scalar Newton steps on a quartic
+# (`_moser_veselov_by_scalar_newton`, ~40 operations each): four reach 64 ulps for every
+# one of 10⁵ such bodies. Bodies that need more continue in a `while_loop` up to
+# `max_steps`.
+DEFAULT_FIXED_ITERATIONS = {"exp": 3, "cayley": 4, "moser-veselov": 4}
+
+
+class NewtonKernel(AbstractBatchKernel):
+    """The implicit step (`dep_step`) of `DEP` (both charts) or `MoserVeselov`.
+
+    `chart`: `"exp"`, `"cayley"` or `"moser-veselov"`; `rtol`, `atol`, `max_steps`: the
+    integrator's; `fixed_iterations`: see `solve_increment` (default per chart above).
+    """
+
+    chart: str = eqx.field(static=True)
+    rtol: float | None = eqx.field(static=True)
+    atol: float | None = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+    fixed_iterations: int | None = eqx.field(default=None, static=True)
+
+    def prepare(self, inertia, h):
+        return tuple(moment / h for moment in inertia)
+
+    def step(self, params, g, Pi, alive):
+        fixed = self.fixed_iterations
+        fixed = DEFAULT_FIXED_ITERATIONS[self.chart] if fixed is None else fixed
+        # The tolerance policy of every implicit step (`simulate`'s too): relative by default.
+        tolerance = newton_tolerance(_max_abs(Pi), Pi[0].dtype, self.rtol, self.atol)
+        return dep_step(self.chart, g, Pi, params, tolerance, fixed, self.max_steps, alive)
+
+    def with_fixed_iterations(self, fixed_iterations: int):
+        return dataclasses.replace(self, fixed_iterations=fixed_iterations)

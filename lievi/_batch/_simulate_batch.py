@@ -10,6 +10,7 @@ synchronisation per step.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -20,54 +21,32 @@ import numpy as np
 from .._checks import check_finite, check_real_dtype, input_valid, is_concrete
 from .._forcing import as_forcing
 from .._integrators._base import AbstractIntegrator
-from .._integrators._dep import DEP
-from .._integrators._moser_veselov import MoserVeselov
-from .._integrators._newton import newton_tolerance
-from .._integrators._rk4 import RK4
-from .._integrators._splitting import LiePoissonSplitting
 from .._results import RESULTS
-from .._simulate import Solution, _check_integer, simulate, state_dtype
+from .._simulate import Solution, _check_integer, _checkpoint_segment, simulate, state_dtype
 from .._systems._base import AbstractLieSystem
-from .._systems._rigid_body import RigidBody
-from . import _fast_explicit, _fast_so3
+from ._kernel import ROOT_NAME
 
 SAVE_FIELDS = ("g", "m", "stats")
 
-# Newton iterations the fast path always takes before its one convergence check, per
-# method. From the explicit-Euler guess (O(h²) off the root) three quadratic steps reach
-# 64 ulps for nearly every body at |ξ| = h|Ω| ≲ 0.3; the Cayley-chart DEP needs a fourth
-# for a few bodies in 10⁴ (h = 0.1, the random bodies of `benchmarks/throughput.py`), and
-# as one such body sends the whole batch into the tail, four fixed iterations are faster
-# there (measured). Moser–Veselov's fixed iterations are scalar Newton steps on a quartic
-# (`_fast_so3._moser_veselov_by_scalar_newton`, ~40 operations each): four reach 64 ulps
-# for every one of 10⁵ such bodies. Bodies that need more continue in a `while_loop` up to
-# `max_steps`.
-DEFAULT_FIXED_ITERATIONS = {"exp": 3, "cayley": 4, "moser-veselov": 4}
 
+def _fast_kernel(system, integrator, system_axis, fixed_iterations=None):
+    """`(kernel, principal moments)` of the fast path for this pair, or None if it has none.
 
-def _fast_step(system, integrator):
-    """The structure-of-arrays step for `(system, integrator)`, or None if there is none."""
-    if not isinstance(system, RigidBody) or jnp.ndim(system.inertia) not in (1, 2):
+    The integrator owns its structure-of-arrays step (`batch_kernel`), the system says
+    whether it is a rigid body with principal moments (`principal_moments`).
+    """
+    kernel = integrator.batch_kernel(system.potential)
+    moments = system.principal_moments(batched=system_axis is not None)
+    if kernel is None or moments is None:
         return None
-    if system.potential is not None:  # the structure-of-arrays steps are torque-free
-        return None
-    if isinstance(integrator, DEP):
-        return integrator.chart
-    if isinstance(integrator, MoserVeselov):
-        return "moser-veselov"
-    if isinstance(integrator, LiePoissonSplitting):
-        return "splitting"
-    if isinstance(integrator, RK4):
-        return "rk4"
-    return None
+    if fixed_iterations is not None:
+        kernel = kernel.with_fixed_iterations(fixed_iterations)
+    return kernel, moments
 
 
 def has_fast_path(system: AbstractLieSystem, integrator: AbstractIntegrator, system_axis=None) -> bool:
     """Whether `simulate_batch` has a structure-of-arrays fast path for this pair."""
-    if not isinstance(system, RigidBody) or system.potential is not None:
-        return False
-    principal = jnp.ndim(system.inertia) == (1 if system_axis is None else 2)
-    return principal and _fast_step(system, integrator) is not None
+    return _fast_kernel(system, integrator, system_axis) is not None
 
 
 def _check_batch(name, x, shape_tail, what):
@@ -95,6 +74,7 @@ def simulate_batch(
     fixed_iterations: int | None = None,
     unroll: int = 1,
     throw: bool = True,
+    checkpoint: bool | int = False,
     forcing=None,
     args=None,
 ) -> Solution:
@@ -116,11 +96,14 @@ def simulate_batch(
       `total_newton_iterations`, `num_steps` are always kept). Storing nothing but the
       final state is what makes very large batches fit in memory.
     - `system_axis`: `None` or `0`, as `in_axes` of `jax.vmap` for `system`.
-    - `fast`: use the structure-of-arrays fast path when there is one (the rigid body
-      with principal moments of inertia and `DEP` (both charts), `MoserVeselov`,
-      `LiePoissonSplitting` or `RK4`). Its iterates equal the generic path's to
-      round-off; it is not reverse-mode differentiable (its Newton tail is a
-      `while_loop`): for gradients pass `fast=False`.
+    - `fast`: use the structure-of-arrays fast path when there is one (the integrator's
+      `batch_kernel`, for a system with `principal_moments`: today the rigid body with
+      principal moments of inertia and `DEP` (both charts), `MoserVeselov`,
+      `LiePoissonSplitting` or `RK4`; in `UniformGravity` (the heavy top) the first three). Its iterates equal the generic path's to
+      round-off, and so do its derivatives: reverse mode (`jax.grad`, `jax.vjp`) goes
+      through the fast path, implicit steps by the implicit function theorem at each
+      step's converged root with the closed-form 3×3 Jacobian (the Newton iterations are
+      not differentiated). `fast=False` runs `jax.vmap(simulate)`.
     - `fixed_iterations`: (fast path) Newton iterations every body takes before the one
       convergence check; bodies still above tolerance then continue, alone, up to the
       integrator's `max_steps`. Default: 3 (exp chart) or 4 (Cayley chart;
@@ -132,6 +115,11 @@ def simulate_batch(
       cost; it multiplies the compiled code, hence the compile time, by `unroll`.
     - `throw`: raise if any body failed. With `throw=False` each body's `result` says
       whether it succeeded; a failed body does not stop the others.
+    - `checkpoint`: memory of reverse-mode differentiation, as in `simulate`: `False`
+      stores each step's state (and, on the fast path, its Newton root), O(`n_steps`)
+      memory; `True` stores only the state every ≈√`n_steps` steps and recomputes the
+      segments in between during the backward pass (one extra forward run); an `int` sets
+      the segment length. No effect on values or on forward runs.
     - `forcing`, `args`: an external force, as for `lievi.simulate`. A `lievi.Control(u)`
       with `u` of shape `(batch, n_steps, d)` gives each body its own control sequence;
       of shape `(n_steps, d)`, one shared by all. A force law and `args` are shared.
@@ -220,21 +208,27 @@ def simulate_batch(
             check_finite("forcing", x)
     dtype = state_dtype(system, g0, m0, h)
     g0, m0, h = jnp.asarray(g0, dtype), jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
+    segment = _checkpoint_segment(checkpoint, n_steps, save_every)
+    fast_kernel = _fast_kernel(system, integrator, system_axis, fixed_iterations) if fast else None
     if forcing is not None:
         solution = _simulate_vmap(
-            system, integrator, g0, m0, h, n_steps, save_every, save, system_axis, forcing, args
+            system, integrator, g0, m0, h, n_steps, save_every, save, system_axis, segment, forcing, args
         )
-    elif fast and has_fast_path(system, integrator, system_axis):
+    elif fast_kernel is not None:
+        kernel, moments = fast_kernel
         # The traced input checks of `simulate`, per body (the generic path runs them
         # inside `simulate`): a bad body starts with `RESULTS.invalid_input`.
         valid = jax.vmap(input_valid, in_axes=(system_axis, 0, 0, None if h.ndim == 0 else 0))(
             system, g0, m0, h
         )
         solution = _simulate_fast(
-            system, integrator, g0, m0, h, n_steps, save_every, save, fixed_iterations, unroll, valid
+            kernel, moments, integrator.step_bound(), g0, m0, h, n_steps, save_every, save, unroll,
+            segment, valid,
         )
     else:
-        solution = _simulate_vmap(system, integrator, g0, m0, h, n_steps, save_every, save, system_axis)
+        solution = _simulate_vmap(
+            system, integrator, g0, m0, h, n_steps, save_every, save, system_axis, segment
+        )
     if throw:
         failed = solution.result != RESULTS.successful
         first = jnp.max(jnp.where(failed, solution.result, 0))
@@ -268,7 +262,7 @@ def _keep(solution: Solution, save) -> Solution:
 
 @eqx.filter_jit
 def _simulate_vmap(
-    system, integrator, g0, m0, h, n_steps, save_every, save, system_axis, forcing=None, args=None
+    system, integrator, g0, m0, h, n_steps, save_every, save, system_axis, segment, forcing=None, args=None
 ):
     def one(system, g0, m0, h, forcing):
         return simulate(
@@ -280,6 +274,7 @@ def _simulate_vmap(
             n_steps=n_steps,
             save_every=save_every,
             throw=False,
+            checkpoint=False if segment is None else segment,
             forcing=forcing,
             args=args,
         )
@@ -296,25 +291,33 @@ def _simulate_vmap(
     return _keep(eqx.tree_at(lambda s: s.stats, solution, stats), save)
 
 
+def _scan(body, carry, length: int, segment: int | None, unroll: int = 1):
+    """`lax.scan(body, carry, None, length)`, in `jax.checkpoint`-ed chunks of `segment` steps
+    (reverse mode then stores the carry at chunk boundaries only)."""
+    if segment is None or segment >= length:
+        return jax.lax.scan(body, carry, None, length=length, unroll=min(unroll, length))
+
+    @functools.partial(jax.checkpoint, prevent_cse=False)
+    def chunk(carry, _):
+        return jax.lax.scan(body, carry, None, length=segment, unroll=min(unroll, segment))
+
+    carry, ys = jax.lax.scan(chunk, carry, None, length=length // segment)
+    return carry, jax.tree.map(lambda y: y.reshape((length,) + y.shape[2:]), ys)
+
+
 @eqx.filter_jit
 def _simulate_fast(
-            system, integrator, g0, m0, h, n_steps, save_every, save, fixed_iterations, unroll,
-            valid=True,
-        ):
-    chart = _fast_step(system, integrator)
-    if fixed_iterations is None:
-        fixed_iterations = DEFAULT_FIXED_ITERATIONS.get(chart, 0)
+    kernel, moments, step_bound, g0, m0, h, n_steps, save_every, save, unroll, segment, valid=True
+):
     batch, dtype = g0.shape[0], m0.dtype
-    inertia = jnp.asarray(system.inertia, dtype)
+    moments = jnp.asarray(moments, dtype)
     # Structure of arrays: component-major, batch minor.
-    A = tuple(jnp.broadcast_to(inertia[..., i], (batch,)) / h for i in range(3))
-    inverse_inertia = tuple(1 / jnp.broadcast_to(inertia[..., i], (batch,)) for i in range(3))
+    params = kernel.prepare(tuple(jnp.broadcast_to(moments[..., i], (batch,)) for i in range(3)), h)
     g = tuple(g0[:, i, j] for i in range(3) for j in range(3))
     Pi = tuple(m0[:, i] for i in range(3))
-    rtol, atol = getattr(integrator, "rtol", None), getattr(integrator, "atol", None)
     nan = jnp.asarray(jnp.nan, dtype)
     int32 = jnp.int32
-    step_bound = integrator.step_bound()
+    moments_soa = tuple(jnp.broadcast_to(moments[..., i], (batch,)) for i in range(3))
 
     def _checked_step_result(g_next, Pi_next, Pi, step_result):
         """As `lievi._simulate.checked_step_result`: a non-finite `g` or `Π` is `nonfinite`,
@@ -324,34 +327,33 @@ def _simulate_fast(
             finite = finite & jnp.isfinite(x)
         ok = step_result == RESULTS.successful
         step_result = jnp.where(ok & ~finite, RESULTS.nonfinite, step_result)
-        omega2 = sum((Pi[i] * inverse_inertia[i]) ** 2 for i in range(3))
+        omega2 = sum((Pi[i] / moments_soa[i]) ** 2 for i in range(3))
         too_large = jnp.abs(h) * jnp.sqrt(omega2) > step_bound
         return jnp.where(too_large, RESULTS.step_too_large, step_result).astype(int32)
 
+    # Reverse mode keeps each step's input state and root (the solve is not repeated);
+    # everything else in the step is recomputed from them in the backward pass.
+    @functools.partial(
+        jax.checkpoint, prevent_cse=False, policy=jax.checkpoint_policies.save_only_these_names(ROOT_NAME)
+    )
     def one_step(carry, _):
         (g, Pi, result, failed_step, k), (total, most, worst) = carry
-        if chart in ("splitting", "rk4"):
-            if chart == "splitting":
-                g_next, Pi_next, step_result = _fast_explicit.splitting_step(g, Pi, A)
-            else:
-                g_next, Pi_next, step_result = _fast_explicit.rk4_step(g, Pi, h, inverse_inertia)
-            # Explicit: no Newton iterations, zero residual (as the per-body `StepInfo`).
-            iterations, residual = jnp.zeros((batch,), int32), jnp.zeros((batch,), dtype)
-        else:
-            tolerance = newton_tolerance(_fast_so3._max_abs(Pi), dtype, rtol, atol)
-            g_next, Pi_next, step_result, iterations, residual = _fast_so3.dep_step(
-                chart, g, Pi, A, tolerance, fixed_iterations, integrator.max_steps
-            )
+        alive = result == RESULTS.successful
+        g_next, Pi_next, step_result, iterations, residual = kernel.step(params, g, Pi, alive)
         step_result = _checked_step_result(g_next, Pi_next, Pi, step_result)
-        newly_failed = (result == RESULTS.successful) & (step_result != RESULTS.successful)
+        newly_failed = alive & (step_result != RESULTS.successful)
         failed_step = jnp.where(newly_failed, k, failed_step)
         result = RESULTS.first_failure(result, step_result)
         ok = result == RESULTS.successful
-        # After a failure the body's state is NaN, as in `simulate`.
-        g_next = tuple(jnp.where(ok, x, nan) for x in g_next)
-        Pi_next = tuple(jnp.where(ok, x, nan) for x in Pi_next)
+        # As in `simulate`: after a failure the carried state stays at the last good one
+        # (later steps run on finite numbers, so a masked failure cannot turn a gradient
+        # into NaN; the kernel spends no extra iterations on it); the saved state is NaN.
+        g_next = tuple(jnp.where(ok, x, y) for x, y in zip(g_next, g))
+        Pi_next = tuple(jnp.where(ok, x, y) for x, y in zip(Pi_next, Pi))
         # Statistics are reduced in the carry, not stacked per step: a (steps, B) output
         # would cost more memory traffic than the state itself.
+        iterations = jnp.where(alive, iterations, 0)
+        residual = jnp.where(alive, residual, -jnp.inf)
         counters = (total + iterations, jnp.maximum(most, iterations), jnp.fmax(worst, residual))
         return ((g_next, Pi_next, result, failed_step, k + 1), counters), None
 
@@ -360,16 +362,18 @@ def _simulate_fast(
         jnp.zeros((batch,), int32),
         jnp.full((batch,), -jnp.inf, dtype),
     )
+    # Checkpointed segments inside one save interval, or spanning whole save intervals.
+    inner = segment if segment is not None and segment < save_every else None
+    outer = segment // save_every if segment is not None and segment >= save_every else None
 
     def one_save(state, _):
-        (state, (total, most, worst)), _ = jax.lax.scan(
-            one_step, (state, zero_counters), None, length=save_every, unroll=min(unroll, save_every)
-        )
+        (state, (total, most, worst)), _ = _scan(one_step, (state, zero_counters), save_every, inner, unroll)
+        ok = state[2] == RESULTS.successful
         out = {"iterations": total}
         if "g" in save:
-            out["g"] = jnp.stack(state[0])
+            out["g"] = jnp.where(ok, jnp.stack(state[0]), nan)
         if "m" in save:
-            out["m"] = jnp.stack(state[1])
+            out["m"] = jnp.where(ok, jnp.stack(state[1]), nan)
         if "stats" in save:
             out["max_iterations"] = most
             out["residual"] = worst
@@ -382,7 +386,7 @@ def _simulate_fast(
         jnp.broadcast_to(jnp.where(valid, -1, 0), (batch,)).astype(int32),
         jnp.asarray(0, int32),
     )
-    final, out = jax.lax.scan(one_save, init, None, length=n_steps // save_every)
+    final, out = _scan(one_save, init, n_steps // save_every, outer)
     _, _, result, failed_step, _ = final
     n_saves = n_steps // save_every
     # As `simulate`: t0 + h·save_every·k with t0 = 0.

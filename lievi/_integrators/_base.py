@@ -18,6 +18,7 @@ from jaxtyping import Array, Float, Int, Scalar
 
 from .._forcing import AbstractStepForce
 from .._results import RESULTS
+from .._batch._kernel import KickKernel
 from .._systems._base import AbstractLieSystem
 from ._newton import newton_solve
 
@@ -73,6 +74,16 @@ class AbstractIntegrator(eqx.Module):
         xi = system.velocity(m)
         return jnp.abs(h) * jnp.sqrt(jnp.sum(xi * xi)) > self.step_bound()
 
+    def batch_kernel(self, potential=None):
+        """This method's structure-of-arrays step for batches of rigid bodies with principal
+        moments in `potential` (`None`: free bodies), an `AbstractBatchKernel`, or `None`
+        where it has none.
+
+        `simulate_batch` runs it when the system has principal moments
+        (`AbstractLieSystem.principal_moments`); it computes the iterates of `step`.
+        """
+        return None
+
 
 class AbstractKickIntegrator(AbstractIntegrator):
     """An integrator whose step, for a system with a potential, is kick – free step – kick.
@@ -97,6 +108,19 @@ class AbstractKickIntegrator(AbstractIntegrator):
         self, system: AbstractLieSystem, g: Float[Array, "n n"], m: Float[Array, " d"], h: Scalar
     ) -> tuple[Float[Array, "n n"], Float[Array, " d"], StepInfo]:
         """The step of the system without its potential."""
+
+    def free_batch_kernel(self):
+        """The structure-of-arrays `free_step` for batches of rigid bodies, or `None`."""
+        return None
+
+    def batch_kernel(self, potential=None):
+        free = self.free_batch_kernel()
+        if free is None or potential is None:
+            return free
+        if not KickKernel.applies_to(potential):
+            return None
+        # Kick – free step – kick, as `step`, where the potential has a closed-form torque.
+        return KickKernel(free, potential)
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
         if system.potential is None and force is None:

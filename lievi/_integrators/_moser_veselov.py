@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
 
+from .._batch._fast_so3 import NewtonKernel
 from .._checks import check_shape, is_concrete
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
@@ -146,6 +147,9 @@ class MoserVeselov(AbstractVariationalIntegrator):
         # −L_d(g₁, g₀; −h) = tr((I − g₁ᵀg₀)Λ)/h = L_d(g₀, g₁; h): tr(AᵀΛ) = tr(AΛ).
         return True
 
+    def free_batch_kernel(self):
+        return NewtonKernel("moser-veselov", self.rtol, self.atol, self.max_steps)
+
     def kinetic_discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
         """`tr((I − g₀ᵀg₁)Λ)/h`, Moser–Veselov's `tr(g_k Λ g_{k+1}ᵀ)` up to scale and shift."""
         check_rigid_body("MoserVeselov", system)
@@ -188,7 +192,9 @@ class MoserVeselov(AbstractVariationalIntegrator):
         """Solve `J(X) = h (I − X/2) Π̂ (I + X/2)` for the Cayley coordinates `x` of `F = Ωᵀ`."""
         residual = self.residual(system, m, h)
         tolerance = newton_tolerance(jnp.max(jnp.abs(m)), m.dtype, self.rtol, self.atol)
-        return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps)
+        # The rigid body's hand-written residual and Jacobian, where it has them.
+        closed_form = system.closed_form_residual("moser-veselov", m, h)
+        return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps, closed_form)
 
     def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
         check_rigid_body("MoserVeselov", system)

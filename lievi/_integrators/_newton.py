@@ -58,17 +58,39 @@ def _jacobian_and_value(residual, x):
     return jax.jacfwd(value_twice, has_aux=True)(x)
 
 
+def _cramer3(J, r):
+    """`J⁻¹ r` for a 3×3 `J` by Cramer's rule: elementwise, so it vectorises under `vmap`
+    (a batched `linalg.solve` of 3×3 systems does not, on CPU)."""
+    adjugate = jnp.stack([jnp.cross(J[1], J[2]), jnp.cross(J[2], J[0]), jnp.cross(J[0], J[1])], axis=-1)
+    return adjugate @ r / jnp.dot(J[0], adjugate[:, 0])
+
+
 def newton_solve(
     residual: Callable[[Float[Array, " d"]], Float[Array, " d"]],
     x0: Float[Array, " d"],
     tolerance: Scalar,
     max_steps: int,
+    residual_and_jacobian: Callable | None = None,
 ) -> tuple[Float[Array, " d"], NewtonInfo]:
     """Find `x` with `residual(x) = 0` starting from `x0`.
 
     Stops when `‖residual(x)‖_∞ ≤ tolerance`, on a non-finite residual, or after
-    `max_steps` iterations; `NewtonInfo.converged` says which.
+    `max_steps` iterations; `NewtonInfo.converged` says which. `residual_and_jacobian`, if
+    given, is `x ↦ (r(x), ∂r/∂x)` in closed form (e.g. `AbstractLieSystem.closed_form_residual`)
+    and replaces `residual` and its `jax.jacfwd` Jacobian; a 3×3 system is then solved by
+    Cramer's rule, in the solve and in the implicit derivative.
     """
+    linear_solve = jnp.linalg.solve
+    if residual_and_jacobian is not None:
+        residual = lambda x: residual_and_jacobian(x)[0]  # noqa: E731
+        if jnp.shape(x0) == (3,):
+            linear_solve = _cramer3
+
+    def jacobian_and_value(f, x):
+        if residual_and_jacobian is None:
+            return _jacobian_and_value(f, x)
+        r, jac = residual_and_jacobian(x)
+        return jac, r
 
     def solve(f, guess):
         def cond(carry):
@@ -78,11 +100,11 @@ def newton_solve(
 
         def body(carry):
             x, r, jac, it = carry
-            x = x - jnp.linalg.solve(jac, r)
-            jac, r = _jacobian_and_value(f, x)
+            x = x - linear_solve(jac, r)
+            jac, r = jacobian_and_value(f, x)
             return x, r, jac, it + 1
 
-        jac, r = _jacobian_and_value(f, guess)
+        jac, r = jacobian_and_value(f, guess)
         x, r, _, it = jax.lax.while_loop(cond, body, (guess, r, jac, jnp.array(0, jnp.int32)))
         # A diverged solve (reported through the residual) hands back the finite guess:
         # the implicit derivative is then evaluated at a finite point, so a failed step
@@ -93,7 +115,7 @@ def newton_solve(
         return x, (it.astype(r.dtype), jnp.max(jnp.abs(r)))
 
     def tangent_solve(linear, y):
-        return jnp.linalg.solve(jax.jacobian(linear)(y), y)
+        return linear_solve(jax.jacobian(linear)(y), y)
 
     x, (iterations, norm) = jax.lax.custom_root(residual, x0, solve, tangent_solve, has_aux=True)
     iterations = jax.lax.stop_gradient(iterations).astype(jnp.int32)

@@ -40,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Scalar
 
+from .._batch._fast_explicit import SplittingKernel
 from .._checks import check_shape
 from .._groups._son import _planes
 from .._results import RESULTS
@@ -104,6 +105,9 @@ class LiePoissonSplitting(AbstractKickIntegrator):
         # A palindromic (Strang) product of exact flows: Φ_{−h} = Φ_h⁻¹.
         return True
 
+    def free_batch_kernel(self):
+        return SplittingKernel()
+
     def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
         check_rigid_body("LiePoissonSplitting", system)
         _check_pair_sums("LiePoissonSplitting", system)
@@ -111,6 +115,10 @@ class LiePoissonSplitting(AbstractKickIntegrator):
         n, d = group.matrix_dim, group.algebra_dim
         check_shape("g", g, (n, n), f"an element of SO({n})")
         check_shape("m", m, (d,), f"momentum coordinates of so({n})*")
+        fast = system.kernel_step(self.free_batch_kernel(), g, m, h)
+        if fast is not None:  # closed forms on components (the rigid body, principal moments)
+            g_next, m_next, result, iterations, residual = fast
+            return g_next, m_next, StepInfo(result, iterations, residual)
         moments, Q = _principal_frame(system)
         if Q is not None:
             g, m = g @ Q, Q.T @ m

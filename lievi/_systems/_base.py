@@ -108,6 +108,24 @@ class AbstractLieSystem(eqx.Module):
             return m
         return m + dt * self.force(g)
 
+    def principal_moments(self, batched: bool = False):
+        """Principal moments of inertia `(3,)` (`(B, 3)` for a batch of systems built with
+        `jax.vmap`, `batched=True`) if this is a rigid body on SO(3) whose fast batched
+        steps apply (`AbstractIntegrator.batch_kernel`), else `None`."""
+        return None
+
+    def closed_form_residual(self, equation: str, m, h):
+        """`x ↦ (r(x), ∂r/∂x)` for the implicit step equation `equation` (`"exp"`, `"cayley"`:
+        `DEP`'s chart; `"moser-veselov"`), written out by hand, or `None` (the integrator
+        then builds `r` from the group and the Lagrangian and its Jacobian by `jax.jacfwd`)."""
+        return None
+
+    def kernel_step(self, kernel, g, m, h):
+        """One step of `kernel` (an integrator's `batch_kernel`) on this one system, as
+        `(g_next, m_next, result, iterations, residual)`, or `None` where the kernel does not
+        apply (the integrator then takes its generic step)."""
+        return None
+
     def check_element(self, name: str, g) -> None:
         """Raise `ValueError` unless `g` is an `(n, n)` finite element of the group."""
         n = self.group.matrix_dim

@@ -38,6 +38,12 @@ class AbstractPotential(eqx.Module):
     def __call__(self, g: Float[Array, "n n"]) -> Scalar:
         """The potential energy at `g`."""
 
+    def rigid_body_torque(self, g):
+        """The body torque `M(g)` of a rigid body in closed form, as 3 arrays from the 9
+        entries of `g` (row-major, structure of arrays: the batched fast path), or `None`
+        where there is no closed form (the fast path then does not apply)."""
+        return None
+
 
 class PotentialFunction(AbstractPotential):
     """A potential given as any callable `fn(g) -> scalar`.
@@ -102,6 +108,19 @@ class UniformGravity(AbstractPotential):
     def __call__(self, g):
         rho = jnp.asarray(self.center_of_mass)
         return self.mass * self.gravity * jnp.dot(g[-1], rho)  # e_z·(g ρ) = (gᵀ e_z)·ρ
+
+    def rigid_body_torque(self, g):
+        # V = mγ ρ·Γ with Γ = gᵀe₃ the last row of g: M = mγ Γ × ρ (the heavy top's torque).
+        if len(g) != 9:
+            return None
+        k = self.mass * self.gravity
+        rho = tuple(k * self.center_of_mass[..., i] for i in range(3))
+        Gamma = g[6:9]
+        return (
+            Gamma[1] * rho[2] - Gamma[2] * rho[1],
+            Gamma[2] * rho[0] - Gamma[0] * rho[2],
+            Gamma[0] * rho[1] - Gamma[1] * rho[0],
+        )
 
     def vertical(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch n"]:
         """The advected parameter `Γ = gᵀ e_z`: the world's vertical in body coordinates."""

@@ -11,6 +11,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
+from .._batch import _fast_so3
 from .._checks import check_spd
 from .._groups._base import MatrixLieGroup
 from .._groups._so3 import SO3
@@ -66,6 +67,36 @@ class RigidBody(AbstractLieSystem):
     def inertia_tensor(self) -> Float[Array, "3 3"]:
         inertia = jnp.asarray(self.inertia)
         return jnp.diag(inertia) if inertia.ndim == 1 else inertia
+
+    def principal_moments(self, batched: bool = False):
+        inertia = jnp.asarray(self.inertia)
+        return inertia if inertia.ndim == 1 + batched else None
+
+    def kernel_step(self, kernel, g, m, h):
+        # The structure-of-arrays step on one body: every component a scalar (under
+        # `jax.vmap` a `(B,)` array, so `vmap(simulate)` runs the batched kernel).
+        moments = self.principal_moments()
+        if kernel is None or moments is None:
+            return None
+        params = kernel.prepare(tuple(moments[i] for i in range(3)), h)
+        components = tuple(g[i, j] for i in range(3) for j in range(3))
+        g_next, m_next, *info = kernel.step(params, components, tuple(m[i] for i in range(3)), True)
+        return (jnp.stack(g_next).reshape(3, 3), jnp.stack(m_next), *info)
+
+    def closed_form_residual(self, equation: str, m, h):
+        # Closed forms for principal moments (`lievi._batch._fast_so3`, where they are
+        # derived and checked against `jax.jacfwd`); a full tensor uses the generic path.
+        inertia = jnp.asarray(self.inertia)
+        if inertia.ndim != 1:
+            return None
+        A = tuple(inertia[i] / h for i in range(3))
+        Pi = tuple(m[i] for i in range(3))
+
+        def residual_and_jacobian(x):
+            r, J = _fast_so3._residual(equation, tuple(x[i] for i in range(3)), Pi, A, True)
+            return jnp.stack(r), jnp.stack([jnp.stack(row) for row in J])
+
+        return residual_and_jacobian
 
     def lagrangian(self, xi: Float[Array, "3"]) -> Scalar:
         return jnp.dot(xi, self.legendre(xi)) / 2

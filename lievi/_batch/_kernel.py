@@ -1,0 +1,84 @@
+"""The interface of a structure-of-arrays step: what an integrator hands `simulate_batch`.
+
+An integrator that has a fast batched step for a system returns one of these from
+`AbstractIntegrator.batch_kernel(system)` (`None` where it has none); `simulate_batch`
+runs it inside one `lax.scan` and never asks which integrator it came from. A kernel sees
+the state as structure of arrays: `g` as 9 arrays (row-major), `Π` as 3, each of shape
+`(B,)` with the batch minor, so that XLA emits long elementwise loops it vectorises.
+
+Kernels are reverse-mode differentiable: explicit ones by plain autodiff, implicit ones by
+the implicit function theorem at each step's converged root (no differentiation through
+the Newton iterations or their `while_loop`). The root is tagged `ROOT_NAME` (see
+`jax.ad_checkpoint.checkpoint_name`) so that `simulate_batch` can keep it across a
+`jax.checkpoint`: the backward pass then re-evaluates the explicit part of a step from
+the stored root instead of solving again.
+"""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from .._results import RESULTS
+
+ROOT_NAME = "lievi_step_root"
+
+
+class AbstractBatchKernel(eqx.Module):
+    """One step of a method on a batch of rigid bodies with principal moments, as
+    structure of arrays."""
+
+    @abc.abstractmethod
+    def prepare(self, inertia, h):
+        """Per-run constants from the principal moments `inertia` (3 arrays or scalars) and
+        the step `h` (an array `(B,)` or a scalar), computed once outside the loop."""
+
+    @abc.abstractmethod
+    def step(self, params, g, Pi, alive):
+        """Advance `(g, Π)` by one step.
+
+        `params`: what `prepare` returned; `g`: 9 arrays; `Π`: 3 arrays; `alive`: a boolean
+        `(B,)` mask of the bodies that have not failed (a failed body's step is computed but
+        must not cost extra work, e.g. Newton iterations past the fixed ones).
+
+        **Returns:** `(g_next, Π_next, result, iterations, residual)`, the last three per body.
+        """
+
+    def with_fixed_iterations(self, fixed_iterations: int):
+        """The kernel with this many Newton iterations before its convergence check
+        (`simulate_batch(fixed_iterations=...)`); explicit kernels ignore it."""
+        return self
+
+
+class KickKernel(AbstractBatchKernel):
+    """A free kernel between two half kicks of a potential's torque (paper §7): the step of
+    `AbstractKickIntegrator` (`Π⁺ = Π + (h/2)M(g_k)`, free step, `Π_{k+1} = Π⁻ + (h/2)M(g_{k+1})`)
+    for a potential with a closed-form `rigid_body_torque` (e.g. `UniformGravity`)."""
+
+    free: AbstractBatchKernel
+    potential: eqx.Module
+
+    @staticmethod
+    def applies_to(potential) -> bool:
+        """Whether `potential` has a closed-form rigid-body torque."""
+        return potential.rigid_body_torque(tuple(jnp.zeros(()) for _ in range(9))) is not None
+
+    def with_fixed_iterations(self, fixed_iterations: int):
+        return KickKernel(self.free.with_fixed_iterations(fixed_iterations), self.potential)
+
+    def prepare(self, inertia, h):
+        return self.free.prepare(inertia, h), h / 2
+
+    def step(self, params, g, Pi, alive):
+        free_params, half = params
+        torque = self.potential.rigid_body_torque(g)
+        Pi = tuple(p + half * t for p, t in zip(Pi, torque))
+        g_next, Pi_next, result, iterations, residual = self.free.step(free_params, g, Pi, alive)
+        torque = self.potential.rigid_body_torque(g_next)
+        Pi_next = tuple(p + half * t for p, t in zip(Pi_next, torque))
+        # A non-finite torque shows up only after the free step's own checks.
+        finite = jnp.isfinite(Pi_next[0]) & jnp.isfinite(Pi_next[1]) & jnp.isfinite(Pi_next[2])
+        result = jnp.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
+        return g_next, Pi_next, result, iterations, residual
