@@ -96,8 +96,14 @@ def main():
         gradient_ckpt = jax.jit(jax.value_and_grad(make_loss(n, True)))
         wall, cpu = best_times([forward, gradient, gradient_ckpt], params)
         sol = lievi.simulate(
-            lievi.RigidBody(INERTIA), lievi.DEP(), jnp.eye(3), jnp.array([np.cos(1.1), 0.0, np.sin(1.1)]),
-            h=H, n_steps=n, forcing=(lievi.Control(params["u"]), lievi.ForceLaw(damping)), args=0.2,
+            lievi.RigidBody(INERTIA),
+            lievi.DEP(),
+            jnp.eye(3),
+            jnp.array([np.cos(1.1), 0.0, np.sin(1.1)]),
+            h=H,
+            n_steps=n,
+            forcing=(lievi.Control(params["u"]), lievi.ForceLaw(damping)),
+            args=0.2,
         )
         row = {
             "n_steps": n,

@@ -39,8 +39,12 @@ def cost(analysis):
 
 
 def main():
-    print(f"device: {jax.devices()[0].device_kind}, jax {jax.__version__}; one step, {BATCH} bodies, float64")
-    print(f"{'method':<16}{'traced ops/body':>17}{'fused ops/body':>16}{'ratio':>7}{'fusions':>9}{'fused HLO lines':>17}")
+    print(
+        f"device: {jax.devices()[0].device_kind}, jax {jax.__version__}; one step, {BATCH} bodies, float64"
+    )
+    print(
+        f"{'method':<16}{'traced ops/body':>17}{'fused ops/body':>16}{'ratio':>7}{'fusions':>9}{'fused HLO lines':>17}"
+    )
     rows = []
     for name in METHODS:
         fn = throughput.methods(1)[name]
@@ -48,13 +52,29 @@ def main():
         compiled = lowered.compile()
         traced, fused = cost(lowered.cost_analysis()), cost(compiled.cost_analysis())
         text = compiled.as_text()
-        computations = [c for c in re.split(r"\n(?=\S)", text) if re.match(r"%?fused_computation", c)]
+        computations = [
+            c for c in re.split(r"\n(?=\S)", text) if re.match(r"%?fused_computation", c)
+        ]
         lines = sum(c.count("\n") for c in computations)
-        rows.append({"method": name, "traced_ops_per_body_step": traced, "fused_ops_per_body_step": fused,
-                     "ratio": fused / traced, "fused_computations": len(computations), "fused_hlo_lines": lines})
-        print(f"{name:<16}{traced:>17.0f}{fused:>16.0f}{fused / traced:>7.1f}{len(computations):>9}{lines:>17}")
+        rows.append(
+            {
+                "method": name,
+                "traced_ops_per_body_step": traced,
+                "fused_ops_per_body_step": fused,
+                "ratio": fused / traced,
+                "fused_computations": len(computations),
+                "fused_hlo_lines": lines,
+            }
+        )
+        print(
+            f"{name:<16}{traced:>17.0f}{fused:>16.0f}{fused / traced:>7.1f}{len(computations):>9}{lines:>17}"
+        )
     out = pathlib.Path(__file__).parent / "results" / "fusion_report.json"
-    out.write_text(json.dumps({"device": jax.devices()[0].device_kind, "jax": jax.__version__, "rows": rows}, indent=2))
+    out.write_text(
+        json.dumps(
+            {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "rows": rows}, indent=2
+        )
+    )
     print(f"wrote {out}")
 
 

@@ -105,7 +105,9 @@ def measure(n_steps: int):
         "h": jnp.asarray(H),
     }
     row = {"n_steps": n_steps}
-    forward, row["compile_forward_s"], row["temp_bytes_forward"] = compiled(make_loss(n_steps, False), params)
+    forward, row["compile_forward_s"], row["temp_bytes_forward"] = compiled(
+        make_loss(n_steps, False), params
+    )
     grads = {}
     for name, checkpoint in (("plain", False), ("checkpoint", True)):
         grads[name], row[f"compile_grad_{name}_s"], row[f"temp_bytes_grad_{name}"] = compiled(
@@ -138,20 +140,37 @@ def plot(rows, path):
     n = np.array([r["n_steps"] for r in rows])
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
     ax1.semilogx(n, [r["ratio_plain"] for r in rows], "o-", label="gradient / forward, plain")
-    ax1.semilogx(n, [r["ratio_checkpoint"] for r in rows], "s-", label="gradient / forward, checkpoint=True")
+    ax1.semilogx(
+        n, [r["ratio_checkpoint"] for r in rows], "s-", label="gradient / forward, checkpoint=True"
+    )
     ax1.axhline(5, color="k", ls="--", lw=1, label="acceptance: 5×")
-    ax1.set(xlabel="steps N", ylabel="time ratio", title="Gradient cost relative to the forward pass")
+    ax1.set(
+        xlabel="steps N", ylabel="time ratio", title="Gradient cost relative to the forward pass"
+    )
     ax1.set_ylim(bottom=0)
     ax1.legend()
     mib = 2.0**20
     ax2.loglog(n, [r["temp_bytes_grad_plain"] / mib for r in rows], "o-", label="gradient, plain")
-    ax2.loglog(n, [r["temp_bytes_grad_checkpoint"] / mib for r in rows], "s-", label="gradient, checkpoint=True")
+    ax2.loglog(
+        n,
+        [r["temp_bytes_grad_checkpoint"] / mib for r in rows],
+        "s-",
+        label="gradient, checkpoint=True",
+    )
     ax2.loglog(n, [r["temp_bytes_forward"] / mib for r in rows], "^-", label="forward")
     ref = rows[0]["temp_bytes_grad_checkpoint"] / mib
     ax2.loglog(n, ref * np.sqrt(n / n[0]), "k:", lw=1, label="∝ √N")
-    ax2.set(xlabel="steps N", ylabel="MiB (XLA temp allocation)", title="Memory of the compiled executable")
+    ax2.set(
+        xlabel="steps N",
+        ylabel="MiB (XLA temp allocation)",
+        title="Memory of the compiled executable",
+    )
     ax2.legend()
-    fig.suptitle("HLW rigid body, exp-chart DEP, float64, " + platform.processor() + f" ({jax.devices()[0].platform})")
+    fig.suptitle(
+        "HLW rigid body, exp-chart DEP, float64, "
+        + platform.processor()
+        + f" ({jax.devices()[0].platform})"
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -168,8 +187,17 @@ BATCH_METHODS = {
 def batch_loss(integrator, steps: int, fast: bool, checkpoint):
     def loss(params, g0, weights):
         sol = lievi.simulate_batch(
-            jax.vmap(lievi.RigidBody)(params["inertia"]), integrator, g0, params["m0"], h=params["h"],
-            n_steps=steps, system_axis=0, save=("g", "m"), fast=fast, throw=False, checkpoint=checkpoint,
+            jax.vmap(lievi.RigidBody)(params["inertia"]),
+            integrator,
+            g0,
+            params["m0"],
+            h=params["h"],
+            n_steps=steps,
+            system_axis=0,
+            save=("g", "m"),
+            fast=fast,
+            throw=False,
+            checkpoint=checkpoint,
         )
         return jnp.sum(weights[0] * sol.g[:, -1]) + jnp.sum(weights[1] * sol.m[:, -1])
 
@@ -182,11 +210,15 @@ def batch_inputs(bodies: int):
 
     if sys_path not in sys.path:
         sys.path.insert(0, sys_path)
-    from throughput import H as step, rigid_body_inputs
+    from throughput import H as step
+    from throughput import rigid_body_inputs
 
     inertia, g0, m0 = rigid_body_inputs(bodies, jnp.float64)
     rng = np.random.default_rng(7)
-    weights = (jnp.asarray(rng.normal(size=(bodies, 3, 3))), jnp.asarray(rng.normal(size=(bodies, 3))))
+    weights = (
+        jnp.asarray(rng.normal(size=(bodies, 3, 3))),
+        jnp.asarray(rng.normal(size=(bodies, 3))),
+    )
     params = {"inertia": inertia, "m0": m0, "h": jnp.full((bodies,), step)}
     return params, g0, weights
 
@@ -237,7 +269,10 @@ def measure_batch(name: str, bodies: int, steps: int, repeats: int = 3):
     row["generic_grad_body_steps_per_s_wall"] = small * steps / row["generic_grad_wall_s"]
     mine = fast_small(*small_args)
     row["grad_max_rel_diff_vs_generic"] = float(
-        max(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)) for a, b in zip(jax.tree.leaves(mine[1]), jax.tree.leaves(reference[1])))
+        max(
+            jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b))
+            for a, b in zip(jax.tree.leaves(mine[1]), jax.tree.leaves(reference[1]))
+        )
     )
     return row
 
@@ -246,23 +281,31 @@ def main_batch(args):
     load_before = os.getloadavg()
     rows = []
     names = args.methods or list(BATCH_METHODS)
-    print(f"batched gradients through the fast path: {args.bodies} bodies, {args.steps} steps, float64; "
-          f"load average {load_before}")
-    print(f"{'method':<15}{'forward':>12}{'grad':>12}{'grad/fwd':>10}{'ckpt/fwd':>10}{'fwd bs/s':>11}{'grad bs/s':>11}"
-          f"{'generic grad bs/s':>19}{'rel diff':>10}")
+    print(
+        f"batched gradients through the fast path: {args.bodies} bodies, {args.steps} steps, float64; "
+        f"load average {load_before}"
+    )
+    print(
+        f"{'method':<15}{'forward':>12}{'grad':>12}{'grad/fwd':>10}{'ckpt/fwd':>10}{'fwd bs/s':>11}{'grad bs/s':>11}"
+        f"{'generic grad bs/s':>19}{'rel diff':>10}"
+    )
     out_path = RESULTS / "gradients_batch.json"
     for name in names:
         row = measure_batch(name, args.bodies, args.steps)
         rows.append(row)
-        print(f"{name:<15}{row['forward_cpu_s']:>10.3f} s{row['grad_cpu_s']:>10.3f} s{row['ratio_grad']:>10.2f}"
-              f"{row['ratio_grad_checkpoint']:>10.2f}{row['forward_body_steps_per_s_wall']:>11.3g}"
-              f"{row['grad_body_steps_per_s_wall']:>11.3g}{row['generic_grad_body_steps_per_s_wall']:>19.3g}"
-              f"{row['grad_max_rel_diff_vs_generic']:>10.1e}", flush=True)
+        print(
+            f"{name:<15}{row['forward_cpu_s']:>10.3f} s{row['grad_cpu_s']:>10.3f} s{row['ratio_grad']:>10.2f}"
+            f"{row['ratio_grad_checkpoint']:>10.2f}{row['forward_body_steps_per_s_wall']:>11.3g}"
+            f"{row['grad_body_steps_per_s_wall']:>11.3g}{row['generic_grad_body_steps_per_s_wall']:>19.3g}"
+            f"{row['grad_max_rel_diff_vs_generic']:>10.1e}",
+            flush=True,
+        )
         RESULTS.mkdir(exist_ok=True)
         out = {
             "device": str(jax.devices()[0]),
             "jax": jax.__version__,
-            "command": "python benchmarks/gradients.py --batch " + f"--bodies {args.bodies} --steps {args.steps}",
+            "command": "python benchmarks/gradients.py --batch "
+            + f"--bodies {args.bodies} --steps {args.steps}",
             "timing": "process CPU time (*_cpu_s; ratios use it) and wall time: best of 3 interleaved rounds after a warm-up, compile apart",
             "cpu_count": os.cpu_count(),
             "load_average_before": load_before,
@@ -276,7 +319,9 @@ def main_batch(args):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="only N = 1e3 and 1e4")
-    parser.add_argument("--batch", action="store_true", help="batched gradients through the fast path")
+    parser.add_argument(
+        "--batch", action="store_true", help="batched gradients through the fast path"
+    )
     parser.add_argument("--bodies", type=int, default=100_000)
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--methods", nargs="+", default=None, choices=list(BATCH_METHODS))

@@ -95,7 +95,9 @@ def measure(body, g0, d, integrator, batch, steps, repeats=3):
     momenta = jnp.asarray(rng.normal(size=(batch, d)))
 
     def final(m0):
-        sol = lievi.simulate(body, integrator, g0, m0, h=0.05, n_steps=steps, save_every=steps, throw=False)
+        sol = lievi.simulate(
+            body, integrator, g0, m0, h=0.05, n_steps=steps, save_every=steps, throw=False
+        )
         return sol.m[-1]
 
     compile_single, run_single = timed(jax.jit(final), momenta[0], repeats=repeats)
@@ -113,7 +115,11 @@ def main():
     parser.add_argument("--steps", type=int, default=2000)
     args = parser.parse_args()
 
-    integrators = {"DEP exp": lievi.DEP(chart="exp"), "DEP cayley": lievi.DEP(chart="cayley"), "RK4": lievi.RK4()}
+    integrators = {
+        "DEP exp": lievi.DEP(chart="exp"),
+        "DEP cayley": lievi.DEP(chart="cayley"),
+        "RK4": lievi.RK4(),
+    }
     results = {}
     for iname, integrator in integrators.items():
         for gname, (body, g0, d) in problems().items():
@@ -125,8 +131,10 @@ def main():
             )
     device = str(jax.devices()[0])
     print(f"device: {device}, float64, batch {args.batch}, {args.steps} steps, final state only")
-    print(f"{'integrator / group':<30}{'compile [s]':>12}{'1 body [µs/step]':>18}{'batch [µs/body-step]':>22}"
-          f"{'ratio to SO(3) 1 / batch':>26}")
+    print(
+        f"{'integrator / group':<30}{'compile [s]':>12}{'1 body [µs/step]':>18}{'batch [µs/body-step]':>22}"
+        f"{'ratio to SO(3) 1 / batch':>26}"
+    )
     for name, r in results.items():
         base = results[name.split(" / ")[0] + " / SO(3)"]
         r["ratio_single_to_so3"] = r["single_us_per_step"] / base["single_us_per_step"]
@@ -138,7 +146,12 @@ def main():
         )
     out = pathlib.Path(__file__).parent / "results" / "se3_step_cost.json"
     out.parent.mkdir(exist_ok=True)
-    out.write_text(json.dumps({"device": device, "batch": args.batch, "steps": args.steps, "results": results}, indent=2))
+    out.write_text(
+        json.dumps(
+            {"device": device, "batch": args.batch, "steps": args.steps, "results": results},
+            indent=2,
+        )
+    )
     print(f"wrote {out}")
 
 

@@ -35,7 +35,11 @@ class LieEuler(lievi.AbstractIntegrator):
         xi = system.velocity(m)
         m_next = m + h * system.group.ad(xi).T @ m
         zero = jnp.zeros((), jnp.int32)
-        return g @ system.group.exp(h * xi), m_next, lievi.StepInfo(zero, zero, jnp.zeros((), m.dtype))
+        return (
+            g @ system.group.exp(h * xi),
+            m_next,
+            lievi.StepInfo(zero, zero, jnp.zeros((), m.dtype)),
+        )
 
 
 def timed(fn, *args):
@@ -56,7 +60,9 @@ def measure(integrator, batch: int, steps: int):
     momenta = jnp.asarray(rng.normal(size=(batch, 3)))
 
     def final(m0):
-        sol = lievi.simulate(body, integrator, jnp.eye(3), m0, h=0.1, n_steps=steps, save_every=steps, throw=False)
+        sol = lievi.simulate(
+            body, integrator, jnp.eye(3), m0, h=0.1, n_steps=steps, save_every=steps, throw=False
+        )
         return sol.m[-1]
 
     single = jax.jit(final)
@@ -86,16 +92,25 @@ def main():
     base = results["Lie–Euler baseline"]
     device = str(jax.devices()[0])
     print(f"device: {device}, float64, batch {args.batch}, {args.steps} steps, final state only")
-    print(f"{'integrator':<20}{'compile [s]':>12}{'1 body [st/s]':>16}{'batch [st/s]':>16}{'vs baseline':>13}")
+    print(
+        f"{'integrator':<20}{'compile [s]':>12}{'1 body [st/s]':>16}{'batch [st/s]':>16}{'vs baseline':>13}"
+    )
     for name, r in results.items():
-        r["batched_ratio_to_baseline"] = r["batched_body_steps_per_s"] / base["batched_body_steps_per_s"]
+        r["batched_ratio_to_baseline"] = (
+            r["batched_body_steps_per_s"] / base["batched_body_steps_per_s"]
+        )
         print(
             f"{name:<20}{r['compile_s']:>12.2f}{r['single_body_steps_per_s']:>16.3g}"
             f"{r['batched_body_steps_per_s']:>16.3g}{r['batched_ratio_to_baseline']:>13.3g}"
         )
     out = pathlib.Path(__file__).parent / "results" / "step_cost.json"
     out.parent.mkdir(exist_ok=True)
-    out.write_text(json.dumps({"device": device, "batch": args.batch, "steps": args.steps, "results": results}, indent=2))
+    out.write_text(
+        json.dumps(
+            {"device": device, "batch": args.batch, "steps": args.steps, "results": results},
+            indent=2,
+        )
+    )
     print(f"wrote {out}")
 
 

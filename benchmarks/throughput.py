@@ -80,8 +80,17 @@ def lievi_runner(integrator, steps: int, fast: bool = True, **options):
     def run(inertia, g0, m0):
         bodies = jax.vmap(lievi.RigidBody)(inertia)
         sol = lievi.simulate_batch(
-            bodies, integrator, g0, m0, h=jnp.asarray(H, m0.dtype), n_steps=steps,
-            system_axis=0, save=("g", "m"), fast=fast, throw=False, **options,
+            bodies,
+            integrator,
+            g0,
+            m0,
+            h=jnp.asarray(H, m0.dtype),
+            n_steps=steps,
+            system_axis=0,
+            save=("g", "m"),
+            fast=fast,
+            throw=False,
+            **options,
         )
         return sol.g[:, -1], sol.m[:, -1], sol.result
 
@@ -98,9 +107,16 @@ def diffrax_runner(steps: int):
 
     def one(inertia, g0, m0):
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(field), diffrax.Tsit5(), t0=0.0, t1=steps * H, dt0=H,
-            y0=(m0, g0), args=inertia, stepsize_controller=diffrax.ConstantStepSize(),
-            saveat=diffrax.SaveAt(t1=True), max_steps=steps,
+            diffrax.ODETerm(field),
+            diffrax.Tsit5(),
+            t0=0.0,
+            t1=steps * H,
+            dt0=H,
+            y0=(m0, g0),
+            args=inertia,
+            stepsize_controller=diffrax.ConstantStepSize(),
+            saveat=diffrax.SaveAt(t1=True),
+            max_steps=steps,
         )
         return sol.ys[1][-1], sol.ys[0][-1], sol.result._value
 
@@ -114,9 +130,15 @@ def methods(steps: int):
         # Exactly three Newton iterations and a check, no convergence tail (no
         # data-dependent loop: on a GPU no device-to-host sync per step), 4 steps per
         # loop iteration.
-        "DEP exp, 3 its, unroll 4": lievi_runner(lievi.DEP(chart="exp", max_steps=3), steps, unroll=4),
+        "DEP exp, 3 its, unroll 4": lievi_runner(
+            lievi.DEP(chart="exp", max_steps=3), steps, unroll=4
+        ),
     }
-    for name, cls in (("Moser-Veselov", "MoserVeselov"), ("splitting", "LiePoissonSplitting"), ("RK4", "RK4")):
+    for name, cls in (
+        ("Moser-Veselov", "MoserVeselov"),
+        ("splitting", "LiePoissonSplitting"),
+        ("RK4", "RK4"),
+    ):
         if hasattr(lievi, cls):
             rows[name] = lievi_runner(getattr(lievi, cls)(), steps)
     rows["diffrax Tsit5"] = diffrax_runner(steps)
@@ -129,19 +151,32 @@ def check_against_generic(name, fn, dtype, steps: int):
     if "vmap" in name or "diffrax" in name:
         return None
     integrator = {"DEP cayley": lievi.DEP(chart="cayley")}.get(name, lievi.DEP(chart="exp"))
-    for label, cls in (("Moser-Veselov", "MoserVeselov"), ("splitting", "LiePoissonSplitting"), ("RK4", "RK4")):
+    for label, cls in (
+        ("Moser-Veselov", "MoserVeselov"),
+        ("splitting", "LiePoissonSplitting"),
+        ("RK4", "RK4"),
+    ):
         if name == label:
             integrator = getattr(lievi, cls)()
     inputs = rigid_body_inputs(64, dtype, seed=1)
     fast = fn(*inputs)
     generic = lievi_runner(integrator, steps, fast=False)(*inputs)
-    return float(max(jnp.max(jnp.abs(fast[0] - generic[0])), jnp.max(jnp.abs(fast[1] - generic[1]))))
+    return float(
+        max(jnp.max(jnp.abs(fast[0] - generic[0])), jnp.max(jnp.abs(fast[1] - generic[1])))
+    )
 
 
 # The issue's CPU acceptance targets (float64, batch 1e5, 100 steps), body-steps/s.
 TARGETS = {"DEP exp": 1e7, "Moser-Veselov": 3e7, "splitting": 3e7}
-ACCEPTANCE_METHODS = ("DEP exp", "DEP cayley", "Moser-Veselov", "splitting", "RK4", "diffrax Tsit5",
-                      "DEP exp, vmap(simulate)")
+ACCEPTANCE_METHODS = (
+    "DEP exp",
+    "DEP cayley",
+    "Moser-Veselov",
+    "splitting",
+    "RK4",
+    "diffrax Tsit5",
+    "DEP exp, vmap(simulate)",
+)
 # The flop limit one XLA CPU device (one core) can reach in float64: 2.5 GHz × 16 flops per
 # cycle (two 4-wide FMA units). An assumption about this class of machine, stated, not
 # measured; the achieved fraction below is relative to it.
@@ -152,6 +187,7 @@ def flops_per_body_step(fn, dtype, batch: int = 1000):
     """XLA's own operation counts for one step of `fn`'s method (built with 1 step):
     `(traced, executed)` per body-step — the program as written, and the optimised one
     XLA runs (fusion may duplicate work, see `fusion_report.py`)."""
+
     def count(analysis):
         analysis = analysis[0] if isinstance(analysis, list) else analysis
         return analysis["flops"] / batch
@@ -171,22 +207,37 @@ def acceptance_summary(records):
         ratio = rate / base if base else float("nan")
         target = TARGETS.get(name)
         verdict = "" if target is None else (" ≥ target" if rate >= target else " BELOW target")
-        line = {"method": name, "body_steps_per_s": rate, "target": target,
-                "vs_diffrax_tsit5": ratio, "meets_target": None if target is None else rate >= target,
-                "meets_10x_diffrax": ratio >= 10}
+        line = {
+            "method": name,
+            "body_steps_per_s": rate,
+            "target": target,
+            "vs_diffrax_tsit5": ratio,
+            "meets_target": None if target is None else rate >= target,
+            "meets_10x_diffrax": ratio >= 10,
+        }
         one_step = methods(1).get(name)
         if one_step is not None:
             traced, executed = flops_per_body_step(one_step, jnp.float64)
             peak = PEAK_FLOPS_PER_DEVICE * jax.device_count()
-            line.update({"flops_per_body_step_traced": traced, "flops_per_body_step_executed": executed,
-                         "flop_limit_body_steps_per_s": peak / traced,
-                         "fraction_of_flop_limit": rate * traced / peak,
-                         "executed_flops_fraction_of_peak": rate * executed / peak})
+            line.update(
+                {
+                    "flops_per_body_step_traced": traced,
+                    "flops_per_body_step_executed": executed,
+                    "flop_limit_body_steps_per_s": peak / traced,
+                    "fraction_of_flop_limit": rate * traced / peak,
+                    "executed_flops_fraction_of_peak": rate * executed / peak,
+                }
+            )
         lines.append(line)
-        flops = (f"  {line['flops_per_body_step_traced']:6.0f} flops/body-step, {100 * line['fraction_of_flop_limit']:5.1f}% of the flop limit"
-                 if "fraction_of_flop_limit" in line else "")
-        print(f"{name:<26}{rate:>12.3g}  target {target or '-':>8}{verdict:<14}"
-              f"{ratio:>8.1f}× diffrax Tsit5{'' if ratio >= 10 else ' (below 10×)'}{flops}")
+        flops = (
+            f"  {line['flops_per_body_step_traced']:6.0f} flops/body-step, {100 * line['fraction_of_flop_limit']:5.1f}% of the flop limit"
+            if "fraction_of_flop_limit" in line
+            else ""
+        )
+        print(
+            f"{name:<26}{rate:>12.3g}  target {target or '-':>8}{verdict:<14}"
+            f"{ratio:>8.1f}× diffrax Tsit5{'' if ratio >= 10 else ' (below 10×)'}{flops}"
+        )
     return lines
 
 
@@ -207,17 +258,30 @@ def timed(fn, args, min_total: float = 0.5, max_repeats: int = 5):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="smoke run: batches 1 and 100, 10 steps")
+    parser.add_argument(
+        "--quick", action="store_true", help="smoke run: batches 1 and 100, 10 steps"
+    )
     parser.add_argument("--batches", type=int, nargs="+", default=None)
     parser.add_argument("--steps", type=int, default=None)
     parser.add_argument("--dtypes", nargs="+", default=None, choices=("float64", "float32"))
     parser.add_argument("--methods", nargs="+", default=None, help="names to run (default: all)")
-    parser.add_argument("--budget", type=float, default=60.0,
-                        help="skip larger batches of a method once one run takes longer than this [s]")
-    parser.add_argument("--acceptance", action="store_true",
-                        help="only the CPU acceptance configuration: batch 1e5, 100 steps, float64, every method")
-    parser.add_argument("--cpu-devices", type=int, default=None,
-                        help="split the CPU into this many XLA devices and shard the batch over them")
+    parser.add_argument(
+        "--budget",
+        type=float,
+        default=60.0,
+        help="skip larger batches of a method once one run takes longer than this [s]",
+    )
+    parser.add_argument(
+        "--acceptance",
+        action="store_true",
+        help="only the CPU acceptance configuration: batch 1e5, 100 steps, float64, every method",
+    )
+    parser.add_argument(
+        "--cpu-devices",
+        type=int,
+        default=None,
+        help="split the CPU into this many XLA devices and shard the batch over them",
+    )
     parser.add_argument("--out", default=None, help="basename of the JSON and PNG")
     parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
     args = parser.parse_args()
@@ -231,13 +295,17 @@ def main():
         args.methods = args.methods or list(ACCEPTANCE_METHODS)
         args.out = args.out or "throughput_cpu_acceptance"
     args.out = args.out or "throughput"
-    batches = args.batches or ([1, 100] if args.quick else [1, 10, 100, 1_000, 10_000, 100_000, 1_000_000])
+    batches = args.batches or (
+        [1, 100] if args.quick else [1, 10, 100, 1_000, 10_000, 100_000, 1_000_000]
+    )
     steps = args.steps or (10 if args.quick else 100)
     dtypes = args.dtypes or (["float64", "float32"] if on_cpu else ["float32"])
     n_devices = jax.device_count()
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
-    print(f"device: {device.device_kind} ({device.platform}, {jax.device_count()} device(s)), "
-          f"jax {jax.__version__}, {os.cpu_count()} CPUs, load average {load}")
+    print(
+        f"device: {device.device_kind} ({device.platform}, {jax.device_count()} device(s)), "
+        f"jax {jax.__version__}, {os.cpu_count()} CPUs, load average {load}"
+    )
     print(f"{steps} steps of h = {H}, final state only; body-steps/s (compile time apart)")
 
     out = pathlib.Path(args.outdir)
@@ -260,11 +328,15 @@ def main():
         runners = methods(steps)
         if args.methods:
             runners = {k: v for k, v in runners.items() if k in args.methods}
-        print(f"\n{dtype_name}\n{'method':<26}{'batch':>9}{'compile [s]':>13}{'run [s]':>11}{'body-steps/s':>15}")
+        print(
+            f"\n{dtype_name}\n{'method':<26}{'batch':>9}{'compile [s]':>13}{'run [s]':>11}{'body-steps/s':>15}"
+        )
         for name, fn in runners.items():
             difference = check_against_generic(name, fn, dtype, steps)
             if difference is not None:
-                print(f"{name:<26}final state vs vmap(simulate), 64 bodies: max |difference| {difference:.2g}")
+                print(
+                    f"{name:<26}final state vs vmap(simulate), 64 bodies: max |difference| {difference:.2g}"
+                )
             for batch in sorted(batches):
                 inputs = rigid_body_inputs(batch, dtype)
                 if n_devices > 1:
@@ -273,22 +345,41 @@ def main():
                     inputs = lievi.shard_batch(inputs)
                 compile_s, run_s = timed(fn, inputs)
                 rate = batch * steps / run_s
-                records.append({"method": name, "dtype": dtype_name, "batch": batch, "steps": steps,
-                                "compile_s": compile_s, "run_s": run_s, "body_steps_per_s": rate,
-                                "max_abs_difference_vs_vmap_simulate": difference})
-                print(f"{name:<26}{batch:>9}{compile_s:>13.2f}{run_s:>11.4f}{rate:>15.3g}", flush=True)
+                records.append(
+                    {
+                        "method": name,
+                        "dtype": dtype_name,
+                        "batch": batch,
+                        "steps": steps,
+                        "compile_s": compile_s,
+                        "run_s": run_s,
+                        "body_steps_per_s": rate,
+                        "max_abs_difference_vs_vmap_simulate": difference,
+                    }
+                )
+                print(
+                    f"{name:<26}{batch:>9}{compile_s:>13.2f}{run_s:>11.4f}{rate:>15.3g}", flush=True
+                )
                 if run_s > args.budget / 10:  # the next batch (×10) would exceed the budget
-                    print(f"{'':<26}(larger batches skipped: over the --budget of {args.budget:g} s)")
+                    print(
+                        f"{'':<26}(larger batches skipped: over the --budget of {args.budget:g} s)"
+                    )
                     break
             # Saved after every method, so an interrupted run keeps what it measured.
             meta["load_average_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
-            (out / f"{args.out}.json").write_text(json.dumps({"meta": meta, "results": records}, indent=2))
+            (out / f"{args.out}.json").write_text(
+                json.dumps({"meta": meta, "results": records}, indent=2)
+            )
 
     if args.acceptance:
-        print(f"\nacceptance (float64, batch {batches[-1]}, {steps} steps, final state only, "
-              f"{n_devices} device(s); load average now {os.getloadavg()}):")
+        print(
+            f"\nacceptance (float64, batch {batches[-1]}, {steps} steps, final state only, "
+            f"{n_devices} device(s); load average now {os.getloadavg()}):"
+        )
         meta["acceptance"] = acceptance_summary([r for r in records if r["batch"] == batches[-1]])
-        (out / f"{args.out}.json").write_text(json.dumps({"meta": meta, "results": records}, indent=2))
+        (out / f"{args.out}.json").write_text(
+            json.dumps({"meta": meta, "results": records}, indent=2)
+        )
     print(f"\nwrote {out / (args.out + '.json')}")
     try:
         plot(records, meta, out / f"{args.out}.png")
@@ -304,12 +395,19 @@ def plot(records, meta, path):
     import matplotlib.pyplot as plt
 
     dtypes = sorted({r["dtype"] for r in records}, reverse=True)
-    fig, axes = plt.subplots(1, len(dtypes), figsize=(6 * len(dtypes), 4.5), squeeze=False, sharey=True)
+    fig, axes = plt.subplots(
+        1, len(dtypes), figsize=(6 * len(dtypes), 4.5), squeeze=False, sharey=True
+    )
     for ax, dtype in zip(axes[0], dtypes):
         for name in dict.fromkeys(r["method"] for r in records):
             rows = [r for r in records if r["method"] == name and r["dtype"] == dtype]
             if rows:
-                ax.loglog([r["batch"] for r in rows], [r["body_steps_per_s"] for r in rows], "o-", label=name)
+                ax.loglog(
+                    [r["batch"] for r in rows],
+                    [r["body_steps_per_s"] for r in rows],
+                    "o-",
+                    label=name,
+                )
         ax.set_title(f"{dtype}, {meta['device']}")
         ax.set_xlabel("batch size (bodies)")
         ax.grid(True, which="both", alpha=0.3)

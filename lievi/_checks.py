@@ -20,7 +20,9 @@ def is_concrete(*xs) -> bool:
 def check_shape(name: str, x, shape: tuple[int, ...], what: str = "") -> None:
     if tuple(jnp.shape(x)) != tuple(shape):
         hint = f" ({what})" if what else ""
-        raise ValueError(f"`{name}` must have shape {tuple(shape)}{hint}, got {tuple(jnp.shape(x))}.")
+        raise ValueError(
+            f"`{name}` must have shape {tuple(shape)}{hint}, got {tuple(jnp.shape(x))}."
+        )
 
 
 def check_finite(name: str, x) -> None:
@@ -75,8 +77,12 @@ def check_real_dtype(name: str, x) -> None:
         dtype = None
     else:
         dtype = np.asarray(x).dtype if isinstance(x, (list, tuple)) else jnp.result_type(x)
-    if dtype is None or not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
-        raise ValueError(f"`{name}` must hold real numbers, got {'a string' if dtype is None else dtype}.")
+    if dtype is None or not (
+        jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)
+    ):
+        raise ValueError(
+            f"`{name}` must hold real numbers, got {'a string' if dtype is None else dtype}."
+        )
 
 
 def step_size_valid(h):

@@ -75,7 +75,9 @@ def _free_body_invariants(system, g, m):
     """The free body's Casimir |Π|² and spatial angular momentum gΠ."""
     return {
         "casimir_drift": diagnostics.relative_drift(diagnostics.casimirs(system, m)),
-        "spatial_momentum_drift": diagnostics.relative_drift(diagnostics.spatial_momentum(system, g, m)),
+        "spatial_momentum_drift": diagnostics.relative_drift(
+            diagnostics.spatial_momentum(system, g, m)
+        ),
     }
 
 
@@ -136,7 +138,9 @@ PROBLEMS = {
         default_h=DEFAULT_H,
         default_steps=DEFAULT_STEPS,
         # The preprocessed DMV is a free-body method (its modified inertia has no potential).
-        integrators=tuple((n, i) for n, i in INTEGRATORS if not isinstance(i, lievi.PreprocessedMoserVeselov)),
+        integrators=tuple(
+            (n, i) for n, i in INTEGRATORS if not isinstance(i, lievi.PreprocessedMoserVeselov)
+        ),
         invariants=_heavy_top_invariants,
         columns=(
             ("gamma_norm_defect", "Casimirs", "max||Γ|²−1|", "{:.2e}"),
@@ -210,9 +214,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="save a figure: Π(t) against the reference, and |E − E₀| (needs matplotlib)",
     )
-    parser.add_argument(
-        "--json", metavar="FILE.json", default=None, help="write the table as JSON"
-    )
+    parser.add_argument("--json", metavar="FILE.json", default=None, help="write the table as JSON")
 
 
 # --------------------------------------------------------------------------- runs
@@ -241,14 +243,21 @@ def _diagnostics(body, integrator, g, m, h, invariants):
         "orthogonality_end": jnp.linalg.norm(g[-1].T @ g[-1] - eye),
     }
     if isinstance(integrator, lievi.AbstractVariationalIntegrator) and g.shape[0] >= 3:
-        out["del_residual_max"] = jnp.max(
-            jnp.abs(diagnostics.del_residual(body, integrator, g, h))
-        )
+        out["del_residual_max"] = jnp.max(jnp.abs(diagnostics.del_residual(body, integrator, g, h)))
     return out
 
 
 def run_integrator(
-    name, integrator, body, g0, m0, h, n_steps, g_ref, m_ref, problem: Problem = PROBLEMS[DEFAULT_PROBLEM]
+    name,
+    integrator,
+    body,
+    g0,
+    m0,
+    h,
+    n_steps,
+    g_ref,
+    m_ref,
+    problem: Problem = PROBLEMS[DEFAULT_PROBLEM],
 ) -> tuple[dict, Any]:
     """One table row (a dict of plain Python numbers), and `(Solution, energy)` to plot."""
     solution, first_time, second_time = _timed_simulate(body, integrator, g0, m0, h, n_steps)
@@ -352,7 +361,9 @@ def _device_description() -> str:
     return text + ")"
 
 
-def _header(h: float, n_steps: int, reference_time: float, problem: Problem = PROBLEMS[DEFAULT_PROBLEM]) -> str:
+def _header(
+    h: float, n_steps: int, reference_time: float, problem: Problem = PROBLEMS[DEFAULT_PROBLEM]
+) -> str:
     return "\n".join(
         [
             f"lievi demo: {problem.title}",
@@ -372,7 +383,11 @@ def _json_safe(value):
 
 
 def write_json(
-    path: str, h: float, n_steps: int, rows: list[dict], problem: Problem = PROBLEMS[DEFAULT_PROBLEM]
+    path: str,
+    h: float,
+    n_steps: int,
+    rows: list[dict],
+    problem: Problem = PROBLEMS[DEFAULT_PROBLEM],
 ) -> None:
     document = {
         "problem": {
@@ -392,7 +407,12 @@ def write_json(
 
 
 def save_plot(
-    path: str, ts, m_ref, energy_ref, runs: list[tuple[str, Any, Any]], title: str = "Hairer–Lubich–Wanner rigid body, I = (2, 1, 2/3)"
+    path: str,
+    ts,
+    m_ref,
+    energy_ref,
+    runs: list[tuple[str, Any, Any]],
+    title: str = "Hairer–Lubich–Wanner rigid body, I = (2, 1, 2/3)",
 ) -> None:
     """Left: Π components against t (reference in grey); right: |E − E₀| against t.
 
@@ -492,7 +512,9 @@ def main(args: argparse.Namespace) -> int:
             "jax.config.update('jax_enable_x64', True) before creating arrays."
         )
     problem = PROBLEMS[getattr(args, "problem", DEFAULT_PROBLEM)]
-    outputs = [(option, path) for option, path in (("--json", args.json), ("--plot", args.plot)) if path]
+    outputs = [
+        (option, path) for option, path in (("--json", args.json), ("--plot", args.plot)) if path
+    ]
     problems = [msg for option, path in outputs if (msg := check_output_path(option, path))]
     if args.plot and not problems:
         try:
@@ -545,15 +567,23 @@ def main(args: argparse.Namespace) -> int:
             print(f"table written to {args.json}")
         except OSError as error:
             written = False
-            print(f"lievi demo: error: --json {args.json!r} could not be written: {error}", file=sys.stderr)
+            print(
+                f"lievi demo: error: --json {args.json!r} could not be written: {error}",
+                file=sys.stderr,
+            )
     if args.plot:
         try:
-            energy_ref = np.asarray(eqx.filter_jit(diagnostics.energy)(body, jnp.asarray(m_ref), jnp.asarray(g_ref)))
+            energy_ref = np.asarray(
+                eqx.filter_jit(diagnostics.energy)(body, jnp.asarray(m_ref), jnp.asarray(g_ref))
+            )
             title = problem.title.split(" (")[0] + ", I = (2, 1, 2/3)"
             save_plot(args.plot, ts, m_ref, energy_ref, runs, title)
             print(f"figure written to {args.plot}")
         except OSError as error:
             written = False
-            print(f"lievi demo: error: --plot {args.plot!r} could not be written: {error}", file=sys.stderr)
+            print(
+                f"lievi demo: error: --plot {args.plot!r} could not be written: {error}",
+                file=sys.stderr,
+            )
     ok = all(r["result"] == lievi.RESULTS.successful for r in rows)
     return 0 if ok and written else 1

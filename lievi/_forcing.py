@@ -54,7 +54,9 @@ class AbstractStepForce(eqx.Module):
         return True
 
     @abc.abstractmethod
-    def __call__(self, t: Scalar, g: Float[Array, "n n"], m: Float[Array, " d"]) -> Float[Array, " d"]:
+    def __call__(
+        self, t: Scalar, g: Float[Array, "n n"], m: Float[Array, " d"]
+    ) -> Float[Array, " d"]:
         """The generalised force at time `t` and state `(g, m)`."""
 
 

@@ -182,7 +182,11 @@ def _from_inertia(inertia, tensor: bool, realisable: bool):
         if np.any(target <= 0):
             raise ValueError(
                 "`inertia` (initial guess) must be positive"
-                + (" and satisfy the strict triangle inequalities I₁ < I₂ + I₃, …" if realisable else "")
+                + (
+                    " and satisfy the strict triangle inequalities I₁ < I₂ + I₃, …"
+                    if realisable
+                    else ""
+                )
                 + f"; got {inertia}."
             )
         return np.log(target)
@@ -315,7 +319,9 @@ def fit_system(
     **Returns:** a `SystemFit`.
     """
     if not isinstance(system, AbstractLieSystem):
-        raise ValueError(f"`system` must be a lievi system (e.g. lievi.RigidBody), got {type(system).__name__}.")
+        raise ValueError(
+            f"`system` must be a lievi system (e.g. lievi.RigidBody), got {type(system).__name__}."
+        )
     if orientations is None and angular_velocities is None:
         raise ValueError("Give `orientations` and/or `angular_velocities` to fit to.")
     if g0 is None and orientations is None:
@@ -324,18 +330,28 @@ def fit_system(
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
             raise ValueError(f"`{name}` must be an integer ≥ {low}, got {value!r}.")
     if check_every is not None and (
-        isinstance(check_every, bool) or not isinstance(check_every, (int, np.integer)) or check_every < 1
+        isinstance(check_every, bool)
+        or not isinstance(check_every, (int, np.integer))
+        or check_every < 1
     ):
         raise ValueError(f"`check_every` must be None or an integer ≥ 1, got {check_every!r}.")
     if isinstance(optimizer, str) and optimizer not in ("lbfgs", "adam"):
-        raise ValueError(f"`optimizer` must be 'lbfgs', 'adam' or an optax transformation, got {optimizer!r}.")
-    for name, value in (("learning_rate", learning_rate), ("gtol", gtol), ("identifiability_rtol", identifiability_rtol)):
+        raise ValueError(
+            f"`optimizer` must be 'lbfgs', 'adam' or an optax transformation, got {optimizer!r}."
+        )
+    for name, value in (
+        ("learning_rate", learning_rate),
+        ("gtol", gtol),
+        ("identifiability_rtol", identifiability_rtol),
+    ):
         if value is None:
             continue
         if jnp.ndim(value) != 0 or not is_concrete(value) or not np.isfinite(float(value)):
             raise ValueError(f"`{name}` must be a finite Python number, got {value!r}.")
         if float(value) < 0 or (name != "gtol" and float(value) == 0):
-            raise ValueError(f"`{name}` must be {'≥' if name == 'gtol' else '>'} 0, got {float(value)}.")
+            raise ValueError(
+                f"`{name}` must be {'≥' if name == 'gtol' else '>'} 0, got {float(value)}."
+            )
     if jnp.ndim(h) != 0:
         raise ValueError(f"`h` must be a scalar step size, got shape {jnp.shape(h)}.")
     if is_concrete(h):
@@ -373,7 +389,10 @@ def fit_system(
         if is_concrete(trace) and np.any(np.asarray(trace) <= 0):
             raise ValueError(f"`trace` (the gauge) must be > 0, got {np.asarray(trace)}.")
     weights = []
-    for name, w in (("orientation_weight", orientation_weight), ("velocity_weight", velocity_weight)):
+    for name, w in (
+        ("orientation_weight", orientation_weight),
+        ("velocity_weight", velocity_weight),
+    ):
         w = jnp.broadcast_to(w, (n_samples,)) if jnp.ndim(w) == 0 else w
         w = _batched(name, w, batch_shape, (n_samples,))
         check_finite(name, w)
@@ -391,9 +410,13 @@ def fit_system(
     for i in indices:
         value = leaves[i]
         if not is_concrete(value):
-            raise ValueError("The fitted parameters' initial guesses must be concrete arrays, not traced.")
+            raise ValueError(
+                "The fitted parameters' initial guesses must be concrete arrays, not traced."
+            )
         if not eqx.is_array_like(value) or not np.isrealobj(np.asarray(value)):
-            raise ValueError(f"`params` selected a leaf that is not a real array: {type(value).__name__}.")
+            raise ValueError(
+                f"`params` selected a leaf that is not a real array: {type(value).__name__}."
+            )
         value = np.asarray(value, float)
         core = value.shape[len(batch_shape) :] if system_axis == 0 else value.shape
         if system_axis == 0 and value.shape[: len(batch_shape)] != batch_shape:
@@ -411,7 +434,9 @@ def fit_system(
         fitted.append(_Leaf(i, kind, tuple(core)))
     fitted = tuple(fitted)
     if realisable and not any(f.kind != "free" for f in fitted):
-        raise ValueError("`realisable=True` constrains the inertia, which is not among the fitted `params`.")
+        raise ValueError(
+            "`realisable=True` constrains the inertia, which is not among the fitted `params`."
+        )
 
     dtype = jnp.result_type(
         *[x for x in (orientations, angular_velocities, m0, g0, h) if x is not None],
@@ -446,8 +471,14 @@ def fit_system(
     )
     if gauge and trace is None:
         guess = np.asarray(leaves[inertia_leaf.index], float)
-        guess = np.broadcast_to(guess, batch_shape + inertia_leaf.shape) if system_axis is None else guess
-        trace = np.trace(guess, axis1=-2, axis2=-1) if inertia_leaf.kind == "tensor" else guess.sum(-1)
+        guess = (
+            np.broadcast_to(guess, batch_shape + inertia_leaf.shape)
+            if system_axis is None
+            else guess
+        )
+        trace = (
+            np.trace(guess, axis1=-2, axis2=-1) if inertia_leaf.kind == "tensor" else guess.sum(-1)
+        )
     trace = jnp.asarray(trace, dtype) if gauge else None
 
     if gtol is None:
@@ -457,16 +488,26 @@ def fit_system(
     if identifiability_rtol is None:
         identifiability_rtol = float(jnp.finfo(dtype).eps) ** (1 / 3)
     if horizons is None:
-        horizons = tuple(min(4 * 2**i, n_samples) for i in range(int(np.ceil(np.log2(max(n_samples / 4, 1)))) + 1))
+        horizons = tuple(
+            min(4 * 2**i, n_samples)
+            for i in range(int(np.ceil(np.log2(max(n_samples / 4, 1)))) + 1)
+        )
     horizons = tuple(int(x) for x in horizons)
-    if not horizons or horizons[-1] != n_samples or any(b <= a for a, b in zip(horizons, horizons[1:])) or horizons[0] < 2:
+    if (
+        not horizons
+        or horizons[-1] != n_samples
+        or any(b <= a for a, b in zip(horizons, horizons[1:]))
+        or horizons[0] < 2
+    ):
         raise ValueError(
             f"`horizons` must increase from ≥ 2 to the number of samples ({n_samples}), got {horizons}."
         )
 
     cast = lambda x: None if x is None else jnp.asarray(x, dtype)
     n_bodies = int(np.prod(batch_shape)) if batch_shape else 1
-    flat = lambda x: None if x is None else jnp.reshape(x, (n_bodies,) + jnp.shape(x)[len(batch_shape) :])
+    flat = lambda x: (
+        None if x is None else jnp.reshape(x, (n_bodies,) + jnp.shape(x)[len(batch_shape) :])
+    )
     data = dict(
         orientations=cast(orientations),
         angular_velocities=cast(angular_velocities),
@@ -563,7 +604,10 @@ def fit_inertia(
         raise ValueError("`inertia` (the initial guess) must be a concrete array, not traced.")
     check_finite("inertia", inertia)
     if jnp.shape(inertia) == core:
-        system, axis = RigidBody(jnp.asarray(np.asarray(inertia, float)) if tensor else inertia), None
+        system, axis = (
+            RigidBody(jnp.asarray(np.asarray(inertia, float)) if tensor else inertia),
+            None,
+        )
         _from_inertia(inertia, tensor, realisable)  # the guess's own error message first
     else:
         flat = np.asarray(inertia, float).reshape((-1,) + core)
@@ -615,7 +659,11 @@ def _check_rotations(name, x, group):
     if not is_concrete(x):
         return
     x = np.asarray(x)
-    tol = max(1e-6, 100 * float(np.finfo(x.dtype).eps)) if np.issubdtype(x.dtype, np.floating) else 1e-6
+    tol = (
+        max(1e-6, 100 * float(np.finfo(x.dtype).eps))
+        if np.issubdtype(x.dtype, np.floating)
+        else 1e-6
+    )
     with jax.ensure_compile_time_eval():
         defect = np.asarray(group.membership_defect(jnp.asarray(x, float)))
     if np.any(defect > tol):
@@ -683,7 +731,16 @@ class _Config(eqx.Module):
     def residuals(self, system, m0, g0, data, h, horizon):
         """Weighted residual vector, failed-sample penalty, count of failed samples, result."""
         n_steps = (self.n_samples - 1) * self.sample_every
-        sol = simulate(system, self.integrator, g0, m0, h=h, n_steps=n_steps, save_every=self.sample_every, throw=False)
+        sol = simulate(
+            system,
+            self.integrator,
+            g0,
+            m0,
+            h=h,
+            n_steps=n_steps,
+            save_every=self.sample_every,
+            throw=False,
+        )
         dtype = sol.m.dtype
         valid = jnp.all(jnp.isfinite(sol.m), axis=-1) & jnp.all(jnp.isfinite(sol.g), axis=(-2, -1))
         counted = (jnp.arange(self.n_samples) < horizon).astype(dtype)
@@ -710,7 +767,11 @@ class _Config(eqx.Module):
     def unpack(self, params, dynamic, data):
         values = self.leaf_values(params["theta"], data)
         m0 = data["m0"] if data["m0"] is not None else params["m0"]
-        g0 = data["g0"] if data["g0"] is not None else data["orientations"][0] @ SO3.exp(params["g0_chart"])
+        g0 = (
+            data["g0"]
+            if data["g0"] is not None
+            else data["orientations"][0] @ SO3.exp(params["g0_chart"])
+        )
         return values, m0, g0
 
     def loss_terms(self, params, dynamic, data, h, horizon):
@@ -719,7 +780,9 @@ class _Config(eqx.Module):
         dtype = h.dtype
         params = jax.tree.map(lambda x: x.astype(dtype), params)
         values, m0, g0 = self.unpack(params, dynamic, data)
-        r, penalty, failed, result = self.residuals(self.system_of(values, dynamic), m0, g0, data, h, horizon)
+        r, penalty, failed, result = self.residuals(
+            self.system_of(values, dynamic), m0, g0, data, h, horizon
+        )
         return jnp.sum(r**2) + penalty, (failed, result)
 
     # -- the optimiser
@@ -866,7 +929,8 @@ def _identifiability(config, params, dynamic, data, h):
         phys = unravel(p)
         # a tensor is perturbed symmetrically (its lower entries mirror the upper ones)
         vals = [
-            jnp.triu(v) + jnp.triu(v, 1).T if f.kind == "tensor" else v for f, v in zip(config.fitted, phys["values"])
+            jnp.triu(v) + jnp.triu(v, 1).T if f.kind == "tensor" else v
+            for f, v in zip(config.fitted, phys["values"])
         ]
         m = phys.get("m0", m0)
         g = g0 if "g0_chart" not in phys else data["orientations"][0] @ SO3.exp(phys["g0_chart"])
@@ -878,15 +942,21 @@ def _identifiability(config, params, dynamic, data, h):
         for key in ("m0", "g0_chart"):
             if key in physical:
                 tree[key] = np.zeros(jnp.shape(physical[key]))
-        return np.concatenate([np.ravel(np.asarray(x, float)) for x in jax.tree.leaves(tree)])  # ravel_pytree's order
+        return np.concatenate(
+            [np.ravel(np.asarray(x, float)) for x in jax.tree.leaves(tree)]
+        )  # ravel_pytree's order
 
     # Admissible perturbations: upper-triangular entries of tensors; with the gauge, the
     # inertia's trace held.
-    lower = marks(lambda f: np.tril(np.ones((3, 3)), -1) if f.kind == "tensor" else np.zeros(f.shape))
+    lower = marks(
+        lambda f: np.tril(np.ones((3, 3)), -1) if f.kind == "tensor" else np.zeros(f.shape)
+    )
     keep = np.flatnonzero(lower == 0)
     basis = np.eye(flat.shape[0])[:, keep]
     if data["trace"] is not None:
-        c = marks(lambda f: np.eye(3) if f.kind == "tensor" else np.ones(f.shape) * (f.kind == "moments"))[keep]
+        c = marks(
+            lambda f: np.eye(3) if f.kind == "tensor" else np.ones(f.shape) * (f.kind == "moments")
+        )[keep]
         _, _, vt = np.linalg.svd(c[None, :])
         basis = basis @ vt[1:].T  # an orthonormal basis of the trace-preserving directions
     basis = jnp.asarray(basis, dtype)
@@ -902,11 +972,14 @@ def _identifiability(config, params, dynamic, data, h):
     null = (null / scale) @ basis.T  # in the physical coordinates
     # Each physical coordinate in units of its own sensitivity; each direction normalised.
     weighted = null * jnp.where(sensitivity > 0, sensitivity, 1.0)
-    weighted = weighted / jnp.maximum(jnp.linalg.norm(weighted, axis=1, keepdims=True), jnp.finfo(dtype).tiny)
+    weighted = weighted / jnp.maximum(
+        jnp.linalg.norm(weighted, axis=1, keepdims=True), jnp.finfo(dtype).tiny
+    )
     moved = (jnp.max(jnp.abs(weighted), axis=0) > 0.05) | (sensitivity == 0)
     moved = unravel(moved.astype(dtype))
     moved["values"] = [
-        (v + v.T) > 0 if f.kind == "tensor" else v > 0 for f, v in zip(config.fitted, moved["values"])
+        (v + v.T) > 0 if f.kind == "tensor" else v > 0
+        for f, v in zip(config.fitted, moved["values"])
     ]
     flags = jax.tree.map(lambda x: ~(x > 0), moved)
     condition = jnp.where(full_rank, s[0] / s[-1], jnp.inf)
@@ -921,7 +994,12 @@ def _finish_one(config, carry, dynamic, data, h):
     optimised = carry.done & (carry.stage == last)
     reason = jnp.select(
         [~jnp.isfinite(value), failed > 0, ~full_rank, optimised],
-        [FIT_REASONS.nonfinite, FIT_REASONS.failed_samples, FIT_REASONS.unidentifiable, FIT_REASONS.converged],
+        [
+            FIT_REASONS.nonfinite,
+            FIT_REASONS.failed_samples,
+            FIT_REASONS.unidentifiable,
+            FIT_REASONS.converged,
+        ],
         FIT_REASONS.max_iters,
     ).astype(jnp.int32)
     # `system`, `params`, `identifiable` are assembled outside the compiled function (the
@@ -958,7 +1036,9 @@ def _start(config, theta0, dynamic, data, h):
 
 @eqx.filter_jit
 def _advance(config, n_iters, carry, dynamic, data, h):
-    return jax.vmap(lambda c, dyn, dat: _advance_one(config, n_iters, c, dyn, dat, h))(carry, dynamic, data)
+    return jax.vmap(lambda c, dyn, dat: _advance_one(config, n_iters, c, dyn, dat, h))(
+        carry, dynamic, data
+    )
 
 
 @eqx.filter_jit
@@ -991,6 +1071,8 @@ def _iterate(config, check_every, carry, dynamic, data, h):
             sub = _advance(config, check_every, carry, dynamic, data, h)
             carry = sub
             continue
-        sub = _advance(config, check_every, take(carry, idx), take(dynamic, idx), take(data, idx), h)
+        sub = _advance(
+            config, check_every, take(carry, idx), take(dynamic, idx), take(data, idx), h
+        )
         sub = take(sub, np.arange(active.size))
         carry = jax.tree.map(lambda full, part, rows=active: full.at[rows].set(part), carry, sub)

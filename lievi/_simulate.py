@@ -39,7 +39,9 @@ class Solution(eqx.Module):
     result: Int[Array, ""]
     stats: dict[str, Array]
 
-    def angular_velocity(self, system: AbstractLieSystem, frame: str = "body") -> Float[Array, "T d"]:
+    def angular_velocity(
+        self, system: AbstractLieSystem, frame: str = "body"
+    ) -> Float[Array, "T d"]:
         """Angular velocity along the trajectory (frames: docs/theory/conventions.md).
 
         **Arguments:**
@@ -178,7 +180,9 @@ def simulate(
     _check_step_size(h)
     check_scalar("t0", t0)
     if (m0 is None) == (g1 is None):
-        raise ValueError("Give exactly one of `m0` (initial momentum) and `g1` (second configuration).")
+        raise ValueError(
+            "Give exactly one of `m0` (initial momentum) and `g1` (second configuration)."
+        )
     g0 = _as_array("g0", g0)
     system.check_element("g0", g0)
     if g1 is not None and forcing is not None:
@@ -189,7 +193,9 @@ def simulate(
     valid = jnp.asarray(True)
     if g1 is not None:
         if not isinstance(integrator, AbstractVariationalIntegrator):
-            raise ValueError("`g1` needs a variational integrator (one with a discrete Lagrangian).")
+            raise ValueError(
+                "`g1` needs a variational integrator (one with a discrete Lagrangian)."
+            )
         g1 = _as_array("g1", g1)
         system.check_element("g1", g1)
         dtype = state_dtype(system, g0, g1, h)
@@ -216,7 +222,19 @@ def simulate(
     # computation, so a traced bad value (under jit/vmap) is reported per body.
     valid = valid & input_valid(system, g0, m0, h, t0)
     solution = _simulate(
-        system, integrator, g0, m0, h, t0, n_steps, save_every, segment, valid, progress, forcing, args
+        system,
+        integrator,
+        g0,
+        m0,
+        h,
+        t0,
+        n_steps,
+        save_every,
+        segment,
+        valid,
+        progress,
+        forcing,
+        args,
     )
     if throw:
         # The check rides on every output (not only `result`): under the caller's `jit`
@@ -271,7 +289,11 @@ def _checkpoint_segment(checkpoint, n_steps: int, save_every: int) -> int | None
     if checkpoint is True:
         # √N segments of √N steps minimise stored states + one segment's internals.
         return min(allowed, key=lambda c: abs(np.log(c) - 0.5 * np.log(n_steps)))
-    if isinstance(checkpoint, bool) or not isinstance(checkpoint, (int, np.integer)) or checkpoint not in allowed:
+    if (
+        isinstance(checkpoint, bool)
+        or not isinstance(checkpoint, (int, np.integer))
+        or checkpoint not in allowed
+    ):
         raise ValueError(
             f"`checkpoint` must be True, False, or a segment length in steps that divides "
             f"`save_every` ({save_every}) or is a multiple of it dividing `n_steps` ({n_steps}); "
@@ -419,7 +441,8 @@ def _simulate(
     # then accumulates one row of the cotangent per step.
     per_step = None if forcing is None else forcing.per_step()
     per_step = jax.tree.map(
-        lambda x: jnp.asarray(x, m0.dtype).reshape((n_saves, save_every) + jnp.shape(x)[1:]), per_step
+        lambda x: jnp.asarray(x, m0.dtype).reshape((n_saves, save_every) + jnp.shape(x)[1:]),
+        per_step,
     )
     final, (gs, ms, iterations, total, residuals) = _scan_in_segments(
         one_save, init, n_saves, outer, per_step

@@ -28,7 +28,9 @@ def _batched(fn, core_ndim: int, x):
 
 
 def energy(
-    system: AbstractLieSystem, m: Float[Array, "*batch d"], g: Float[Array, "*batch n n"] | None = None
+    system: AbstractLieSystem,
+    m: Float[Array, "*batch d"],
+    g: Float[Array, "*batch n n"] | None = None,
 ) -> Float[Array, "*batch"]:
     """The total energy `H(m) + V(g)` (for the rigid body `½ Πᵀ I⁻¹ Π + V(g)`).
 
@@ -72,7 +74,7 @@ def orthogonality_defect(system: AbstractLieSystem, g: Float[Array, "*batch n n"
     return system.group.membership_defect(g)
 
 
-def relative_drift(values: Float[Array, "T *rest"]) -> Scalar:
+def relative_drift(values: Float[Array, T * rest]) -> Scalar:
     """`max_k |v_k − v_0| / |v_0|` over the first axis (∞-norm over the rest)."""
     v0 = values[0]
     scale = jnp.maximum(jnp.max(jnp.abs(v0)), jnp.finfo(values.dtype).tiny)

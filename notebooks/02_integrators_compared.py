@@ -35,6 +35,7 @@
 
 # %% tags=["parameters"]
 import os
+
 SMALL = os.environ.get("LIEVI_NOTEBOOK_SMALL", "0") not in ("", "0")
 T = 2.0 if SMALL else 10.0  # final time of the work-precision study
 STEPS = [50, 100] if SMALL else [25 * 2**k for k in range(8)]  # steps to T
@@ -43,15 +44,18 @@ N_ACCEPT = 2_500  # order-6 preprocessed DMV at T = 10 (h = 0.004)
 
 # %%
 import time
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
+
 jax.config.update("jax_enable_x64", True)
 import lievi
 from lievi import diagnostics
 from lievi._integrators._preprocessed_dmv import modification_series
+
 # %config InlineBackend.figure_formats = ["png"]
 plt.rcParams.update({"figure.dpi": 100, "axes.grid": True, "grid.alpha": 0.3})
 print("lievi", lievi.__version__, "| jax", jax.__version__, "| SMALL =", SMALL)
@@ -212,6 +216,7 @@ fig.tight_layout()
 # %%
 import json
 from pathlib import Path
+
 results = Path("..") / "benchmarks" / "results"
 if (results / "accuracy.json").exists():
     data = json.loads((results / "accuracy.json").read_text())

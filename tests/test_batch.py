@@ -10,9 +10,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import ROUNDOFF, ROUNDOFF_F32, random_rotation
 
 import lievi
+from helpers import ROUNDOFF, ROUNDOFF_F32, random_rotation
 from lievi._batch import _fast_explicit, _fast_so3
 
 CHARTS = ("exp", "cayley")
@@ -72,7 +72,9 @@ def test_batched_equals_per_body(runs, problem):
     bodies, g0, m0, h = problem
     for b in (0, 7, BATCH - 1):
         body = lievi.RigidBody(bodies.inertia[b])
-        single = lievi.simulate(body, dep, g0[b], m0[b], h=h[b], n_steps=STEPS, save_every=SAVE_EVERY)
+        single = lievi.simulate(
+            body, dep, g0[b], m0[b], h=h[b], n_steps=STEPS, save_every=SAVE_EVERY
+        )
         np.testing.assert_allclose(generic.m[b], single.m, rtol=0, atol=ROUNDOFF)
         np.testing.assert_allclose(fast.m[b], single.m, rtol=0, atol=ROUNDOFF)
         np.testing.assert_allclose(fast.g[b], single.g, rtol=0, atol=ROUNDOFF)
@@ -97,13 +99,17 @@ def test_closed_form_jacobian(chart, scale):
     def residual(x):
         if chart == "moser-veselov":
             eye, X = jnp.eye(3), body.group.hat(x)
-            return body.legendre(x) / h - body.group.vee((eye - X / 2) @ body.group.hat(Pi) @ (eye + X / 2))
+            return body.legendre(x) / h - body.group.vee(
+                (eye - X / 2) @ body.group.hat(Pi) @ (eye + X / 2)
+            )
         return dinv(x).T @ body.legendre(x / h) - Pi
 
     r, J = _fast_so3._residual(chart, tuple(xi), tuple(Pi), tuple(inertia / h), True)
     scale_r = 1 + np.abs(residual(xi)).max()
     np.testing.assert_allclose(np.array(r), residual(xi), rtol=0, atol=ROUNDOFF * scale_r)
-    np.testing.assert_allclose(np.array(J), jax.jacfwd(residual)(xi), rtol=0, atol=ROUNDOFF * 10 / h)
+    np.testing.assert_allclose(
+        np.array(J), jax.jacfwd(residual)(xi), rtol=0, atol=ROUNDOFF * 10 / h
+    )
 
 
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
@@ -112,8 +118,14 @@ def test_sincos(dtype):
     float64 on the rounded argument) for angles up to 1e4, both signs, and at 0, ±π/4,
     the quadrant boundaries."""
     rng = np.random.default_rng(0)
-    x = np.concatenate([rng.uniform(-1e4, 1e4, 4000), rng.uniform(-4, 4, 4000),
-                        np.pi / 4 * np.arange(-8, 9), [0.0, -0.0, 1e-30]])
+    x = np.concatenate(
+        [
+            rng.uniform(-1e4, 1e4, 4000),
+            rng.uniform(-4, 4, 4000),
+            np.pi / 4 * np.arange(-8, 9),
+            [0.0, -0.0, 1e-30],
+        ]
+    )
     x = jnp.asarray(x, dtype)
     s, c = jax.jit(_fast_explicit.sincos)(x)
     exact = np.asarray(x, np.float64)
@@ -131,14 +143,20 @@ def test_float32(problem):
     dep = lievi.DEP(chart="exp")
     kwargs = dict(n_steps=STEPS, save_every=SAVE_EVERY, system_axis=0)
     fast = lievi.simulate_batch(bodies32, dep, *args32, h=h.astype(jnp.float32), **kwargs)
-    generic = lievi.simulate_batch(bodies32, dep, *args32, h=h.astype(jnp.float32), fast=False, **kwargs)
+    generic = lievi.simulate_batch(
+        bodies32, dep, *args32, h=h.astype(jnp.float32), fast=False, **kwargs
+    )
     exact = lievi.simulate_batch(bodies, dep, g0, m0, h=h, **kwargs)
     assert fast.m.dtype == jnp.float32 and fast.g.dtype == jnp.float32
     np.testing.assert_array_equal(fast.result, 0)
     np.testing.assert_allclose(fast.m, generic.m, rtol=0, atol=ROUNDOFF_F32)
     np.testing.assert_allclose(fast.m, exact.m, rtol=0, atol=ROUNDOFF_F32)
     norms = np.linalg.norm(np.asarray(fast.m, np.float64), axis=-1)
-    np.testing.assert_allclose(norms, np.broadcast_to(norms[:, :1], norms.shape), rtol=10 * STEPS * np.finfo(np.float32).eps)
+    np.testing.assert_allclose(
+        norms,
+        np.broadcast_to(norms[:, :1], norms.shape),
+        rtol=10 * STEPS * np.finfo(np.float32).eps,
+    )
 
 
 @pytest.mark.slow
@@ -282,16 +300,23 @@ print("SHARDED OK")
 
 def test_sharded_equals_unsharded():
     """On 4 (forced host) CPU devices the sharded batch equals the unsharded one."""
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    env = dict(
+        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu"
+    )
     done = subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(_SHARDED)], env=env, capture_output=True, text=True, timeout=600
+        [sys.executable, "-c", textwrap.dedent(_SHARDED)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert "SHARDED OK" in done.stdout, done.stdout + done.stderr
 
 
 @pytest.mark.parametrize(
     "name",
-    ["dep-exp", "splitting"] + [pytest.param(n, marks=pytest.mark.slow) for n in ("dep-cayley", "moser-veselov", "rk4")],
+    ["dep-exp", "splitting"]
+    + [pytest.param(n, marks=pytest.mark.slow) for n in ("dep-cayley", "moser-veselov", "rk4")],
 )
 def test_fast_path_gradient_equals_generic(name):
     """Reverse mode through the fast path (implicit function theorem at every root, with
@@ -301,15 +326,26 @@ def test_fast_path_gradient_equals_generic(name):
     rng = np.random.default_rng(3)
     batch, steps, save_every = 6, 12, 4
     bodies, g0, m0, h = random_batch(rng, batch)
-    weights = (jnp.asarray(rng.normal(size=(batch, 4, 3, 3))), jnp.asarray(rng.normal(size=(batch, 4, 3))))
+    weights = (
+        jnp.asarray(rng.normal(size=(batch, 4, 3, 3))),
+        jnp.asarray(rng.normal(size=(batch, 4, 3))),
+    )
     integrator = FAST[name]
 
     def loss(params, fast, checkpoint=False):
         # g₀ perturbed through the exponential chart, so its gradient is a tangent vector.
         g = g0 @ lievi.SO3.exp(params["g0_chart"])
         sol = lievi.simulate_batch(
-            jax.vmap(lievi.RigidBody)(params["inertia"]), integrator, g, params["m0"], h=params["h"],
-            n_steps=steps, save_every=save_every, system_axis=0, fast=fast, checkpoint=checkpoint,
+            jax.vmap(lievi.RigidBody)(params["inertia"]),
+            integrator,
+            g,
+            params["m0"],
+            h=params["h"],
+            n_steps=steps,
+            save_every=save_every,
+            system_axis=0,
+            fast=fast,
+            checkpoint=checkpoint,
         )
         return jnp.sum(weights[0] * sol.g) + jnp.sum(weights[1] * sol.m)
 
@@ -320,7 +356,9 @@ def test_fast_path_gradient_equals_generic(name):
         for key in params:
             scale = np.max(np.abs(generic[key]))
             assert scale > 0, key
-            np.testing.assert_allclose(fast[key], generic[key], rtol=0, atol=1e-10 * scale, err_msg=key)
+            np.testing.assert_allclose(
+                fast[key], generic[key], rtol=0, atol=1e-10 * scale, err_msg=key
+            )
 
 
 def test_fast_path_gradient_finite_when_a_body_fails():
@@ -333,8 +371,15 @@ def test_fast_path_gradient_finite_when_a_body_fails():
 
     def loss(inertia, fast):
         sol = lievi.simulate_batch(
-            jax.vmap(lievi.RigidBody)(inertia), lievi.DEP(max_steps=6), g0, m0, h=h, n_steps=6,
-            system_axis=0, fast=fast, throw=False,
+            jax.vmap(lievi.RigidBody)(inertia),
+            lievi.DEP(max_steps=6),
+            g0,
+            m0,
+            h=h,
+            n_steps=6,
+            system_axis=0,
+            fast=fast,
+            throw=False,
         )
         # Not |m|²: the Casimir is conserved, so its gradient is round-off noise.
         weights = jnp.array([1.0, -2.0, 3.0])
@@ -347,7 +392,9 @@ def test_fast_path_gradient_finite_when_a_body_fails():
     np.testing.assert_allclose(fast[ok], generic[ok], rtol=0, atol=1e-10 * np.abs(generic).max())
 
 
-@pytest.mark.parametrize("name", ["dep-exp", "splitting", pytest.param("moser-veselov", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "name", ["dep-exp", "splitting", pytest.param("moser-veselov", marks=pytest.mark.slow)]
+)
 def test_heavy_top_fast_path(name):
     """Rigid bodies in uniform gravity (heavy tops, a batch of masses and centres of mass):
     the fast path (half kick with the closed-form torque `mγ Γ × ρ`, free kernel, half
@@ -359,7 +406,9 @@ def test_heavy_top_fast_path(name):
     com = jnp.asarray(0.3 * rng.normal(size=(batch, 3)))
 
     def tops(inertia, mass, com):
-        return jax.vmap(lambda i, m, c: lievi.RigidBody(i, lievi.UniformGravity(m, c, 1.0)))(inertia, mass, com)
+        return jax.vmap(lambda i, m, c: lievi.RigidBody(i, lievi.UniformGravity(m, c, 1.0)))(
+            inertia, mass, com
+        )
 
     integrator = FAST[name]
     assert lievi.has_fast_path(tops(bodies.inertia, mass, com), integrator, system_axis=0)

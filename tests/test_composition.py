@@ -13,9 +13,8 @@ import numpy as np
 import pytest
 
 import lievi
-from lievi import diagnostics as dg
-
 from helpers import ROUNDOFF, hlw_problem, random_generalized_body
+from lievi import diagnostics as dg
 
 ORDER_TOLERANCE = 0.2
 T = 2.0

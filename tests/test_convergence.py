@@ -5,14 +5,12 @@ The order is fitted by regression of log error on log h against a DOP853 referen
 answer to the question at the end of the paper's §5 is yes for the exponential chart.
 """
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import lievi
-from lievi import diagnostics as dg
-
 from helpers import INTEGRATOR_IDS, INTEGRATORS, ROUNDOFF, hlw_problem, random_generalized_body
+from lievi import diagnostics as dg
 
 ORDER_TOLERANCE = 0.1
 

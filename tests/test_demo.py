@@ -102,7 +102,9 @@ def test_demo_heavy_top(tmp_path, capsys):
     Casimirs |Γ|² and Π·Γ kept to round-off by the Lie–Poisson integrators, the energy
     (with V) bounded, the DEL residual (with V) at round-off."""
     table = tmp_path / "top.json"
-    args = build_parser().parse_args(["demo", "--problem", "heavy-top", "--steps", "40", "--json", str(table)])
+    args = build_parser().parse_args(
+        ["demo", "--problem", "heavy-top", "--steps", "40", "--json", str(table)]
+    )
     assert _demo.main(args) == 0
     out = capsys.readouterr().out
     assert "heavy top" in out and "Π·Γ" in out
@@ -110,7 +112,11 @@ def test_demo_heavy_top(tmp_path, capsys):
     assert document["problem"]["name"] == "asymmetric heavy top"
     assert document["problem"]["center_of_mass"] == list(_demo.CENTER_OF_MASS)
     rows = {row["integrator"]: row for row in document["rows"]}
-    expected = [name for name, i in _demo.INTEGRATORS if not isinstance(i, _demo.lievi.PreprocessedMoserVeselov)]
+    expected = [
+        name
+        for name, i in _demo.INTEGRATORS
+        if not isinstance(i, _demo.lievi.PreprocessedMoserVeselov)
+    ]
     assert list(rows) == expected
     for name, row in rows.items():
         assert row["result"] == 0 and 0 < row["error_m"] < 0.1, name
@@ -129,7 +135,9 @@ def test_demo_checks_output_paths_before_the_run(tmp_path, capsys, monkeypatch):
     ran = []
     monkeypatch.setattr(_demo, "run_integrator", lambda *a, **k: ran.append(a))
     missing = tmp_path / "no" / "such" / "dir" / "out.json"
-    args = build_parser().parse_args(["demo", "--steps", "3", "--json", str(missing), "--plot", str(tmp_path)])
+    args = build_parser().parse_args(
+        ["demo", "--steps", "3", "--json", str(missing), "--plot", str(tmp_path)]
+    )
     assert _demo.main(args) == 2
     err = capsys.readouterr().err
     assert "--json" in err and "does not exist" in err

@@ -11,9 +11,8 @@ import numpy as np
 import pytest
 
 import lievi
-from lievi import diagnostics as dg
-
 from helpers import INTEGRATOR_IDS, INTEGRATORS, ROUNDOFF, hlw_problem, random_generalized_body
+from lievi import diagnostics as dg
 
 
 @pytest.mark.parametrize("integrator", INTEGRATORS, ids=INTEGRATOR_IDS)
@@ -153,7 +152,9 @@ def test_batched_equals_per_body(integrator):
     momenta = jnp.asarray(rng.normal(size=(4, 3)))
 
     def run(inertia, m0):
-        sol = lievi.simulate(lievi.RigidBody(inertia), integrator, jnp.eye(3), m0, h=0.1, n_steps=20, throw=False)
+        sol = lievi.simulate(
+            lievi.RigidBody(inertia), integrator, jnp.eye(3), m0, h=0.1, n_steps=20, throw=False
+        )
         return sol.g, sol.m, sol.result
 
     gs, ms, results = jax.vmap(run)(inertias, momenta)
@@ -175,7 +176,10 @@ def test_implicit_derivative_matches_finite_differences():
     jac_rev = jax.jacrev(final_momentum)(m0)
     eps = 1e-6
     fd = jnp.stack(
-        [(final_momentum(m0 + eps * e) - final_momentum(m0 - eps * e)) / (2 * eps) for e in jnp.eye(3)],
+        [
+            (final_momentum(m0 + eps * e) - final_momentum(m0 - eps * e)) / (2 * eps)
+            for e in jnp.eye(3)
+        ],
         axis=-1,
     )
     np.testing.assert_allclose(jac, fd, rtol=0, atol=1e-8)

@@ -19,7 +19,6 @@ import numpy as np
 import pytest
 
 import lievi
-
 from helpers import ROUNDOFF, hlw_problem, random_generalized_body
 
 MV = lievi.MoserVeselov()

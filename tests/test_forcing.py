@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 import lievi
-
 from helpers import ROUNDOFF, hlw_problem
 
 INERTIA = jnp.array([2.0, 1.0, 2.0 / 3.0])
@@ -74,7 +73,13 @@ def test_zero_forcing_is_the_unforced_run(integrator, with_potential):
         system, integrator, g0, M0, h=0.1, n_steps=n, forcing=lievi.Control(jnp.zeros((n, 3)))
     )
     zero_law = lievi.simulate(
-        system, integrator, g0, M0, h=0.1, n_steps=n, forcing=lievi.ForceLaw(lambda t, g, m, a: 0 * m)
+        system,
+        integrator,
+        g0,
+        M0,
+        h=0.1,
+        n_steps=n,
+        forcing=lievi.ForceLaw(lambda t, g, m, a: 0 * m),
     )
     for forced in (zero_control, zero_law):
         assert float(jnp.max(jnp.abs(forced.m - free.m))) <= 1e-14
@@ -108,7 +113,9 @@ def observed_order(system, integrator, hs, T, forcing, args):
 def test_order_with_a_force_law_and_a_potential(integrator, order):
     """Heavy top + damping + time-varying torques, against DOP853 with the same forces."""
     top = lievi.heavy_top(INERTIA, 1.0, RHO, 1.0)
-    p = observed_order(top, integrator, [0.1, 0.05, 0.025], 2.0, lievi.ForceLaw(mixed_law), (0.3, 0.5))
+    p = observed_order(
+        top, integrator, [0.1, 0.05, 0.025], 2.0, lievi.ForceLaw(mixed_law), (0.3, 0.5)
+    )
     assert abs(p - order) < ORDER_TOLERANCE, p
 
 
@@ -189,7 +196,9 @@ def test_damping_decays_to_rest_with_the_work_balance(integrator):
         # O(h²) oscillation of the free body's energy.
         assert float(jnp.max(E - jax.lax.cummin(E))) <= 1e-15
         assert float(E[-1]) < 1e-6 * float(E[0])  # at rest
-        imbalance.append(float(jnp.max(jnp.abs(E - E[0] - jnp.concatenate([jnp.zeros(1), jnp.cumsum(work)])))))
+        imbalance.append(
+            float(jnp.max(jnp.abs(E - E[0] - jnp.concatenate([jnp.zeros(1), jnp.cumsum(work)]))))
+        )
         final_error.append(abs(float(E[-1]) - E_ref))
     assert 3.6 < imbalance[0] / imbalance[1] < 4.4, imbalance  # O(h²)
     assert imbalance[1] < 1e-4 * float(E[0])
@@ -201,7 +210,14 @@ def _control_loss(body, integrator, n, h):
 
     def loss(u):
         sol = lievi.simulate(
-            body, integrator, jnp.eye(3), M0, h=h, n_steps=n, forcing=lievi.Control(u), checkpoint=True
+            body,
+            integrator,
+            jnp.eye(3),
+            M0,
+            h=h,
+            n_steps=n,
+            forcing=lievi.Control(u),
+            checkpoint=True,
         )
         return jnp.sum((sol.g[-1] - g_target) ** 2) + jnp.sum(sol.m[-1] ** 2) + 1e-3 * jnp.sum(u**2)
 
@@ -209,7 +225,8 @@ def _control_loss(body, integrator, n, h):
 
 
 @pytest.mark.parametrize(
-    "integrator", first_in_default_suite([lievi.DEP(), lievi.MoserVeselov()], ["dep-exp", "moser-veselov"])
+    "integrator",
+    first_in_default_suite([lievi.DEP(), lievi.MoserVeselov()], ["dep-exp", "moser-veselov"]),
 )
 def test_gradient_of_a_whole_control_sequence(integrator):
     """500 × 3 controls: `jax.grad` (checkpointed) against central differences."""
@@ -254,21 +271,27 @@ def test_jacfwd_equals_jacrev_for_controls_and_law_parameters():
     # The damping coefficient against central differences.
     eps = 1e-6
     fd = (final_state(u, (0.3 + eps, 0.5)) - final_state(u, (0.3 - eps, 0.5))) / (2 * eps)
-    assert float(jnp.max(jnp.abs(fd - forward[1][0]))) <= GRADIENT_RTOL * float(jnp.max(jnp.abs(fd)))
+    assert float(jnp.max(jnp.abs(fd - forward[1][0]))) <= GRADIENT_RTOL * float(
+        jnp.max(jnp.abs(fd))
+    )
 
 
 @pytest.mark.slow
 def test_checkpoint_and_save_every_give_the_same_run():
     body, n, h = lievi.RigidBody(INERTIA), 60, 0.05
     u = jnp.asarray(np.random.default_rng(3).normal(size=(n, 3)))
-    run = lambda **kw: lievi.simulate(body, lievi.DEP(), g0_tilted(), M0, h=h, n_steps=n, forcing=lievi.Control(u), t0=1.0, **kw)
+    run = lambda **kw: lievi.simulate(
+        body, lievi.DEP(), g0_tilted(), M0, h=h, n_steps=n, forcing=lievi.Control(u), t0=1.0, **kw
+    )
     every = run()
     sparse = run(save_every=6, checkpoint=True)
     assert float(jnp.max(jnp.abs(sparse.m - every.m[::6]))) == 0.0
     assert float(jnp.max(jnp.abs(sparse.ts - every.ts[::6]))) <= 1e-14
 
     def loss(u, **kw):
-        sol = lievi.simulate(body, lievi.DEP(), g0_tilted(), M0, h=h, n_steps=n, forcing=lievi.Control(u), **kw)
+        sol = lievi.simulate(
+            body, lievi.DEP(), g0_tilted(), M0, h=h, n_steps=n, forcing=lievi.Control(u), **kw
+        )
         return jnp.sum(sol.m[-1] ** 2)
 
     plain = jax.grad(loss)(u)
@@ -283,7 +306,16 @@ def test_time_reaches_the_force_law():
     def law(t, g, m, args):
         return g.T @ jnp.array([0.0, 0.0, t])  # spatial torque t e₃ on a sphere at rest
 
-    sol = lievi.simulate(body, lievi.DEP(), jnp.eye(3), jnp.zeros(3), h=h, n_steps=n, t0=t0, forcing=lievi.ForceLaw(law))
+    sol = lievi.simulate(
+        body,
+        lievi.DEP(),
+        jnp.eye(3),
+        jnp.zeros(3),
+        h=h,
+        n_steps=n,
+        t0=t0,
+        forcing=lievi.ForceLaw(law),
+    )
     mu3 = spatial(sol.g, sol.m)[:, 2]
     # The trapezoidal rule is exact for a linear torque: μ₃(t) = (t² − t0²)/2.
     assert float(jnp.max(jnp.abs(mu3 - (sol.ts**2 - t0**2) / 2))) <= ROUNDOFF
@@ -300,13 +332,24 @@ def test_batch_with_per_body_controls():
         body, integrator, g0, m0, h=h, n_steps=n, save_every=1, forcing=lievi.Control(u)
     )
     for b in range(B):
-        one = lievi.simulate(body, integrator, g0[b], m0[b], h=h, n_steps=n, forcing=lievi.Control(u[b]))
+        one = lievi.simulate(
+            body, integrator, g0[b], m0[b], h=h, n_steps=n, forcing=lievi.Control(u[b])
+        )
         assert float(jnp.max(jnp.abs(batch.m[b] - one.m))) <= ROUNDOFF
     # A shared force law with args.
     batch = lievi.simulate_batch(
         body, integrator, g0, m0, h=h, n_steps=n, forcing=lievi.ForceLaw(mixed_law), args=(0.3, 0.5)
     )
-    one = lievi.simulate(body, integrator, g0[1], m0[1], h=h, n_steps=n, forcing=lievi.ForceLaw(mixed_law), args=(0.3, 0.5))
+    one = lievi.simulate(
+        body,
+        integrator,
+        g0[1],
+        m0[1],
+        h=h,
+        n_steps=n,
+        forcing=lievi.ForceLaw(mixed_law),
+        args=(0.3, 0.5),
+    )
     assert float(jnp.max(jnp.abs(batch.m[1, -1] - one.m[-1]))) <= ROUNDOFF
     with pytest.raises(ValueError, match="forcing"):
         lievi.simulate_batch(body, integrator, g0, m0, h=h, n_steps=n, forcing=lievi.Control(u[:2]))
@@ -338,23 +381,47 @@ def test_failures_are_reported_and_masked():
     def law(t, g, m, args):
         return jnp.where(t > 0.95, jnp.nan, 0.0) * m
 
-    sol = lievi.simulate(body, lievi.DEP(), jnp.eye(3), M0, h=0.1, n_steps=n, forcing=lievi.ForceLaw(law), throw=False)
+    sol = lievi.simulate(
+        body,
+        lievi.DEP(),
+        jnp.eye(3),
+        M0,
+        h=0.1,
+        n_steps=n,
+        forcing=lievi.ForceLaw(law),
+        throw=False,
+    )
     assert int(sol.result) != int(lievi.RESULTS.successful)
     k = int(sol.stats["failed_step"])
     assert 8 <= k <= 10
     assert bool(jnp.all(jnp.isfinite(sol.m[: k + 1]))) and bool(jnp.all(jnp.isnan(sol.m[k + 1 :])))
     with pytest.raises(Exception, match="step failed"):
-        lievi.simulate(body, lievi.DEP(), jnp.eye(3), M0, h=0.1, n_steps=n, forcing=lievi.ForceLaw(law))
+        lievi.simulate(
+            body, lievi.DEP(), jnp.eye(3), M0, h=0.1, n_steps=n, forcing=lievi.ForceLaw(law)
+        )
     # Non-finite controls only known under jit: reported, not silent.
     u = jnp.zeros((n, 3)).at[5].set(jnp.inf)
-    run = jax.jit(lambda u: lievi.simulate(body, lievi.DEP(), jnp.eye(3), M0, h=0.1, n_steps=n, forcing=lievi.Control(u), throw=False))
+    run = jax.jit(
+        lambda u: lievi.simulate(
+            body,
+            lievi.DEP(),
+            jnp.eye(3),
+            M0,
+            h=0.1,
+            n_steps=n,
+            forcing=lievi.Control(u),
+            throw=False,
+        )
+    )
     sol = run(u)
     assert int(sol.result) != int(lievi.RESULTS.successful) and int(sol.stats["failed_step"]) == 5
 
 
 def test_bad_input():
     body, n = lievi.RigidBody(INERTIA), 10
-    run = lambda forcing, **kw: lievi.simulate(body, lievi.DEP(), jnp.eye(3), M0, h=0.1, n_steps=n, forcing=forcing, **kw)
+    run = lambda forcing, **kw: lievi.simulate(
+        body, lievi.DEP(), jnp.eye(3), M0, h=0.1, n_steps=n, forcing=forcing, **kw
+    )
     with pytest.raises(ValueError, match=r"`forcing`.*\(10, 3\)"):
         run(lievi.Control(jnp.zeros((n, 2))))
     with pytest.raises(ValueError, match=r"`forcing`.*\(10, 3\)"):
@@ -368,21 +435,62 @@ def test_bad_input():
     with pytest.raises(ValueError, match=r"`forcing`.*lievi.Control\(u\)"):
         run(jnp.zeros((n, 3)))
     with pytest.raises(ValueError, match="g1"):
-        lievi.simulate(body, lievi.DEP(), jnp.eye(3), g1=lievi.SO3.exp(jnp.array([0.1, 0, 0])), h=0.1, n_steps=n, forcing=lievi.Control(jnp.zeros((n, 3))))
+        lievi.simulate(
+            body,
+            lievi.DEP(),
+            jnp.eye(3),
+            g1=lievi.SO3.exp(jnp.array([0.1, 0, 0])),
+            h=0.1,
+            n_steps=n,
+            forcing=lievi.Control(jnp.zeros((n, 3))),
+        )
     with pytest.raises(ValueError, match="forcing"):
         body_hlw, g0, m0 = hlw_problem()
-        lievi.simulate(body_hlw, lievi.PreprocessedMoserVeselov(4), g0, m0, h=0.1, n_steps=n, forcing=lievi.Control(jnp.zeros((n, 3))))
+        lievi.simulate(
+            body_hlw,
+            lievi.PreprocessedMoserVeselov(4),
+            g0,
+            m0,
+            h=0.1,
+            n_steps=n,
+            forcing=lievi.Control(jnp.zeros((n, 3))),
+        )
 
 
 def test_float32_forced_run():
     body = lievi.RigidBody(INERTIA.astype(jnp.float32))
     n = 50
     u = jnp.asarray(np.random.default_rng(6).normal(size=(n, 3)), jnp.float32)
-    sol = lievi.simulate(body, lievi.DEP(), jnp.eye(3, dtype=jnp.float32), M0.astype(jnp.float32), h=jnp.float32(0.1), n_steps=n, forcing=lievi.Control(u))
-    ref = lievi.simulate(body, lievi.DEP(), jnp.eye(3), M0, h=0.1, n_steps=n, forcing=lievi.Control(u.astype(jnp.float64)))
+    sol = lievi.simulate(
+        body,
+        lievi.DEP(),
+        jnp.eye(3, dtype=jnp.float32),
+        M0.astype(jnp.float32),
+        h=jnp.float32(0.1),
+        n_steps=n,
+        forcing=lievi.Control(u),
+    )
+    ref = lievi.simulate(
+        body,
+        lievi.DEP(),
+        jnp.eye(3),
+        M0,
+        h=0.1,
+        n_steps=n,
+        forcing=lievi.Control(u.astype(jnp.float64)),
+    )
     assert sol.m.dtype == jnp.float32
     assert float(jnp.max(jnp.abs(sol.m - ref.m))) <= 1e-4
     # A float64 constant inside a force law does not promote the float32 run.
     law = lievi.ForceLaw(lambda t, g, m, c: -c * m / INERTIA)
-    sol = lievi.simulate(body, lievi.DEP(), jnp.eye(3, dtype=jnp.float32), M0.astype(jnp.float32), h=jnp.float32(0.1), n_steps=n, forcing=law, args=0.2)
+    sol = lievi.simulate(
+        body,
+        lievi.DEP(),
+        jnp.eye(3, dtype=jnp.float32),
+        M0.astype(jnp.float32),
+        h=jnp.float32(0.1),
+        n_steps=n,
+        forcing=law,
+        args=0.2,
+    )
     assert sol.m.dtype == jnp.float32 and int(sol.result) == int(lievi.RESULTS.successful)

@@ -19,9 +19,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import hlw_problem
 
 import lievi
+from helpers import hlw_problem
 from lievi import SO3
 from lievi._integrators._newton import newton_solve
 
@@ -70,7 +70,10 @@ def _loss(params, integrator, checkpoint=False, n_steps=N_STEPS):
     """A generic trajectory loss: fixed random weights on every saved `g_k` and `Π_k`."""
     sol = _trajectory(params, integrator, n_steps=n_steps, checkpoint=checkpoint)
     saves = n_steps // SAVE_EVERY + 1
-    w_g, w_m = W_G[:saves].astype(sol.g.dtype), W_M[:saves].astype(sol.m.dtype)  # float32 stays float32
+    w_g, w_m = (
+        W_G[:saves].astype(sol.g.dtype),
+        W_M[:saves].astype(sol.m.dtype),
+    )  # float32 stays float32
     return jnp.sum(w_g * sol.g) + jnp.sum(w_m * sol.m)
 
 
@@ -155,7 +158,9 @@ def test_jacfwd_equals_jacrev(compiled):
     for name in params:
         a, b = np.asarray(fwd[name]), np.asarray(rev[name])
         assert np.all(np.isfinite(a)), name
-        np.testing.assert_allclose(a, b, rtol=MODE_RTOL, atol=MODE_RTOL * np.max(np.abs(a)), err_msg=name)
+        np.testing.assert_allclose(
+            a, b, rtol=MODE_RTOL, atol=MODE_RTOL * np.max(np.abs(a)), err_msg=name
+        )
 
 
 def test_gradient_independent_of_newton_iterations(compiled):
@@ -177,9 +182,13 @@ def test_gradient_independent_of_newton_iterations(compiled):
         for name, integrator in (("loose", loose), ("default", dep))
     }
     assert iterations["default"] > iterations["loose"] + n_steps // 2, iterations
-    tight = _flat(jax.jit(jax.grad(lambda p: _loss(p, dep, n_steps=n_steps)))(params) if mv else grad(params))
+    tight = _flat(
+        jax.jit(jax.grad(lambda p: _loss(p, dep, n_steps=n_steps)))(params) if mv else grad(params)
+    )
     loose = _flat(jax.jit(jax.grad(lambda p: _loss(p, loose, n_steps=n_steps)))(params))
-    np.testing.assert_allclose(loose, tight, rtol=ITERATION_RTOL, atol=ITERATION_RTOL * np.max(np.abs(tight)))
+    np.testing.assert_allclose(
+        loose, tight, rtol=ITERATION_RTOL, atol=ITERATION_RTOL * np.max(np.abs(tight))
+    )
 
 
 def _zero_momentum(dtype):
@@ -206,7 +215,12 @@ def test_gradient_finite_at_zero_momentum(compiled):
 
 
 @pytest.mark.parametrize(
-    "chart", ["exp", pytest.param("cayley", marks=pytest.mark.slow), pytest.param("moser-veselov", marks=pytest.mark.slow)]
+    "chart",
+    [
+        "exp",
+        pytest.param("cayley", marks=pytest.mark.slow),
+        pytest.param("moser-veselov", marks=pytest.mark.slow),
+    ],
 )
 def test_gradient_finite_at_zero_momentum_float32(chart):
     dep = INTEGRATORS[chart]
@@ -229,7 +243,10 @@ def test_gradient_under_vmap(compiled):
             # Under vmap the Newton loop runs until every body's solve has converged, so a
             # body may take an extra (converged) iteration: agreement to ITERATION_RTOL.
             np.testing.assert_allclose(
-                batched[name][i], single[name], rtol=ITERATION_RTOL, atol=ITERATION_RTOL * np.max(np.abs(single[name]))
+                batched[name][i],
+                single[name],
+                rtol=ITERATION_RTOL,
+                atol=ITERATION_RTOL * np.max(np.abs(single[name])),
             )
 
 
@@ -241,7 +258,9 @@ def test_gradient_under_vmap(compiled):
 def test_checkpointing_changes_nothing(compiled, checkpoint):
     dep, loss, grad = compiled
     params = _params()
-    value, ckpt = jax.jit(jax.value_and_grad(lambda p: _loss(p, dep, checkpoint=checkpoint)))(params)
+    value, ckpt = jax.jit(jax.value_and_grad(lambda p: _loss(p, dep, checkpoint=checkpoint)))(
+        params
+    )
     np.testing.assert_allclose(float(value), float(loss(params)), rtol=1e-14)
     np.testing.assert_allclose(_flat(ckpt), _flat(grad(params)), rtol=1e-12, atol=1e-12)
 
@@ -260,7 +279,9 @@ def test_gradient_finite_when_a_step_fails():
     body, g0, m0 = hlw_problem()
 
     def loss(inertia, h):
-        sol = lievi.simulate(lievi.RigidBody(inertia), lievi.DEP(), g0, m0, h=h, n_steps=20, throw=False)
+        sol = lievi.simulate(
+            lievi.RigidBody(inertia), lievi.DEP(), g0, m0, h=h, n_steps=20, throw=False
+        )
         valid = jnp.all(jnp.isfinite(sol.m), axis=-1)
         # double where: the masked entries never enter an arithmetic expression
         g = jnp.where(valid[:, None, None], sol.g, 0.0)

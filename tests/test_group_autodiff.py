@@ -21,13 +21,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import test_son
 from scipy.spatial.transform import Rotation
 
 import lievi
-from lievi._groups._so3 import _small_threshold
-
-import test_son
 from helpers import ROUNDOFF, ROUNDOFF_F32
+from lievi._groups._so3 import _small_threshold
 
 SO3 = lievi.SO3
 # See test_son: level 0 halves compile time and keeps floating-point semantics.
@@ -145,14 +144,14 @@ def _host(out, dtype):
     return {name: np.array(value) for name, value in out.items()}
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _so3_report(dtype):
     x, M = (jnp.asarray(a, dtype) for a in (_points(dtype), _matrices(dtype)))
     report = _host(jax.jit(_so3_derivatives, compiler_options=FAST_COMPILE)(x, M), dtype)
     return _with_log_exp(report, len(x))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _son_report(n):
     """On the samples of test_son's report for SOn(n), flattened: 0, 1e-9, 1e-4, both
     sides of θ² = 1e-3, a plane at 3 and at π − 1e-7, random with |x| ≤ 2.5."""

@@ -16,9 +16,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import hlw_problem
 
 import lievi
+from helpers import hlw_problem
 from lievi import SO3
 from lievi._identification import _from_inertia, _to_inertia
 
@@ -33,7 +33,9 @@ GUESS = jnp.array([1.5, 1.2, 1.0])  # a poor initial guess for every body
 def _observe(inertia, m0, g0=None):
     """Noise-free orientations from the model itself (DEP, exp chart)."""
     g0 = jnp.eye(3) if g0 is None else g0
-    sol = lievi.simulate(lievi.RigidBody(inertia), lievi.DEP(), g0, m0, h=H, n_steps=N_STEPS, save_every=EVERY)
+    sol = lievi.simulate(
+        lievi.RigidBody(inertia), lievi.DEP(), g0, m0, h=H, n_steps=N_STEPS, save_every=EVERY
+    )
     return sol.g
 
 
@@ -74,7 +76,9 @@ def batch_fit():
     clean = jax.vmap(_observe)(inertias, momenta)
     observed = clean.at[1].set(_noisy(clean[1], rng))
     weights = jnp.ones(observed.shape[:2]).at[1].set(_noise_weights(observed[1]))
-    fit = lievi.fit_inertia(observed, h=H, sample_every=EVERY, inertia=GUESS, orientation_weight=weights)
+    fit = lievi.fit_inertia(
+        observed, h=H, sample_every=EVERY, inertia=GUESS, orientation_weight=weights
+    )
     return inertias, momenta, observed, fit
 
 
@@ -86,7 +90,9 @@ def test_batch_shapes_and_report(batch_fit):
     np.testing.assert_array_equal(np.asarray(fit.failed_samples), 0)
     np.testing.assert_array_equal(np.asarray(fit.result), lievi.RESULTS.successful)
     # The gauge: the trace is held at that of the initial guess.
-    np.testing.assert_allclose(np.sum(np.asarray(fit.inertia), -1), float(jnp.sum(GUESS)), rtol=1e-13)
+    np.testing.assert_allclose(
+        np.sum(np.asarray(fit.inertia), -1), float(jnp.sum(GUESS)), rtol=1e-13
+    )
     # Loss history: finite while iterating, the final loss last, NaN afterwards. (Entries
     # of different horizon stages are losses over different sample sets.)
     for b in range(3):
@@ -135,7 +141,9 @@ def test_parametrisation(tensor, realisable):
         assert np.all(eig > 0) and np.allclose(matrix, matrix.T)
         if realisable:  # triangle inequalities of the principal moments
             assert eig[2] < eig[0] + eig[1]
-        np.testing.assert_allclose(_from_inertia(inertia, tensor, realisable), theta, rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(
+            _from_inertia(inertia, tensor, realisable), theta, rtol=1e-10, atol=1e-10
+        )
 
 
 def test_bad_arguments():
@@ -143,9 +151,13 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="orientations"):
         lievi.fit_inertia(h=0.1, sample_every=1, inertia=GUESS)
     with pytest.raises(ValueError, match="g0"):
-        lievi.fit_inertia(angular_velocities=jnp.zeros((5, 3)), h=0.1, sample_every=1, inertia=GUESS)
+        lievi.fit_inertia(
+            angular_velocities=jnp.zeros((5, 3)), h=0.1, sample_every=1, inertia=GUESS
+        )
     with pytest.raises(ValueError, match="triangle"):
-        lievi.fit_inertia(R, h=0.1, sample_every=1, inertia=jnp.array([3.0, 1.0, 1.0]), realisable=True)
+        lievi.fit_inertia(
+            R, h=0.1, sample_every=1, inertia=jnp.array([3.0, 1.0, 1.0]), realisable=True
+        )
     with pytest.raises(ValueError, match="inertia"):
         lievi.fit_inertia(R, h=0.1, sample_every=1, inertia=jnp.array([1.0, -1.0, 1.0]))
     with pytest.raises(ValueError, match="orientations"):
@@ -171,12 +183,16 @@ def test_failed_steps_are_penalised_not_nan():
 
     def fit(guess):
         # Π₀ known: no gauge, the scale is identified too.
-        return lievi.fit_inertia(R, h=h, sample_every=1, inertia=guess, m0=m0, g0=jnp.eye(3), horizons=(n + 1,))
+        return lievi.fit_inertia(
+            R, h=h, sample_every=1, inertia=guess, m0=m0, g0=jnp.eye(3), horizons=(n + 1,)
+        )
 
     recovered = fit(jnp.array([2.0, 1.0, 0.3]))
     failed = np.asarray(recovered.failed_history)
     assert failed[0] > 0  # the initial guess fails ...
-    assert np.all(np.isfinite(np.asarray(recovered.loss_history)[: int(recovered.iterations) + 1]))  # ... no NaN
+    assert np.all(
+        np.isfinite(np.asarray(recovered.loss_history)[: int(recovered.iterations) + 1])
+    )  # ... no NaN
     # ... and the fit leaves the failing region for a stationary point with every sample
     # valid. (With one horizon stage this long, large-h fit that point is a local minimum;
     # avoiding those is the job of the horizon continuation, tested above.)
@@ -202,8 +218,16 @@ def test_known_momentum_velocities_adam_tensor():
     np.testing.assert_allclose(np.asarray(fit.inertia), np.asarray(body.inertia), rtol=1e-6)
 
     adam = lievi.fit_inertia(
-        sol.g, h=H, sample_every=EVERY, inertia=GUESS, m0=m0, g0=jnp.eye(3), optimizer="adam",
-        learning_rate=1e-2, max_iters=3000, gtol=1e-8,
+        sol.g,
+        h=H,
+        sample_every=EVERY,
+        inertia=GUESS,
+        m0=m0,
+        g0=jnp.eye(3),
+        optimizer="adam",
+        learning_rate=1e-2,
+        max_iters=3000,
+        gtol=1e-8,
     )
     np.testing.assert_allclose(np.asarray(adam.inertia), np.asarray(body.inertia), rtol=1e-4)
 
@@ -213,14 +237,27 @@ def test_known_momentum_velocities_adam_tensor():
     tensor_true = jnp.asarray(q @ np.diag([1.0, 0.8, 0.6]) @ q.T)
     observed = _observe(tensor_true, m0)
     tensor = lievi.fit_inertia(
-        observed, h=H, sample_every=EVERY, inertia=jnp.diag(GUESS), m0=m0, g0=jnp.eye(3), tensor=True, realisable=True
+        observed,
+        h=H,
+        sample_every=EVERY,
+        inertia=jnp.diag(GUESS),
+        m0=m0,
+        g0=jnp.eye(3),
+        tensor=True,
+        realisable=True,
     )
     assert bool(tensor.converged)
-    np.testing.assert_allclose(np.asarray(tensor.inertia), np.asarray(tensor_true), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(tensor.inertia), np.asarray(tensor_true), rtol=0, atol=1e-6
+    )
 
     f32 = lievi.fit_inertia(
-        sol.g.astype(jnp.float32), h=jnp.float32(H), sample_every=EVERY, inertia=GUESS.astype(jnp.float32),
-        m0=m0.astype(jnp.float32), g0=jnp.eye(3, dtype=jnp.float32),
+        sol.g.astype(jnp.float32),
+        h=jnp.float32(H),
+        sample_every=EVERY,
+        inertia=GUESS.astype(jnp.float32),
+        m0=m0.astype(jnp.float32),
+        g0=jnp.eye(3, dtype=jnp.float32),
     )
     assert f32.inertia.dtype == jnp.float32
     assert bool(f32.converged)
@@ -233,7 +270,11 @@ def test_thousand_bodies_in_one_call():
     inertias, momenta = _random_bodies(rng, 1000)
     observed = _noisy(jax.vmap(_observe)(inertias, momenta), rng)
     fit = lievi.fit_inertia(
-        observed, h=H, sample_every=EVERY, inertia=GUESS, orientation_weight=_noise_weights(observed)
+        observed,
+        h=H,
+        sample_every=EVERY,
+        inertia=GUESS,
+        orientation_weight=_noise_weights(observed),
     )
     err = np.abs(_normalised(fit.inertia) / _normalised(inertias) - 1).max(-1)
     assert np.all(np.isfinite(np.asarray(fit.loss)))
@@ -243,7 +284,9 @@ def test_thousand_bodies_in_one_call():
     excited = np.max(np.abs(np.asarray(momenta)), axis=-1) < 0.99
     converged = np.asarray(fit.converged)
     assert np.mean(converged[excited]) > 0.95
-    assert np.quantile(err[excited & converged], 0.99) <= NOISY_RTOL, np.quantile(err, [0.5, 0.9, 0.99, 1.0])
+    assert np.quantile(err[excited & converged], 0.99) <= NOISY_RTOL, np.quantile(
+        err, [0.5, 0.9, 0.99, 1.0]
+    )
 
 
 # ---- fit_system: any subset of a system's parameters ----------------------------------
@@ -252,13 +295,17 @@ TOP_INERTIA = jnp.array([2.0, 1.0, 2.0 / 3.0])
 TOP_RHO = jnp.array([0.3, -0.2, 0.5])  # off-axis centre of mass
 TOP_G0 = SO3.exp(jnp.array([0.4, -0.3, 0.2]))
 TOP_M0 = jnp.array([np.cos(1.1), 0.0, np.sin(1.1)])
-TOP_GUESS = lievi.heavy_top(jnp.array([1.5, 1.2, 1.0]), 1.0, jnp.array([0.0, 0.0, 0.3]), gravity=1.0)
+TOP_GUESS = lievi.heavy_top(
+    jnp.array([1.5, 1.2, 1.0]), 1.0, jnp.array([0.0, 0.0, 0.3]), gravity=1.0
+)
 TOP_PARAMS = lambda s: (s.inertia, s.potential.center_of_mass)
 
 
 def _observe_top(n_steps, every=EVERY):
     top = lievi.heavy_top(TOP_INERTIA, 1.0, TOP_RHO, gravity=1.0)
-    return lievi.simulate(top, lievi.DEP(), TOP_G0, TOP_M0, h=H, n_steps=n_steps, save_every=every).g
+    return lievi.simulate(
+        top, lievi.DEP(), TOP_G0, TOP_M0, h=H, n_steps=n_steps, save_every=every
+    ).g
 
 
 def _gauge_free_errors(fit):
@@ -278,7 +325,9 @@ def test_heavy_top_inertia_and_center_of_mass_noise_free():
     observed = _observe_top(120, every=6)  # T = 6, 21 samples
     fit = lievi.fit_system(TOP_GUESS, observed, h=H, sample_every=6, params=TOP_PARAMS)
     assert bool(fit.converged), fit.messages()
-    assert isinstance(fit.system, lievi.RigidBody) and isinstance(fit.system.potential, lievi.UniformGravity)
+    assert isinstance(fit.system, lievi.RigidBody) and isinstance(
+        fit.system.potential, lievi.UniformGravity
+    )
     assert fit.system.potential.mass == 1.0  # not fitted
     err_inertia, err_rho = _gauge_free_errors(fit)
     assert err_inertia <= CLEAN_RTOL and err_rho <= CLEAN_RTOL, (err_inertia, err_rho)
@@ -297,7 +346,12 @@ def test_heavy_top_noisy_and_known_momentum():
     rng = np.random.default_rng(5)
     noisy = _noisy(clean, rng)
     fit = lievi.fit_system(
-        TOP_GUESS, noisy, h=H, sample_every=EVERY, params=TOP_PARAMS, orientation_weight=_noise_weights(noisy)
+        TOP_GUESS,
+        noisy,
+        h=H,
+        sample_every=EVERY,
+        params=TOP_PARAMS,
+        orientation_weight=_noise_weights(noisy),
     )
     err_inertia, err_rho = _gauge_free_errors(fit)
     assert err_inertia <= NOISY_RTOL and err_rho <= NOISY_RTOL, (err_inertia, err_rho)
@@ -309,7 +363,9 @@ def test_heavy_top_noisy_and_known_momentum():
     )
     assert bool(known.converged), known.messages()
     assert known.identifiable_m0 is None and known.identifiable_g0 is None
-    np.testing.assert_allclose(np.asarray(known.params[0]), np.asarray(TOP_INERTIA), rtol=CLEAN_RTOL)
+    np.testing.assert_allclose(
+        np.asarray(known.params[0]), np.asarray(TOP_INERTIA), rtol=CLEAN_RTOL
+    )
     np.testing.assert_allclose(np.asarray(known.params[1]), np.asarray(TOP_RHO), rtol=CLEAN_RTOL)
 
 
@@ -320,7 +376,9 @@ SHORT, SHORT_EVERY = 40, 5  # 9 samples
 
 def _free_orientations(m0):
     body, _, _ = hlw_problem()
-    return lievi.simulate(body, lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=SHORT, save_every=SHORT_EVERY).g
+    return lievi.simulate(
+        body, lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=SHORT, save_every=SHORT_EVERY
+    ).g
 
 
 def test_unidentifiable_data_is_reported():
@@ -329,7 +387,11 @@ def test_unidentifiable_data_is_reported():
     tumbling body in the same call is the control."""
     spin = jnp.array([1.3, 0.0, 0.0])
     observed = jnp.stack(
-        [_free_orientations(spin), _free_orientations(jnp.zeros(3)), _free_orientations(hlw_problem()[2])]
+        [
+            _free_orientations(spin),
+            _free_orientations(jnp.zeros(3)),
+            _free_orientations(hlw_problem()[2]),
+        ]
     )
     fit = lievi.fit_inertia(observed, h=H, sample_every=SHORT_EVERY, inertia=GUESS, max_iters=60)
     np.testing.assert_array_equal(np.asarray(fit.converged[:2]), False)
@@ -346,7 +408,13 @@ def test_unidentifiable_data_is_reported():
 
     # Π₀ known: I₁ is determined by the spin rate, I₂ and I₃ are not.
     known = lievi.fit_inertia(
-        observed[0], h=H, sample_every=SHORT_EVERY, inertia=GUESS, m0=spin, g0=jnp.eye(3), max_iters=60
+        observed[0],
+        h=H,
+        sample_every=SHORT_EVERY,
+        inertia=GUESS,
+        m0=spin,
+        g0=jnp.eye(3),
+        max_iters=60,
     )
     assert not bool(known.converged) and int(known.reason) == lievi.FIT_REASONS.unidentifiable
     np.testing.assert_array_equal(np.asarray(known.identifiable), [True, False, False])
@@ -389,7 +457,9 @@ def test_bad_fit_system_params():
     with pytest.raises(ValueError, match="`params`"):
         lievi.fit_system(TOP_GUESS, R, h=H, sample_every=SHORT_EVERY, params=lambda s: s.nothing)
     with pytest.raises(ValueError, match="`params`.*twice"):
-        lievi.fit_system(TOP_GUESS, R, h=H, sample_every=SHORT_EVERY, params=lambda s: (s.inertia, s.inertia))
+        lievi.fit_system(
+            TOP_GUESS, R, h=H, sample_every=SHORT_EVERY, params=lambda s: (s.inertia, s.inertia)
+        )
     with pytest.raises(ValueError, match="`system`"):
         lievi.fit_system(jnp.ones(3), R, h=H, sample_every=SHORT_EVERY)
 
@@ -401,8 +471,18 @@ def test_rounds_drop_finished_bodies_without_changing_results():
     rng = np.random.default_rng(4)
     inertias, momenta = _random_bodies(rng, 5)
     observed = jax.vmap(lambda i, m: _free_orientations_of(i, m))(inertias, momenta)
-    one = lievi.fit_inertia(observed, h=H, sample_every=SHORT_EVERY, inertia=GUESS, max_iters=150, gtol=1e-6)
-    rounds = lievi.fit_inertia(observed, h=H, sample_every=SHORT_EVERY, inertia=GUESS, max_iters=150, gtol=1e-6, check_every=3)
+    one = lievi.fit_inertia(
+        observed, h=H, sample_every=SHORT_EVERY, inertia=GUESS, max_iters=150, gtol=1e-6
+    )
+    rounds = lievi.fit_inertia(
+        observed,
+        h=H,
+        sample_every=SHORT_EVERY,
+        inertia=GUESS,
+        max_iters=150,
+        gtol=1e-6,
+        check_every=3,
+    )
     assert len(set(np.asarray(one.iterations).tolist())) > 1  # bodies finish at different times
     np.testing.assert_array_equal(np.asarray(rounds.iterations), np.asarray(one.iterations))
     np.testing.assert_array_equal(np.asarray(rounds.reason), np.asarray(one.reason))
@@ -410,5 +490,13 @@ def test_rounds_drop_finished_bodies_without_changing_results():
 
 
 def _free_orientations_of(inertia, m0):
-    sol = lievi.simulate(lievi.RigidBody(inertia), lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=SHORT, save_every=SHORT_EVERY)
+    sol = lievi.simulate(
+        lievi.RigidBody(inertia),
+        lievi.DEP(),
+        jnp.eye(3),
+        m0,
+        h=H,
+        n_steps=SHORT,
+        save_every=SHORT_EVERY,
+    )
     return sol.g

@@ -17,7 +17,6 @@ import optax
 import pytest
 
 import lievi
-
 from helpers import ROUNDOFF
 
 INERTIA = jnp.array([1.0, 1.2, 0.6])
@@ -26,7 +25,9 @@ H = 0.05
 
 def test_neural_potential_keeps_its_symmetry_and_is_differentiable():
     """With `features="vertical"` V depends on Γ = gᵀe₃ only: `e₃·(gΠ)` is conserved."""
-    potential = lievi.NeuralPotential(3, key=jax.random.PRNGKey(0), features="vertical", width_size=8)
+    potential = lievi.NeuralPotential(
+        3, key=jax.random.PRNGKey(0), features="vertical", width_size=8
+    )
     body = lievi.RigidBody(INERTIA, potential=potential)
     g0 = lievi.SO3.exp(jnp.array([0.5, -0.3, 0.2]))
     m0 = jnp.array([0.3, -0.5, 0.4])
@@ -59,16 +60,22 @@ def test_learned_potential_against_a_neural_ode():
     n_train, window, noise = 60, 10, 1e-3
 
     def random_state():
-        return lievi.SO3.exp(jnp.asarray(0.8 * rng.normal(size=3))), jnp.asarray(0.7 * rng.normal(size=3))
+        return lievi.SO3.exp(jnp.asarray(0.8 * rng.normal(size=3))), jnp.asarray(
+            0.7 * rng.normal(size=3)
+        )
 
     def truth(g0, m0, n):
-        sol = lievi.simulate(true, lievi.Composition(lievi.DEP(), 4), g0, m0, h=H / 4, n_steps=4 * n, save_every=4)
+        sol = lievi.simulate(
+            true, lievi.Composition(lievi.DEP(), 4), g0, m0, h=H / 4, n_steps=4 * n, save_every=4
+        )
         return sol.g, sol.m
 
     observed = []
     for _ in range(3):
         g, m = truth(*random_state(), n_train)
-        g = jax.vmap(lambda gi, e: gi @ lievi.SO3.exp(e))(g, jnp.asarray(noise * rng.normal(size=(len(g), 3))))
+        g = jax.vmap(lambda gi, e: gi @ lievi.SO3.exp(e))(
+            g, jnp.asarray(noise * rng.normal(size=(len(g), 3)))
+        )
         observed.append((g, m + noise * jnp.asarray(rng.normal(size=m.shape))))
     starts = range(0, n_train - window + 1, 5)
     G0 = jnp.stack([g[k] for g, _ in observed for k in starts])
@@ -92,16 +99,26 @@ def test_learned_potential_against_a_neural_ode():
 
     def rollout_ode(model, g0, m0, n):
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(model), diffrax.Tsit5(), 0.0, n * H, H, jnp.concatenate([m0, g0.reshape(-1)]),
-            saveat=diffrax.SaveAt(ts=H * jnp.arange(n + 1)), max_steps=n,
+            diffrax.ODETerm(model),
+            diffrax.Tsit5(),
+            0.0,
+            n * H,
+            H,
+            jnp.concatenate([m0, g0.reshape(-1)]),
+            saveat=diffrax.SaveAt(ts=H * jnp.arange(n + 1)),
+            max_steps=n,
         )
         return sol.ys[:, 3:].reshape(-1, 3, 3), sol.ys[:, :3]
 
-    neural_ode = NeuralODE(eqx.nn.MLP(12, 12, 64, 2, activation=jax.nn.softplus, key=jax.random.PRNGKey(1)))
+    neural_ode = NeuralODE(
+        eqx.nn.MLP(12, 12, 64, 2, activation=jax.nn.softplus, key=jax.random.PRNGKey(1))
+    )
 
     def train(model, rollout, frozen=None, steps=60):
         def loss(params):
-            g, m = jax.vmap(lambda g0, m0: rollout(eqx.combine(params, static), g0, m0, window))(G0, M0)
+            g, m = jax.vmap(lambda g0, m0: rollout(eqx.combine(params, static), g0, m0, window))(
+                G0, M0
+            )
             return jnp.mean((g - GW) ** 2) + jnp.mean((m - MW) ** 2)
 
         params, static = eqx.partition(model, eqx.is_inexact_array)

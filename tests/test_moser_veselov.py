@@ -13,10 +13,9 @@ import numpy as np
 import pytest
 
 import lievi
+from helpers import ROUNDOFF, hlw_problem, random_generalized_body, random_rotation
 from lievi import diagnostics as dg
 from lievi._integrators._moser_veselov import moser_veselov_Lambda
-
-from helpers import ROUNDOFF, hlw_problem, random_generalized_body, random_rotation
 
 MV = lievi.MoserVeselov()
 H = 0.1

@@ -66,8 +66,15 @@ def terminal_defect(system, integrator, u, h, g_target):
     """`c = (log(g_fᵀ g_N), Π_N)`: zero exactly at rest at the target."""
     n = u.shape[0]
     sol = lievi.simulate(
-        system, integrator, jnp.eye(3), jnp.zeros(3), h=h, n_steps=n, save_every=n,
-        forcing=lievi.Control(u), throw=False,
+        system,
+        integrator,
+        jnp.eye(3),
+        jnp.zeros(3),
+        h=h,
+        n_steps=n,
+        save_every=n,
+        forcing=lievi.Control(u),
+        throw=False,
     )
     return jnp.concatenate([lievi.SO3.log(g_target.T @ sol.g[-1]), sol.m[-1]])
 

@@ -13,9 +13,8 @@ import numpy as np
 import pytest
 
 import lievi
-from lievi import diagnostics as dg
-
 from helpers import ROUNDOFF, hlw_problem, random_rotation
+from lievi import diagnostics as dg
 
 ORDER_TOLERANCE = 0.1
 
@@ -38,7 +37,9 @@ def observed_order(system, integrator, g0, m0, T, hs):
     errors = []
     for h in hs:
         sol = lievi.simulate(system, integrator, g0, m0, h=h, n_steps=int(round(T / h)))
-        errors.append(max(np.max(np.abs(sol.m[-1] - m_ref[-1])), np.max(np.abs(sol.g[-1] - g_ref[-1]))))
+        errors.append(
+            max(np.max(np.abs(sol.m[-1] - m_ref[-1])), np.max(np.abs(sol.g[-1] - g_ref[-1])))
+        )
     return np.polyfit(np.log(hs), np.log(errors), 1)[0], errors
 
 
@@ -160,7 +161,9 @@ def test_start_from_two_configurations():
     (lievi.UniformGravity(0.0, RHO), lambda g: 0.0 * g[0, 0]),
     ids=("zero-mass", "zero-callable"),
 )
-@pytest.mark.parametrize("integrator", SECOND_ORDER + (lievi.RK4(),), ids=SECOND_ORDER_IDS + ("rk4",))
+@pytest.mark.parametrize(
+    "integrator", SECOND_ORDER + (lievi.RK4(),), ids=SECOND_ORDER_IDS + ("rk4",)
+)
 def test_zero_potential_is_the_free_body(potential, integrator):
     body, g0, m0 = hlw_problem()
     free = lievi.simulate(body, integrator, g0, m0, h=0.1, n_steps=50)
@@ -201,7 +204,8 @@ def test_potential_on_son():
     """A heavy generalized rigid body on SO(4): gravity along the last axis."""
     rng = np.random.default_rng(7)
     body = lievi.GeneralizedRigidBody(
-        jnp.array([0.7, 1.1, 1.6, 0.9]), potential=lievi.UniformGravity(1.0, jnp.array(rng.normal(size=4)), 1.0)
+        jnp.array([0.7, 1.1, 1.6, 0.9]),
+        potential=lievi.UniformGravity(1.0, jnp.array(rng.normal(size=4)), 1.0),
     )
     g0, m0, h = random_rotation(rng, 4), jnp.asarray(rng.normal(size=6)), 0.05
     for integrator in (lievi.DEP(), lievi.MoserVeselov(), lievi.LiePoissonSplitting()):
@@ -228,7 +232,9 @@ def test_right_invariant_mirror_image():
         return jnp.dot(g[2], RHO) + 0.3 * g[0, 1] ** 2
 
     right = lievi.LieLagrangian(lievi.SO3, l, side="right", potential=V)
-    left = lievi.LieLagrangian(lievi.SO3, lambda xi: l(-xi), side="left", potential=lambda g: V(g.T))
+    left = lievi.LieLagrangian(
+        lievi.SO3, lambda xi: l(-xi), side="left", potential=lambda g: V(g.T)
+    )
     g0, m0, h = g0_tilted(), jnp.array([0.4, -0.2, 0.6]), 0.05
     for chart in ("exp", "cayley"):
         sol_r = lievi.simulate(right, lievi.DEP(chart=chart), g0, m0, h=h, n_steps=100)
@@ -282,7 +288,9 @@ def test_bad_potentials():
     with pytest.raises(ValueError, match="`potential`"):
         lievi.RigidBody(INERTIA, potential="gravity")
     with pytest.raises(ValueError, match="PreprocessedMoserVeselov"):
-        lievi.simulate(asymmetric_top(), lievi.PreprocessedMoserVeselov(4), jnp.eye(3), M0, h=0.1, n_steps=2)
+        lievi.simulate(
+            asymmetric_top(), lievi.PreprocessedMoserVeselov(4), jnp.eye(3), M0, h=0.1, n_steps=2
+        )
 
 
 def test_nonfinite_potential_is_reported():

@@ -17,9 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import ROUNDOFF
 
 import lievi
+from helpers import ROUNDOFF
 from lievi import diagnostics as dg
 
 ORDER_TOLERANCE = 0.2

@@ -13,11 +13,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import random_rotation
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import lievi
+from helpers import random_rotation
 
 SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True)
 
@@ -48,14 +48,20 @@ def _scale_invariance(name, inertia, direction, exponent, dtype, atol):
     c = jnp.asarray(10.0**exponent, dtype)
     ref = lievi.simulate(lievi.RigidBody(inertia), integrator, g0, m0, h=h, n_steps=4, throw=False)
     # (I, Π) → (cI, cΠ)
-    units = lievi.simulate(lievi.RigidBody(inertia * c), integrator, g0, m0 * c, h=h, n_steps=4, throw=False)
+    units = lievi.simulate(
+        lievi.RigidBody(inertia * c), integrator, g0, m0 * c, h=h, n_steps=4, throw=False
+    )
     # (h, Π) → (h/c, cΠ): the same increments
-    time = lievi.simulate(lievi.RigidBody(inertia), integrator, g0, m0 * c, h=h / c, n_steps=4, throw=False)
+    time = lievi.simulate(
+        lievi.RigidBody(inertia), integrator, g0, m0 * c, h=h / c, n_steps=4, throw=False
+    )
     assert int(ref.result) == 0
     for sol in (units, time):
         assert int(sol.result) == 0
         np.testing.assert_allclose(sol.g, ref.g, rtol=0, atol=atol)
-        np.testing.assert_allclose(sol.m / c, ref.m, rtol=0, atol=atol * float(jnp.max(jnp.abs(m0))))
+        np.testing.assert_allclose(
+            sol.m / c, ref.m, rtol=0, atol=atol * float(jnp.max(jnp.abs(m0)))
+        )
 
 
 @settings(max_examples=25, **SETTINGS)
@@ -114,7 +120,7 @@ def test_so3_log_exp_round_trip(direction, angle):
         np.testing.assert_allclose(y, x, rtol=0, atol=1e-12)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _son_round_trip(n):
     group = lievi.SOn(n)
 
@@ -154,8 +160,12 @@ BAD_INPUTS = {
     "negative inertia": dict(inertia=np.array([-1.0, 1.0, 1.0])),
     "zero inertia": dict(inertia=np.array([0.0, 1.0, 1.0])),
     "nan inertia": dict(inertia=np.array([np.nan, 1.0, 1.0])),
-    "indefinite tensor": dict(inertia=np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])),
-    "non-symmetric tensor": dict(inertia=np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])),
+    "indefinite tensor": dict(
+        inertia=np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    ),
+    "non-symmetric tensor": dict(
+        inertia=np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    ),
     "scaled g0": dict(g0=2 * np.eye(3)),
     "reflection g0": dict(g0=np.diag([1.0, 1.0, -1.0])),
     "nan g0": dict(g0=np.full((3, 3), np.nan)),
@@ -179,7 +189,7 @@ def _case(bad, scale):
     return inputs
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _traced_run(integrator, tensor):
     del tensor  # part of the cache key: a (3,) and a (3, 3) inertia compile separately
 
@@ -214,12 +224,16 @@ def _validation_agrees(bad, name, scale):
     integrator = IMPLICIT[name]
     x = _case(bad, scale)
     with pytest.raises(ValueError):
-        lievi.simulate(lievi.RigidBody(x["inertia"]), integrator, x["g0"], x["m0"], h=x["h"], n_steps=2)
+        lievi.simulate(
+            lievi.RigidBody(x["inertia"]), integrator, x["g0"], x["m0"], h=x["h"], n_steps=2
+        )
     run = _traced_run(integrator, x["inertia"].ndim == 2)
     result = run(*(jnp.asarray(x[k], float) for k in ("inertia", "g0", "m0", "h")))
     assert int(result) == lievi.RESULTS.invalid_input
     if x["inertia"].ndim == 1:
-        bodies = jax.vmap(lievi.RigidBody)(jnp.asarray(np.stack([x["inertia"], [2.0, 1.0, 2.0 / 3.0]])))
+        bodies = jax.vmap(lievi.RigidBody)(
+            jnp.asarray(np.stack([x["inertia"], [2.0, 1.0, 2.0 / 3.0]]))
+        )
         good = _case("zero h", 1.0)  # only its g0, m0 are used
         g0 = jnp.asarray(np.stack([x["g0"], good["g0"]]))
         m0 = jnp.asarray(np.stack([x["m0"], good["m0"] * 1.0]))
@@ -228,7 +242,7 @@ def _validation_agrees(bad, name, scale):
         assert [int(r) for r in batch] == [lievi.RESULTS.invalid_input, 0]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _traced_batch(integrator):
     @jax.jit
     def run(bodies, g0, m0, h):

@@ -8,9 +8,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import hlw_problem
 
 import lievi
+from helpers import hlw_problem
 
 IMPLICIT = {
     "dep-exp": lievi.DEP(chart="exp"),
@@ -33,7 +33,9 @@ def test_tolerance_is_relative_scaled_body_gives_same_trajectory(name, c):
     body, g0, m0 = hlw_problem()
     # n_steps = 4 as in test_properties.py: the compiled runs are shared.
     ref = lievi.simulate(body, integrator, g0, m0, h=0.1, n_steps=4)
-    scaled = lievi.simulate(lievi.RigidBody(body.inertia * c), integrator, g0, m0 * c, h=0.1, n_steps=4)
+    scaled = lievi.simulate(
+        lievi.RigidBody(body.inertia * c), integrator, g0, m0 * c, h=0.1, n_steps=4
+    )
     assert int(scaled.result) == 0
     assert int(scaled.stats["total_newton_iterations"]) == int(ref.stats["total_newton_iterations"])
     np.testing.assert_allclose(scaled.g, ref.g, atol=1e-12)
@@ -47,7 +49,9 @@ def test_tolerance_is_relative_float32_satellite_units(c):
     inertia, g0, m0 = body.inertia.astype(f32), g0.astype(f32), m0.astype(f32)
     for integrator in (lievi.DEP(), lievi.MoserVeselov()):
         ref = lievi.simulate(lievi.RigidBody(inertia), integrator, g0, m0, h=0.1, n_steps=4)
-        scaled = lievi.simulate(lievi.RigidBody(inertia * c), integrator, g0, m0 * c, h=0.1, n_steps=4)
+        scaled = lievi.simulate(
+            lievi.RigidBody(inertia * c), integrator, g0, m0 * c, h=0.1, n_steps=4
+        )
         assert scaled.g.dtype == f32
         np.testing.assert_allclose(scaled.g, ref.g, atol=1e-5)
 
@@ -145,7 +149,9 @@ def test_son4_near_half_turns_exact():
 
 def test_log_checked_rejects_non_rotations():
     x = jnp.array([0.3, -0.2, 0.1])
-    gs = jnp.stack([jnp.diag(jnp.array([1.0, 1.0, -1.0])), 2 * jnp.eye(3), -jnp.eye(3), lievi.SO3.exp(x)])
+    gs = jnp.stack(
+        [jnp.diag(jnp.array([1.0, 1.0, -1.0])), 2 * jnp.eye(3), -jnp.eye(3), lievi.SO3.exp(x)]
+    )
     for group in (lievi.SO3, lievi.SOn(3)):
         out = np.asarray(jax.jit(group.log_checked)(gs))
         assert np.all(np.isnan(out[:3]))
@@ -172,8 +178,15 @@ def test_huge_steps_batched_both_paths_same_code():
     for integrator in (lievi.RK4(),):
         codes = [
             lievi.simulate_batch(
-                bodies, integrator, g0, m0, h=jnp.array([0.1, 6.0]), n_steps=2, system_axis=0,
-                fast=fast, throw=False,
+                bodies,
+                integrator,
+                g0,
+                m0,
+                h=jnp.array([0.1, 6.0]),
+                n_steps=2,
+                system_axis=0,
+                fast=fast,
+                throw=False,
             ).result
             for fast in (True, False)
         ]
@@ -196,8 +209,12 @@ def test_moser_veselov_branch_rule_same_on_both_paths():
     body = lievi.RigidBody(jnp.array([1.925, 0.546, 0.599]))
     m0 = jnp.array([0.710, 0.304, -0.624])
     for h, expected in ((1.617, lievi.RESULTS.step_too_large), (0.5, 0)):
-        single = lievi.simulate(body, lievi.MoserVeselov(), jnp.eye(3), m0, h=h, n_steps=1, throw=False)
-        batch = lievi.simulate_batch(body, lievi.MoserVeselov(), jnp.eye(3)[None], m0[None], h=h, n_steps=1, throw=False)
+        single = lievi.simulate(
+            body, lievi.MoserVeselov(), jnp.eye(3), m0, h=h, n_steps=1, throw=False
+        )
+        batch = lievi.simulate_batch(
+            body, lievi.MoserVeselov(), jnp.eye(3)[None], m0[None], h=h, n_steps=1, throw=False
+        )
         assert int(single.result) == int(batch.result[0]) == expected
         if expected == 0:
             np.testing.assert_allclose(batch.m[0], single.m, atol=1e-14)
@@ -259,7 +276,9 @@ def test_g1_outside_the_chart_blames_g1():
 def test_clear_errors_for_batches():
     body, g0, m0 = hlw_problem()
     with pytest.raises(ValueError, match="empty"):
-        lievi.simulate_batch(body, lievi.DEP(), jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)), h=0.1, n_steps=2)
+        lievi.simulate_batch(
+            body, lievi.DEP(), jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)), h=0.1, n_steps=2
+        )
     with pytest.raises(ValueError, match="sequence of field names"):
         lievi.simulate_batch(body, lievi.DEP(), g0[None], m0[None], h=0.1, n_steps=2, save="gm")
     with pytest.raises(ValueError, match="`devices` is empty"):

@@ -5,9 +5,8 @@ import numpy as np
 import pytest
 
 import lievi
-from lievi import diagnostics as dg
-
 from helpers import ROUNDOFF, hlw_problem, random_generalized_body
+from lievi import diagnostics as dg
 
 RK4 = lievi.RK4()
 ORDER_TOLERANCE = 0.1

@@ -13,13 +13,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import test_son
 
 import lievi
+from helpers import ROUNDOFF, ROUNDOFF_F32, random_rotation
 from lievi._groups._base import MatrixLieGroup
 from lievi._groups._so3 import _small_threshold
-
-import test_son
-from helpers import ROUNDOFF, ROUNDOFF_F32, random_rotation
 
 SE3 = lievi.SE3
 FAST_COMPILE = test_son.FAST_COMPILE
@@ -38,7 +37,9 @@ def _points(angles=ANGLES, seed=0):
     axes = np.stack([np.eye(3)[2], axis / np.linalg.norm(axis)])
     omega = (np.asarray(angles)[:, None, None] * axes[None]).reshape(-1, 3)
     random_omega = rng.normal(size=(10, 3))
-    random_omega *= rng.uniform(0, 3.0, size=(10, 1)) / np.linalg.norm(random_omega, axis=-1, keepdims=True)
+    random_omega *= rng.uniform(0, 3.0, size=(10, 1)) / np.linalg.norm(
+        random_omega, axis=-1, keepdims=True
+    )
     omega = np.concatenate([omega, random_omega])
     v = rng.normal(size=omega.shape)
     return np.concatenate([omega, v], axis=-1)
@@ -61,7 +62,7 @@ def _values(x):
     return out
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _report():
     x = jnp.asarray(_points())
     out = jax.jit(_values, compiler_options=FAST_COMPILE)(x)
@@ -120,7 +121,9 @@ def test_exp_log_at_random_rigid_motions():
     """`exp(log g) = g` for Haar-random rotations with random translations, and at a
     rotation by exactly π (where the principal log is one of two)."""
     rng = np.random.default_rng(3)
-    R = np.stack([np.asarray(random_rotation(rng, 3)) for _ in range(20)] + [np.diag([1.0, -1, -1])])
+    R = np.stack(
+        [np.asarray(random_rotation(rng, 3)) for _ in range(20)] + [np.diag([1.0, -1, -1])]
+    )
     g = SE3.from_rotation_translation(jnp.asarray(R), jnp.asarray(rng.normal(size=(21, 3))))
     assert _err(jax.jit(lambda g: SE3.exp(SE3.log(g)))(g), g) <= ROUNDOFF
 
@@ -161,7 +164,9 @@ def test_cayinv_inverts_cay():
 def _batched_values(x):
     out = {name: getattr(SE3, name)(x) for name in MAPS}
     g = out["exp"]
-    out.update({name: getattr(SE3, name)(g) for name in ("log", "Ad", "inverse", "membership_defect")})
+    out.update(
+        {name: getattr(SE3, name)(g) for name in ("log", "Ad", "inverse", "membership_defect")}
+    )
     return out
 
 
@@ -212,7 +217,9 @@ def _derivatives(x):
         out[name + "/grad"] = jax.vmap(jax.grad(weighted))(x)
     log_exp = lambda y: SE3.log(SE3.exp(y))  # noqa: E731
     out["log_exp/jacfwd"] = jax.vmap(jax.jacfwd(log_exp))(x)
-    out["log_exp/grad"] = jax.vmap(jax.grad(lambda y: jnp.sum(jnp.cos(jnp.arange(6.0)) * log_exp(y))))(x)
+    out["log_exp/grad"] = jax.vmap(
+        jax.grad(lambda y: jnp.sum(jnp.cos(jnp.arange(6.0)) * log_exp(y)))
+    )(x)
     return out
 
 
@@ -224,7 +231,7 @@ def _generic_jacobians(x):
     }
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _derivative_report(dtype):
     angles = (0.0, 1e-9, 1e-4, 1.0, NEAR_PI[dtype])
     x = jnp.asarray(_points(angles=angles, seed=5)[: 2 * len(angles)], dtype)

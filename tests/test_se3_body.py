@@ -16,9 +16,8 @@ import numpy as np
 import pytest
 
 import lievi
-from lievi import diagnostics as dg
-
 from helpers import ROUNDOFF
+from lievi import diagnostics as dg
 
 SE3 = lievi.SE3
 CHARTS = ("exp", "cayley")
@@ -60,7 +59,11 @@ def falling_problem():
     return body, SE3.identity(), m0
 
 
-PROBLEMS = {"kirchhoff": kirchhoff_problem, "satellite": satellite_problem, "falling": falling_problem}
+PROBLEMS = {
+    "kirchhoff": kirchhoff_problem,
+    "satellite": satellite_problem,
+    "falling": falling_problem,
+}
 
 
 @eqx.filter_jit
@@ -93,7 +96,7 @@ DEFAULT_STEPS = 1_000
 FALLING_STEPS = 200
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _run(problem, chart, n_steps=None, save_every=1):
     """One `simulate` run, shared by the tests that look at the same trajectory (each
     distinct run compiles a solver)."""
@@ -101,7 +104,13 @@ def _run(problem, chart, n_steps=None, save_every=1):
         n_steps = FALLING_STEPS if problem == "falling" else DEFAULT_STEPS
     body, g0, m0 = PROBLEMS[problem]()
     sol = lievi.simulate(
-        body, lievi.DEP(chart=chart), g0, m0, h=STEP[problem], n_steps=n_steps, save_every=save_every
+        body,
+        lievi.DEP(chart=chart),
+        g0,
+        m0,
+        h=STEP[problem],
+        n_steps=n_steps,
+        save_every=save_every,
     )
     assert sol.result == lievi.RESULTS.successful
     return body, sol
@@ -148,7 +157,9 @@ ORDER_CASES = [
 def test_dep_second_order(chart, problem):
     body, g0, m0 = PROBLEMS[problem]()
     T, h0 = (0.5, 0.01) if problem == "satellite" else (1.0, 0.05)
-    order, errors = observed_order(body, lievi.DEP(chart=chart), g0, m0, T, [h0 / 2**k for k in range(3)])
+    order, errors = observed_order(
+        body, lievi.DEP(chart=chart), g0, m0, T, [h0 / 2**k for k in range(3)]
+    )
     assert abs(order - 2) <= ORDER_TOLERANCE, (order, errors)
 
 
@@ -197,7 +208,9 @@ def test_kirchhoff_conservation(chart, n_steps=None, save_every=1):
     assert float(dg.relative_drift(dg.casimirs(body, sol.m))) <= ROUNDOFF
     spatial = np.asarray(dg.spatial_momentum(body, sol.g, sol.m))
     assert float(dg.relative_drift(spatial[:, 3:])) <= ROUNDOFF  # linear momentum RP
-    scale = np.max(np.linalg.norm(np.asarray(sol.g[:, :3, 3]), axis=-1)) * np.linalg.norm(spatial[0, 3:])
+    scale = np.max(np.linalg.norm(np.asarray(sol.g[:, :3, 3]), axis=-1)) * np.linalg.norm(
+        spatial[0, 3:]
+    )
     scale = max(scale, np.max(np.abs(spatial[0, :3])))
     assert np.max(np.abs(spatial[:, :3] - spatial[0, :3])) <= ROUNDOFF * scale
     assert float(jnp.max(dg.orthogonality_defect(body, sol.g))) <= ROUNDOFF
@@ -258,7 +271,14 @@ def test_float32_kirchhoff():
     """A float32 run stays finite, on its coadjoint orbit to float32 round-off."""
     body, g0, m0 = kirchhoff_problem()
     body32 = lievi.RigidBodySE3(tensor=body.tensor.astype(jnp.float32))
-    sol = lievi.simulate(body32, lievi.DEP(), g0.astype(jnp.float32), m0.astype(jnp.float32), h=jnp.float32(0.05), n_steps=200)
+    sol = lievi.simulate(
+        body32,
+        lievi.DEP(),
+        g0.astype(jnp.float32),
+        m0.astype(jnp.float32),
+        h=jnp.float32(0.05),
+        n_steps=200,
+    )
     assert sol.m.dtype == jnp.float32
     assert float(dg.relative_drift(dg.casimirs(body32, sol.m))) <= 1e-5
 

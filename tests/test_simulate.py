@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 import lievi
-
 from helpers import INTEGRATOR_IDS, INTEGRATORS, hlw_problem
 
 
@@ -71,7 +70,9 @@ def test_save_every_and_times():
     np.testing.assert_allclose(sparse.m, full.m[::4], rtol=0, atol=1e-14)
     np.testing.assert_allclose(sparse.ts, 1.0 + 0.4 * jnp.arange(4), rtol=1e-14)
     assert sparse.stats["newton_iterations"].shape == (3,)
-    assert int(sparse.stats["total_newton_iterations"]) == int(full.stats["total_newton_iterations"])
+    assert int(sparse.stats["total_newton_iterations"]) == int(
+        full.stats["total_newton_iterations"]
+    )
 
 
 def test_float32_run():
@@ -79,7 +80,12 @@ def test_float32_run():
     body, g0, m0 = hlw_problem()
     body32 = lievi.RigidBody(body.inertia.astype(jnp.float32))
     sol32 = lievi.simulate(
-        body32, lievi.DEP(), g0.astype(jnp.float32), m0.astype(jnp.float32), h=np.float32(0.1), n_steps=200
+        body32,
+        lievi.DEP(),
+        g0.astype(jnp.float32),
+        m0.astype(jnp.float32),
+        h=np.float32(0.1),
+        n_steps=200,
     )
     sol64 = lievi.simulate(body, lievi.DEP(), g0, m0, h=0.1, n_steps=200)
     assert sol32.m.dtype == jnp.float32
@@ -96,7 +102,9 @@ def test_mixed_precision_promotes(integrator):
     body, g0, m0 = hlw_problem()
     body32 = lievi.RigidBody(body.inertia.astype(jnp.float32))
     g32, m32 = g0.astype(jnp.float32), m0.astype(jnp.float32)
-    reference = lievi.simulate(body, integrator, g32.astype(float), m32.astype(float), h=0.1, n_steps=10)
+    reference = lievi.simulate(
+        body, integrator, g32.astype(float), m32.astype(float), h=0.1, n_steps=10
+    )
     for system, g, m in [(body, g32, m32), (body32, g0, m0)]:
         sol = lievi.simulate(system, integrator, g, m, h=0.1, n_steps=10)
         assert sol.m.dtype == sol.g.dtype == jnp.float64
@@ -146,8 +154,14 @@ def test_bad_simulate_arguments(overrides, match):
         (jnp.array([1.0, 2.0]), "`inertia` must be principal moments of shape"),
         (jnp.array([1.0, -2.0, 1.0]), "`inertia` must be positive definite"),
         (jnp.array([1.0, 0.0, 1.0]), "`inertia` must be positive definite"),
-        (jnp.array([[1.0, 2.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), "`inertia` must be symmetric"),
-        (jnp.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]), "`inertia` must be positive definite"),
+        (
+            jnp.array([[1.0, 2.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
+            "`inertia` must be symmetric",
+        ),
+        (
+            jnp.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
+            "`inertia` must be positive definite",
+        ),
         (jnp.array([1.0, jnp.nan, 1.0]), "`inertia` contains NaN"),
     ],
 )

@@ -15,13 +15,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
+import test_son
 from scipy.spatial.transform import Rotation
 
 import lievi
-from lievi._groups._so3 import _small_threshold
-
-import test_son
 from helpers import ROUNDOFF, ROUNDOFF_F32, random_rotation
+from lievi._groups._so3 import _small_threshold
 
 SO3 = lievi.SO3
 # float32 against float64: the spec asks for 1e-5 (~100 ulps at magnitude 1); the
@@ -68,7 +67,7 @@ def _unit(rng, count):
     return a / np.linalg.norm(a, axis=-1, keepdims=True)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _samples():
     """x: every angle of ANGLES along AXES_PER_ANGLE axes, then RANDOM random rotation
     vectors; y: random vectors; R: rotations for log (40 Haar-random, the 3 exact
@@ -118,7 +117,7 @@ def _evaluate(x, y, R, S):
 _compiled_evaluate = jax.jit(_evaluate, compiler_options=FAST_COMPILE)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _report(dtype=np.float64, at_float32_samples=False):
     """`_evaluate` on the samples in `dtype`. With `at_float32_samples`, at the samples
     rounded to float32 (the float64 reference for the float32 test)."""
@@ -208,7 +207,7 @@ def _evaluate_like_son_report(x, y, g):
     )
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _closed_on_son3_samples():
     x, y, _, g, *_ = (jnp.asarray(a) for a in test_son._inputs(3))
     return jax.jit(_evaluate_like_son_report, compiler_options=FAST_COMPILE)(x, y, g)
@@ -288,9 +287,7 @@ def test_float32_matches_float64():
         if name == "log_scipy":  # away from π only
             away = np.linalg.norm(exact_value, axis=-1) < np.pi - 1e-3
             single_value, exact_value = single_value[away], exact_value[away]
-        np.testing.assert_allclose(
-            single_value, exact_value, rtol=0, atol=F32_VS_F64, err_msg=name
-        )
+        np.testing.assert_allclose(single_value, exact_value, rtol=0, atol=F32_VS_F64, err_msg=name)
     np.testing.assert_allclose(
         single["log_R"][RANDOM_R], exact["log_R"][RANDOM_R], rtol=0, atol=F32_VS_F64
     )

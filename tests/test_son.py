@@ -17,7 +17,6 @@ import pytest
 import scipy.linalg
 
 import lievi
-
 from helpers import ROUNDOFF, random_rotation
 
 NS = tuple(range(2, 9))
@@ -51,7 +50,7 @@ def _vee_np(E, X):
     return np.einsum("aij,...ij->...a", E, X) / 2
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _inputs(n):
     """Algebra elements x, y, z and random rotations g, k, all of batch shape BATCH, and
     a random n × n matrix M.
@@ -146,12 +145,12 @@ STACKED = {
 }  # fmt: skip
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _compiled(n):
     return jax.jit(functools.partial(_evaluate, lievi.SOn(n)), compiler_options=FAST_COMPILE)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _report(n):
     out = _compiled(n)(*(jnp.asarray(a) for a in _inputs(n)))
     return {name: np.array(value) for name, value in out.items()}

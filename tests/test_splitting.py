@@ -12,9 +12,8 @@ import numpy as np
 import pytest
 
 import lievi
-from lievi import diagnostics as dg
-
 from helpers import ROUNDOFF, hlw_problem, random_generalized_body, random_rotation
+from lievi import diagnostics as dg
 
 SPLIT = lievi.LiePoissonSplitting()
 H = 0.1

@@ -104,7 +104,13 @@ def _matmul3(X, Y):
     def term(x, y):
         if isinstance(x, float) and x == 0 or isinstance(y, float) and y == 0:
             return None
-        return y if isinstance(x, float) and x == 1 else x if isinstance(y, float) and y == 1 else x * y
+        return (
+            y
+            if isinstance(x, float) and x == 1
+            else x
+            if isinstance(y, float) and y == 1
+            else x * y
+        )
 
     out = []
     for i in range(3):
@@ -145,7 +151,11 @@ def rk4_step(g, Pi, h, inverse_inertia):
 
     def field(g, Pi):
         w = tuple(Pi[i] * inverse_inertia[i] for i in range(3))
-        dPi = (Pi[1] * w[2] - Pi[2] * w[1], Pi[2] * w[0] - Pi[0] * w[2], Pi[0] * w[1] - Pi[1] * w[0])
+        dPi = (
+            Pi[1] * w[2] - Pi[2] * w[1],
+            Pi[2] * w[0] - Pi[0] * w[2],
+            Pi[0] * w[1] - Pi[1] * w[0],
+        )
         # (g Ω̂)_{ij} = Σ_k g_ik Ω̂_kj, Ω̂ = [[0, −w2, w1], [w2, 0, −w0], [−w1, w0, 0]].
         dg = []
         for i in range(3):
@@ -162,7 +172,9 @@ def rk4_step(g, Pi, h, inverse_inertia):
     k4 = field(axpy(h, k3[0], g), axpy(h, k3[1], Pi))
 
     def combine(y, a, b, c, e):
-        return tuple(yi + h / 6 * (ai + 2 * bi + 2 * ci + ei) for yi, ai, bi, ci, ei in zip(y, a, b, c, e))
+        return tuple(
+            yi + h / 6 * (ai + 2 * bi + 2 * ci + ei) for yi, ai, bi, ci, ei in zip(y, a, b, c, e)
+        )
 
     g_next = combine(g, k1[0], k2[0], k3[0], k4[0])
     Pi_next = combine(Pi, k1[1], k2[1], k3[1], k4[1])

@@ -52,8 +52,8 @@ import jax
 import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
-from .._results import RESULTS
 from .._integrators._newton import newton_tolerance
+from .._results import RESULTS
 from ._kernel import ROOT_NAME, AbstractBatchKernel
 
 # Power-series coefficients in u = φ², φ = θ/2. Eleven terms: the first omitted term is
@@ -159,7 +159,11 @@ def _residual(chart, xi, Pi, A, with_jacobian: bool):
             entry = (hat(xi, i, j) * A[j] - hat(w, i, j)) / 2
             if chart == "exp":
                 diagonal = (d - t * A[i]) if i == j else 0
-                entry = entry + 2 * dc * v[i] * xi[j] + c * (diagonal + 2 * xi[i] * w[j] - 2 * w[i] * xi[j])
+                entry = (
+                    entry
+                    + 2 * dc * v[i] * xi[j]
+                    + c * (diagonal + 2 * xi[i] * w[j] - 2 * w[i] * xi[j])
+                )
             else:
                 diagonal = d if i == j else 0
                 entry = entry + (diagonal + 2 * xi[i] * w[j]) / 4
@@ -219,7 +223,10 @@ def _moser_veselov_by_scalar_newton(Pi, A, iterations: int):
     _, m, det = minors(s)
     inverse_det = 1 / det
     return tuple(
-        (Pi[i] * (m[i] + quarter) + Pi[(i + 1) % 3] * Pi[(i + 2) % 3] * (A[(i + 1) % 3] - A[(i + 2) % 3]) / 2)
+        (
+            Pi[i] * (m[i] + quarter)
+            + Pi[(i + 1) % 3] * Pi[(i + 2) % 3] * (A[(i + 1) % 3] - A[(i + 2) % 3]) / 2
+        )
         * inverse_det
         for i in range(3)
     )
@@ -333,7 +340,9 @@ def _at_root_jvp(chart, primals, tangents):
     return xi, tuple(-d for d in delta)
 
 
-def differentiable_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True):
+def differentiable_increment(
+    chart, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True
+):
     """`solve_increment` whose `ξ` differentiates by the implicit function theorem at the root.
 
     The Newton iterations run on `stop_gradient`-ed inputs (so no `while_loop` is

@@ -44,7 +44,9 @@ def _fast_kernel(system, integrator, system_axis, fixed_iterations=None):
     return kernel, moments
 
 
-def has_fast_path(system: AbstractLieSystem, integrator: AbstractIntegrator, system_axis=None) -> bool:
+def has_fast_path(
+    system: AbstractLieSystem, integrator: AbstractIntegrator, system_axis=None
+) -> bool:
     """Whether `simulate_batch` has a structure-of-arrays fast path for this pair."""
     return _fast_kernel(system, integrator, system_axis) is not None
 
@@ -167,18 +169,26 @@ def simulate_batch(
     if batch == 0:
         raise ValueError("the batch is empty (`g0` has 0 bodies); pass at least one body.")
     if jnp.shape(m0)[0] != batch:
-        raise ValueError(f"`g0` and `m0` must have the same batch size, got {batch} and {jnp.shape(m0)[0]}.")
+        raise ValueError(
+            f"`g0` and `m0` must have the same batch size, got {batch} and {jnp.shape(m0)[0]}."
+        )
     if jnp.ndim(h) not in (0, 1) or (jnp.ndim(h) == 1 and jnp.shape(h)[0] != batch):
-        raise ValueError(f"`h` must be a scalar or have shape ({batch},) (one per body), got {jnp.shape(h)}.")
+        raise ValueError(
+            f"`h` must be a scalar or have shape ({batch},) (one per body), got {jnp.shape(h)}."
+        )
     if is_concrete(h):
         check_finite("h", h)
         if not np.all(np.asarray(h) > 0):
             raise ValueError("`h` must be > 0 for every body; pass positive step sizes.")
         tiny = float(jnp.finfo(jnp.result_type(h, float)).tiny)
         if np.any(np.asarray(h) < tiny):
-            raise ValueError(f"`h` has subnormal values (below {tiny:.3g}); pass normal step sizes.")
+            raise ValueError(
+                f"`h` has subnormal values (below {tiny:.3g}); pass normal step sizes."
+            )
     if system_axis == 0:
-        sizes = {jnp.shape(x)[0] for x in jax.tree_util.tree_leaves(eqx.filter(system, eqx.is_array))}
+        sizes = {
+            jnp.shape(x)[0] for x in jax.tree_util.tree_leaves(eqx.filter(system, eqx.is_array))
+        }
         if sizes != {batch}:
             raise ValueError(
                 f"with `system_axis=0` every array leaf of `system` must have leading axis "
@@ -212,7 +222,18 @@ def simulate_batch(
     fast_kernel = _fast_kernel(system, integrator, system_axis, fixed_iterations) if fast else None
     if forcing is not None:
         solution = _simulate_vmap(
-            system, integrator, g0, m0, h, n_steps, save_every, save, system_axis, segment, forcing, args
+            system,
+            integrator,
+            g0,
+            m0,
+            h,
+            n_steps,
+            save_every,
+            save,
+            system_axis,
+            segment,
+            forcing,
+            args,
         )
     elif fast_kernel is not None:
         kernel, moments = fast_kernel
@@ -222,8 +243,18 @@ def simulate_batch(
             system, g0, m0, h
         )
         solution = _simulate_fast(
-            kernel, moments, integrator.step_bound(), g0, m0, h, n_steps, save_every, save, unroll,
-            segment, valid,
+            kernel,
+            moments,
+            integrator.step_bound(),
+            g0,
+            m0,
+            h,
+            n_steps,
+            save_every,
+            save,
+            unroll,
+            segment,
+            valid,
         )
     else:
         solution = _simulate_vmap(
@@ -262,7 +293,18 @@ def _keep(solution: Solution, save) -> Solution:
 
 @eqx.filter_jit
 def _simulate_vmap(
-    system, integrator, g0, m0, h, n_steps, save_every, save, system_axis, segment, forcing=None, args=None
+    system,
+    integrator,
+    g0,
+    m0,
+    h,
+    n_steps,
+    save_every,
+    save,
+    system_axis,
+    segment,
+    forcing=None,
+    args=None,
 ):
     def one(system, g0, m0, h, forcing):
         return simulate(
@@ -285,7 +327,11 @@ def _simulate_vmap(
         system, g0, m0, h, forcing
     )
     if h_axis is None:
-        solution = eqx.tree_at(lambda s: s.ts, solution, jnp.broadcast_to(solution.ts, (g0.shape[0],) + solution.ts.shape[1:]))
+        solution = eqx.tree_at(
+            lambda s: s.ts,
+            solution,
+            jnp.broadcast_to(solution.ts, (g0.shape[0],) + solution.ts.shape[1:]),
+        )
     stats = dict(solution.stats)
     stats["num_steps"] = jnp.broadcast_to(jnp.asarray(n_steps), (g0.shape[0],))
     return _keep(eqx.tree_at(lambda s: s.stats, solution, stats), save)
@@ -334,7 +380,9 @@ def _simulate_fast(
     # Reverse mode keeps each step's input state and root (the solve is not repeated);
     # everything else in the step is recomputed from them in the backward pass.
     @functools.partial(
-        jax.checkpoint, prevent_cse=False, policy=jax.checkpoint_policies.save_only_these_names(ROOT_NAME)
+        jax.checkpoint,
+        prevent_cse=False,
+        policy=jax.checkpoint_policies.save_only_these_names(ROOT_NAME),
     )
     def one_step(carry, _):
         (g, Pi, result, failed_step, k), (total, most, worst) = carry
@@ -367,7 +415,9 @@ def _simulate_fast(
     outer = segment // save_every if segment is not None and segment >= save_every else None
 
     def one_save(state, _):
-        (state, (total, most, worst)), _ = _scan(one_step, (state, zero_counters), save_every, inner, unroll)
+        (state, (total, most, worst)), _ = _scan(
+            one_step, (state, zero_counters), save_every, inner, unroll
+        )
         ok = state[2] == RESULTS.successful
         out = {"iterations": total}
         if "g" in save:
@@ -382,7 +432,9 @@ def _simulate_fast(
     init = (
         g,
         Pi,
-        jnp.broadcast_to(jnp.where(valid, RESULTS.successful, RESULTS.invalid_input), (batch,)).astype(int32),
+        jnp.broadcast_to(
+            jnp.where(valid, RESULTS.successful, RESULTS.invalid_input), (batch,)
+        ).astype(int32),
         jnp.broadcast_to(jnp.where(valid, -1, 0), (batch,)).astype(int32),
         jnp.asarray(0, int32),
     )
@@ -422,7 +474,9 @@ def shard_batch(tree, devices=None):
     """
     devices = jax.local_devices() if devices is None else list(devices)
     if not devices:
-        raise ValueError("`devices` is empty; pass at least one device (default: all local devices).")
+        raise ValueError(
+            "`devices` is empty; pass at least one device (default: all local devices)."
+        )
     mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
     split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())

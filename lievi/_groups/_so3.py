@@ -34,7 +34,9 @@ def _series_or_exact(theta2, exact, coefficients):
 
 def _sinc(t2):  # sin θ / θ
     return _series_or_exact(
-        t2, lambda s: jnp.sin(jnp.sqrt(s)) / jnp.sqrt(s), (1, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880)
+        t2,
+        lambda s: jnp.sin(jnp.sqrt(s)) / jnp.sqrt(s),
+        (1, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880),
     )
 
 
@@ -100,7 +102,11 @@ class SO3Group(AbstractSpecialOrthogonal):
     def vee(self, X: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
         return (
             jnp.stack(
-                [X[..., 2, 1] - X[..., 1, 2], X[..., 0, 2] - X[..., 2, 0], X[..., 1, 0] - X[..., 0, 1]],
+                [
+                    X[..., 2, 1] - X[..., 1, 2],
+                    X[..., 0, 2] - X[..., 2, 0],
+                    X[..., 1, 0] - X[..., 0, 1],
+                ],
                 axis=-1,
             )
             / 2

@@ -25,7 +25,7 @@ from jaxtyping import Array, Float
 from ._base import MatrixLieGroup
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _planes(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     pairs = sorted(((i, j) for i in range(n) for j in range(i + 1, n)), reverse=True)
     i = np.array([p[0] for p in pairs], dtype=np.int32)
@@ -264,9 +264,9 @@ def _rotation_sqrt(g, iterations: int):
 
     def body(_, Z):
         Z_inv = jnp.linalg.inv(Z)
-        gamma = jnp.sqrt(
-            jnp.linalg.norm(Z_inv, axis=(-2, -1)) / jnp.linalg.norm(Z, axis=(-2, -1))
-        )[..., None, None]
+        gamma = jnp.sqrt(jnp.linalg.norm(Z_inv, axis=(-2, -1)) / jnp.linalg.norm(Z, axis=(-2, -1)))[
+            ..., None, None
+        ]
         return (gamma * Z + jnp.swapaxes(Z_inv, -1, -2) / gamma) / 2
 
     return jax.lax.fori_loop(0, iterations, body, g + eye)

@@ -16,9 +16,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int, Scalar
 
+from .._batch._kernel import KickKernel
 from .._forcing import AbstractStepForce
 from .._results import RESULTS
-from .._batch._kernel import KickKernel
 from .._systems._base import AbstractLieSystem
 from ._newton import newton_solve
 
@@ -134,7 +134,10 @@ class AbstractKickIntegrator(AbstractIntegrator):
         iterations, residual, result = info.iterations, info.residual, info.result
         if force is not None:
             m_next, kick = forced_end_kick(force, t + h, g_next, m_next, h, info.result)
-            iterations, residual = iterations + kick.iterations, jnp.maximum(residual, kick.residual)
+            iterations, residual = (
+                iterations + kick.iterations,
+                jnp.maximum(residual, kick.residual),
+            )
             result = RESULTS.first_failure(result, kick.result)
         # A non-finite potential or force shows up only after the free step's own checks.
         nonfinite = (result == RESULTS.successful) & ~jnp.all(jnp.isfinite(m_next))
@@ -167,7 +170,9 @@ def forced_end_kick(force: AbstractStepForce, t, g, m_minus, h, result_before=RE
     zero = jnp.zeros((), m_minus.dtype)
     if not force.depends_on_momentum():
         m = m_minus + h / 2 * _checked_force(force, t, g, m_minus)
-        return m, StepInfo(jnp.asarray(RESULTS.successful, jnp.int32), jnp.zeros((), jnp.int32), zero)
+        return m, StepInfo(
+            jnp.asarray(RESULTS.successful, jnp.int32), jnp.zeros((), jnp.int32), zero
+        )
 
     def residual(m):
         return m - m_minus - h / 2 * _checked_force(force, t, g, m)

@@ -144,8 +144,12 @@ class DEP(AbstractVariationalIntegrator):
         # Explicit-Euler guess `h·ξ(m)`: O(h²) from the root, so Newton needs few steps.
         # A system with a hand-written residual and Jacobian (the rigid body) skips the
         # generic `jacfwd` + `linalg.solve`: the same iterates, several times faster.
-        closed_form = system.closed_form_residual(self.chart, m, h) if system.side == "left" else None
-        return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps, closed_form)
+        closed_form = (
+            system.closed_form_residual(self.chart, m, h) if system.side == "left" else None
+        )
+        return newton_solve(
+            residual, h * system.velocity(m), tolerance, self.max_steps, closed_form
+        )
 
     def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
         # A system that runs the structure-of-arrays step on itself (the rigid body with

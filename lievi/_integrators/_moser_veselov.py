@@ -194,7 +194,9 @@ class MoserVeselov(AbstractVariationalIntegrator):
         tolerance = newton_tolerance(jnp.max(jnp.abs(m)), m.dtype, self.rtol, self.atol)
         # The rigid body's hand-written residual and Jacobian, where it has them.
         closed_form = system.closed_form_residual("moser-veselov", m, h)
-        return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps, closed_form)
+        return newton_solve(
+            residual, h * system.velocity(m), tolerance, self.max_steps, closed_form
+        )
 
     def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
         check_rigid_body("MoserVeselov", system)

@@ -61,7 +61,9 @@ def _jacobian_and_value(residual, x):
 def _cramer3(J, r):
     """`J⁻¹ r` for a 3×3 `J` by Cramer's rule: elementwise, so it vectorises under `vmap`
     (a batched `linalg.solve` of 3×3 systems does not, on CPU)."""
-    adjugate = jnp.stack([jnp.cross(J[1], J[2]), jnp.cross(J[2], J[0]), jnp.cross(J[0], J[1])], axis=-1)
+    adjugate = jnp.stack(
+        [jnp.cross(J[1], J[2]), jnp.cross(J[2], J[0]), jnp.cross(J[0], J[1])], axis=-1
+    )
     return adjugate @ r / jnp.dot(J[0], adjugate[:, 0])
 
 

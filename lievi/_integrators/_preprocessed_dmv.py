@@ -94,7 +94,7 @@ def _vee(M):
     return jnp.stack([M[..., 2, 1], M[..., 0, 2], M[..., 1, 0]], axis=-1)
 
 
-def dmv_series(inverse_inertia, y: Float[Array, "3"], degree: int):
+def dmv_series(inverse_inertia, y: Float[Array, 3], degree: int):
     """Taylor coefficients in the step `s` of the DMV step: `(F(s), y₁(s))`, degree `degree`.
 
     `F = cay(x)`, `I x = s·vee((1 − X/2) Ŷ (1 + X/2))`, `y₁ = Fᵀy` (as in `MoserVeselov`).
@@ -129,7 +129,7 @@ def dmv_series(inverse_inertia, y: Float[Array, "3"], degree: int):
     return F, y1
 
 
-def exact_series(inverse_inertia: Float[Array, "3 3"], y: Float[Array, "3"], degree: int):
+def exact_series(inverse_inertia: Float[Array, "3 3"], y: Float[Array, 3], degree: int):
     """Taylor coefficients in `t` of the exact `y(t)` (Euler) and `P(t)` (`Ṗ = PΩ̂`):
     `(k+1) y_{k+1} = Σ_j y_j × I⁻¹y_{k−j}`, `(k+1) P_{k+1} = Σ_j P_j (I⁻¹y_{k−j})^`."""
     n = degree + 1
@@ -148,9 +148,7 @@ def exact_series(inverse_inertia: Float[Array, "3 3"], y: Float[Array, "3"], deg
     return jax.lax.fori_loop(0, degree, recurrence, (ys, Ps))
 
 
-def modified_moments_series(
-    inverse_inertia: Float[Array, "3 3"], y: Float[Array, "3"], degree: int
-):
+def modified_moments_series(inverse_inertia: Float[Array, "3 3"], y: Float[Array, 3], degree: int):
     """`(α, β)`: the Taylor coefficients in `h` (up to `h^degree`; odd powers are zero) of
     the modification `I⁻¹ ↦ α(h) I⁻¹ + β(h)·Id` whose DMV step is the exact flow over `h`.
 
@@ -203,7 +201,7 @@ def _polyval(coefficients, s):
     return sum(c * s**k for k, c in enumerate(coefficients))
 
 
-def preprocessing(system: RigidBody, m: Float[Array, "3"], h: Scalar, order: int):
+def preprocessing(system: RigidBody, m: Float[Array, 3], h: Scalar, order: int):
     """`(α, β)` at step `h`: the modified moments `α I⁻¹ + β` truncated after `h^(order − 2)`."""
     inverse_inertia = jnp.linalg.inv(system.inertia_tensor.astype(m.dtype))
     alpha, beta = modified_moments_series(inverse_inertia, m, order - 2)
@@ -277,7 +275,7 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
         return True
 
     def prepare(
-        self, system: AbstractLieSystem, m0: Float[Array, "3"], h
+        self, system: AbstractLieSystem, m0: Float[Array, 3], h
     ) -> PreprocessedMoserVeselov:
         """A copy with `α(h)` and `β(h)` computed once for step `h` on the trajectory of `m0`."""
         _check_system(system)
@@ -292,7 +290,7 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
         )
 
     def equivalent_moser_veselov(
-        self, system: AbstractLieSystem, m0: Float[Array, "3"], h
+        self, system: AbstractLieSystem, m0: Float[Array, 3], h
     ) -> tuple[RigidBody, MoserVeselov]:
         """`(body, method)`: plain DMV on `body` takes the same steps as this integrator
         prepared for `(system, m0, h)` — `body` has the modified inverse inertia

@@ -33,7 +33,7 @@ class RigidBody(AbstractLieSystem):
       the torque is derived from it by autodiff.
     """
 
-    inertia: Float[Array, "3"] | Float[Array, "3 3"]
+    inertia: Float[Array, 3] | Float[Array, "3 3"]
     potential: AbstractPotential | None
     group: MatrixLieGroup = eqx.field(static=True)
     side: str = eqx.field(static=True)
@@ -98,18 +98,18 @@ class RigidBody(AbstractLieSystem):
 
         return residual_and_jacobian
 
-    def lagrangian(self, xi: Float[Array, "3"]) -> Scalar:
+    def lagrangian(self, xi: Float[Array, 3]) -> Scalar:
         return jnp.dot(xi, self.legendre(xi)) / 2
 
-    def legendre(self, xi: Float[Array, "3"]) -> Float[Array, "3"]:
+    def legendre(self, xi: Float[Array, 3]) -> Float[Array, 3]:
         inertia = jnp.asarray(self.inertia)
         return inertia * xi if inertia.ndim == 1 else inertia @ xi
 
-    def velocity(self, m: Float[Array, "3"]) -> Float[Array, "3"]:
+    def velocity(self, m: Float[Array, 3]) -> Float[Array, 3]:
         inertia = jnp.asarray(self.inertia)
         return m / inertia if inertia.ndim == 1 else jnp.linalg.solve(inertia, m)
 
-    def energy(self, m: Float[Array, "3"]) -> Scalar:
+    def energy(self, m: Float[Array, 3]) -> Scalar:
         return jnp.dot(m, self.velocity(m)) / 2
 
 

@@ -147,14 +147,14 @@ class RigidBodySE3(AbstractLieSystem):
                     f"velocity); got eigenvalues {eigenvalues}."
                 )
 
-    def lagrangian(self, xi: Float[Array, "6"]) -> Scalar:
+    def lagrangian(self, xi: Float[Array, 6]) -> Scalar:
         return jnp.dot(xi, self.legendre(xi)) / 2
 
-    def legendre(self, xi: Float[Array, "6"]) -> Float[Array, "6"]:
+    def legendre(self, xi: Float[Array, 6]) -> Float[Array, 6]:
         return jnp.asarray(self.tensor) @ xi
 
-    def velocity(self, m: Float[Array, "6"]) -> Float[Array, "6"]:
+    def velocity(self, m: Float[Array, 6]) -> Float[Array, 6]:
         return _spd_solve(jnp.asarray(self.tensor, jnp.result_type(self.tensor, m)), m)
 
-    def energy(self, m: Float[Array, "6"]) -> Scalar:
+    def energy(self, m: Float[Array, 6]) -> Scalar:
         return jnp.dot(m, self.velocity(m)) / 2

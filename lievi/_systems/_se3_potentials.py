@@ -41,7 +41,7 @@ class UniformGravitySE3(AbstractPotential):
 
     mass: Float[Array, ""]
     gravity: Float[Array, ""]
-    center_of_mass: Float[Array, "3"]
+    center_of_mass: Float[Array, 3]
 
     def __init__(self, mass, gravity=9.81, center_of_mass=None):
         self.mass = mass
@@ -51,7 +51,9 @@ class UniformGravitySE3(AbstractPotential):
     def __check_init__(self):
         for name in ("mass", "gravity"):
             if jnp.ndim(getattr(self, name)) != 0:
-                raise ValueError(f"`{name}` must be a scalar, got shape {jnp.shape(getattr(self, name))}.")
+                raise ValueError(
+                    f"`{name}` must be a scalar, got shape {jnp.shape(getattr(self, name))}."
+                )
         if jnp.shape(self.center_of_mass) != (3,):
             raise ValueError(
                 f"`center_of_mass` must have shape (3,) (body frame), got {jnp.shape(self.center_of_mass)}."
@@ -129,7 +131,11 @@ def full_body_problem(mu, masses, points, extra_inertia=None) -> RigidBodySE3:
     mass = jnp.sum(masses)
     centered = points - masses @ points / mass
     squared = jnp.sum(centered**2, axis=-1)
-    inertia = jnp.einsum("i,ijk->jk", masses, squared[:, None, None] * jnp.eye(3) - centered[:, :, None] * centered[:, None, :])
+    inertia = jnp.einsum(
+        "i,ijk->jk",
+        masses,
+        squared[:, None, None] * jnp.eye(3) - centered[:, :, None] * centered[:, None, :],
+    )
     if extra_inertia is not None:
         inertia = inertia + jnp.asarray(extra_inertia)
     return RigidBodySE3(inertia, mass, potential=CentralGravity(mu, masses, centered))
