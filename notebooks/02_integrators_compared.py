@@ -54,7 +54,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 import lievi
 from lievi import diagnostics
-from lievi._integrators._preprocessed_dmv import modification_series
+from lievi._integrators._preprocessed_dmv import modified_moments_series
 
 # %config InlineBackend.figure_formats = ["png"]
 plt.rcParams.update({"figure.dpi": 100, "axes.grid": True, "grid.alpha": 0.3})
@@ -85,18 +85,20 @@ assert dH < 1e-12 and dC < 1e-12
 # modified moments of inertia": DMV with moments $I/\alpha$ and step $h$ is DMV with moments
 # $I$ and step $\alpha h$.)
 #
-# So `PreprocessedMoserVeselov(p)` runs DMV with the step $h'$ that solves $\tau(h') = h$ and
-# rotates the attitude back by $\rho(h')|y|$, with both series cut after $h^p$: order $p$. The
-# series are computed in JAX, by truncated power series of the DMV step and of the exact flow
-# (see `lievi/_integrators/_preprocessed_dmv.py`), once per trajectory (`prepare`); then each step is one
-# DMV step and one small rotation. The coefficients for our body (odd powers only — the
-# method is symmetric):
+# So `PreprocessedMoserVeselov(p)` runs DMV on a body with modified inverse moments
+# $\alpha(h) I^{-1} + \beta(h)\,\mathrm{Id}$, where $\alpha$ and $\beta$ are series in $h^2$ whose
+# coefficients depend only on $H$, $C$ and $I$ (Hairer–Vilmart's preprocessing), cut after
+# $h^{p-2}$: order $p$, and with far smaller remainders than cutting the time series $\tau$.
+# The series are computed in JAX, by truncated power series of the DMV step and of the exact
+# flow (see `lievi/_integrators/_preprocessed_dmv.py`), once per trajectory (`prepare`); then
+# each step is one DMV step. The coefficients for our body (even powers only — the method is
+# symmetric):
 
 # %%
-tau, S = modification_series(jnp.diag(1 / body.inertia), y0, 10)
+alpha, beta = modified_moments_series(jnp.diag(1 / body.inertia), y0, 10)
 np.set_printoptions(precision=4, suppress=False)
-print("tau(s) coefficients s^0..s^10:", np.asarray(tau))
-print("S(s) = |y| sin(rho |y|)       :", np.asarray(S))
+print("alpha(h) coefficients h^0..h^10:", np.asarray(alpha))
+print("beta(h)  coefficients h^0..h^10:", np.asarray(beta))
 
 
 # %% [markdown]
