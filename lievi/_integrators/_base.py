@@ -71,8 +71,10 @@ class AbstractIntegrator(eqx.Module):
         """Whether a step of size `h` from momentum `m` exceeds `step_bound()` (traceable).
 
         A NaN momentum is not "too large" (it is reported as `nonfinite`)."""
+        # The angle the group's exponential turns (`exp_norm`: on SE(3) the rotation part
+        # only; a translation per step has no such bound).
         xi = system.velocity(m)
-        return jnp.abs(h) * jnp.sqrt(jnp.sum(xi * xi)) > self.step_bound()
+        return jnp.abs(h) * system.group.exp_norm(xi) > self.step_bound()
 
     def batch_kernel(self, potential=None):
         """This method's structure-of-arrays step for batches of rigid bodies with principal
