@@ -219,23 +219,12 @@ def simulate_batch(
     dtype = state_dtype(system, g0, m0, h)
     g0, m0, h = jnp.asarray(g0, dtype), jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
     segment = _checkpoint_segment(checkpoint, n_steps, save_every)
-    fast_kernel = _fast_kernel(system, integrator, system_axis, fixed_iterations) if fast else None
-    if forcing is not None:
-        solution = _simulate_vmap(
-            system,
-            integrator,
-            g0,
-            m0,
-            h,
-            n_steps,
-            save_every,
-            save,
-            system_axis,
-            segment,
-            forcing,
-            args,
-        )
-    elif fast_kernel is not None:
+    # Forced runs take the generic path (the kernels integrate unforced bodies).
+    use_fast = fast and forcing is None
+    fast_kernel = (
+        _fast_kernel(system, integrator, system_axis, fixed_iterations) if use_fast else None
+    )
+    if fast_kernel is not None:
         kernel, moments = fast_kernel
         # The traced input checks of `simulate`, per body (the generic path runs them
         # inside `simulate`): a bad body starts with `RESULTS.invalid_input`.
@@ -258,7 +247,18 @@ def simulate_batch(
         )
     else:
         solution = _simulate_vmap(
-            system, integrator, g0, m0, h, n_steps, save_every, save, system_axis, segment
+            system,
+            integrator,
+            g0,
+            m0,
+            h,
+            n_steps,
+            save_every,
+            save,
+            system_axis,
+            segment,
+            forcing,
+            args,
         )
     if throw:
         failed = solution.result != RESULTS.successful
