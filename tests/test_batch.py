@@ -500,7 +500,9 @@ def test_reduced_heavy_top_equals_reconstructed(name):
     gamma, m = reduced.advected[ok], reduced.m[ok]
     np.testing.assert_allclose(np.sum(gamma**2, axis=-1), 1.0, rtol=0, atol=ROUNDOFF)
     pg = np.sum(gamma * m, axis=-1)
-    np.testing.assert_allclose(pg, np.broadcast_to(pg[:, :1], pg.shape), rtol=0, atol=ROUNDOFF * np.abs(pg).max())
+    np.testing.assert_allclose(
+        pg, np.broadcast_to(pg[:, :1], pg.shape), rtol=0, atol=ROUNDOFF * np.abs(pg).max()
+    )
 
 
 def eqx_set(tree, where, index, value):
