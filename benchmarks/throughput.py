@@ -437,6 +437,39 @@ def heavy_top_main(args, meta, out):
     meta["acceptance"] = summary
     (out / f"{args.out}.json").write_text(json.dumps({"meta": meta, "results": records}, indent=2))
     print(f"\nwrote {out / (args.out + '.json')}")
+    try:
+        plot_heavy_top(records, meta, out / f"{args.out}.png")
+        print(f"wrote {out / (args.out + '.png')}")
+    except ImportError:
+        print("matplotlib not installed: no plot")
+
+
+def plot_heavy_top(records, meta, path):
+    """Body-steps/s of every row, one bar each, coloured by free body / heavy top / diffrax."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = [r["method"] for r in records]
+    rates = [r["body_steps_per_s"] for r in records]
+    colours = [
+        "tab:gray" if "free body" in m else "tab:red" if "diffrax" in m else "tab:blue"
+        for m in labels
+    ]
+    fig, ax = plt.subplots(figsize=(8, 0.4 * len(labels) + 1.2))
+    ax.barh(range(len(labels)), rates, color=colours)
+    ax.set_yticks(range(len(labels)), labels, fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xscale("log")
+    ax.set_xlabel(
+        f"body-steps / s ({meta['dtype']}, batch {meta['batch']}, {meta['steps']} steps, "
+        "final state)"
+    )
+    ax.set_title(f"heavy top vs free body vs diffrax Tsit5, {meta['device']}", fontsize=9)
+    ax.grid(True, axis="x", which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
 
 
 def timed(fn, args, min_total: float = 0.5, max_repeats: int = 5):
