@@ -509,3 +509,17 @@ def eqx_set(tree, where, index, value):
     import equinox as eqx
 
     return eqx.tree_at(where, tree, where(tree).at[index].set(value))
+
+
+def test_saving_the_advected_parameter_needs_one():
+    """`save=("advected",)` for a system whose potential has no advected parameter (a free
+    body, or a plain `V(g)`) is an error naming `save`."""
+    _, g0, m0, h = random_batch(np.random.default_rng(2), 3)
+    inertia = jnp.array([1.0, 2.0, 3.0])
+    for system in (lievi.RigidBody(inertia), lievi.RigidBody(inertia, potential=lambda g: g[2, 2])):
+        with pytest.raises(ValueError, match="`save` contains 'advected'"):
+            lievi.simulate_batch(
+                system, FAST["dep-exp"], g0, m0, h=h, n_steps=2, save=("m", "advected")
+            )
+    with pytest.raises(ValueError, match="`save` may only contain"):
+        lievi.simulate_batch(system, FAST["dep-exp"], g0, m0, h=h, n_steps=2, save=("gamma",))

@@ -5,7 +5,9 @@ that); for `RigidBody` with principal moments and the integrators that have one 
 `MoserVeselov`: `_fast_so3.py`; `LiePoissonSplitting`, `RK4`: `_fast_explicit.py`), a
 structure-of-arrays fast path computes the same iterates to round-off, 10–50× faster on
 CPU (`benchmarks/throughput.py`). Everything runs inside one jit-compiled `lax.scan`: no host
-synchronisation per step.
+synchronisation per step. For a potential with an advected parameter (`UniformGravity`:
+`Γ = gᵀe₃`) and a run that does not save `g`, the fast path carries the reduced state
+`(Π, Γ)` of the paper's §7 instead of `(Π, g)` (`AbstractBatchKernel.reduced`).
 """
 
 from __future__ import annotations
