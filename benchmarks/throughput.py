@@ -395,18 +395,9 @@ def heavy_top_main(args, meta, out):
         )
         if jax.device_count() > 1:
             inputs = lievi.shard_batch(inputs)
-        compile_s, run_s = timed(fn, inputs)
-        rate = batch * steps / run_s
-        records.append(
-            {
-                "method": label,
-                "dtype": dtype_name,
-                "batch": batch,
-                "steps": steps,
-                "compile_s": compile_s,
-                "run_s": run_s,
-                "body_steps_per_s": rate,
-            }
+        records.append(measure(label, fn, inputs, dtype_name, batch, steps))
+        compile_s, run_s, rate = (
+            records[-1][k] for k in ("compile_s", "run_s", "body_steps_per_s")
         )
         print(f"{label:<34}{compile_s:>13.2f}{run_s:>11.4f}{rate:>15.3g}", flush=True)
         meta["load_average_at_end"] = os.getloadavg()
@@ -435,11 +426,16 @@ def heavy_top_main(args, meta, out):
                 f"{line['vs_free_body']:>8.2f}× free body"
             )
     meta["acceptance"] = summary
-    (out / f"{args.out}.json").write_text(json.dumps({"meta": meta, "results": records}, indent=2))
-    print(f"\nwrote {out / (args.out + '.json')}")
+    save_results(records, meta, out / args.out, plot_heavy_top)
+
+
+def save_results(records, meta, base, plot_fn):
+    """`base.json` (meta and records) and `base.png` drawn by `plot_fn`."""
+    base.with_suffix(".json").write_text(json.dumps({"meta": meta, "results": records}, indent=2))
+    print(f"\nwrote {base.with_suffix('.json')}")
     try:
-        plot_heavy_top(records, meta, out / f"{args.out}.png")
-        print(f"wrote {out / (args.out + '.png')}")
+        plot_fn(records, meta, base.with_suffix(".png"))
+        print(f"wrote {base.with_suffix('.png')}")
     except ImportError:
         print("matplotlib not installed: no plot")
 
@@ -470,6 +466,20 @@ def plot_heavy_top(records, meta, path):
     ax.grid(True, axis="x", which="both", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+
+
+def measure(name, fn, inputs, dtype_name, batch: int, steps: int):
+    """One row: `fn(*inputs)` timed (`timed`), as a record of the JSON."""
+    compile_s, run_s = timed(fn, inputs)
+    return {
+        "method": name,
+        "dtype": dtype_name,
+        "batch": batch,
+        "steps": steps,
+        "compile_s": compile_s,
+        "run_s": run_s,
+        "body_steps_per_s": batch * steps / run_s,
+    }
 
 
 def timed(fn, args, min_total: float = 0.5, max_repeats: int = 5):
@@ -584,19 +594,11 @@ def main():
                     if batch % n_devices:
                         continue
                     inputs = lievi.shard_batch(inputs)
-                compile_s, run_s = timed(fn, inputs)
-                rate = batch * steps / run_s
-                records.append(
-                    {
-                        "method": name,
-                        "dtype": dtype_name,
-                        "batch": batch,
-                        "steps": steps,
-                        "compile_s": compile_s,
-                        "run_s": run_s,
-                        "body_steps_per_s": rate,
-                        "max_abs_difference_vs_vmap_simulate": difference,
-                    }
+                record = measure(name, fn, inputs, dtype_name, batch, steps)
+                record["max_abs_difference_vs_vmap_simulate"] = difference
+                records.append(record)
+                compile_s, run_s, rate = (
+                    record[k] for k in ("compile_s", "run_s", "body_steps_per_s")
                 )
                 print(
                     f"{name:<26}{batch:>9}{compile_s:>13.2f}{run_s:>11.4f}{rate:>15.3g}", flush=True
@@ -618,15 +620,7 @@ def main():
             f"{n_devices} device(s); load average now {os.getloadavg()}):"
         )
         meta["acceptance"] = acceptance_summary([r for r in records if r["batch"] == batches[-1]])
-        (out / f"{args.out}.json").write_text(
-            json.dumps({"meta": meta, "results": records}, indent=2)
-        )
-    print(f"\nwrote {out / (args.out + '.json')}")
-    try:
-        plot(records, meta, out / f"{args.out}.png")
-        print(f"wrote {out / (args.out + '.png')}")
-    except ImportError:
-        print("matplotlib not installed: no plot")
+    save_results(records, meta, out / args.out, plot)
 
 
 def plot(records, meta, path):
