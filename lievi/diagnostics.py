@@ -12,6 +12,7 @@ All functions take arrays with leading batch/time axes unless stated otherwise.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
@@ -93,6 +94,13 @@ def del_residual(
     `exp(εη) g_k` (right) at `ε = 0`: zero, to round-off, exactly when the trajectory is
     a critical point of the action sum (Theorem 2.1).
     """
+    return _del_residual(system, integrator, g, jnp.asarray(h, g.dtype))
+
+
+# Compiled once per (system, integrator, shape): evaluated op by op, the vmapped gradient
+# dispatches thousands of small operations (minutes on SO(n) with the exponential chart).
+@eqx.filter_jit
+def _del_residual(system, integrator, g, h):
     group = system.group
 
     def residual(g_prev, g_k, g_next):
@@ -122,6 +130,12 @@ def poisson_defect(
 
     `D` is computed by `jax.jacfwd` (implicit differentiation through the Newton solve).
     """
+    dtype = jnp.result_type(m, float)
+    return _poisson_defect(system, integrator, g, m, jnp.asarray(h, dtype))
+
+
+@eqx.filter_jit  # as `_del_residual`: one compiled program instead of op-by-op dispatch
+def _poisson_defect(system, integrator, g, m, h):
 
     def momentum_map(mm):
         return integrator.step(system, g, mm, h)[1]
