@@ -30,7 +30,7 @@ from jaxtyping import Array, Float, Scalar
 from .._batch._fast_so3 import NewtonKernel
 from .._checks import check_finite, check_spd, is_concrete
 from .._groups._base import MatrixLieGroup
-from .._groups._se3 import SE3
+from .._groups._se3 import SE3, SE3Group
 from .._integrators._newton import newton_tolerance
 from . import _se3_dep
 from ._base import AbstractLieSystem
@@ -154,7 +154,12 @@ class RigidBodySE3(AbstractLieSystem):
         # DEP (either chart) in scalar closed form (`_se3_dep.py`): the residual, its
         # Jacobian, the 6×6 solve by blocks, F, Ad_Fᵀ m and g F written out, so XLA fuses
         # the step; the same Newton iterates as the generic path. Other methods: generic.
-        if not isinstance(kernel, NewtonKernel) or kernel.chart not in ("exp", "cayley"):
+        # Only on `lievi.SE3` itself (a subclass with another group takes the generic path).
+        if (
+            not isinstance(self.group, SE3Group)
+            or not isinstance(kernel, NewtonKernel)
+            or kernel.chart not in ("exp", "cayley")
+        ):
             return None
         dtype = jnp.result_type(self.tensor, m, g)
         A = jnp.asarray(self.tensor, dtype) / h
