@@ -4,7 +4,9 @@ Commands:
 
 - `demo`: every integrator on the Hairer–Lubich–Wanner rigid body (or, with
   `--problem heavy-top`, an asymmetric heavy top), with errors against a reference
-  solution, the energy error, conservation drifts and timings (`python -m lievi demo --help`).
+  solution, the energy error, conservation drifts and timings; `--problem control`:
+  optimal rest-to-rest reorientation of a rigid body, with gradients through the
+  integrator (`python -m lievi demo --help`).
 
 To add a command, add an entry to `_COMMANDS`: its name, a one-line help, a function
 that adds its options to an `argparse` parser, and the name of a module in `lievi`
@@ -21,7 +23,7 @@ import sys
 _COMMANDS = {
     "demo": (
         "run every integrator on the HLW rigid body (or --problem heavy-top) and print "
-        "errors, drifts and timings",
+        "errors, drifts and timings; --problem control: optimal reorientation",
         "lievi._demo",
     ),
 }

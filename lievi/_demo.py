@@ -10,6 +10,10 @@ energy error and the drifts of the problem's conserved quantities, the DEL resid
 iterations, the result code and wall times. `--plot` saves a figure (needs matplotlib,
 imported only then), `--json` writes the table; both paths are checked before the run.
 
+`--problem control` is an optimisation rather than a table of integrators: optimal
+rest-to-rest reorientation of a rigid body with gradients through `simulate` (see
+`lievi._demo_control`).
+
 Adding an integrator to the demo is one row in `INTEGRATORS`; a problem is one `Problem`.
 """
 
@@ -191,22 +195,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--steps",
         type=_positive_int,
-        default=DEFAULT_STEPS,
+        default=None,
         metavar="N",
-        help=f"number of steps (default {DEFAULT_STEPS}, i.e. T = 100 at the default h)",
+        help=f"number of steps (default {DEFAULT_STEPS}, i.e. T = 100 at the default h; "
+        "control: 60 over the fixed T = 2)",
     )
     parser.add_argument(
         "--h",
         type=_positive_float,
-        default=DEFAULT_H,
+        default=None,
         metavar="H",
-        help=f"step size (default {DEFAULT_H})",
+        help=f"step size (default {DEFAULT_H}; not for control, where h = T/N)",
     )
     parser.add_argument(
         "--problem",
-        choices=tuple(PROBLEMS),
+        choices=(*PROBLEMS, "control"),
         default=DEFAULT_PROBLEM,
-        help=f"the test problem (default {DEFAULT_PROBLEM}; heavy-top: the asymmetric heavy top)",
+        help=f"the test problem (default {DEFAULT_PROBLEM}; heavy-top: the asymmetric heavy "
+        "top; control: optimal rest-to-rest reorientation, solved through the integrator)",
     )
     parser.add_argument(
         "--plot",
@@ -511,7 +517,7 @@ def main(args: argparse.Namespace) -> int:
             "the demo needs float64: run `python -m lievi demo`, or call "
             "jax.config.update('jax_enable_x64', True) before creating arrays."
         )
-    problem = PROBLEMS[getattr(args, "problem", DEFAULT_PROBLEM)]
+    problem_name = getattr(args, "problem", DEFAULT_PROBLEM)
     outputs = [
         (option, path) for option, path in (("--json", args.json), ("--plot", args.plot)) if path
     ]
@@ -525,8 +531,14 @@ def main(args: argparse.Namespace) -> int:
         for message in problems:
             print(f"lievi demo: error: {message}", file=sys.stderr)
         return 2
+    if problem_name == "control":  # an optimisation, not a table of integrators
+        from . import _demo_control
 
-    h, n_steps = float(args.h), int(args.steps)
+        return _demo_control.main(args)
+
+    problem = PROBLEMS[problem_name]
+    h = float(args.h) if args.h is not None else problem.default_h
+    n_steps = int(args.steps) if args.steps is not None else problem.default_steps
     body, g0, m0 = problem.make()
     ts = h * np.arange(n_steps + 1)
 

@@ -56,7 +56,7 @@ from .._batch._fast_so3 import NewtonKernel
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from ._base import AbstractVariationalIntegrator, StepInfo
-from ._newton import newton_solve, newton_tolerance
+from ._newton import check_newton_options, newton_solve, newton_tolerance
 
 CHARTS = ("exp", "cayley")
 
@@ -103,17 +103,7 @@ class DEP(AbstractVariationalIntegrator):
     def __check_init__(self):
         if self.chart not in CHARTS:
             raise ValueError(f"`chart` must be one of {CHARTS}, got {self.chart!r}.")
-        # Any integer type (NumPy's too, as `n_steps` accepts), not bool.
-        if (
-            isinstance(self.max_steps, bool)
-            or not isinstance(self.max_steps, (int, np.integer))
-            or self.max_steps < 1
-        ):
-            raise ValueError(f"`max_steps` must be a positive integer, got {self.max_steps!r}.")
-        for name in ("rtol", "atol"):
-            value = getattr(self, name)
-            if value is not None and not value >= 0:
-                raise ValueError(f"`{name}` must be ≥ 0, got {value!r}.")
+        check_newton_options(self.max_steps, self.rtol, self.atol)
 
     def order(self) -> int:
         return 2

@@ -53,7 +53,7 @@ from .._systems._generalized_rigid_body import GeneralizedRigidBody
 from .._systems._rigid_body import RigidBody
 from ._base import AbstractVariationalIntegrator, StepInfo
 from ._dep import _as_int
-from ._newton import newton_solve, newton_tolerance
+from ._newton import check_newton_options, newton_solve, newton_tolerance
 
 
 def check_rigid_body(method: str, system: AbstractLieSystem) -> None:
@@ -128,17 +128,7 @@ class MoserVeselov(AbstractVariationalIntegrator):
     max_steps: int = eqx.field(default=20, static=True, converter=_as_int)
 
     def __check_init__(self):
-        # Any integer type (NumPy's too, as `n_steps` accepts), not bool.
-        if (
-            isinstance(self.max_steps, bool)
-            or not isinstance(self.max_steps, (int, np.integer))
-            or self.max_steps < 1
-        ):
-            raise ValueError(f"`max_steps` must be a positive integer, got {self.max_steps!r}.")
-        for name in ("rtol", "atol"):
-            value = getattr(self, name)
-            if value is not None and not value >= 0:
-                raise ValueError(f"`{name}` must be ≥ 0, got {value!r}.")
+        check_newton_options(self.max_steps, self.rtol, self.atol)
 
     def order(self) -> int:
         return 2

@@ -14,7 +14,19 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int, Scalar
+
+
+def check_newton_options(max_steps, rtol, atol) -> None:
+    """Raise a `ValueError` naming the option when a Newton integrator's `max_steps`,
+    `rtol` or `atol` is unusable (called from the integrators' `__check_init__`)."""
+    # Any integer type (NumPy's too, as `n_steps` accepts), not bool.
+    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
+        raise ValueError(f"`max_steps` must be a positive integer, got {max_steps!r}.")
+    for name, value in (("rtol", rtol), ("atol", atol)):
+        if value is not None and not value >= 0:
+            raise ValueError(f"`{name}` must be ≥ 0, got {value!r}.")
 
 
 def newton_tolerance(scale, dtype, rtol: float | None = None, atol: float | None = None):
