@@ -31,13 +31,18 @@ class Solution(eqx.Module):
     - `stats`: `newton_iterations` and `residual`, shape `(T − 1,)`, the maximum over the
       steps between consecutive saves; `failed_step`, the index of the first failed step
       (−1 if none); `total_newton_iterations`; `num_steps`.
+    - `advected`: the advected parameter `Γ = gᵀa` of the system's potential (the body
+      frame's view of gravity's vertical for `UniformGravity`; paper §7), shape `(T, n)`,
+      where it was asked for (`simulate_batch(save=(..., "advected"))`), else `None`.
+      A run that saves `Γ` but not `g` carries `(Π, Γ)` alone on the fast path.
     """
 
     ts: Float[Array, " T"]
-    g: Float[Array, "T n n"]
-    m: Float[Array, "T d"]
+    g: Float[Array, "T n n"] | None
+    m: Float[Array, "T d"] | None
     result: Int[Array, ""]
     stats: dict[str, Array]
+    advected: Float[Array, "T n"] | None = None
 
     def angular_velocity(
         self, system: AbstractLieSystem, frame: str = "body"

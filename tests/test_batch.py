@@ -430,3 +430,96 @@ def test_heavy_top_fast_path(name):
     grad_fast, grad_generic = jax.grad(loss)(params, True), jax.grad(loss)(params, False)
     for a, b in zip(grad_fast, grad_generic):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-10 * np.abs(b).max())
+
+    # The reduced run (g not saved: the fast path carries (Π, Γ)), the same loss with
+    # Γ_final = g_finalᵀe₃ read from `Solution.advected`: the same gradient as the g path.
+    def reduced_loss(params):
+        sol = lievi.simulate_batch(
+            tops(*params), integrator, g0, m0, save=("m", "advected"), **kwargs
+        )
+        assert sol.g is None
+        return jnp.sum(sol.m**2) + jnp.sum(sol.advected[:, -1])
+
+    grad_reduced = jax.grad(reduced_loss)(params)
+    for a, b in zip(grad_reduced, grad_generic):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-10 * np.abs(b).max())
+
+
+def heavy_tops(rng, batch):
+    """A batch of asymmetric heavy tops with off-axis centres of mass."""
+    bodies, g0, m0, _ = random_batch(rng, batch)
+    mass = jnp.asarray(rng.uniform(0.5, 1.5, batch))
+    com = jnp.asarray(0.3 * rng.normal(size=(batch, 3)))
+    tops = jax.vmap(lambda i, m, c: lievi.RigidBody(i, lievi.UniformGravity(m, c, 1.0)))(
+        bodies.inertia, mass, com
+    )
+    return tops, g0, m0
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["dep-exp"]
+    + [
+        pytest.param(n, marks=pytest.mark.slow)
+        for n in ("dep-cayley", "moser-veselov", "splitting")
+    ],
+)
+def test_reduced_heavy_top_equals_reconstructed(name):
+    """The reduced fast path (paper §7: `(Π, Γ)` with `Γ_{k+1} = F_kᵀΓ_k`, no `g`) gives
+    the reconstructed run's `(Π_k, g_kᵀe₃)` to round-off, with the same per-body result
+    codes and NaN masking; bodies that fail (a NaN centre of mass: invalid input; a spin
+    too fast for the step: step too large) fail alike and do not disturb the others."""
+    from lievi._batch._simulate_batch import _fast_kernel
+
+    rng = np.random.default_rng(11)
+    batch = 6
+    tops, g0, m0 = heavy_tops(rng, batch)
+    tops = eqx_set(tops, lambda t: t.potential.center_of_mass, 1, jnp.nan)
+    m0 = m0.at[2].set(jnp.array([40.0, -30.0, 20.0]))
+    integrator = FAST[name]
+    kernel, _ = _fast_kernel(tops, integrator, 0, carry_g=False)
+    assert len(kernel.carried(g0)) == 3  # Γ alone, not the 9 entries of g
+    kwargs = dict(h=0.05, n_steps=60, save_every=6, system_axis=0, throw=False)
+    full = lievi.simulate_batch(tops, integrator, g0, m0, save=("g", "m", "advected"), **kwargs)
+    reduced = lievi.simulate_batch(tops, integrator, g0, m0, save=("m", "advected"), **kwargs)
+    assert reduced.g is None and reduced.advected.shape == (batch, 11, 3)
+    np.testing.assert_array_equal(reduced.result, full.result)
+    np.testing.assert_array_equal(reduced.stats["failed_step"], full.stats["failed_step"])
+    assert full.result[1] == lievi.RESULTS.invalid_input
+    assert full.result[2] == lievi.RESULTS.step_too_large
+    ok = np.asarray(full.result == lievi.RESULTS.successful)
+    assert ok.sum() == batch - 2
+    # Γ_k = g_kᵀe₃ is the last row of g_k; NaN where the body has failed, in both runs.
+    vertical = full.g[..., 2, :]
+    np.testing.assert_allclose(full.advected, vertical, rtol=0, atol=0)
+    np.testing.assert_array_equal(np.isnan(reduced.advected), np.isnan(vertical))
+    assert np.all(np.isnan(reduced.advected[~ok, 1:]))
+    np.testing.assert_allclose(reduced.advected[ok], vertical[ok], rtol=0, atol=ROUNDOFF)
+    np.testing.assert_allclose(reduced.m[ok], full.m[ok], rtol=0, atol=ROUNDOFF)
+    # The reduced state keeps the Casimirs |Γ|² = 1 and Π·Γ (paper §7).
+    gamma, m = reduced.advected[ok], reduced.m[ok]
+    np.testing.assert_allclose(np.sum(gamma**2, axis=-1), 1.0, rtol=0, atol=ROUNDOFF)
+    pg = np.sum(gamma * m, axis=-1)
+    np.testing.assert_allclose(
+        pg, np.broadcast_to(pg[:, :1], pg.shape), rtol=0, atol=ROUNDOFF * np.abs(pg).max()
+    )
+
+
+def eqx_set(tree, where, index, value):
+    import equinox as eqx
+
+    return eqx.tree_at(where, tree, where(tree).at[index].set(value))
+
+
+def test_saving_the_advected_parameter_needs_one():
+    """`save=("advected",)` for a system whose potential has no advected parameter (a free
+    body, or a plain `V(g)`) is an error naming `save`."""
+    _, g0, m0, h = random_batch(np.random.default_rng(2), 3)
+    inertia = jnp.array([1.0, 2.0, 3.0])
+    for system in (lievi.RigidBody(inertia), lievi.RigidBody(inertia, potential=lambda g: g[2, 2])):
+        with pytest.raises(ValueError, match="`save` contains 'advected'"):
+            lievi.simulate_batch(
+                system, FAST["dep-exp"], g0, m0, h=h, n_steps=2, save=("m", "advected")
+            )
+    with pytest.raises(ValueError, match="`save` may only contain"):
+        lievi.simulate_batch(system, FAST["dep-exp"], g0, m0, h=h, n_steps=2, save=("gamma",))

@@ -99,7 +99,8 @@ def _rotation_about_axis(p: int, alpha, one):
 
 
 def _matmul3(X, Y):
-    """`X Y` for 3×3 matrices as 9 arrays (entries may be Python floats, 0.0 and 1.0 drop)."""
+    """`X Y` for 3×3 matrices as 9 arrays (entries may be Python floats, 0.0 and 1.0 drop);
+    `X` may also be fewer rows (3 arrays a row), e.g. the advected row `Γᵀ`."""
 
     def term(x, y):
         if isinstance(x, float) and x == 0 or isinstance(y, float) and y == 0:
@@ -113,7 +114,7 @@ def _matmul3(X, Y):
         )
 
     out = []
-    for i in range(3):
+    for i in range(len(X) // 3):
         for j in range(3):
             terms = [t for k in range(3) if (t := term(X[3 * i + k], Y[3 * k + j])) is not None]
             out.append(sum(terms[1:], terms[0]) if terms else 0.0)
@@ -126,7 +127,7 @@ def splitting_step(g, Pi, inertia_over_h):
     Sub-flow about axis `p` for a fraction `f` of the step: `F = exp(α ê_p)` with
     `α = f Π_p / (I_p/h)`, `Π ← Fᵀ Π` (`Π_p` does not change); the five rotations are
     composed into one `F` and `g ← g F` once (equal to rotating `g` five times, to
-    round-off). `g`: 9 arrays (row-major), `Pi`: 3 arrays, `inertia_over_h`: `I_p/h`, 3
+    round-off). `g`: 9 arrays (row-major), or only some of its rows (as `dep_step`), `Pi`: 3 arrays, `inertia_over_h`: `I_p/h`, 3
     arrays or scalars. Returns `(g_next, Pi_next, result)`.
     """
     one = Pi[0] * 0 + 1
@@ -158,7 +159,7 @@ def rk4_step(g, Pi, h, inverse_inertia):
         )
         # (g Ω̂)_{ij} = Σ_k g_ik Ω̂_kj, Ω̂ = [[0, −w2, w1], [w2, 0, −w0], [−w1, w0, 0]].
         dg = []
-        for i in range(3):
+        for i in range(len(g) // 3):
             g0, g1, g2 = g[3 * i], g[3 * i + 1], g[3 * i + 2]
             dg += [g1 * w[2] - g2 * w[1], g2 * w[0] - g0 * w[2], g0 * w[1] - g1 * w[0]]
         return tuple(dg), dPi

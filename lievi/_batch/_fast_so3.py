@@ -367,7 +367,9 @@ def dep_step(chart, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int, 
 
     `chart`: `"exp"`, `"cayley"` (`DEP`) or `"moser-veselov"` (`MoserVeselov`: the
     Cayley chart with the Moser–Veselov residual).
-    `g`: 9 arrays (row-major), `Pi`: 3 arrays, `A = I/h`: 3 arrays (or scalars).
+    `g`: 9 arrays (row-major), or the rows of `g` that are carried (3 arrays a row: each
+    row `r` becomes `r F`, so the reduced state's `Γᵀ = aᵀg` is one row), `Pi`: 3 arrays,
+    `A = I/h`: 3 arrays (or scalars).
     Returns `(g_next, Pi_next, result, iterations, residual)`; reverse-mode differentiable.
     """
     xi, iterations, norm, converged = differentiable_increment(
@@ -386,9 +388,10 @@ def dep_step(chart, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int, 
     F = [a * X[3 * i + j] + b * xi[i] * xi[j] for i in range(3) for j in range(3)]
     for i in range(3):
         F[4 * i] = F[4 * i] + (1 - b * t)
+    # Row by row (`g` may be only some rows, e.g. the advected `Γᵀ = e₃ᵀg`).
     g_next = tuple(
         g[3 * i] * F[j] + g[3 * i + 1] * F[3 + j] + g[3 * i + 2] * F[6 + j]
-        for i in range(3)
+        for i in range(len(g) // 3)
         for j in range(3)
     )
     xp = _cross(xi, Pi)

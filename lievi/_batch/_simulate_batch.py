@@ -5,7 +5,9 @@ that); for `RigidBody` with principal moments and the integrators that have one 
 `MoserVeselov`: `_fast_so3.py`; `LiePoissonSplitting`, `RK4`: `_fast_explicit.py`), a
 structure-of-arrays fast path computes the same iterates to round-off, 10–50× faster on
 CPU (`benchmarks/throughput.py`). Everything runs inside one jit-compiled `lax.scan`: no host
-synchronisation per step.
+synchronisation per step. For a potential with an advected parameter (`UniformGravity`:
+`Γ = gᵀe₃`) and a run that does not save `g`, the fast path carries the reduced state
+`(Π, Γ)` of the paper's §7 instead of `(Π, g)` (`AbstractBatchKernel.reduced`).
 """
 
 from __future__ import annotations
@@ -27,18 +29,24 @@ from .._systems._base import AbstractLieSystem
 from ._kernel import ROOT_NAME
 
 SAVE_FIELDS = ("g", "m", "stats")
+# Saved only on request: the advected parameter Γ of the potential (`Solution.advected`).
+OPTIONAL_SAVE_FIELDS = ("advected",)
 
 
-def _fast_kernel(system, integrator, system_axis, fixed_iterations=None):
+def _fast_kernel(system, integrator, system_axis, fixed_iterations=None, carry_g=True):
     """`(kernel, principal moments)` of the fast path for this pair, or None if it has none.
 
     The integrator owns its structure-of-arrays step (`batch_kernel`), the system says
-    whether it is a rigid body with principal moments (`principal_moments`).
+    whether it is a rigid body with principal moments (`principal_moments`). With
+    `carry_g=False` (the caller does not save `g`) the kernel's reduced form is taken
+    where it has one (`AbstractBatchKernel.reduced`: `(Π, Γ)` in place of `(Π, g)`).
     """
     kernel = integrator.batch_kernel(system.potential)
     moments = system.principal_moments(batched=system_axis is not None)
     if kernel is None or moments is None:
         return None
+    if not carry_g:
+        kernel = kernel.reduced() or kernel
     if fixed_iterations is not None:
         kernel = kernel.with_fixed_iterations(fixed_iterations)
     return kernel, moments
@@ -93,10 +101,16 @@ def simulate_batch(
     - `n_steps`: number of steps.
     - `save_every`: save every this many steps (must divide `n_steps`). Default: only the
       initial and the final state are kept (`save_every = n_steps`), the cheapest output.
-    - `save`: which per-save fields to store, a subset of `("g", "m", "stats")`; the
-      omitted ones are `None` in the `Solution` (the summary statistics `failed_step`,
-      `total_newton_iterations`, `num_steps` are always kept). Storing nothing but the
-      final state is what makes very large batches fit in memory.
+    - `save`: which per-save fields to store, a subset of `("g", "m", "stats",
+      "advected")` (default `("g", "m", "stats")`); the omitted ones are `None` in the
+      `Solution` (the summary statistics `failed_step`, `total_newton_iterations`,
+      `num_steps` are always kept). Storing nothing but the final state is what makes
+      very large batches fit in memory. `"advected"` (for a potential with an advected
+      parameter, e.g. `UniformGravity`: `AbstractPotential.advected_direction`) stores
+      `Γ_k = g_kᵀa` as `Solution.advected`, `(B, T, 3)`. When `g` is not saved, the fast
+      path of such a system carries `(Π, Γ)` instead of `(Π, g)` — the reduced discrete
+      Lie–Poisson equations of the paper's §7, `Γ_{k+1} = F_kᵀΓ_k`, half the state —
+      and gives the same `Π_k`, `Γ_k` to round-off (docs/potentials.md).
     - `system_axis`: `None` or `0`, as `in_axes` of `jax.vmap` for `system`.
     - `fast`: use the structure-of-arrays fast path when there is one (the integrator's
       `batch_kernel`, for a system with `principal_moments`: today the rigid body with
@@ -149,9 +163,19 @@ def simulate_batch(
             f"`save` must be a sequence of field names, e.g. ('g', 'm'), got the string {save!r}."
         )
     save = tuple(save)
-    unknown = set(save) - set(SAVE_FIELDS)
+    unknown = set(save) - set(SAVE_FIELDS + OPTIONAL_SAVE_FIELDS)
     if unknown:
-        raise ValueError(f"`save` may only contain {SAVE_FIELDS}, got {sorted(unknown)}.")
+        raise ValueError(
+            f"`save` may only contain {SAVE_FIELDS + OPTIONAL_SAVE_FIELDS}, got {sorted(unknown)}."
+        )
+    if "advected" in save and (
+        system.potential is None or system.potential.advected_direction() is None
+    ):
+        raise ValueError(
+            "`save` contains 'advected' but the system's potential has no advected parameter "
+            "(`AbstractPotential.advected_direction` is None; e.g. `lievi.UniformGravity` has "
+            "one); save 'g' instead."
+        )
     if system_axis not in (None, 0):
         raise ValueError(f"`system_axis` must be None (shared system) or 0, got {system_axis!r}.")
     if fixed_iterations is not None:
@@ -222,7 +246,9 @@ def simulate_batch(
     # Forced runs take the generic path (the kernels integrate unforced bodies).
     use_fast = fast and forcing is None
     fast_kernel = (
-        _fast_kernel(system, integrator, system_axis, fixed_iterations) if use_fast else None
+        _fast_kernel(system, integrator, system_axis, fixed_iterations, carry_g="g" in save)
+        if use_fast
+        else None
     )
     if fast_kernel is not None:
         kernel, moments = fast_kernel
@@ -278,7 +304,7 @@ def simulate_batch(
     return solution
 
 
-def _keep(solution: Solution, save) -> Solution:
+def _keep(solution: Solution, save, advected=None) -> Solution:
     stats = dict(solution.stats)
     if "stats" not in save:
         del stats["newton_iterations"], stats["residual"]
@@ -288,6 +314,7 @@ def _keep(solution: Solution, save) -> Solution:
         m=solution.m if "m" in save else None,
         result=solution.result,
         stats=stats,
+        advected=advected,
     )
 
 
@@ -334,7 +361,13 @@ def _simulate_vmap(
         )
     stats = dict(solution.stats)
     stats["num_steps"] = jnp.broadcast_to(jnp.asarray(n_steps), (g0.shape[0],))
-    return _keep(eqx.tree_at(lambda s: s.stats, solution, stats), save)
+    advected = None
+    if "advected" in save:
+        # Γ_k = g_kᵀa from the saved elements (NaN after a failure, as `g`).
+        advected = jax.vmap(lambda s, g: s.potential.advected(g), in_axes=(system_axis, 0))(
+            system, solution.g
+        )
+    return _keep(eqx.tree_at(lambda s: s.stats, solution, stats), save, advected)
 
 
 def _scan(body, carry, length: int, segment: int | None, unroll: int = 1):
@@ -359,7 +392,8 @@ def _simulate_fast(
     moments = jnp.asarray(moments, dtype)
     # Structure of arrays: component-major, batch minor.
     params = kernel.prepare(tuple(jnp.broadcast_to(moments[..., i], (batch,)) for i in range(3)), h)
-    g = tuple(g0[:, i, j] for i in range(3) for j in range(3))
+    # All of `g` (9 arrays), or the advected parameter alone on the reduced path (3).
+    g = kernel.carried(g0)
     Pi = tuple(m0[:, i] for i in range(3))
     nan = jnp.asarray(jnp.nan, dtype)
     int32 = jnp.int32
@@ -424,6 +458,8 @@ def _simulate_fast(
             out["g"] = jnp.where(ok, jnp.stack(state[0]), nan)
         if "m" in save:
             out["m"] = jnp.where(ok, jnp.stack(state[1]), nan)
+        if "advected" in save:
+            out["advected"] = jnp.where(ok, jnp.stack(kernel.advected(state[0])), nan)
         if "stats" in save:
             out["max_iterations"] = most
             out["residual"] = worst
@@ -459,7 +495,13 @@ def _simulate_fast(
         gs = jnp.concatenate([g0[:, None], gs], axis=1)
     if "m" in save:
         ms = jnp.concatenate([m0[:, None], jnp.moveaxis(out["m"], -1, 0)], axis=1)
-    return Solution(ts=ts, g=gs, m=ms, result=result, stats=stats)
+    advected = None
+    if "advected" in save:
+        advected0 = jnp.stack(kernel.advected(g), axis=-1)
+        advected = jnp.concatenate(
+            [advected0[:, None], jnp.moveaxis(out["advected"], -1, 0)], axis=1
+        )
+    return Solution(ts=ts, g=gs, m=ms, result=result, stats=stats, advected=advected)
 
 
 def shard_batch(tree, devices=None):

@@ -44,6 +44,32 @@ class AbstractPotential(eqx.Module):
         where there is no closed form (the fast path then does not apply)."""
         return None
 
+    def advected_direction(self) -> Float[Array, " n"] | None:
+        """The fixed spatial vector `a` if `V` depends on `g` only through the advected
+        parameter `Γ = gᵀa` (the paper's §7: the symmetry is broken to the subgroup
+        `G^[a]` that fixes `a`), else `None` (the default).
+
+        For such a potential the left-invariant dynamics closes on `(Π, Γ)`: with
+        `F_k = g_k⁻¹g_{k+1}` the step's relative rotation, `Γ_{k+1} = F_kᵀΓ_k` (the
+        Bobenko–Suris reduced discrete Lie–Poisson equations), so `g` need not be carried
+        (`simulate_batch` does so when `g` is not saved).
+        """
+        return None
+
+    def advected(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch n"] | None:
+        """The advected parameter `Γ = gᵀa` (`a = advected_direction()`), for any leading
+        axes of `g`, or `None` where the potential has none."""
+        a = self.advected_direction()
+        if a is None:
+            return None
+        return jnp.einsum("i,...ij->...j", jnp.asarray(a, jnp.result_type(g, float)), g)
+
+    def rigid_body_advected_torque(self, Gamma):
+        """The body torque `M` of a rigid body as a function of the advected parameter
+        alone, 3 arrays from the 3 components of `Γ` (structure of arrays: the reduced
+        batched fast path), or `None` where there is no closed form."""
+        return None
+
 
 class PotentialFunction(AbstractPotential):
     """A potential given as any callable `fn(g) -> scalar`.
@@ -110,12 +136,22 @@ class UniformGravity(AbstractPotential):
         return self.mass * self.gravity * jnp.dot(g[-1], rho)  # e_z·(g ρ) = (gᵀ e_z)·ρ
 
     def rigid_body_torque(self, g):
-        # V = mγ ρ·Γ with Γ = gᵀe₃ the last row of g: M = mγ Γ × ρ (the heavy top's torque).
+        # Γ = gᵀe₃ is the last row of g.
         if len(g) != 9:
+            return None
+        return self.rigid_body_advected_torque(g[6:9])
+
+    def advected_direction(self):
+        # V = mγ ρ·(gᵀe_z): the world's vertical e_z is advected.
+        n = jnp.shape(self.center_of_mass)[-1]
+        return jnp.zeros(n).at[-1].set(1.0)
+
+    def rigid_body_advected_torque(self, Gamma):
+        # V = mγ ρ·Γ: M = mγ Γ × ρ (the heavy top's torque).
+        if len(Gamma) != 3:
             return None
         k = self.mass * self.gravity
         rho = tuple(k * self.center_of_mass[..., i] for i in range(3))
-        Gamma = g[6:9]
         return (
             Gamma[1] * rho[2] - Gamma[2] * rho[1],
             Gamma[2] * rho[0] - Gamma[0] * rho[2],
