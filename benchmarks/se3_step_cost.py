@@ -2,16 +2,21 @@
 
 For DEP (exponential and Cayley charts) and RK4 this times `simulate` (final state only,
 compile time apart) on
-- SO(3): the HLW rigid body (`lievi.RigidBody`, 3 momenta);
-- SE(3): a body with a full 6×6 kinetic tensor (`lievi.RigidBodySE3`, Kirchhoff) using
-  the closed forms of `lievi.SE3`;
+- SO(3): the HLW rigid body (`lievi.RigidBody`, 3 momenta, principal moments: DEP takes
+  the structure-of-arrays closed-form step of `lievi._batch._fast_so3`);
+- SO(3) tensor: the same body given a full 3×3 inertia tensor (a rotated frame), which
+  DEP solves by the generic path (`jax.jacfwd` Jacobian, `linalg.solve`);
+- SE(3): a body with a full 6×6 kinetic tensor (`lievi.RigidBodySE3`, Kirchhoff); DEP
+  takes its scalar closed-form step (`lievi/_systems/_se3_dep.py`), RK4 the closed forms
+  of `lievi.SE3`;
 - SE(3) generic: the same body on a group that supplies only `hat`, `vee`, `log` and
   inherits the generic `MatrixLieGroup` derivations (matrix exponential of the 4×4 hat,
   `dexp` from the exponential of a 12×12 block matrix, `dexpinv` by a linear solve): what
   a hand-written subclass gets.
 
 and reports steps per second for one body and for a vmapped batch, and the ratios
-SE(3)/SO(3) of the time per step. Writes `benchmarks/results/se3_step_cost.json`.
+SE(3)/SO(3) of the time per step (and to "SO(3) tensor"). Writes
+`benchmarks/results/se3_step_cost.json`, with the load average at the start.
 
     python benchmarks/se3_step_cost.py [--batch 256] [--steps 2000]
 """
@@ -20,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import time
 
@@ -83,8 +89,14 @@ def problems():
     rng = np.random.default_rng(0)
     A = rng.normal(size=(6, 6))
     tensor = jnp.asarray(A @ A.T / 6 + np.diag([1.0, 1.5, 2.0, 3.0, 4.0, 5.0]))
+    Q = lievi.SO3.exp(jnp.array([0.3, -0.2, 0.5]))
     return {
         "SO(3)": (lievi.RigidBody(jnp.array([2.0, 1.0, 2 / 3])), jnp.eye(3), 3),
+        "SO(3) tensor": (
+            lievi.RigidBody(Q @ jnp.diag(jnp.array([2.0, 1.0, 2 / 3])) @ Q.T),
+            jnp.eye(3),
+            3,
+        ),
         "SE(3)": (lievi.RigidBodySE3(tensor=tensor), jnp.eye(4), 6),
         "SE(3) generic": (GenericBody(tensor), jnp.eye(4), 6),
     }
@@ -130,7 +142,11 @@ def main():
                 body, g0, d, integrator, args.batch, steps, repeats=1 if slow else 3
             )
     device = str(jax.devices()[0])
-    print(f"device: {device}, float64, batch {args.batch}, {args.steps} steps, final state only")
+    load = os.getloadavg()[0]
+    print(
+        f"device: {device}, float64, batch {args.batch}, {args.steps} steps, final state only, "
+        f"load average at start {load:.1f}"
+    )
     print(
         f"{'integrator / group':<30}{'compile [s]':>12}{'1 body [µs/step]':>18}{'batch [µs/body-step]':>22}"
         f"{'ratio to SO(3) 1 / batch':>26}"
@@ -139,6 +155,11 @@ def main():
         base = results[name.split(" / ")[0] + " / SO(3)"]
         r["ratio_single_to_so3"] = r["single_us_per_step"] / base["single_us_per_step"]
         r["ratio_batched_to_so3"] = r["batched_us_per_body_step"] / base["batched_us_per_body_step"]
+        tensor = results[name.split(" / ")[0] + " / SO(3) tensor"]
+        r["ratio_single_to_so3_tensor"] = r["single_us_per_step"] / tensor["single_us_per_step"]
+        r["ratio_batched_to_so3_tensor"] = (
+            r["batched_us_per_body_step"] / tensor["batched_us_per_body_step"]
+        )
         print(
             f"{name:<30}{r['compile_s']:>12.2f}{r['single_us_per_step']:>18.3g}"
             f"{r['batched_us_per_body_step']:>22.3g}"
@@ -148,7 +169,13 @@ def main():
     out.parent.mkdir(exist_ok=True)
     out.write_text(
         json.dumps(
-            {"device": device, "batch": args.batch, "steps": args.steps, "results": results},
+            {
+                "device": device,
+                "load_average_at_start": load,
+                "batch": args.batch,
+                "steps": args.steps,
+                "results": results,
+            },
             indent=2,
         )
     )

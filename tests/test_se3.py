@@ -149,6 +149,23 @@ def test_inverse_and_compose():
     assert _err(SE3.identity(), np.eye(4)) == 0
 
 
+def test_compose_keeps_rotations_orthogonal():
+    """`compose` is the matrix product on the group and pulls a rotation block that is
+    off by `δ` back to `O(δ²)` (one Newton–Schulz step of the polar decomposition)."""
+    rng = np.random.default_rng(5)
+    a, b = (SE3.exp(jnp.asarray(rng.normal(size=(8, 6)))) for _ in range(2))
+    assert _err(SE3.compose(a, b), a @ b) <= ROUNDOFF
+    S = jnp.asarray(rng.normal(size=(8, 3, 3)))
+    off = a.at[..., :3, :3].add(1e-6 * (S + jnp.swapaxes(S, -1, -2)))  # defect ~1e-6
+
+    def defect(g):
+        R = g[..., :3, :3]
+        return np.abs(np.asarray(jnp.swapaxes(R, -1, -2) @ R) - np.eye(3)).max()
+
+    assert defect(off @ b) >= 1e-6
+    assert defect(SE3.compose(off, b)) <= 10 * defect(off @ b) ** 2
+
+
 def test_bracket_and_ad_agree():
     rng = np.random.default_rng(1)
     x, y = (jnp.asarray(rng.normal(size=(5, 6))) for _ in range(2))

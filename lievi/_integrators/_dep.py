@@ -153,11 +153,13 @@ class DEP(AbstractVariationalIntegrator):
         chart, _, _ = _chart(group, self.chart)
         xi, info = self.solve_increment(system, m, h)
         F = chart(xi)
+        # `compose`, not `@`: a group may keep its product on the group to round-off (SE(3)
+        # re-orthonormalises the rotation block; the momentum of a symmetry relies on it).
         if system.side == "left":
-            g_next = g @ F
+            g_next = group.compose(g, F)
             m_next = group.Ad(F).T @ m
         else:
-            g_next = F @ g
+            g_next = group.compose(F, g)
             m_next = group.Ad(group.inverse(F)).T @ m
 
         result = jnp.where(info.converged, RESULTS.successful, RESULTS.newton_not_converged)

@@ -27,9 +27,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
 
+from .._batch._fast_so3 import NewtonKernel
 from .._checks import check_finite, check_spd, is_concrete
 from .._groups._base import MatrixLieGroup
-from .._groups._se3 import SE3
+from .._groups._se3 import SE3, SE3Group
+from .._integrators._newton import newton_tolerance
+from . import _se3_dep
 from ._base import AbstractLieSystem
 from ._potential import AbstractPotential, as_potential
 
@@ -146,6 +149,24 @@ class RigidBodySE3(AbstractLieSystem):
                     "`tensor` must be positive definite (a kinetic energy ½ ξᵀMξ > 0 for every "
                     f"velocity); got eigenvalues {eigenvalues}."
                 )
+
+    def kernel_step(self, kernel, g, m, h):
+        # DEP (either chart) in scalar closed form (`_se3_dep.py`): the residual, its
+        # Jacobian, the 6×6 solve by blocks, F, Ad_Fᵀ m and g F written out, so XLA fuses
+        # the step; the same Newton iterates as the generic path. Other methods: generic.
+        # Only on `lievi.SE3` itself (a subclass with another group takes the generic path).
+        if (
+            not isinstance(self.group, SE3Group)
+            or not isinstance(kernel, NewtonKernel)
+            or kernel.chart not in ("exp", "cayley")
+        ):
+            return None
+        dtype = jnp.result_type(self.tensor, m, g)
+        A = jnp.asarray(self.tensor, dtype) / h
+        tolerance = newton_tolerance(jnp.max(jnp.abs(m)), m.dtype, kernel.rtol, kernel.atol)
+        return _se3_dep.dep_step(
+            kernel.chart, g, m, A, h * self.velocity(m), tolerance, kernel.max_steps
+        )
 
     def lagrangian(self, xi: Float[Array, 6]) -> Scalar:
         return jnp.dot(xi, self.legendre(xi)) / 2
