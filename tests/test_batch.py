@@ -315,8 +315,11 @@ def test_sharded_equals_unsharded():
 
 @pytest.mark.parametrize(
     "name",
-    ["dep-exp", "splitting"]
-    + [pytest.param(n, marks=pytest.mark.slow) for n in ("dep-cayley", "moser-veselov", "rk4")],
+    ["dep-exp"]
+    + [
+        pytest.param(n, marks=pytest.mark.slow)
+        for n in ("dep-cayley", "moser-veselov", "splitting", "rk4")
+    ],
 )
 def test_fast_path_gradient_equals_generic(name):
     """Reverse mode through the fast path (implicit function theorem at every root, with
@@ -393,7 +396,8 @@ def test_fast_path_gradient_finite_when_a_body_fails():
 
 
 @pytest.mark.parametrize(
-    "name", ["dep-exp", "splitting", pytest.param("moser-veselov", marks=pytest.mark.slow)]
+    "name",
+    ["dep-exp"] + [pytest.param(n, marks=pytest.mark.slow) for n in ("splitting", "moser-veselov")],
 )
 def test_heavy_top_fast_path(name):
     """Rigid bodies in uniform gravity (heavy tops, a batch of masses and centres of mass):

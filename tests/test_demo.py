@@ -71,6 +71,7 @@ def test_demo_reports_failure(tmp_path, capsys):
     assert rows["DEP exp chart"]["error_m"] is None  # NaN is written as null
 
 
+@pytest.mark.slow  # CI runs the demo command itself; this adds the stdout checks
 def test_demo_subprocess():
     env = dict(os.environ, PYTHONIOENCODING="utf-8")
     proc = subprocess.run(

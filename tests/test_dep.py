@@ -25,7 +25,7 @@ def test_del_residual_hlw(integrator):
     assert jnp.max(jnp.abs(residual)) <= ROUNDOFF * jnp.max(jnp.abs(m0))
 
 
-@pytest.mark.parametrize("n", [4, 5])
+@pytest.mark.parametrize("n", [4, pytest.param(5, marks=pytest.mark.slow)])
 @pytest.mark.parametrize("integrator", INTEGRATORS, ids=INTEGRATOR_IDS)
 def test_del_residual_generalized_rigid_body(integrator, n):
     body, g0, m0 = random_generalized_body(np.random.default_rng(n), n)

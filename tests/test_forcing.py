@@ -244,6 +244,7 @@ def test_gradient_of_a_whole_control_sequence(integrator):
         assert abs(float(fd - exact)) <= GRADIENT_RTOL * float(jnp.linalg.norm(grad)), (fd, exact)
 
 
+@pytest.mark.slow
 def test_jacfwd_equals_jacrev_for_controls_and_law_parameters():
     body, n, h = lievi.RigidBody(INERTIA), 20, 0.1
     rng = np.random.default_rng(2)

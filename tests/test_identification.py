@@ -381,6 +381,7 @@ def _free_orientations(m0):
     ).g
 
 
+@pytest.mark.slow
 def test_unidentifiable_data_is_reported():
     """A body spinning about a principal axis reveals only Π₁/I₁, a body at rest nothing:
     neither fit may claim convergence, and the report names the undetermined moments. A

@@ -274,6 +274,7 @@ def test_full_body_angular_momentum_1e5_steps(chart):
     _energy_bounded(body, sol, 1e-3)
 
 
+@pytest.mark.slow  # float32 values and gradients of SE3 itself stay in test_se3.py
 def test_float32_kirchhoff():
     """A float32 run stays finite, on its coadjoint orbit to float32 round-off."""
     body, g0, m0 = kirchhoff_problem()
