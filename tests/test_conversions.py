@@ -123,9 +123,9 @@ def test_batched_shapes():
 SEQUENCES = ["xyz", "zyx", "XYZ", "ZYX", "zxz", "XZX"]
 
 
-# The sample includes rotations at gimbal lock on purpose (lievi's angles must still
-# reproduce the matrix there); scipy warns about them, and they are excluded from the
-# comparison of angles below.
+# The sample's identity and tiny rotations are at gimbal lock for the proper sequences
+# (middle angle 0): lievi's angles must still reproduce the matrix there; scipy warns, and
+# those rotations are excluded from the comparison of angles below.
 @pytest.mark.filterwarnings("ignore:Gimbal lock detected:UserWarning")
 @pytest.mark.parametrize("seq", SEQUENCES)
 def test_euler_angles_agree_with_scipy(vectors, seq):
