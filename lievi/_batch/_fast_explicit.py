@@ -18,10 +18,12 @@ from __future__ import annotations
 import decimal
 import math
 
+import jax
 import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
 from .._results import RESULTS
+from . import _explicit_adjoints
 from ._kernel import ROOT_NAME, AbstractBatchKernel
 
 
@@ -121,64 +123,89 @@ def _matmul3(X, Y):
     return tuple(out)
 
 
-def splitting_step(g, Pi, inertia_over_h):
-    """One `LiePoissonSplitting` step: axes 0, 1 (h/2), 2 (h), 1, 0 (h/2), as `_splitting.py`.
-
-    Sub-flow about axis `p` for a fraction `f` of the step: `F = exp(α ê_p)` with
-    `α = f Π_p / (I_p/h)`, `Π ← Fᵀ Π` (`Π_p` does not change); the five rotations are
-    composed into one `F` and `g ← g F` once (equal to rotating `g` five times, to
-    round-off). `g`: 9 arrays (row-major), or only some of its rows (as `dep_step`), `Pi`: 3 arrays, `inertia_over_h`: `I_p/h`, 3
-    arrays or scalars. Returns `(g_next, Pi_next, result)`.
-    """
+def splitting_primal(g, Pi, inertia_over_h):
+    """`splitting_step`'s arithmetic: `(g_next, Π_next, [(cos α_j, sin α_j)], [Π^{(j)}])`,
+    the rotations and the momenta before and after each sub-flow (`j = 0…5`)."""
     one = Pi[0] * 0 + 1
     F = None
+    rotations, momenta = [], [tuple(Pi)]
     for p, fraction in ((0, 0.5), (1, 0.5), (2, 1.0), (1, 0.5), (0, 0.5)):
         Fp = _rotation_about_axis(p, fraction * Pi[p] / inertia_over_h[p], one)
         q, r = (p + 1) % 3, (p + 2) % 3
         c, s = Fp[4 * q], Fp[3 * r + q]
         Pi = list(Pi)
         Pi[q], Pi[r] = c * Pi[q] + s * Pi[r], c * Pi[r] - s * Pi[q]
+        rotations.append((c, s))
+        momenta.append(tuple(Pi))
         F = Fp if F is None else _matmul3(F, Fp)
     F = materialise(F, one)
     g = _matmul3(g, F)
-    return g, tuple(Pi), _finite_result(Pi, g)
+    return g, tuple(Pi), rotations, momenta
 
 
-def rk4_step(g, Pi, h, inverse_inertia):
-    """One `RK4` step on `ṁ = Π × Ω`, `ġ = g Ω̂`, `Ω = I⁻¹Π` (`_rk4.py`), component-wise.
+def splitting_step(g, Pi, inertia_over_h):
+    """One `LiePoissonSplitting` step: axes 0, 1 (h/2), 2 (h), 1, 0 (h/2), as `_splitting.py`.
 
-    `h`: the step (array or scalar), `inverse_inertia`: `1/I_p`, 3 arrays or scalars.
+    Sub-flow about axis `p` for a fraction `f` of the step: `F = exp(α ê_p)` with
+    `α = f Π_p / (I_p/h)`, `Π ← Fᵀ Π` (`Π_p` does not change); the five rotations are
+    composed into one `F` and `g ← g F` once (equal to rotating `g` five times, to
+    round-off). `g`: 9 arrays (row-major), or only some of its rows (as `dep_step`), `Pi`:
+    3 arrays, `inertia_over_h`: `I_p/h`, 3 arrays or scalars. Returns
+    `(g_next, Pi_next, result)`. Differentiable by the hand-written tangent of
+    `_explicit_adjoints.splitting_flow`.
     """
+    g, Pi = _explicit_adjoints.splitting_flow(tuple(g), tuple(Pi), tuple(inertia_over_h))
+    return g, Pi, _finite_result(Pi, g)
 
-    def field(g, Pi):
-        w = tuple(Pi[i] * inverse_inertia[i] for i in range(3))
-        dPi = (
-            Pi[1] * w[2] - Pi[2] * w[1],
-            Pi[2] * w[0] - Pi[0] * w[2],
-            Pi[0] * w[1] - Pi[1] * w[0],
-        )
-        # (g Ω̂)_{ij} = Σ_k g_ik Ω̂_kj, Ω̂ = [[0, −w2, w1], [w2, 0, −w0], [−w1, w0, 0]].
-        dg = []
-        for i in range(len(g) // 3):
-            g0, g1, g2 = g[3 * i], g[3 * i + 1], g[3 * i + 2]
-            dg += [g1 * w[2] - g2 * w[1], g2 * w[0] - g0 * w[2], g0 * w[1] - g1 * w[0]]
-        return tuple(dg), dPi
 
-    def axpy(a, k, y):
-        return tuple(yi + a * ki for yi, ki in zip(y, k))
+def rk4_field(g, Pi, inverse_inertia):
+    """`(g Ω̂, Π × Ω)` with `Ω = I⁻¹Π`, component-wise; `g` 9 arrays (or some rows)."""
+    w = tuple(Pi[i] * inverse_inertia[i] for i in range(3))
+    dPi = (
+        Pi[1] * w[2] - Pi[2] * w[1],
+        Pi[2] * w[0] - Pi[0] * w[2],
+        Pi[0] * w[1] - Pi[1] * w[0],
+    )
+    # (g Ω̂)_{ij} = Σ_k g_ik Ω̂_kj, Ω̂ = [[0, −w2, w1], [w2, 0, −w0], [−w1, w0, 0]].
+    dg = []
+    for i in range(len(g) // 3):
+        g0, g1, g2 = g[3 * i], g[3 * i + 1], g[3 * i + 2]
+        dg += [g1 * w[2] - g2 * w[1], g2 * w[0] - g0 * w[2], g0 * w[1] - g1 * w[0]]
+    return tuple(dg), dPi
 
-    k1 = field(g, Pi)
-    k2 = field(axpy(h / 2, k1[0], g), axpy(h / 2, k1[1], Pi))
-    k3 = field(axpy(h / 2, k2[0], g), axpy(h / 2, k2[1], Pi))
-    k4 = field(axpy(h, k3[0], g), axpy(h, k3[1], Pi))
+
+def _axpy(a, k, y):
+    return tuple(yi + a * ki for yi, ki in zip(y, k))
+
+
+def rk4_primal(g, Pi, h, inverse_inertia, barrier=False):
+    """`rk4_step`'s arithmetic: `(g_next, Π_next, stages)`, `stages` the four
+    `(stage input, slope)` pairs, each `((g_i, Π_i), (k_g, k_Π))`."""
+    y = (tuple(g), tuple(Pi))
+    stages = []
+    for c in (None, 0.5, 0.5, 1.0):
+        yi = y if c is None else tuple(_axpy(c * h, k, x) for k, x in zip(stages[-1][1], y))
+        stage = (yi, rk4_field(*yi, inverse_inertia))
+        stages.append(jax.lax.optimization_barrier(stage) if barrier else stage)
+    k1, k2, k3, k4 = (k for _, k in stages)
 
     def combine(y, a, b, c, e):
         return tuple(
             yi + h / 6 * (ai + 2 * bi + 2 * ci + ei) for yi, ai, bi, ci, ei in zip(y, a, b, c, e)
         )
 
-    g_next = combine(g, k1[0], k2[0], k3[0], k4[0])
-    Pi_next = combine(Pi, k1[1], k2[1], k3[1], k4[1])
+    g_next = combine(y[0], k1[0], k2[0], k3[0], k4[0])
+    Pi_next = combine(y[1], k1[1], k2[1], k3[1], k4[1])
+    return g_next, Pi_next, stages
+
+
+def rk4_step(g, Pi, h, inverse_inertia):
+    """One `RK4` step on `ṁ = Π × Ω`, `ġ = g Ω̂`, `Ω = I⁻¹Π` (`_rk4.py`), component-wise.
+
+    `h`: the step (array or scalar), `inverse_inertia`: `1/I_p`, 3 arrays or scalars.
+    Differentiable by the hand-written tangent of `_explicit_adjoints.rk4_flow`.
+    """
+    g_next, Pi_next = _explicit_adjoints.rk4_flow(tuple(g), tuple(Pi), h, tuple(inverse_inertia))
     return g_next, Pi_next, _finite_result(Pi_next, g_next)
 
 
