@@ -54,8 +54,7 @@ from jax.ad_checkpoint import checkpoint_name
 
 from .._integrators._newton import newton_tolerance
 from .._results import RESULTS
-from ._fast_explicit import materialise
-from ._kernel import ROOT_NAME, AbstractBatchKernel
+from ._kernel import ROOT_NAME, AbstractBatchKernel, materialise
 
 # Power-series coefficients in u = φ², φ = θ/2. Eleven terms: the first omitted term is
 # below 1e-18 at φ = π/2 (θ = π).
@@ -337,9 +336,13 @@ def _at_root_jvp(chart, primals, tangents):
     _, dPi, dA = tangents
     _, dr = jax.jvp(lambda P, B: _residual(chart, xi, P, B, False)[0], (Pi, A), (dPi, dA))
     _, J = _residual(chart, xi, Pi, A, True)
-    one = Pi[0] * 0 + 1
-    dr = materialise(dr, one)
-    delta = materialise(_solve3(J, dr), one)
+    # Materialised: in reverse mode this is the transposed solve's result `λ = J⁻ᵀ ξ̄`,
+    # which every cotangent of `Π` and `A` needs; stored once, rather than the solve
+    # (with `J`) re-evaluated inside each of their six fused loops (measured: the
+    # gradient of a batch of 1e5 exp-chart bodies 15 % faster; materialising `ξ̄` too
+    # was slower).
+    dr = materialise(dr, Pi[0] * 0 + 1)
+    delta = _solve3(J, dr)
     return xi, tuple(-d for d in delta)
 
 
