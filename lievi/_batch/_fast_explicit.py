@@ -19,10 +19,10 @@ import decimal
 import math
 
 import jax.numpy as jnp
-from jax.ad_checkpoint import checkpoint_name
 
 from .._results import RESULTS
-from ._kernel import ROOT_NAME, AbstractBatchKernel
+from . import _explicit_adjoints
+from ._kernel import AbstractBatchKernel, materialise
 
 
 def _pi_over_two_parts():
@@ -73,27 +73,13 @@ def _finite_result(Pi, g):
     return jnp.where(finite, RESULTS.successful, RESULTS.nonfinite).astype(jnp.int32)
 
 
-def materialise(values, one):
-    """`values / one` with `one` an array of ones computed at run time: forces XLA to store
-    `values` instead of recomputing them in every consumer.
-
-    XLA's CPU fusion duplicates a cheap producer into each of its consumers; a step with
-    12 outputs that all depend on one chain of cheap elementwise work then evaluates that
-    chain up to 12 times (measured 5–10× the operation count of the step, 2–3× the run
-    time). A floating division counts as expensive (`InstructionFusion::IsExpensive`), so
-    its result is computed once and kept. `one` must not be a constant, or the division
-    is simplified away: it is built from the state (`x·0 + 1`).
-    """
-    return tuple(v / one for v in values)
-
-
 def _rotation_about_axis(p: int, alpha, one):
     """`F = exp(α ê_p)` as 9 arrays, row-major; with `(q, r)` the axes after `p` in cyclic
     order, `F e_q = cos α e_q + sin α e_r`, `F e_r = −sin α e_q + cos α e_r`."""
     q, r = (p + 1) % 3, (p + 2) % 3
-    # Tagged like a Newton root: reverse mode keeps them instead of re-evaluating the
-    # polynomials (the most expensive part of the step) in the backward pass.
-    s, c = checkpoint_name(materialise(sincos(alpha), one), ROOT_NAME)
+    # Not saved for reverse mode: re-evaluating them in the backward pass was measured as
+    # fast as storing and reading back ten arrays a step, and takes no memory.
+    s, c = materialise(sincos(alpha), one)
     F = {(p, p): 1.0, (q, q): c, (r, q): s, (q, r): -s, (r, r): c}
     return tuple(F.get((i, j), 0.0) for i in range(3) for j in range(3))
 
@@ -121,64 +107,95 @@ def _matmul3(X, Y):
     return tuple(out)
 
 
+# (axis, fraction of h) of the palindromic splitting's sub-flows, as `_splitting.py`.
+SUBFLOWS = ((0, 0.5), (1, 0.5), (2, 1.0), (1, 0.5), (0, 0.5))
+
+
+def splitting_primal(g, Pi, inertia_over_h):
+    """`splitting_step`'s arithmetic: `(g_next, Π_next, [(cos α_j, sin α_j)], [Π^{(j)}])`,
+    the rotations and the momenta before and after each sub-flow (`j = 0…5`)."""
+    one = Pi[0] * 0 + 1
+    F = None
+    rotations, momenta = [], [tuple(Pi)]
+    for p, fraction in SUBFLOWS:
+        Fp = _rotation_about_axis(p, fraction * Pi[p] / inertia_over_h[p], one)
+        q, r = (p + 1) % 3, (p + 2) % 3
+        c, s = Fp[4 * q], Fp[3 * r + q]
+        Pi = list(Pi)
+        Pi[q], Pi[r] = c * Pi[q] + s * Pi[r], c * Pi[r] - s * Pi[q]
+        rotations.append((c, s))
+        momenta.append(tuple(Pi))
+        F = Fp if F is None else _matmul3(F, Fp)
+    F = materialise(F, one)
+    g = _matmul3(g, F)
+    return g, tuple(Pi), rotations, momenta
+
+
 def splitting_step(g, Pi, inertia_over_h):
     """One `LiePoissonSplitting` step: axes 0, 1 (h/2), 2 (h), 1, 0 (h/2), as `_splitting.py`.
 
     Sub-flow about axis `p` for a fraction `f` of the step: `F = exp(α ê_p)` with
     `α = f Π_p / (I_p/h)`, `Π ← Fᵀ Π` (`Π_p` does not change); the five rotations are
     composed into one `F` and `g ← g F` once (equal to rotating `g` five times, to
-    round-off). `g`: 9 arrays (row-major), or only some of its rows (as `dep_step`), `Pi`: 3 arrays, `inertia_over_h`: `I_p/h`, 3
-    arrays or scalars. Returns `(g_next, Pi_next, result)`.
+    round-off). `g`: 9 arrays (row-major), or only some of its rows (as `dep_step`), `Pi`:
+    3 arrays, `inertia_over_h`: `I_p/h`, 3 arrays or scalars. Returns
+    `(g_next, Pi_next, result)`. Differentiable by the hand-written tangent of
+    `_explicit_adjoints.splitting_flow`.
     """
-    one = Pi[0] * 0 + 1
-    F = None
-    for p, fraction in ((0, 0.5), (1, 0.5), (2, 1.0), (1, 0.5), (0, 0.5)):
-        Fp = _rotation_about_axis(p, fraction * Pi[p] / inertia_over_h[p], one)
-        q, r = (p + 1) % 3, (p + 2) % 3
-        c, s = Fp[4 * q], Fp[3 * r + q]
-        Pi = list(Pi)
-        Pi[q], Pi[r] = c * Pi[q] + s * Pi[r], c * Pi[r] - s * Pi[q]
-        F = Fp if F is None else _matmul3(F, Fp)
-    F = materialise(F, one)
-    g = _matmul3(g, F)
-    return g, tuple(Pi), _finite_result(Pi, g)
+    g, Pi = _explicit_adjoints.splitting_flow(tuple(g), tuple(Pi), tuple(inertia_over_h))
+    return g, Pi, _finite_result(Pi, g)
 
 
-def rk4_step(g, Pi, h, inverse_inertia):
-    """One `RK4` step on `ṁ = Π × Ω`, `ġ = g Ω̂`, `Ω = I⁻¹Π` (`_rk4.py`), component-wise.
+def rk4_field(g, Pi, w):
+    """`(g ŵ, Π × w)`, component-wise; `g` 9 arrays (or some rows), `w` 3 arrays."""
+    dPi = (
+        Pi[1] * w[2] - Pi[2] * w[1],
+        Pi[2] * w[0] - Pi[0] * w[2],
+        Pi[0] * w[1] - Pi[1] * w[0],
+    )
+    # (g ŵ)_{ij} = Σ_k g_ik ŵ_kj, ŵ = [[0, −w2, w1], [w2, 0, −w0], [−w1, w0, 0]].
+    dg = []
+    for i in range(len(g) // 3):
+        g0, g1, g2 = g[3 * i], g[3 * i + 1], g[3 * i + 2]
+        dg += [g1 * w[2] - g2 * w[1], g2 * w[0] - g0 * w[2], g0 * w[1] - g1 * w[0]]
+    return tuple(dg), dPi
 
-    `h`: the step (array or scalar), `inverse_inertia`: `1/I_p`, 3 arrays or scalars.
-    """
 
-    def field(g, Pi):
-        w = tuple(Pi[i] * inverse_inertia[i] for i in range(3))
-        dPi = (
-            Pi[1] * w[2] - Pi[2] * w[1],
-            Pi[2] * w[0] - Pi[0] * w[2],
-            Pi[0] * w[1] - Pi[1] * w[0],
-        )
-        # (g Ω̂)_{ij} = Σ_k g_ik Ω̂_kj, Ω̂ = [[0, −w2, w1], [w2, 0, −w0], [−w1, w0, 0]].
-        dg = []
-        for i in range(len(g) // 3):
-            g0, g1, g2 = g[3 * i], g[3 * i + 1], g[3 * i + 2]
-            dg += [g1 * w[2] - g2 * w[1], g2 * w[0] - g0 * w[2], g0 * w[1] - g1 * w[0]]
-        return tuple(dg), dPi
-
-    def axpy(a, k, y):
-        return tuple(yi + a * ki for yi, ki in zip(y, k))
-
-    k1 = field(g, Pi)
-    k2 = field(axpy(h / 2, k1[0], g), axpy(h / 2, k1[1], Pi))
-    k3 = field(axpy(h / 2, k2[0], g), axpy(h / 2, k2[1], Pi))
-    k4 = field(axpy(h, k3[0], g), axpy(h, k3[1], Pi))
+def rk4_primal(g, Pi, rate):
+    """`rk4_step`'s arithmetic: `(g_next, Π_next, stages)`, `stages` the four
+    `(stage input, increment, w)` triples `((g_i, Π_i), (k_g, k_Π), w_i)`, `w_i = hΩ_i`."""
+    y = (tuple(g), tuple(Pi))
+    stages = []
+    for c in (None, 0.5, 0.5, 1.0):
+        yi = y if c is None else tuple(_axpy(c, k, x) for k, x in zip(stages[-1][1], y))
+        w = tuple(yi[1][i] * rate[i] for i in range(3))
+        stages.append((yi, rk4_field(*yi, w), w))
+    k1, k2, k3, k4 = (k for _, k, _ in stages)
 
     def combine(y, a, b, c, e):
         return tuple(
-            yi + h / 6 * (ai + 2 * bi + 2 * ci + ei) for yi, ai, bi, ci, ei in zip(y, a, b, c, e)
+            yi + (ai + 2 * bi + 2 * ci + ei) / 6 for yi, ai, bi, ci, ei in zip(y, a, b, c, e)
         )
 
-    g_next = combine(g, k1[0], k2[0], k3[0], k4[0])
-    Pi_next = combine(Pi, k1[1], k2[1], k3[1], k4[1])
+    g_next = combine(y[0], k1[0], k2[0], k3[0], k4[0])
+    Pi_next = combine(y[1], k1[1], k2[1], k3[1], k4[1])
+    return g_next, Pi_next, stages
+
+
+def _axpy(a, k, y):
+    return tuple(yi + a * ki for yi, ki in zip(y, k))
+
+
+def rk4_step(g, Pi, rate):
+    """One `RK4` step on `ṁ = Π × Ω`, `ġ = g Ω̂`, `Ω = I⁻¹Π` (`_rk4.py`), component-wise.
+
+    `rate`: `h/I_p`, 3 arrays or scalars. The step and the moments enter only through
+    these ratios (`h f(y; I) = f(y; I/h)`, the field is linear in `I⁻¹`): the stages use
+    the increments `h k_i = (g ŵ_i, Π_i × w_i)`, `w_i = (h/I)·Π_i`, so reverse mode
+    carries three cotangents of the parameters, not four. Differentiable by the
+    hand-written tangent of `_explicit_adjoints.rk4_flow`.
+    """
+    g_next, Pi_next = _explicit_adjoints.rk4_flow(tuple(g), tuple(Pi), tuple(rate))
     return g_next, Pi_next, _finite_result(Pi_next, g_next)
 
 
@@ -188,7 +205,7 @@ def _explicit_info(Pi):
 
 
 class SplittingKernel(AbstractBatchKernel):
-    """`splitting_step` for `LiePoissonSplitting`; differentiable by plain autodiff."""
+    """`splitting_step` for `LiePoissonSplitting`."""
 
     def prepare(self, inertia, h):
         return tuple(moment / h for moment in inertia)
@@ -199,12 +216,11 @@ class SplittingKernel(AbstractBatchKernel):
 
 
 class RK4Kernel(AbstractBatchKernel):
-    """`rk4_step` for `RK4`; differentiable by plain autodiff."""
+    """`rk4_step` for `RK4`."""
 
     def prepare(self, inertia, h):
-        return h, tuple(1 / moment for moment in inertia)
+        return tuple(h / moment for moment in inertia)
 
     def step(self, params, g, Pi, alive):
-        h, inverse_inertia = params
-        g_next, Pi_next, result = rk4_step(g, Pi, h, inverse_inertia)
+        g_next, Pi_next, result = rk4_step(g, Pi, params)
         return (g_next, Pi_next, result, *_explicit_info(Pi))

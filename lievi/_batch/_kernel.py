@@ -6,12 +6,12 @@ runs it inside one `lax.scan` and never asks which integrator it came from. A ke
 the state as structure of arrays: `g` as 9 arrays (row-major), `Π` as 3, each of shape
 `(B,)` with the batch minor, so that XLA emits long elementwise loops it vectorises.
 
-Kernels are reverse-mode differentiable: explicit ones by plain autodiff, implicit ones by
-the implicit function theorem at each step's converged root (no differentiation through
-the Newton iterations or their `while_loop`). The root is tagged `ROOT_NAME` (see
-`jax.ad_checkpoint.checkpoint_name`) so that `simulate_batch` can keep it across a
-`jax.checkpoint`: the backward pass then re-evaluates the explicit part of a step from
-the stored root instead of solving again.
+Kernels are differentiable in both modes: explicit ones by hand-written tangents
+(`_explicit_adjoints.py`), implicit ones by the implicit function theorem at each step's
+converged root (no differentiation through the Newton iterations or their
+`while_loop`). The root is tagged `ROOT_NAME` (see `jax.ad_checkpoint.checkpoint_name`)
+so that `simulate_batch` can keep it across a `jax.checkpoint`: the backward pass then
+re-evaluates the explicit part of a step from the stored root instead of solving again.
 """
 
 from __future__ import annotations
@@ -25,6 +25,20 @@ import jax.numpy as jnp
 from .._results import RESULTS
 
 ROOT_NAME = "lievi_step_root"
+
+
+def materialise(values, one):
+    """`values / one` with `one` an array of ones computed at run time: forces XLA to store
+    `values` instead of recomputing them in every consumer.
+
+    XLA's CPU fusion duplicates a cheap producer into each of its consumers; a step with
+    12 outputs that all depend on one chain of cheap elementwise work then evaluates that
+    chain up to 12 times (measured 5–10× the operation count of the step, 2–3× the run
+    time). A floating division counts as expensive (`InstructionFusion::IsExpensive`), so
+    its result is computed once and kept. `one` must not be a constant, or the division
+    is simplified away: it is built from the state (`x·0 + 1`).
+    """
+    return tuple(v / one for v in values)
 
 
 class AbstractBatchKernel(eqx.Module):

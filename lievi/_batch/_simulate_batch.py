@@ -19,6 +19,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
 
 from .._checks import check_finite, check_real_dtype, input_valid, is_concrete
 from .._forcing import as_forcing
@@ -426,7 +427,10 @@ def _simulate_fast(
         newly_failed = alive & (step_result != RESULTS.successful)
         failed_step = jnp.where(newly_failed, k, failed_step)
         result = RESULTS.first_failure(result, step_result)
-        ok = result == RESULTS.successful
+        # Saved for the backward pass (one byte a body-step): the mask is all the backward
+        # needs of the step's checks, which would otherwise re-evaluate the whole step
+        # (`g_next`, the Newton residual) just to know which bodies survived it.
+        ok = checkpoint_name(result == RESULTS.successful, ROOT_NAME)
         # As in `simulate`: after a failure the carried state stays at the last good one
         # (later steps run on finite numbers, so a masked failure cannot turn a gradient
         # into NaN; the kernel spends no extra iterations on it); the saved state is NaN.
