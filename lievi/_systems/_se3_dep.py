@@ -37,9 +37,11 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from .._batch._fast_so3 import _C, _P, _S, _cross, _dot
+from .._batch._fast_so3 import _C, _P, _S, _dot
 from .._results import RESULTS
+from . import _se3_newton
 
 
 def _horner2(coefficients, u):
@@ -68,6 +70,10 @@ def _hat(x):
     return ((z, -x[2], x[1]), (x[2], z, -x[0]), (-x[1], x[0], z))
 
 
+def _outer(x, y):
+    return tuple(tuple(x[i] * y[j] for j in range(3)) for i in range(3))
+
+
 def _lin(*terms):
     """`Σ αₖ Xₖ` for pairs `(α, X)`; `X = None` stands for the identity."""
     out = [[0.0] * 3 for _ in range(3)]
@@ -89,148 +95,99 @@ def _mv(X, y):
     return tuple(sum(X[i][k] * y[k] for k in range(3)) for i in range(3))
 
 
-def _point(chart, x, A):
-    """What the residual and its Jacobian share at `x`: `(ω, v, a, b, t, s, c, c′, c″)`
-    with `(a, b) = A x`, `t = |ω|²`, `s = ω·v` and the exp chart's coefficients (zeros
-    for Cayley). Computed once per Newton iterate and carried to the next iteration's
-    Jacobian, so each iteration evaluates them once."""
-    omega, v = x[:3], x[3:]
-    mu = tuple(sum(A[i][j] * x[j] for j in range(6)) for i in range(6))
+def _blocks(chart, omega, v, a, b):
+    """`(K, L, K′, E)`: the blocks of `dφ⁻¹(ξ)ᵀ = [[K, L], [0, K′]]` and the partial
+    derivatives `E = ∂/∂ξ (dφ⁻¹(ξ)ᵀ μ)` at fixed `μ = (a, b)`, as 3×3 blocks
+    `((E_ωω, E_ωv), (E_vω, 0))`."""
+    W, V, Ba = _hat(omega), _hat(v), _hat(a)
+    Bb = _hat(b)
+    ow, vb = _outer(omega, omega), None
+    if chart == "cayley":
+        K = _lin((1.0, None), (0.5, W), (0.25, ow))
+        Kp = _lin((1.0, None), (0.5, W))
+        L = _lin((0.5, _mm(V, Kp)))
+        Kb = _mv(Kp, b)
+        oa = _dot(omega, a)
+        E_ww = _lin((-0.5, Ba), (oa / 4, None), (0.25, _outer(omega, a)), (-0.25, _mm(V, Bb)))
+        E_wv = _lin((-0.5, _hat(Kb)))
+        E_vw = _lin((-0.5, Bb))
+        return K, L, Kp, (E_ww, E_wv, E_vw)
     t, s = _dot(omega, omega), _dot(omega, v)
-    if chart == "exp":
-        c, c1, c2 = _dexpinv_coefficient(t)
-    else:
-        c = c1 = c2 = jnp.zeros_like(t)
-    return _barrier((omega, v, mu[:3], mu[3:], t, s, c, c1, c2))
+    c, c1, c2 = _barrier(_dexpinv_coefficient(t))
+    W2 = _mm(W, W)
+    K = _lin((1.0, None), (0.5, W), (c, W2))
+    L = _lin((0.5, V), (2 * c1 * s, W2), (c, _mm(V, W)), (c, _mm(W, V)))
 
+    def z(y):  # ω(ω·y) − t y
+        oy = _dot(omega, y)
+        return tuple(omega[i] * oy - t * y[i] for i in range(3))
 
-def _z(omega, t, y):
-    """`ω(ω·y) − t y` `= ω̂²y`."""
-    oy = _dot(omega, y)
-    return tuple(omega[i] * oy - t * y[i] for i in range(3))
-
-
-def _residual_at(chart, point, m):
-    """`r = dφ⁻¹(ξ)ᵀ μ − m` from `_point`, with the operators applied as vectors."""
-    omega, v, a, b, t, s, c, c1, _ = point
-    oa, ob = _dot(omega, a), _dot(omega, b)
-    wa, wb = _cross(omega, a), _cross(omega, b)
-    if chart == "cayley":
-        Ka = tuple(a[i] + wa[i] / 2 + omega[i] * oa / 4 for i in range(3))
-        Kb = tuple(b[i] + wb[i] / 2 for i in range(3))  # K′b
-        Lb = tuple(y / 2 for y in _cross(v, Kb))
-    else:
-        za, zb = _z(omega, t, a), _z(omega, t, b)
-        Ka = tuple(a[i] + wa[i] / 2 + c * za[i] for i in range(3))
-        Kb = tuple(b[i] + wb[i] / 2 + c * zb[i] for i in range(3))
-        vb, vxb = _dot(v, b), _cross(v, b)
-        Lb = tuple(
-            vxb[i] / 2 + 2 * c1 * s * zb[i] + c * (omega[i] * vb + v[i] * ob - 2 * s * b[i])
-            for i in range(3)
-        )
-    return tuple(Ka[i] + Lb[i] - m[i] for i in range(3)) + tuple(Kb[i] - m[3 + i] for i in range(3))
-
-
-def _rank1(*terms):
-    """`Σ αₖ I + Σ xₖ yₖᵀ − ½ Σ ŷₖ` for terms `("I", α)`, `("outer", x, y)`, `("hat", y)`."""
-    out = [[0.0] * 3 for _ in range(3)]
-    for term in terms:
-        kind = term[0]
-        for i in range(3):
-            for j in range(3):
-                if kind == "I" and i == j:
-                    out[i][j] = out[i][j] + term[1]
-                elif kind == "outer":
-                    out[i][j] = out[i][j] + term[1][i] * term[2][j]
-                elif kind == "hat" and i != j:
-                    y = term[1]
-                    # −½ ŷ: ŷ[i][j] = −ε_ijk y_k.
-                    k = 3 - i - j
-                    sign = 1.0 if (i, j) in ((0, 1), (1, 2), (2, 0)) else -1.0
-                    out[i][j] = out[i][j] + sign * y[k] / 2
-    return tuple(tuple(row) for row in out)
-
-
-def _jacobian_at(chart, point, A):
-    """`∂r/∂ξ = dφ⁻¹(ξ)ᵀ A + E` from `_point` (blocks and `E` derived in the module
-    docstring), as a 6×6 nested tuple."""
-    omega, v, a, b, t, s, c, c1, c2 = point
-    oa, ob, vb = _dot(omega, a), _dot(omega, b), _dot(v, b)
-    half_w = tuple(y / 2 for y in omega)
-    if chart == "cayley":
-        # K = 1 + ω̂/2 + ωωᵀ/4, K′ = 1 + ω̂/2, L = v̂K′/2 = v̂/2 + (ωvᵀ − s)/4.
-        q4 = tuple(y / 4 for y in omega)
-        Kp = _rank1(("I", 1.0), ("hat", tuple(-y for y in omega)))
-        K = _rank1(("I", 1.0), ("hat", tuple(-y for y in omega)), ("outer", q4, omega))
-        L = _rank1(("I", -s / 4), ("hat", tuple(-y for y in v)), ("outer", q4, v))
-        Kb = tuple(b[i] + _cross(half_w, b)[i] for i in range(3))
-        E_ww = _rank1(
-            ("hat", a),
-            ("I", (oa + vb) / 4),
-            ("outer", q4, a),
-            ("outer", tuple(-y / 4 for y in b), v),
-        )
-        E_wv, E_vw = _rank1(("hat", Kb)), _rank1(("hat", b))
-    else:
-        # K = K′ = (1 − ct) + ω̂/2 + c ωωᵀ, L = v̂/2 + 2c′s(ωωᵀ − t) + c(ωvᵀ + vωᵀ − 2s).
-        cw = tuple(c * y for y in omega)
-        K = _rank1(("I", 1 - c * t), ("hat", tuple(-y for y in omega)), ("outer", cw, omega))
-        k = 2 * c1 * s
-        kw = tuple(k * y for y in omega)
-        L = _rank1(
-            ("I", -k * t - 2 * c * s),
-            ("hat", tuple(-y for y in v)),
-            ("outer", kw, omega),
-            ("outer", cw, v),
-            ("outer", tuple(c * y for y in v), omega),
-        )
-        Kp = K
-        za, zb = _z(omega, t, a), _z(omega, t, b)
-        w = tuple(omega[i] * vb + v[i] * ob - 2 * s * b[i] for i in range(3))
-        # E_ωω = ∂_ω(K a) + ∂_ω(L b) and ∂_v(L b) = ∂_ω(K b) (the same matrix), grouped
-        # by the right factor of each rank-one term.
-        y = tuple(2 * c1 * zb[i] - 2 * c * b[i] for i in range(3))
-        u = tuple(
-            -2 * c * a[i] + 2 * c1 * (za[i] + w[i]) + 4 * s * (c2 * zb[i] - c1 * b[i])
-            for i in range(3)
-        )
-        cb = tuple(c * y_ for y_ in b)
-        E_ww = _rank1(
-            ("hat", a),
-            ("I", c * (oa + vb) + k * ob),
-            ("outer", omega, tuple(c * a[i] + k * b[i] for i in range(3))),
-            ("outer", v, cb),
-            ("outer", u, omega),
-            ("outer", y, v),
-        )
-        E_wv = E_vw = _rank1(("hat", b), ("I", c * ob), ("outer", omega, cb), ("outer", y, omega))
-    K, L, Kp, E_ww, E_wv, E_vw = _barrier((K, L, Kp, E_ww, E_wv, E_vw))
-
-    def times_rows(X, r0):  # X · A[r0:r0+3, :]
-        return tuple(
-            tuple(sum(X[i][k] * A[r0 + k][j] for k in range(3)) for j in range(6)) for i in range(3)
+    def D_K(y, By):  # ∂/∂ω [y + ω×y/2 + c z(y)]
+        oy = _dot(omega, y)
+        return _lin(
+            (-0.5, By),
+            (c * oy, None),
+            (c, _outer(omega, y)),
+            (-2 * c, _outer(y, omega)),
+            (2 * c1, _outer(z(y), omega)),
         )
 
-    KA, LA, KpA = times_rows(K, 0), times_rows(L, 3), times_rows(Kp, 3)
-    top = tuple(
-        tuple(KA[i][j] + LA[i][j] + (E_ww[i][j] if j < 3 else E_wv[i][j - 3]) for j in range(6))
-        for i in range(3)
+    ob, vb = _dot(omega, b), _dot(v, b)
+    zb = z(b)
+    w = tuple(omega[i] * vb + v[i] * ob - 2 * s * b[i] for i in range(3))
+    # L b = v×b/2 + 2c′s z(b) + c w,  w = ω(v·b) + v(ω·b) − 2s b.
+    dL_w = _lin(
+        (4 * c2 * s, _outer(zb, omega)),
+        (2 * c1, _outer(zb, v)),
+        (2 * c1 * s * ob, None),
+        (2 * c1 * s, _outer(omega, b)),
+        (-4 * c1 * s, _outer(b, omega)),
+        (2 * c1, _outer(w, omega)),
+        (c * vb, None),
+        (c, _outer(v, b)),
+        (-2 * c, _outer(b, v)),
     )
-    bottom = tuple(
-        tuple(KpA[i][j] + E_vw[i][j] if j < 3 else KpA[i][j] for j in range(6)) for i in range(3)
+    dL_v = _lin(
+        (-0.5, Bb),
+        (2 * c1, _outer(zb, omega)),
+        (c, _outer(omega, b)),
+        (c * ob, None),
+        (-2 * c, _outer(b, omega)),
     )
-    return top + bottom
+    E_ww = _lin((1.0, D_K(a, Ba)), (1.0, dL_w))
+    return K, L, K, (E_ww, dL_v, D_K(b, Bb))
 
 
 def residual(chart: str, x, m, A, with_jacobian: bool):
-    """`r = dφ⁻¹(x)ᵀ A x − m` and, if asked, `∂r/∂x = dφ⁻¹(x)ᵀ A + E` (`_jacobian_at`).
+    """`r = dφ⁻¹(x)ᵀ A x − m` and, if asked, `∂r/∂x = dφ⁻¹(x)ᵀ A + E` (`_blocks`).
 
     All arguments structure of arrays: `x`, `m` 6-tuples, `A = M/h` a 6×6 nested tuple.
     Returns `(r, J)` as a 6-tuple and a 6×6 nested tuple (`J = None` without the Jacobian).
     """
-    point = _point(chart, x, A)
-    r = _residual_at(chart, point, m)
-    return r, (_jacobian_at(chart, point, A) if with_jacobian else None)
+    omega, v = x[:3], x[3:]
+    mu = tuple(sum(A[i][j] * x[j] for j in range(6)) for i in range(6))
+    a, b = mu[:3], mu[3:]
+    K, L, Kp, E = _blocks(chart, omega, v, a, b)
+    if with_jacobian:
+        K, L, Kp, E = _barrier((K, L, Kp, E))
+    Ka, Lb, Kpb = _mv(K, a), _mv(L, b), _mv(Kp, b)
+    r = tuple(Ka[i] + Lb[i] - m[i] for i in range(3)) + tuple(Kpb[i] - m[3 + i] for i in range(3))
+    if not with_jacobian:
+        return r, None
+    E_ww, E_wv, E_vw = E
+    block = [
+        [
+            tuple(tuple(A[3 * I + i][3 * Jb + j] for j in range(3)) for i in range(3))
+            for Jb in range(2)
+        ]
+        for I in range(2)
+    ]
+    (A11, A12), (A21, A22) = block
+    J11 = _lin((1.0, _mm(K, A11)), (1.0, _mm(L, A21)), (1.0, E_ww))
+    J12 = _lin((1.0, _mm(K, A12)), (1.0, _mm(L, A22)), (1.0, E_wv))
+    J21 = _lin((1.0, _mm(Kp, A21)), (1.0, E_vw))
+    J22 = _mm(Kp, A22)
+    return r, tuple(J11[i] + J12[i] for i in range(3)) + tuple(J21[i] + J22[i] for i in range(3))
 
 
 def _barrier(values):
@@ -275,73 +232,34 @@ def solve6(J, r):
     return tuple(Pinv_r1[i] - Qx2[i] for i in range(3)) + x2
 
 
-def _max_abs(x):
-    out = jnp.abs(x[0])
-    for y in x[1:]:
-        out = jnp.maximum(out, jnp.abs(y))
-    return out
-
-
-# Newton iterations taken unrolled before the loop (each a no-op for a body already
-# converged): from the explicit-Euler guess, O(h²) off the root, two reach the tolerance
-# for most steps, and the `while_loop` (whose per-iteration overhead is comparable to an
-# iteration's arithmetic for one body on CPU) runs only for the rest.
-UNROLLED_ITERATIONS = 2
-
-
-def _newton(chart, guess, m, A, tolerance, max_steps: int):
-    """Newton from `guess` until `‖r‖_∞ ≤ tolerance` (or non-finite, or `max_steps`):
-    `(x, ‖r‖_∞, iterations)`. Not differentiated (see `_at_root`).
-
-    The first `UNROLLED_ITERATIONS` are unrolled, each applied only where the loop below
-    would still iterate, so the iterates and the iteration count are those of the plain
-    loop; then a `while_loop` under `lax.cond`, entered only if still needed. The residual
-    and the quantities of its Jacobian (`_point`) at each iterate are computed once and
-    carried to the next iteration.
-    """
-
-    def active(carry):
-        _, _, _, norm, it = carry
-        return (norm > tolerance) & jnp.isfinite(norm) & (it < max_steps)
-
-    def body(carry):
-        x, point, r, _, it = carry
-        delta = solve6(_barrier(_jacobian_at(chart, point, A)), r)
-        x = _barrier(tuple(x[i] - delta[i] for i in range(6)))
-        point = _point(chart, x, A)
-        r = _barrier(_residual_at(chart, point, m))
-        return x, point, r, _max_abs(r), it + 1
-
-    point = _point(chart, guess, A)
-    r = _barrier(_residual_at(chart, point, m))
-    carry = (guess, point, r, _max_abs(r), jnp.zeros((), jnp.int32))
-    for _ in range(min(UNROLLED_ITERATIONS, max_steps)):
-        on = active(carry)
-        carry = jax.tree.map(functools.partial(jnp.where, on), body(carry), carry)
-    if max_steps > UNROLLED_ITERATIONS:
-        carry = jax.lax.cond(
-            active(carry), lambda c: jax.lax.while_loop(active, body, c), lambda c: c, carry
-        )
-    x, _, _, norm, it = carry
-    return x, norm, it
-
-
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _at_root(chart, x, m, A):
-    """`x`, a root of `r(·; m, A)`, with the derivative of the root as a function of `(m, A)`."""
+    """`x` (`(6,)`), a root of `r(·; m, A)`, with the derivative of the root as a function of
+    `(m, A)` (`(6,)`, `(6, 6)`)."""
     return x
 
 
 @_at_root.defjvp
 def _at_root_jvp(chart, primals, tangents):
-    # Implicit function theorem: J dx = −(∂r/∂m dm + ∂r/∂A dA), with the closed-form J.
-    x, m, A = primals
-    _, dm, dA = tangents
+    # Implicit function theorem: J dx = −(∂r/∂m dm + ∂r/∂A dA), with the closed-form J,
+    # in the scalar form (so that JAX transposes a few long elementwise loops).
+    x, m, A = (_tuples(y) for y in primals)
+    dm, dA = (_tuples(y) for y in tangents[1:])
     _, dr = jax.jvp(lambda mm, AA: residual(chart, x, mm, AA, False)[0], (m, A), (dm, dA))
     _, J = residual(chart, x, m, A, True)
     delta = solve6(J, dr)
-    return x, tuple(-d for d in delta)
+    return primals[0], -jnp.stack(delta)
 
+
+def _tuples(y):
+    """A `(6,)` or `(6, 6)` array as (nested) tuples of scalars."""
+    if y.ndim == 1:
+        return tuple(y[i] for i in range(y.shape[0]))
+    return tuple(_tuples(row) for row in y)
+
+
+_E44 = np.zeros((4, 4))
+_E44[3, 3] = 1.0
 
 # (θ − sin θ)/θ³ = Σ (−1)ᵏ tᵏ/(2k + 3)!, t = θ²: 13 terms reach round-off at θ = π.
 _SINC3 = tuple((-1) ** k / math.factorial(2 * k + 3) for k in range(13))
@@ -363,50 +281,40 @@ def dep_step(chart: str, g, m, A, guess, tolerance, max_steps: int):
     block re-orthonormalised as `lievi.SE3.compose` does.
     Returns `(g_next, m_next, result, iterations, residual)`; differentiable in `m`, `A`, `g`.
     """
-    m_t = tuple(m[i] for i in range(6))
-    A_t = tuple(tuple(A[i, j] for j in range(6)) for i in range(6))
-    stopped = jax.lax.stop_gradient((m_t, A_t, tolerance))
-    x, norm, iterations = _newton(chart, tuple(guess[i] for i in range(6)), *stopped, max_steps)
-    finite = norm == norm  # not NaN
-    for y in x:
-        finite = finite & jnp.isfinite(y)
+    # Newton on arrays (`_se3_newton`: a few fused kernels an iteration); the derivative
+    # at the root in scalar form (`_at_root`). The rest of the step on arrays too.
+    stopped = jax.lax.stop_gradient((guess, m, A, tolerance))
+    x, norm, iterations = _se3_newton.newton(chart, *stopped, max_steps)
     # A diverged solve continues from the finite guess (a masked failed step then
     # contributes 0, not NaN, to a gradient), as `newton_solve` does.
-    x = tuple(jnp.where(finite, y, jax.lax.stop_gradient(guess[i])) for i, y in enumerate(x))
-    x = _at_root(chart, jax.lax.stop_gradient(x), m_t, A_t)
+    finite = (norm == norm) & jnp.all(jnp.isfinite(x))
+    x = jnp.where(finite, x, stopped[0])
+    x = _at_root(chart, jax.lax.stop_gradient(x), m, A)
 
     omega, v = x[:3], x[3:]
-    t = _dot(omega, omega)
-    W = _hat(omega)
-    W2 = _mm(W, W)
+    t, I3 = omega @ omega, _se3_newton._eye(x.dtype)
+    W = _se3_newton._hat(omega)
+    W2 = _se3_newton._outer(omega, omega) - t * I3  # ω̂²
     if chart == "exp":
-        S, C = _barrier((_horner(_S, t / 4), _horner(_C, t / 4)))
+        S, C = _horner(_S, t / 4), _horner(_C, t / 4)
         a, b = S * C, S * S / 2  # sin θ/θ, (1 − cos θ)/θ²
-        RF = _lin((1.0, None), (a, W), (b, W2))
-        tF = _mv(_lin((1.0, None), (b, W), (_horner(_SINC3, t), W2)), v)
+        RF = I3 + a * W + b * W2
+        tF = (I3 + b * W + _horner(_SINC3, t) * W2) @ v
     else:
         alpha = 4 / (4 + t)
-        RF = _lin((1.0, None), (alpha, W), (alpha / 2, W2))
-        tF = _mv(_lin((0.5, None), (0.5, RF)), v)  # (I + cay Ω)/2 v = (I − Ω/2)⁻¹ v
-    RFt = tuple(tuple(RF[j][i] for j in range(3)) for i in range(3))
-    Pi, P = m_t[:3], m_t[3:]
-    Pxt = (P[1] * tF[2] - P[2] * tF[1], P[2] * tF[0] - P[0] * tF[2], P[0] * tF[1] - P[1] * tF[0])
-    m_next = _mv(RFt, tuple(Pi[i] + Pxt[i] for i in range(3))) + _mv(RFt, P)
+        RF = I3 + alpha * W + alpha / 2 * W2
+        tF = (v + RF @ v) / 2  # (I + cay Ω)/2 v = (I − Ω/2)⁻¹ v
+    # Ad_Fᵀ m = (RFᵀ(Π + P×tF), RFᵀP), P×tF = −t̂F P.
+    m_next = _se3_newton._blocks(RF.T, -RF.T @ _se3_newton._hat(tF), jnp.zeros_like(RF), RF.T) @ m
 
-    R = tuple(tuple(g[i, j] for j in range(3)) for i in range(3))
-    p = tuple(g[i, 3] for i in range(3))
-    Rn = _mm(R, RF)
-    defect = _lin(
-        (1.0, _mm(tuple(tuple(Rn[j][i] for j in range(3)) for i in range(3)), Rn)), (-1.0, None)
+    R, p = g[:3, :3], g[:3, 3]
+    Rn = R @ RF
+    Rn = Rn - Rn @ (Rn.T @ Rn - I3) / 2  # one Newton–Schulz step, as SE3.compose
+    g_next = (
+        jnp.pad(Rn, ((0, 1), (0, 1)))
+        + jnp.pad((R @ tF + p)[:, None], ((0, 1), (3, 0)))
+        + jnp.asarray(_E44, Rn.dtype)
     )
-    Rn = _lin((1.0, Rn), (-0.5, _mm(Rn, defect)))  # one Newton–Schulz step, as SE3.compose
-    Rt = _mv(R, tF)
-    pn = tuple(Rt[i] + p[i] for i in range(3))
-    zero, one = jnp.zeros_like(pn[0]), jnp.ones_like(pn[0])
-    g_next = jnp.stack(
-        [jnp.stack([*Rn[i], pn[i]]) for i in range(3)] + [jnp.stack([zero, zero, zero, one])]
-    )
-    m_next = jnp.stack(m_next)
 
     converged = norm <= tolerance
     result = jnp.where(converged, RESULTS.successful, RESULTS.newton_not_converged)
