@@ -26,8 +26,8 @@ The forward step is written on `(3,)`–`(6, 6)` arrays whose elementwise expres
 fuses into a few kernels: on CPU a scalar formulation (below, as in the SO(3) fast step
 `lievi._batch._fast_so3`) runs each scalar it must materialise (`_barrier`) as a kernel of
 its own, about a hundred an iteration, and for one body their launch cost, not the
-arithmetic, set the time (measured: 6.8 µs a step against 3.8 µs on arrays, float64, exp
-chart). The coefficients are power series in `u = θ²/4`, accurate to round-off up to
+arithmetic, set the time (measured: 7.1 µs a step against 3.9 µs on arrays, float64, exp
+chart, `benchmarks/se3_step_cost.py`). The coefficients are power series in `u = θ²/4`, accurate to round-off up to
 θ = π (the exp chart's domain), with no library trigonometry. Derivatives of the root come
 from the implicit function theorem (`_at_root`), not from the Newton iterations, in the
 scalar form: `residual` and the block solve `solve6` with 3×3 Cramer inverses. The tests

@@ -7,9 +7,9 @@ matrices, blocks placed by padding, the Newton system solved by Gauss–Jordan e
 without pivoting (as `_se3_dep.solve6`, it relies on `J = M/h + O(|ξ|)` with `M` positive
 definite). Why arrays here: XLA on CPU runs every scalar leaf of a concatenation as its own
 kernel, and with `_barrier` the scalar Newton iteration is about a hundred kernels whose
-launch costs dominate one body's step; elementwise array expressions fuse into a few
-kernels (a tenth as many). Under `vmap` the same code is as fast per body as the scalar
-form (`benchmarks/se3_step_cost.py`).
+launch costs dominate one body's step; elementwise array expressions fuse, and an
+iteration here is about thirty kernels. Under `vmap` it is no slower per body than the
+scalar form either (measured faster: `benchmarks/se3_step_cost.py`, docs/se3.md).
 """
 
 from __future__ import annotations
