@@ -9,6 +9,8 @@ compile time apart) on
 - SE(3): a body with a full 6×6 kinetic tensor (`lievi.RigidBodySE3`, Kirchhoff); DEP
   takes its scalar closed-form step (`lievi/_systems/_se3_dep.py`), RK4 the closed forms
   of `lievi.SE3`;
+- SE(3) block-diagonal: `M = diag(I, m 1₃)` with the SO(3) body's principal moments (the
+  like-for-like counterpart of "SO(3)"), same closed-form step as "SE(3)";
 - SE(3) generic: the same body on a group that supplies only `hat`, `vee`, `log` and
   inherits the generic `MatrixLieGroup` derivations (matrix exponential of the 4×4 hat,
   `dexp` from the exponential of a 12×12 block matrix, `dexpinv` by a linear solve): what
@@ -98,6 +100,11 @@ def problems():
             3,
         ),
         "SE(3)": (lievi.RigidBodySE3(tensor=tensor), jnp.eye(4), 6),
+        "SE(3) block-diagonal": (
+            lievi.RigidBodySE3(inertia=jnp.array([2.0, 1.0, 2 / 3]), mass=3.0),
+            jnp.eye(4),
+            6,
+        ),
         "SE(3) generic": (GenericBody(tensor), jnp.eye(4), 6),
     }
 

@@ -339,11 +339,12 @@ def test_non_rigid_g0_is_rejected(g0):
     ],
 )
 def test_closed_form_step_equals_generic(chart, gradients):
-    """`RigidBodySE3`'s DEP step (scalar closed forms, `_se3_dep.py`) against the generic
-    path (`jax.jacfwd` of the residual built from `SE3.dexpinv`/`dcayinv`, `linalg.solve`):
-    residual and Jacobian at rotation angles 1e-9 … 2.5, the step with its Newton iteration
-    count, and (slow set) gradients through the implicit derivative."""
-    from lievi._systems import _se3_dep
+    """`RigidBodySE3`'s DEP step (closed forms, `_se3_dep.py`, `_se3_newton.py`) against the
+    generic path (`jax.jacfwd` of the residual built from `SE3.dexpinv`/`dcayinv`,
+    `linalg.solve`): residual, Jacobian and Newton solve in the scalar and the array form at
+    rotation angles 1e-9 … 2.5, the step with its Newton iteration count, and (slow set)
+    gradients through the implicit derivative."""
+    from lievi._systems import _se3_dep, _se3_newton
 
     rng = np.random.default_rng(3)
     B = rng.normal(size=(6, 6))
@@ -361,10 +362,15 @@ def test_closed_form_step_equals_generic(chart, gradients):
         r, J = _se3_dep.residual(chart, tuple(xi), tuple(m), A, True)
         solved = jnp.stack(_se3_dep.solve6(J, r))
         r, J = jnp.stack(r), jnp.stack([jnp.stack(row) for row in J])
+        # The same on arrays (`_se3_newton`, the forward Newton iteration).
+        r2, J2 = _se3_newton.residual(chart, xi, m, M / h, True)
         return (
             jnp.max(jnp.abs(r - generic(xi))),
             jnp.max(jnp.abs(J - jax.jacfwd(generic)(xi))) / jnp.max(jnp.abs(J)),
             jnp.max(jnp.abs(solved - jnp.linalg.solve(J, r))),
+            jnp.max(jnp.abs(r2 - generic(xi))),
+            jnp.max(jnp.abs(J2 - jax.jacfwd(generic)(xi))) / jnp.max(jnp.abs(J2)),
+            jnp.max(jnp.abs(_se3_newton.solve(J2, r2) - jnp.linalg.solve(J2, r2))),
         )
 
     angles = jnp.array([1e-9, 1e-3, 0.3, 2.5])

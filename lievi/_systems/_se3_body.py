@@ -151,9 +151,9 @@ class RigidBodySE3(AbstractLieSystem):
                 )
 
     def kernel_step(self, kernel, g, m, h):
-        # DEP (either chart) in scalar closed form (`_se3_dep.py`): the residual, its
-        # Jacobian, the 6×6 solve by blocks, F, Ad_Fᵀ m and g F written out, so XLA fuses
-        # the step; the same Newton iterates as the generic path. Other methods: generic.
+        # DEP (either chart) in closed form (`_se3_dep.py`, `_se3_newton.py`): the residual,
+        # its Jacobian, the 6×6 solve, F, Ad_Fᵀ m and g F written out, so XLA fuses the
+        # step; the same Newton iterates as the generic path. Other methods: generic.
         # Only on `lievi.SE3` itself (a subclass with another group takes the generic path).
         if (
             not isinstance(self.group, SE3Group)
