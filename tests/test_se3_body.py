@@ -185,13 +185,15 @@ def test_falling_body_second_order():
 # ---- conservation ---------------------------------------------------------------------------
 
 
-def _energy_bounded(body, sol, amplitude):
+def _energy_bounded(body, sol, amplitude, growth=True):
     energy = np.asarray(dg.energy(body, sol.m, sol.g))
     error = (energy - energy[0]) / abs(energy[0])
     tenth = len(error) // 10
     first, last = np.max(np.abs(error[:tenth])), np.max(np.abs(error[-tenth:]))
-    assert first <= amplitude
-    assert last <= 1.5 * first + 10 * ROUNDOFF  # bounded: no growth of the oscillation
+    assert np.max(np.abs(error)) <= amplitude
+    if growth:  # bounded: no growth of the oscillation (needs a first tenth long enough
+        # to contain the oscillation's slowest modulation)
+        assert last <= 1.5 * first + 10 * ROUNDOFF
 
 
 @pytest.mark.parametrize("chart", ("exp", pytest.param("cayley", marks=SLOW)))
@@ -236,7 +238,10 @@ def test_full_body_angular_momentum(chart, n_steps=None, save_every=1):
     p, R, P = sol.g[:, :3, 3], sol.g[:, :3, :3], sol.m[:, 3:]
     orbital = jnp.cross(p, jnp.einsum("tij,tj->ti", R, P))
     assert float(dg.relative_drift(orbital)) >= 1e-3  # the exchange is real
-    _energy_bounded(body, sol, 1e-3)
+    # The satellite's energy error is modulated over ~2e4 steps (Cayley, measured: window
+    # maxima 5e-5 … 1.3e-4 over 4e4 steps, up and down again), so first-vs-last-tenth growth
+    # is judged only over 1e5 steps (`test_full_body_angular_momentum_1e5_steps`).
+    _energy_bounded(body, sol, 1e-3, growth=False)
 
 
 def test_free_fall_momenta():
