@@ -57,7 +57,9 @@ import optax
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int
 
+from ._batch._simulate_batch import simulate_batch
 from ._checks import check_finite, is_concrete
+from ._fit_optimizer import LBFGS, OptaxMachine
 from ._groups._so3 import SO3
 from ._integrators._base import AbstractIntegrator
 from ._integrators._dep import DEP
@@ -76,6 +78,7 @@ class FIT_REASONS:
     failed_samples = 2
     unidentifiable = 3
     nonfinite = 4
+    stalled = 5
 
     messages = (
         "converged: ‖∇loss‖_∞ ≤ gtol, every sample valid, every fitted parameter identifiable.",
@@ -89,6 +92,9 @@ class FIT_REASONS:
         "solution. Observe a motion that excites every axis, fix the unidentifiable "
         "parameters, or give the initial momentum.",
         "not converged: the loss is not finite.",
+        "not converged: the line search found no lower loss along the descent direction, "
+        "nor along −∇loss, with ‖∇loss‖_∞ > gtol: the gradient is at the round-off level of "
+        "the loss (raise `gtol`) or the loss is not smooth there.",
     )
 
     @classmethod
@@ -536,9 +542,9 @@ def fit_system(
     )
     h = jnp.asarray(h, dtype)
     carry = _start(config, theta0, dynamic, data, h)
-    if check_every is None:
-        check_every = 20 if n_bodies >= 64 else int(max_iters)
-    carry = _iterate(config, int(check_every), carry, dynamic, data, h)
+    if check_every is None and n_bodies >= 64:
+        check_every = 20
+    carry = _iterate(config, check_every, carry, dynamic, data, h)
     out = _finish(config, carry, dynamic, data, h)
     out = jax.tree.map(lambda x: jnp.reshape(x, batch_shape + jnp.shape(x)[1:]), out)
     fitted_system = _replace_leaves(config, eqx.combine(out.system, static), out.params)
@@ -729,40 +735,45 @@ class _Config(eqx.Module):
         return jax.tree.unflatten(treedef, leaves)
 
     def residuals(self, system, m0, g0, data, h, horizon):
-        """Weighted residual vector, failed-sample penalty, count of failed samples, result."""
-        n_steps = (self.n_samples - 1) * self.sample_every
+        """One body: weighted residual vector, failed-sample penalty, count of failed
+        samples, result."""
         sol = simulate(
             system,
             self.integrator,
             g0,
             m0,
             h=h,
-            n_steps=n_steps,
+            n_steps=(self.n_samples - 1) * self.sample_every,
             save_every=self.sample_every,
             throw=False,
         )
-        dtype = sol.m.dtype
-        valid = jnp.all(jnp.isfinite(sol.m), axis=-1) & jnp.all(jnp.isfinite(sol.g), axis=(-2, -1))
+        return (*self.residual_terms(system, sol.g, sol.m, data, horizon), sol.result)
+
+    def residual_terms(self, system, g, m, data, horizon):
+        """Weighted residual vector, failed-sample penalty and count of failed samples of
+        one body's simulated samples `g`, `m`."""
+        dtype = m.dtype
+        valid = jnp.all(jnp.isfinite(m), axis=-1) & jnp.all(jnp.isfinite(g), axis=(-2, -1))
         counted = (jnp.arange(self.n_samples) < horizon).astype(dtype)
         parts, penalty = [], jnp.zeros((), dtype)
         w_orientation, w_velocity = data["weights"]
         if data["orientations"] is not None:
             R = data["orientations"]
             # double where: a failed (NaN) sample never enters arithmetic, so no NaN gradient
-            g = jnp.where(valid[:, None, None], sol.g, R)
+            g = jnp.where(valid[:, None, None], g, R)
             weight = w_orientation * counted / jnp.sum(counted)  # weighted mean over this stage
             parts.append((jnp.sqrt(weight)[:, None, None] * (g - R)).ravel())
             penalty = penalty + jnp.sum(jnp.where(valid, 0.0, weight * _ORIENTATION_PENALTY))
         if data["angular_velocities"] is not None:
             W = data["angular_velocities"]
-            m = jnp.where(valid[:, None], sol.m, 0.0)
+            m = jnp.where(valid[:, None], m, 0.0)
             omega = jnp.where(valid[:, None], jax.vmap(system.velocity)(m), W)
             weight = w_velocity * counted / jnp.sum(counted)
             parts.append((jnp.sqrt(weight)[:, None] * (omega - W)).ravel())
             worst = 4 * jnp.max(jnp.sum(W**2, axis=-1))
             penalty = penalty + jnp.sum(jnp.where(valid, 0.0, weight * worst))
         failed = jnp.sum(~valid & (counted > 0)).astype(jnp.int32)
-        return jnp.concatenate(parts), penalty, failed, sol.result
+        return jnp.concatenate(parts), penalty, failed
 
     def unpack(self, params, dynamic, data):
         values = self.leaf_values(params["theta"], data)
@@ -774,43 +785,43 @@ class _Config(eqx.Module):
         )
         return values, m0, g0
 
-    def loss_terms(self, params, dynamic, data, h, horizon):
-        # optax's zoom line search scales by a float64 step size when x64 is on, which
-        # would promote float32 trial points (and the whole simulation) to float64.
+    def batch_loss(self, params, dynamic, data, h, horizon):
+        """Every body's loss at once, through `simulate_batch` (its structure-of-arrays fast
+        path and that path's reverse mode where the system and integrator have one).
+
+        **Returns:** `(Σ losses, (losses, failed, result))`: the bodies are independent, so
+        the gradient of the sum is every body's own gradient."""
         dtype = h.dtype
         params = jax.tree.map(lambda x: x.astype(dtype), params)
-        values, m0, g0 = self.unpack(params, dynamic, data)
-        r, penalty, failed, result = self.residuals(
-            self.system_of(values, dynamic), m0, g0, data, h, horizon
+        values, m0, g0 = jax.vmap(self.unpack)(params, dynamic, data)
+        systems = jax.vmap(self.system_of)(values, dynamic)
+        sol = simulate_batch(
+            systems,
+            self.integrator,
+            g0,
+            m0,
+            h=h,
+            n_steps=(self.n_samples - 1) * self.sample_every,
+            save_every=self.sample_every,
+            save=("g", "m"),
+            system_axis=0,
+            throw=False,
         )
-        return jnp.sum(r**2) + penalty, (failed, result)
+        r, penalty, failed = jax.vmap(self.residual_terms)(systems, sol.g, sol.m, data, horizon)
+        losses = jnp.sum(r**2, axis=-1) + penalty
+        return jnp.sum(losses), (losses, failed, sol.result)
 
     # -- the optimiser
-    def opt(self):
+    def machine(self):
         if isinstance(self.optimizer, str) and self.optimizer == "lbfgs":
-            return optax.lbfgs()
+            return LBFGS()
         if isinstance(self.optimizer, str):
-            return optax.adam(self.learning_rate)
-        return self.optimizer
-
-    @property
-    def use_lbfgs(self):
-        return isinstance(self.optimizer, str) and self.optimizer == "lbfgs"
+            return OptaxMachine(optax.adam(self.learning_rate))
+        return OptaxMachine(self.optimizer)
 
     @property
     def stage_gtol(self):
         return max(self.gtol, np.sqrt(self.gtol)) if len(self.horizons) > 1 else self.gtol
-
-
-def _gnorm(grad):
-    return jnp.max(jnp.stack([jnp.max(jnp.abs(g)) for g in jax.tree.leaves(grad)]))
-
-
-def _measure(config, params, dynamic, data, h, stage):
-    horizon = jnp.asarray(config.horizons)[stage]
-    grad_fn = jax.value_and_grad(config.loss_terms, has_aux=True)
-    (value, (failed, result)), grad = grad_fn(params, dynamic, data, h, horizon)
-    return value, failed, result, _gnorm(grad)
 
 
 def _stage_done(config, value, failed, gnorm, stage):
@@ -820,20 +831,18 @@ def _stage_done(config, value, failed, gnorm, stage):
 
 
 class _Carry(eqx.Module):
-    params: dict
-    opt_state: object
+    params: dict  # the accepted point
+    opt: object  # the optimiser's state (`_fit_optimizer`)
+    failed: Array  # failed samples at the accepted point
     stage: Array
     it: Array
     history: Array
     failed_history: Array
-    done: Array  # the current stage's stopping test holds
-
-    def finished(self, config):
-        last = len(config.horizons) - 1
-        return (self.done & (self.stage == last)) | (self.it >= config.max_iters)
+    done: Array  # the current stage's stopping test holds at the accepted point
+    finished: Array
 
 
-def _start_one(config, theta0, dynamic, data, h):
+def _initial_params(config, theta0, dynamic, data, h):
     dtype = h.dtype
     params = {"theta": list(theta0)}
     if data["m0"] is None:  # unknown Π₀: from the first two samples, Π₀ ≈ legendre(Ω₀)
@@ -847,68 +856,49 @@ def _start_one(config, theta0, dynamic, data, h):
         params["m0"] = system.legendre(omega0).astype(dtype)
     if data["g0"] is None:
         params["g0_chart"] = jnp.zeros(3, dtype)
-    stage = jnp.asarray(0, jnp.int32)
-    value, failed, _, gnorm = _measure(config, params, dynamic, data, h, stage)
-    return _Carry(
-        params=params,
-        opt_state=config.opt().init(params),
-        stage=stage,
-        it=jnp.asarray(0, jnp.int32),
-        history=jnp.full(config.max_iters + 1, jnp.nan, dtype).at[0].set(value),
-        failed_history=jnp.full(config.max_iters + 1, -1, jnp.int32).at[0].set(failed),
-        done=_stage_done(config, value, failed, gnorm, stage),
-    )
+    return params
 
 
-def _advance_one(config, n_iters, carry, dynamic, data, h):
-    """Up to `n_iters` more optimiser iterations (fewer if the fit finishes)."""
-    opt = config.opt()
+def _flat(params):
+    return ravel_pytree(params)[0]
+
+
+def _digest(config, machine, unravel, c: _Carry, value, grad, failed) -> _Carry:
+    """One body takes in the loss and gradient at its trial point (`_fit_optimizer`)."""
     last = len(config.horizons) - 1
-    horizon_of = jnp.asarray(config.horizons)
-    stop_at = carry.it + n_iters
-
-    def loss_at(horizon):
-        return lambda p: config.loss_terms(p, dynamic, data, h, horizon)[0]
-
-    def update(params, state, horizon):
-        loss = loss_at(horizon)
-        if config.use_lbfgs:
-            value, grad = optax.value_and_grad_from_state(loss)(params, state=state)
-            updates, state = opt.update(grad, state, params, value=value, grad=grad, value_fn=loss)
-        else:
-            updates, state = opt.update(jax.grad(loss)(params), state, params)
-        return optax.apply_updates(params, updates), state
-
-    def cond(c):
-        return ~c.finished(config) & (c.it < stop_at)
-
-    def body(c):
-        # A finished stage hands its solution to the next, longer horizon (fresh optimiser
-        # state: the loss has changed).
-        advance = c.done & (c.stage < last)
-        stage = jnp.where(advance, c.stage + 1, c.stage)
-        fresh = opt.init(c.params)
-        opt_state = jax.tree.map(lambda a, b: jnp.where(advance, a, b), fresh, c.opt_state)
-        params, opt_state = update(c.params, opt_state, horizon_of[stage])
-        if config.use_lbfgs:
-            # The line search already evaluated loss and gradient at the accepted point.
-            value = optax.tree.get(opt_state, "value")
-            gnorm = _gnorm(optax.tree.get(opt_state, "grad"))
-            failed = config.loss_terms(params, dynamic, data, h, horizon_of[stage])[1][0]
-        else:
-            value, failed, _, gnorm = _measure(config, params, dynamic, data, h, stage)
-        it = c.it + 1
-        return _Carry(
-            params=params,
-            opt_state=opt_state,
-            stage=stage,
-            it=it,
-            history=c.history.at[it].set(value),
-            failed_history=c.failed_history.at[it].set(failed),
-            done=_stage_done(config, value, failed, gnorm, stage),
-        )
-
-    return jax.lax.while_loop(cond, body, carry)
+    opt, accepted = machine.tell(c.opt, value, grad)
+    it = c.it + (accepted & ~c.opt.fresh).astype(c.it.dtype)
+    # The loss at the accepted point (a new stage re-evaluates it over its longer horizon).
+    history = jnp.where(accepted, c.history.at[it].set(value), c.history)
+    failed_history = jnp.where(accepted, c.failed_history.at[it].set(failed), c.failed_history)
+    failed = jnp.where(accepted, failed, c.failed)
+    gnorm = jnp.max(jnp.abs(grad))
+    done = jnp.where(accepted, _stage_done(config, value, failed, gnorm, c.stage), c.done)
+    # A finished stage hands its solution to the next, longer horizon (the loss has
+    # changed: the point is evaluated again and the curvature memory dropped).
+    next_stage = done & (c.stage < last)
+    finished = (done & (c.stage == last)) | (it >= config.max_iters) | opt.stalled
+    point = unravel(opt.x)  # (an optax machine's `advance` moves `x` on)
+    advanced = machine.advance(opt)
+    restarted = machine.restart(opt)
+    opt = jax.tree.map(
+        lambda r, a, o: jnp.where(next_stage, r, jnp.where(accepted & ~finished, a, o)),
+        restarted,
+        advanced,
+        opt,
+    )
+    new = _Carry(
+        params=jax.tree.map(lambda old, x: jnp.where(accepted, x, old), c.params, point),
+        opt=opt,
+        failed=failed,
+        stage=jnp.where(next_stage, c.stage + 1, c.stage),
+        it=it,
+        history=history,
+        failed_history=failed_history,
+        done=done & ~next_stage,
+        finished=finished,
+    )
+    return jax.tree.map(lambda n, o: jnp.where(c.finished, o, n), new, c)
 
 
 def _identifiability(config, params, dynamic, data, h):
@@ -986,19 +976,19 @@ def _identifiability(config, params, dynamic, data, h):
     return flags, s, condition, full_rank
 
 
-def _finish_one(config, carry, dynamic, data, h):
+def _finish_one(config, carry, dynamic, data, h, value, failed, result):
     last = jnp.asarray(len(config.horizons) - 1, jnp.int32)
-    value, failed, result, _ = _measure(config, carry.params, dynamic, data, h, last)
     values, m0, g0 = config.unpack(carry.params, dynamic, data)
     flags, s, condition, full_rank = _identifiability(config, carry.params, dynamic, data, h)
     optimised = carry.done & (carry.stage == last)
     reason = jnp.select(
-        [~jnp.isfinite(value), failed > 0, ~full_rank, optimised],
+        [~jnp.isfinite(value), failed > 0, ~full_rank, optimised, carry.opt.stalled],
         [
             FIT_REASONS.nonfinite,
             FIT_REASONS.failed_samples,
             FIT_REASONS.unidentifiable,
             FIT_REASONS.converged,
+            FIT_REASONS.stalled,
         ],
         FIT_REASONS.max_iters,
     ).astype(jnp.int32)
@@ -1026,24 +1016,61 @@ def _finish_one(config, carry, dynamic, data, h):
     )
 
 
-# ---- the batch: compiled stages, finished bodies leave between rounds -----------------
+# ---- the batch: one loss evaluation per tick, finished bodies leave between rounds ----
 
 
 @eqx.filter_jit
 def _start(config, theta0, dynamic, data, h):
-    return jax.vmap(lambda t, dyn, dat: _start_one(config, t, dyn, dat, h))(theta0, dynamic, data)
-
-
-@eqx.filter_jit
-def _advance(config, n_iters, carry, dynamic, data, h):
-    return jax.vmap(lambda c, dyn, dat: _advance_one(config, n_iters, c, dyn, dat, h))(
-        carry, dynamic, data
+    params = jax.vmap(lambda t, dyn, dat: _initial_params(config, t, dyn, dat, h))(
+        theta0, dynamic, data
+    )
+    n_bodies = jax.tree.leaves(params)[0].shape[0]
+    dtype = h.dtype
+    return _Carry(
+        params=params,
+        opt=jax.vmap(config.machine().init)(jax.vmap(_flat)(params)),
+        failed=jnp.zeros(n_bodies, jnp.int32),
+        stage=jnp.zeros(n_bodies, jnp.int32),
+        it=jnp.zeros(n_bodies, jnp.int32),
+        history=jnp.full((n_bodies, config.max_iters + 1), jnp.nan, dtype),
+        failed_history=jnp.full((n_bodies, config.max_iters + 1), -1, jnp.int32),
+        done=jnp.zeros(n_bodies, bool),
+        finished=jnp.zeros(n_bodies, bool),
     )
 
 
 @eqx.filter_jit
+def _run(config, n_evals, carry, dynamic, data, h):
+    """Up to `n_evals` ticks (until every body is finished if `None`): each evaluates the
+    loss and gradient of every body at its trial point in one batched call, then lets each
+    body digest its own."""
+    machine = config.machine()
+    _, unravel = ravel_pytree(jax.tree.map(lambda x: x[0], carry.params))
+    horizons = jnp.asarray(config.horizons)
+    gradient = jax.value_and_grad(config.batch_loss, has_aux=True)
+
+    def cond(state):
+        k, c = state
+        more = ~jnp.all(c.finished)
+        return more if n_evals is None else more & (k < n_evals)
+
+    def body(state):
+        k, c = state
+        trial = jax.vmap(unravel)(jax.vmap(machine.trial)(c.opt))
+        (_, (value, failed, _)), grad = gradient(trial, dynamic, data, h, horizons[c.stage])
+        digest = lambda *a: _digest(config, machine, unravel, *a)
+        return k + 1, jax.vmap(digest)(c, value, jax.vmap(_flat)(grad), failed)
+
+    return jax.lax.while_loop(cond, body, (jnp.zeros((), jnp.int32), carry))[1]
+
+
+@eqx.filter_jit
 def _finish(config, carry, dynamic, data, h):
-    return jax.vmap(lambda c, dyn, dat: _finish_one(config, c, dyn, dat, h))(carry, dynamic, data)
+    last = jnp.full(carry.it.shape, config.horizons[-1])
+    _, (value, failed, result) = config.batch_loss(carry.params, dynamic, data, h, last)
+    return jax.vmap(lambda c, dyn, dat, *rest: _finish_one(config, c, dyn, dat, h, *rest))(
+        carry, dynamic, data, value, failed, result
+    )
 
 
 def _bucket(n_active: int, n_total: int) -> int:
@@ -1055,24 +1082,21 @@ def _bucket(n_active: int, n_total: int) -> int:
 
 
 def _iterate(config, check_every, carry, dynamic, data, h):
-    """Run the optimiser in rounds; after each, the finished bodies leave the batch."""
+    """Run the optimiser in rounds of `check_every` ticks (`None`: one round to the end);
+    after each, the finished bodies leave the batch."""
+    if check_every is None:
+        return _run(config, None, carry, dynamic, data, h)
     n_total = int(carry.it.shape[0])
-    if check_every >= config.max_iters:
-        return _advance(config, config.max_iters, carry, dynamic, data, h)
     take = lambda tree, idx: jax.tree.map(lambda x: x[idx], tree)
     while True:
-        finished = np.asarray(carry.finished(config))
-        active = np.flatnonzero(~finished)
+        active = np.flatnonzero(~np.asarray(carry.finished))
         if active.size == 0:
             return carry
         size = _bucket(active.size, n_total)
-        idx = np.concatenate([active, np.full(size - active.size, active[0])])
-        if size == n_total and active.size == n_total:
-            sub = _advance(config, check_every, carry, dynamic, data, h)
-            carry = sub
+        if size == n_total:
+            carry = _run(config, check_every, carry, dynamic, data, h)
             continue
-        sub = _advance(
-            config, check_every, take(carry, idx), take(dynamic, idx), take(data, idx), h
-        )
+        idx = np.concatenate([active, np.full(size - active.size, active[0])])
+        sub = _run(config, check_every, take(carry, idx), take(dynamic, idx), take(data, idx), h)
         sub = take(sub, np.arange(active.size))
         carry = jax.tree.map(lambda full, part, rows=active: full.at[rows].set(part), carry, sub)
