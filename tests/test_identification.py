@@ -172,7 +172,8 @@ def test_bad_arguments():
 
 @pytest.mark.slow
 def test_failed_steps_are_penalised_not_nan():
-    """A guess whose trajectory fails part-way (rotation ≥ π in one step from step 5 on)
+    """A guess whose trajectory fails part-way (a step beyond the exponential chart's
+    bound from step 3 on: 21 of the 25 samples)
     gives a finite, penalised loss; the failures are counted in `failed_history`, and the
     fit steers out of them. A guess that fails at the very first step has no gradient to
     follow (every sample is penalised): the fit says so instead of returning NaN."""
@@ -187,7 +188,7 @@ def test_failed_steps_are_penalised_not_nan():
             R, h=h, sample_every=1, inertia=guess, m0=m0, g0=jnp.eye(3), horizons=(n + 1,)
         )
 
-    recovered = fit(jnp.array([2.0, 1.0, 0.3]))
+    recovered = fit(jnp.array([2.47, 0.27, 0.39]))
     failed = np.asarray(recovered.failed_history)
     assert failed[0] > 0  # the initial guess fails ...
     assert np.all(
