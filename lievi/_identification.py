@@ -8,7 +8,8 @@ residuals
 
     r_k = ( √w_R (g_k − R_k),  √w_Ω (Ω_k − Ω̂_k) ),     Ω_k = velocity(m_k),
 
-minimised with optax (L-BFGS with a zoom line search, or Adam) over any subset of the
+minimised by L-BFGS with a backtracking line search (`_fit_optimizer.py`), or by any optax
+transformation such as Adam, over any subset of the
 system's parameters (chosen by a `where` function, as in `eqx.tree_at`) together with the
 initial state when it is unknown. The fitted leaves are optimised in unconstrained
 coordinates: the inertia of a rigid body through a parametrisation that keeps it symmetric
@@ -39,10 +40,14 @@ samples are not dropped (that would reward failing) but charged a fixed penalty 
 largest possible orientation error, `‖g − R‖_F² ≤ 8`, and `4 max_k ‖Ω_k‖²` for velocities —
 whose gradient is zero; the count of failed samples is reported at every iteration.
 
-**Batches.** Leading batch axes on the observations fit many bodies in one call (`jax.vmap`
-of the optimisation). Under `vmap` a loop runs until its slowest member is done, so large
-batches are run in rounds of `check_every` iterations: after each round the bodies that
-have finished leave the batch and the others continue in a smaller one.
+**Batches.** Leading batch axes on the observations fit many bodies in one call. Every
+loss evaluation is one `simulate_batch` call for all bodies (the structure-of-arrays fast
+path and its reverse mode, where the system and integrator have one), and the optimiser is
+a per-body state machine that needs exactly one evaluation per tick (`_fit_optimizer.py`):
+a body in its line search and a body starting a new iteration share each evaluation, and
+none waits for the longest line search of the batch. Large batches run in rounds of
+`check_every` ticks: after each round the bodies that have finished leave the batch and the
+others continue in a smaller one.
 """
 
 from __future__ import annotations
@@ -300,8 +305,10 @@ def fit_system(
     - `realisable`: constrain the inertia to physically realisable ones (triangle inequalities).
     - `trace`: the gauge (> 0), used only when it applies; default the trace of the guess.
     - `integrator`: the model integrator (default `DEP()`, exponential chart).
-    - `optimizer`: `"lbfgs"` (`optax.lbfgs`, zoom line search), `"adam"` (`optax.adam` at
-      `learning_rate`), or any `optax.GradientTransformation` (used as `update(g, s, p)`).
+    - `optimizer`: `"lbfgs"` (L-BFGS, memory 10, backtracking line search with the Armijo
+      or the approximate Wolfe conditions), `"adam"` (`optax.adam` at `learning_rate`), or
+      any `optax.GradientTransformation` (used as `update(g, s, p)`, one loss evaluation per
+      iteration).
     - `max_iters`, `gtol`: stop when `‖∇loss‖_∞ ≤ gtol` (gradient in the unconstrained
       parameters; default 1e-11 in float64, 1e-4 in float32 — where round-off in a
       400-step simulation already puts the gradient at the optimum near 2e-5) or after
@@ -318,7 +325,8 @@ def fit_system(
     - `identifiability_rtol`: a singular value of the column-scaled residual Jacobian below
       this times the largest marks an unidentifiable direction (default `ε^(1/3)` of the
       dtype: 6e-6 in float64, 5e-3 in float32).
-    - `check_every`: batched fits run in rounds of this many iterations, after each of
+    - `check_every`: batched fits run in rounds of this many loss evaluations (about one
+      per iteration), after each of
       which finished bodies leave the batch (default 20 for 64 bodies or more; otherwise
       one round). Results do not depend on it.
 
