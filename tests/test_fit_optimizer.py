@@ -8,6 +8,8 @@ search affects another's); near a minimum where the decrease of `f` is below its
 start stalls and says so; the optax machine (Adam) takes one evaluation per iteration.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,6 +19,7 @@ import pytest
 from lievi._fit_optimizer import LBFGS, OptaxMachine
 
 
+@functools.partial(jax.jit, static_argnums=(0, 1, 3, 4))
 def minimise(machine, fun, x0, ticks, gtol):
     """Drive `machine` for `ticks` ticks on a batch; returns the state, evaluations and
     iterations per body."""
