@@ -256,13 +256,14 @@ for b in np.argsort(errors)[::-1][:5]:
 # ## Summary
 #
 # - From orientations alone (every 10th step, $T = 20$) the normalised principal moments of
-#   the HLW body are recovered to round-off level ($4\cdot10^{-12}$) without noise and to
+#   the HLW body are recovered to round-off level ($10^{-11}$) without noise and to
 #   $7.5\cdot10^{-3}$ with 1% noise on the rotation vectors; $\Pi_0$ comes back up to the
 #   gauge scale.
-# - Many bodies fit in one call. A body spinning almost about a principal axis (body 7 above,
-#   $|\Pi_0\cdot e| = 0.999$) barely excites its other moments and is not identifiable from
-#   noisy orientations: the fit says so (`converged = False`) rather than returning a
-#   confident wrong answer; the well-excited bodies come back to a few $10^{-3}$.
+# - Many bodies fit in one call: a thousand in about three minutes on two CPU cores. A body
+#   spinning almost about a principal axis ($|\Pi_0\cdot e|$ close to 1, most of the worst
+#   five above) barely excites its other moments and is not identifiable from noisy
+#   orientations: the fit says so (`converged = False`) rather than returning a confident
+#   wrong answer; the well-excited bodies come back to a few $10^{-3}$.
 # - The gauge (inertia and momentum only observable up to a common scale) is fixed by holding
 #   the trace of the inertia; with $\Pi_0$ known there is no gauge and the scale is fitted.
 # - Every gradient is exact: the implicit DEP steps are differentiated at their converged
