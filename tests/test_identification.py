@@ -267,6 +267,8 @@ def test_known_momentum_velocities_adam_tensor():
 
 @pytest.mark.slow
 def test_thousand_bodies_in_one_call():
+    """1000 noisy bodies in one call (2–5 minutes on 2 CPU cores: every loss evaluation is
+    one `simulate_batch` run of the batch; `benchmarks/identification.py` times it)."""
     rng = np.random.default_rng(2)
     inertias, momenta = _random_bodies(rng, 1000)
     observed = _noisy(jax.vmap(_observe)(inertias, momenta), rng)
