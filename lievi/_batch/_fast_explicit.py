@@ -42,28 +42,28 @@ _SIN = tuple((-1) ** k / math.factorial(2 * k + 1) for k in range(9))
 _COS = tuple((-1) ** k / math.factorial(2 * k) for k in range(9))
 
 
-def _horner(coefficients, u):
-    value = jnp.full_like(u, coefficients[-1])
-    for c in reversed(coefficients[:-1]):
-        value = value * u + c
-    return value
+def _sin_quarter_turns(r, u, q):
+    """`sin(r + qπ/2)` for `|r| ≤ π/4`, `u = r²`, `q` integer: `±sin r` for even `q`,
+    `±cos r` for odd. One polynomial a value: its coefficients are those of `sin r / r`
+    or of `cos r` by the parity of `q` (a select a coefficient, not both polynomials and a
+    select of the results)."""
+    # Integer bit operations (two's complement: `q & 3` is q mod 4 for negative q too): a
+    # float `mod` is a scalar `fmod` call on CPU.
+    odd = (q & 1) == 1
+    value = jnp.where(odd, _COS[-1], _SIN[-1])
+    for s, c in zip(reversed(_SIN[:-1]), reversed(_COS[:-1])):
+        value = value * u + jnp.where(odd, c, s)
+    value = jnp.where(odd, value, r * value)
+    return jnp.where((q & 2) == 2, -value, value)
 
 
 def sincos(x):
     """`(sin x, cos x)` elementwise, by range reduction and polynomials (no libm calls)."""
     k = jnp.round(x * (2 / math.pi))
     r = ((x - k * _P1) - k * _P2) - k * _P3
-    u = r * r
-    s, c = r * _horner(_SIN, u), _horner(_COS, u)
-    # x = r + kπ/2: quadrant q = k mod 4 rotates (s, c) by q quarter turns. Integer bit
-    # operations (two's complement: `k & 3` is k mod 4 for negative k too): a float `mod`
-    # is a scalar `fmod` call on CPU.
+    # x = r + kπ/2, and cos x = sin(r + (k + 1)π/2).
     q = k.astype(jnp.int32)
-    odd = (q & 1) == 1
-    sin, cos = jnp.where(odd, c, s), jnp.where(odd, s, c)
-    sin = jnp.where((q & 2) == 2, -sin, sin)
-    cos = jnp.where(((q + 1) & 2) == 2, -cos, cos)
-    return sin, cos
+    return _sin_quarter_turns(r, r * r, q), _sin_quarter_turns(r, r * r, q + 1)
 
 
 def _finite_result(Pi, g):
