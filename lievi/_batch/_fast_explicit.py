@@ -24,22 +24,72 @@ from .._results import RESULTS
 from . import _explicit_adjoints
 from ._kernel import AbstractBatchKernel, materialise
 
+_HALF_PI = decimal.Decimal("3.14159265358979323846264338327950288419716939937510582097494") / 2
 
-def _pi_over_two_parts():
-    """`π/2 = P1 + P2 + P3` with 12-bit `P1`, `P2` (so `k·P1`, `k·P2` are exact in float32
-    for `|k| < 2¹²` and in float64 far beyond) and `P3` the rest, rounded."""
+
+def _pi_over_two_parts(bits: int, count: int):
+    """`π/2` as `count` parts: each but the last with `bits` significant bits (so `k·P` is
+    exact while `k` has at most 24 − `bits` bits in float32, 53 − `bits` in float64), the
+    last the rest, rounded."""
     decimal.getcontext().prec = 60
-    half_pi = decimal.Decimal("3.14159265358979323846264338327950288419716939937510582097494") / 2
-    p1 = decimal.Decimal(round(half_pi * 2**11)) / 2**11
-    p2 = decimal.Decimal(round((half_pi - p1) * 2**23)) / 2**23
-    return float(p1), float(p2), float(half_pi - p1 - p2)
+    parts, rest, scale = [], _HALF_PI, bits - 1
+    for _ in range(count - 1):
+        part = decimal.Decimal(round(rest * 2**scale)) / 2**scale
+        parts.append(float(part))
+        rest, scale = rest - part, scale + bits
+    return (*parts, float(rest))
 
 
-_P1, _P2, _P3 = _pi_over_two_parts()
-# Taylor coefficients in u = r² for sin r / r and cos r; nine terms each: the first omitted
-# term is below 1e-17 (relative) at |r| = π/4.
-_SIN = tuple((-1) ** k / math.factorial(2 * k + 1) for k in range(9))
-_COS = tuple((-1) ** k / math.factorial(2 * k) for k in range(9))
+# float32: three parts, `k·P1`, `k·P2` exact for |k| < 2¹² (12-bit parts); float64: two, `k·P1`
+# exact for |k| < 2²⁰ (a 33-bit part; beyond, |x| > 10⁶, the reduction keeps about one ulp of
+# |x|, the size of the rounding of x itself).
+_REDUCTION = {"float32": _pi_over_two_parts(12, 3), "float64": _pi_over_two_parts(33, 2)}
+
+
+def _interpolating_coefficients(f, nodes: int):
+    """Coefficients (lowest degree first) of the polynomial in `u` interpolating `f` at the
+    Chebyshev nodes of `[0, (π/4)²]`, by exact elimination in 60-digit decimals: close to
+    the best uniform approximation of that degree."""
+    D = decimal.Decimal
+    decimal.getcontext().prec = 60
+    top = (_HALF_PI / 2) ** 2
+
+    def cos_series(x):
+        term, total, k = D(1), D(0), 0
+        while abs(term) > D("1e-58"):
+            total, k = total + term, k + 1
+            term = -term * x * x / ((2 * k - 1) * (2 * k))
+        return total
+
+    xs = [
+        top / 2 * (1 + cos_series((2 * i + 1) * 2 * _HALF_PI / (2 * nodes))) for i in range(nodes)
+    ]
+    rows = [[x**j if j else D(1) for j in range(nodes)] + [f(x)] for x in xs]
+    for c in range(nodes):
+        pivot = max(range(c, nodes), key=lambda r: abs(rows[r][c]))
+        rows[c], rows[pivot] = rows[pivot], rows[c]
+        for r in range(nodes):
+            if r != c:
+                m = rows[r][c] / rows[c][c]
+                rows[r] = [a - m * b for a, b in zip(rows[r], rows[c])]
+    return tuple(float(rows[i][nodes] / rows[i][i]) for i in range(nodes))
+
+
+def _series(u, first):
+    """`Σ_k (−u)^k / ((2k + first)! / first!)`: `sin √u / √u` (first = 1), `cos √u` (0)."""
+    D = decimal.Decimal
+    term, total, k = D(1), D(0), 0
+    while abs(term) > D("1e-58"):
+        total, k = total + term, k + 1
+        term = -term * u / ((2 * k - 1 + first) * (2 * k + first))
+    return total
+
+
+# In u = r² for sin r / r and cos r on |r| ≤ π/4: eight coefficients each, within 6e-18 of
+# the functions with the coefficients rounded to float64 (nine Taylor terms were needed for
+# the same accuracy).
+_SIN = _interpolating_coefficients(lambda u: _series(u, 1), 8)
+_COS = _interpolating_coefficients(lambda u: _series(u, 0), 8)
 
 
 def _sin_quarter_turns(r, u, q):
@@ -60,7 +110,9 @@ def _sin_quarter_turns(r, u, q):
 def sincos(x):
     """`(sin x, cos x)` elementwise, by range reduction and polynomials (no libm calls)."""
     k = jnp.round(x * (2 / math.pi))
-    r = ((x - k * _P1) - k * _P2) - k * _P3
+    r = x
+    for part in _REDUCTION["float64" if x.dtype == jnp.float64 else "float32"]:
+        r = r - k * part
     # x = r + kπ/2, and cos x = sin(r + (k + 1)π/2).
     q = k.astype(jnp.int32)
     return _sin_quarter_turns(r, r * r, q), _sin_quarter_turns(r, r * r, q + 1)
@@ -73,16 +125,28 @@ def _finite_result(Pi, g):
     return jnp.where(finite, RESULTS.successful, RESULTS.nonfinite).astype(jnp.int32)
 
 
-def _times_axis_quaternion(quaternion, p: int, c, s):
-    """`q ⊗ (c, s e_p)` for `q = (w, x, y, z)` (4 arrays, or Python zeros): the rotation
-    `R(q) exp(α ê_p)` for `(c, s) = (cos α/2, sin α/2)`; 8 products, 4 sums."""
-    w, v = quaternion[0], quaternion[1:]
-    q, r = (p + 1) % 3, (p + 2) % 3
-    out = [None] * 3
-    out[p] = w * s + c * v[p]
-    out[q] = c * v[q] + s * v[r]
-    out[r] = c * v[r] - s * v[q]
-    return (w * c - s * v[p], *out)
+def _quaternion_product(a, b):
+    """`a ⊗ b` for quaternions `(w, x, y, z)`: `R(a ⊗ b) = R(a) R(b)`. Entries may be Python
+    zeros (an axis rotation `(cos α/2, sin α/2 e_p)` has two), whose products are left out."""
+
+    def signed_sum(*terms):  # Σ sign·x·y over the terms whose factors are not Python zeros
+        kept = [
+            (sign, x * y)
+            for sign, x, y in terms
+            if not any(isinstance(v, float) and v == 0 for v in (x, y))
+        ]
+        total = kept[0][1] if kept[0][0] > 0 else -kept[0][1]
+        for sign, xy in kept[1:]:
+            total = total + xy if sign > 0 else total - xy
+        return total
+
+    (aw, ax, ay, az), (bw, bx, by, bz) = a, b
+    return (
+        signed_sum((1, aw, bw), (-1, ax, bx), (-1, ay, by), (-1, az, bz)),
+        signed_sum((1, aw, bx), (1, ax, bw), (1, ay, bz), (-1, az, by)),
+        signed_sum((1, aw, by), (-1, ax, bz), (1, ay, bw), (1, az, bx)),
+        signed_sum((1, aw, bz), (1, ax, by), (-1, ay, bx), (1, az, bw)),
+    )
 
 
 def _rotation_of_quaternion(quaternion):
@@ -117,11 +181,11 @@ SUBFLOWS = ((0, 0.5), (1, 0.5), (2, 1.0), (1, 0.5), (0, 0.5))
 
 def splitting_primal(g, Pi, rate):
     """`splitting_step`'s arithmetic: `(g_next, Π_next, [(cos α_j, sin α_j)], [Π^{(j)}], F)`,
-    the rotations, the momenta before and after each sub-flow (`j = 0…5`) and the
-    composed increment `F = F_1⋯F_5` (9 arrays)."""
+    the rotations, the momenta before and after each sub-flow (`j = 0…5`, sequentially
+    rotated) and the composed increment `F = F_1⋯F_5` (9 arrays); `g_next = g F`,
+    `Π_next = Fᵀ Π`."""
     one = Pi[0] * 0 + 1
-    quaternion = None
-    rotations, momenta = [], [tuple(Pi)]
+    factors, rotations, momenta = [], [], [tuple(Pi)]
     for p, fraction in SUBFLOWS:
         # The half angle α/2 = (f/2)·Π_p·(h/I_p): a product. As a quotient by I_p/h it
         # was a division a sub-flow, which XLA evaluates once and stores (see
@@ -133,14 +197,17 @@ def splitting_primal(g, Pi, rate):
         Pi[q], Pi[r] = c * Pi[q] + s * Pi[r], c * Pi[r] - s * Pi[q]
         rotations.append((c, s))
         momenta.append(tuple(Pi))
-        if quaternion is None:
-            quaternion = (cos_half, *(sin_half if i == p else 0.0 for i in range(3)))
-        else:
-            quaternion = _times_axis_quaternion(quaternion, p, cos_half, sin_half)
-    # Four numbers a body stored, and `F` rebuilt from them where `g F` reads it: 9 stored
+        factors.append((cos_half, *(sin_half if i == p else 0.0 for i in range(3))))
+    # (q1 q2) q3 (q4 q5): the two sparse pairs first, 4 products each.
+    q12, q45 = _quaternion_product(*factors[:2]), _quaternion_product(*factors[3:])
+    quaternion = _quaternion_product(_quaternion_product(q12, factors[2]), q45)
+    # Four numbers a body stored, and `F` rebuilt from them where it is read: 9 stored
     # entries of `F` cost more memory traffic than the few products that rebuild them.
     F = _rotation_of_quaternion(materialise(quaternion, one))
-    return _matmul3(g, F), tuple(Pi), rotations, momenta, F
+    # Π_{k+1} = Fᵀ Π_k (as a row, Π_kᵀ F): equal to the sequential rotations to round-off
+    # (`momenta[-1]`), and its loops read the 4 stored quaternion components instead of
+    # the 10 sines and cosines.
+    return _matmul3(g, F), _matmul3(momenta[0], F), rotations, momenta, F
 
 
 def splitting_step(g, Pi, rate):
