@@ -9,8 +9,8 @@ for `DEP`: every component its own `(B,)` array (batch minor), closed forms, no 
 The splitting's sub-flows are rotations by angles `α = f h Π_p / I_p`; on CPU `jnp.sin`
 and `jnp.cos` are scalar library calls, several times slower than the rest of the step
 (measured, see `_fast_so3.py`), so `sincos` below evaluates both by a Cody–Waite
-reduction to `|r| ≤ π/4` and two Taylor polynomials, accurate to about one ulp for
-`|α| ≲ 10⁴` in float32 and far beyond in float64 (the tests compare with `jnp.sin`).
+reduction to `|r| ≤ π/4` and polynomials of degree 15 and 14, accurate to about one ulp
+for `|α| ≲ 10⁴` in float32 and far beyond in float64 (the tests compare with `jnp.sin`).
 """
 
 from __future__ import annotations
