@@ -10,16 +10,17 @@ both modes with plain autodiff of the same arithmetic (`_fast_explicit.splitting
 `rk4_primal`).
 
 **Splitting** (paper §6). The five sub-flows are rotations `F_j = exp(α_j ê_{p_j})` with
-`α_j = f_j Π_{p_j}^{(j−1)} / A_{p_j}` (`A = I/h`), `Π^{(j)} = F_jᵀ Π^{(j−1)}` and
+`α_j = f_j Π_{p_j}^{(j−1)} R_{p_j}` (`R = h/I`), `Π^{(j)} = F_jᵀ Π^{(j−1)}` and
 `g' = g F`, `F = F_1⋯F_5`. Since `∂F_j/∂α_j = ê_p F_j = F_j ê_p`,
 
-    dα_j = f_j (dΠ_p^{(j−1)} − Π_p^{(j−1)} dA_p / A_p) / A_p,
+    dα_j = f_j (dΠ_p^{(j−1)} R_p + Π_p^{(j−1)} dR_p),
     dΠ^{(j)} = F_jᵀ dΠ^{(j−1)} − (e_p × Π^{(j)}) dα_j,
     dg' = (dg + g ŵ) F,   w = Σ_j dα_j F_1⋯F_{j−1} e_{p_j}
 
 (`dF = ŵ F`, `ŵ` the hat map), `w` accumulated from the inside out. The derivative of
-each sine and cosine is the other one (no polynomial is differentiated), and the
-rotations act as 2×2 blocks (no 3×3 product; `F` itself is not formed).
+each sine and cosine is the other one (no polynomial is differentiated), the momenta's
+tangents rotate as 2×2 blocks, and `dg'` reuses the step's own `F` (rebuilt from the
+quaternion the step stores, `_fast_explicit.splitting_primal`).
 
 **RK4**. The step depends on `h` and `I` only through the ratios `h/I_p` (`rk4_step`):
 with `w_i = (h/I)·Π_i`, the stages are `k_i = f(y_i) = (g_i ŵ_i, Π_i × w_i)`,
@@ -43,23 +44,23 @@ from . import _fast_explicit
 
 
 @jax.custom_jvp
-def splitting_flow(g, Pi, inertia_over_h):
+def splitting_flow(g, Pi, rate):
     """`(g_next, Π_next)` of one splitting step, as `_fast_explicit.splitting_step`."""
-    g_next, Pi_next, _, _ = _fast_explicit.splitting_primal(g, Pi, inertia_over_h)
+    g_next, Pi_next, *_ = _fast_explicit.splitting_primal(g, Pi, rate)
     return g_next, Pi_next
 
 
 @splitting_flow.defjvp
 def _splitting_flow_jvp(primals, tangents):
-    g, Pi, A = primals
-    dg, dPi, dA = tangents
-    g_next, Pi_next, rotations, momenta = _fast_explicit.splitting_primal(g, Pi, A)
+    g, Pi, R = primals
+    dg, dPi, dR = tangents
+    g_next, Pi_next, rotations, momenta, F = _fast_explicit.splitting_primal(g, Pi, R)
     subflows = _fast_explicit.SUBFLOWS
     dPi = list(dPi)
     dalpha = []
     for (p, fraction), (c, s), before, after in zip(subflows, rotations, momenta, momenta[1:]):
         q, r = (p + 1) % 3, (p + 2) % 3
-        da = fraction * (dPi[p] - before[p] / A[p] * dA[p]) / A[p]
+        da = fraction * (dPi[p] * R[p] + before[p] * dR[p])
         dPi[q], dPi[r] = (
             c * dPi[q] + s * dPi[r] + after[r] * da,
             c * dPi[r] - s * dPi[q] - after[q] * da,
@@ -72,15 +73,12 @@ def _splitting_flow_jvp(primals, tangents):
         p = subflows[j][0]
         w = _rotate(p, *rotations[j], w)
         w[p] = w[p] + dalpha[j]
-    # dg' = (dg + g ŵ) F_1⋯F_5, row by row (`x ŵ = x × w`; `x F_j = (F_jᵀ xᵀ)ᵀ`).
-    dg_next = []
+    # dg' = (dg + g ŵ) F, row by row (`x ŵ = x × w`).
+    rows = []
     for i in range(len(g) // 3):
         gw = _cross(g[3 * i : 3 * i + 3], w)
-        row = [dg[3 * i + k] + gw[k] for k in range(3)]
-        for (p, _), (c, s) in zip(subflows, rotations):
-            row = _rotate(p, c, -s, row)
-        dg_next += row
-    return (g_next, Pi_next), (tuple(dg_next), tuple(dPi))
+        rows += [dg[3 * i + k] + gw[k] for k in range(3)]
+    return (g_next, Pi_next), (_fast_explicit._matmul3(tuple(rows), F), tuple(dPi))
 
 
 def _rotate(p, c, s, v):
