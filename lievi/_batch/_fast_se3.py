@@ -320,13 +320,13 @@ def _block(A, i, j):
 
 
 def _velocity_part(chart, w, m, C, series=None):
-    """`(q, v)` with `r_v(ω, v) = 0`: `q = b = K′(ω)⁻¹P`, `v = A₂₂⁻¹(q − A₂₁ω)`.
+    """`(q, v)` with `r_v(ω, v) = 0`: `q = b = K′(ω)⁻¹P`, `v = A₂₂⁻¹(q − A₂₁ω) = A₂₂⁻¹q − Tω`.
 
     `K′⁻¹`: Cayley `(1 + ω̂/2)⁻¹ y = (y − ω×y/2 + ω(ω·y)/4)/(1 + t/4)`; exp
     `(1 + ω̂/2 + c ω̂²)⁻¹ = 1 − β ω̂ + γ ω̂²`, `β = (1 − cos θ)/θ²`, `γ = (θ − sin θ)/θ³`
     (the inverse of the SO(3) `dexpinv`, i.e. `dexp(−ω)`).
     """
-    _, _, A21, A22inv = C
+    _, _, A22inv, T = C
     P = m[3:]
     t = _dot(w, w)
     wP, oP = _cross(w, P), _dot(w, P)
@@ -336,8 +336,8 @@ def _velocity_part(chart, w, m, C, series=None):
     else:
         beta, gamma = (_exp_series(t) if series is None else series)[3:]
         q = tuple(P[i] - beta * wP[i] + gamma * (w[i] * oP - t * P[i]) for i in range(3))
-    A21w = _mv(A21, w)
-    v = _mv(A22inv, tuple(q[i] - A21w[i] for i in range(3)))
+    A22q, Tw = _mv(A22inv, q), _mv(T, w)
+    v = tuple(A22q[i] - Tw[i] for i in range(3))
     return q, v
 
 
@@ -346,15 +346,17 @@ def _reduced_residual(chart, w, m, C, with_jacobian: bool):
     `r_v = K′(ω)(A₂₁ω + A₂₂v) − P = 0` exactly (`_velocity_part`), and, if asked, its 3×3
     Jacobian, the Schur complement `J₁₁ − J₁₂J₂₂⁻¹J₂₁` of the 6×6 one (`residual`):
 
-        dρ/dω = K A₁₁ + (K A₁₂ + E_ωv) V + E_ωω + L Q,   Q = dq/dω = −K′⁻¹E_vω,
-        V = dv/dω = A₂₂⁻¹(Q − A₂₁),
+        dρ/dω = K(S + ZQ) + E_ωv V + E_ωω + L Q,   Q = dq/dω = −K′⁻¹E_vω,
+        V = dv/dω = A₂₂⁻¹Q − T,
 
-    with the blocks `E` of `∂(dφ⁻¹(ξ)ᵀμ)/∂ξ` at fixed `μ = (a, q)` (`residual`). Newton
-    on `ρ` is Newton on the 6×6 system with `v` re-solved after each step: the same root
-    (the one the generic path converges to from the explicit-Euler guess), a 3×3 solve.
+    with the blocks `E` of `∂(dφ⁻¹(ξ)ᵀμ)/∂ξ` at fixed `μ = (a, q)` (`residual`) and the
+    per-run constants `S = A₁₁ − A₁₂A₂₂⁻¹A₂₁`, `Z = A₁₂A₂₂⁻¹`, `T = A₂₂⁻¹A₂₁` (`C`), so
+    that `K A₁₁ + K A₁₂V = K(S + ZQ)` and `a = A₁₁ω + A₁₂v = Sω + Zq`. Newton on `ρ` is
+    Newton on the 6×6 system with `v` re-solved after each step: the same root (the one
+    the generic path converges to from the explicit-Euler guess), a 3×3 solve.
     Returns `(ρ, J, (q, v))`.
     """
-    A11, A12, _, _ = C
+    S, Z, A22inv, T = C
     one = _ones(w[0])
     series = None
     if chart == "exp":
@@ -364,8 +366,9 @@ def _reduced_residual(chart, w, m, C, with_jacobian: bool):
     q, v = _velocity_part(chart, w, m, C, series)
     if with_jacobian:
         q, v = materialise(q, one), materialise(v, one)
-    A11w, A12v = _mv(A11, w), _mv(A12, v)
-    a = tuple(A11w[i] + A12v[i] for i in range(3))
+    # a = A₁₁ω + A₁₂v = Sω + Zq.
+    Sw, Zq = _mv(S, w), _mv(Z, q)
+    a = tuple(Sw[i] + Zq[i] for i in range(3))
     if chart == "cayley":
         return _reduced_cayley(w, m, C, q, v, a, with_jacobian, one)
     K, L, Kp, coefficients = _operator(chart, w, v, None if series is None else series[:3])
@@ -389,13 +392,13 @@ def _reduced_residual(chart, w, m, C, with_jacobian: bool):
                 tuple(y[i] - beta * wy[i] + gamma * (w[i] * oy - t * y[i]) for i in range(3))
             )
     Q = tuple(tuple(columns[j][i] for j in range(3)) for i in range(3))
-    _, _, A21, A22inv = C
-    V = _matmul(A22inv, tuple(tuple(Q[i][j] - A21[i][j] for j in range(3)) for i in range(3)))
-    KA12 = _matmul(K, A12)
-    G = tuple(tuple(KA12[i][j] + E_wv[i][j] for j in range(3)) for i in range(3))
-    KA11, GV, LQ = _matmul(K, A11), _matmul(G, V), _matmul(L, Q)
+    # K A₁₁ + K A₁₂V = K(S + ZQ), V = A₂₂⁻¹Q − T.
+    ZQ, A22Q = _matmul(Z, Q), _matmul(A22inv, Q)
+    U = tuple(tuple(S[i][j] + ZQ[i][j] for j in range(3)) for i in range(3))
+    V = tuple(tuple(A22Q[i][j] - T[i][j] for j in range(3)) for i in range(3))
+    KU, EV, LQ = _matmul(K, U), _matmul(E_wv, V), _matmul(L, Q)
     J = tuple(
-        tuple(KA11[i][j] + GV[i][j] + E_ww[i][j] + LQ[i][j] for j in range(3)) for i in range(3)
+        tuple(KU[i][j] + EV[i][j] + E_ww[i][j] + LQ[i][j] for j in range(3)) for i in range(3)
     )
     return rho, J, (q, v)
 
@@ -404,12 +407,12 @@ def _reduced_cayley(w, m, C, q, v, a, with_jacobian, one):
     """`_reduced_residual` for the Cayley chart, where `L q = v × K′q/2 = v × P/2`:
 
         ρ = K a + v × P/2 − Π,
-        dρ/dω = −â/2 + (ω·a)/4 + ωaᵀ/4 + K A₁₁ + (K A₁₂ − P̂/2) V,
-        V = A₂₂⁻¹(Q − A₂₁),   Q = dq/dω = K′⁻¹ q̂/2
+        dρ/dω = −â/2 + (ω·a)/4 + ωaᵀ/4 + K(S + ZQ) − P̂V/2,
+        V = dv/dω = A₂₂⁻¹Q − T,   Q = dq/dω = K′⁻¹ q̂/2
 
     (`K′q = P` ⇒ `dK′ q + K′ dq = 0`, `dK′ q = dω × q/2`).
     """
-    A11, A12, A21, A22inv = C
+    S, Z, A22inv, T = C
     Pi, P = m[:3], m[3:]
     wa, oa = _cross(w, a), _dot(w, a)
     vP = _cross(v, P)
@@ -424,26 +427,29 @@ def _reduced_cayley(w, m, C, q, v, a, with_jacobian, one):
         for i in range(3)
     )
     qh = ((0, -q[2], q[1]), (q[2], 0, -q[0]), (-q[1], q[0], 0))
-    # (Q − A₂₁) with Q = K′⁻¹ q̂/2; q̂ has a zero diagonal.
-    Qm = tuple(
-        tuple(
-            sum(Kpi[i][k] * qh[k][j] for k in range(3) if k != j) / 2 - A21[i][j] for j in range(3)
-        )
+    # Q = K′⁻¹ q̂/2 (q̂ has a zero diagonal).
+    Q = tuple(
+        tuple(sum(Kpi[i][k] * qh[k][j] for k in range(3) if k != j) / 2 for j in range(3))
         for i in range(3)
     )
-    V = _matmul(A22inv, Qm)
+    # K A₁₁ + K A₁₂V = K(S + ZQ); −P̂V/2 with V = A₂₂⁻¹Q − T.
+    ZQ, A22Q = _matmul(Z, Q), _matmul(A22inv, Q)
+    U = tuple(tuple(S[i][j] + ZQ[i][j] for j in range(3)) for i in range(3))
+    V = tuple(tuple(A22Q[i][j] - T[i][j] for j in range(3)) for i in range(3))
     K = tuple(
         tuple((1 if i == j else 0) + W[i][j] / 2 + w[i] * w[j] / 4 for j in range(3))
         for i in range(3)
     )
+    KU = _matmul(K, U)
     Ph = ((0, -P[2], P[1]), (P[2], 0, -P[0]), (-P[1], P[0], 0))
-    KA12 = _matmul(K, A12)
-    H = tuple(tuple(KA12[i][j] - Ph[i][j] / 2 for j in range(3)) for i in range(3))
-    KA11, HV = _matmul(K, A11), _matmul(H, V)
     Ah = ((0, -a[2], a[1]), (a[2], 0, -a[0]), (-a[1], a[0], 0))
     J = tuple(
         tuple(
-            KA11[i][j] + HV[i][j] - Ah[i][j] / 2 + w[i] * a[j] / 4 + (oa / 4 if i == j else 0)
+            KU[i][j]
+            - sum(Ph[i][k] * V[k][j] for k in range(3) if k != i) / 2
+            - Ah[i][j] / 2
+            + w[i] * a[j] / 4
+            + (oa / 4 if i == j else 0)
             for j in range(3)
         )
         for i in range(3)
@@ -636,10 +642,16 @@ class SE3NewtonKernel(AbstractBatchKernel):
     def prepare(self, constants, h):
         M, Minv = constants
         A = tuple(tuple(e / h for e in row) for row in M)
-        # The blocks the reduced Newton iteration reads (`_reduced_residual`), with
-        # A₂₂⁻¹ = h M₂₂⁻¹ (Cramer; not differentiated: Newton only).
-        A22inv = _inverse3(jax.lax.stop_gradient(_block(A, 1, 1)))
-        C = (_block(A, 0, 0), _block(A, 0, 1), _block(A, 1, 0), A22inv)
+        # What the reduced Newton iteration reads (`_reduced_residual`): the Schur
+        # complement S = A₁₁ − A₁₂A₂₂⁻¹A₂₁, Z = A₁₂A₂₂⁻¹, A₂₂⁻¹ (Cramer), T = A₂₂⁻¹A₂₁.
+        # Not differentiated (Newton only; the root's derivative is `_at_root`'s).
+        blocks = jax.lax.stop_gradient(A)
+        A11, A12, A21 = _block(blocks, 0, 0), _block(blocks, 0, 1), _block(blocks, 1, 0)
+        A22inv = _inverse3(_block(blocks, 1, 1))
+        Z, T = _matmul(A12, A22inv), _matmul(A22inv, A21)
+        ZA21 = _matmul(Z, A21)
+        S = tuple(tuple(A11[i][j] - ZA21[i][j] for j in range(3)) for i in range(3))
+        C = (S, Z, A22inv, T)
         return A, tuple(tuple(h * e for e in row) for row in Minv), C
 
     def step(self, params, g, m, alive):
