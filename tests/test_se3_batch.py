@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import lievi
-from helpers import ROUNDOFF
+from helpers import ROUNDOFF, ROUNDOFF_F32
 from lievi._batch import _fast_se3
 
 SE3 = lievi.SE3
@@ -60,6 +60,27 @@ def test_fast_equals_generic(chart, kind):
     assert np.all(fast.stats["residual"] <= bound[:, None])
     # The fast path's last row stays exactly (0, 0, 0, 1).
     np.testing.assert_array_equal(fast.g[:, :, 3], np.broadcast_to([0, 0, 0, 1.0], (BATCH, 5, 4)))
+
+
+def test_float32():
+    """float32 in, float32 out: the fast path matches the generic float32 run and the
+    float64 one to float32 round-off."""
+    bodies, g0, m0, _ = random_batch(np.random.default_rng(6), BATCH)
+    body = lievi.RigidBodySE3(tensor=bodies.tensor[0].astype(jnp.float32))
+    g32, m32 = g0.astype(jnp.float32), m0.astype(jnp.float32)
+    dep = lievi.DEP(chart="cayley")
+    kwargs = dict(n_steps=STEPS, save_every=SAVE_EVERY)
+    fast = lievi.simulate_batch(body, dep, g32, m32, h=jnp.float32(0.05), **kwargs)
+    generic = lievi.simulate_batch(body, dep, g32, m32, h=jnp.float32(0.05), fast=False, **kwargs)
+    body64 = lievi.RigidBodySE3(tensor=body.tensor.astype(jnp.float64))
+    exact = lievi.simulate_batch(
+        body64, dep, g32.astype(float), m32.astype(float), h=0.05, **kwargs
+    )
+    assert fast.m.dtype == jnp.float32 and fast.g.dtype == jnp.float32
+    np.testing.assert_array_equal(fast.result, 0)
+    np.testing.assert_allclose(fast.m, generic.m, rtol=0, atol=ROUNDOFF_F32)
+    np.testing.assert_allclose(fast.m, exact.m, rtol=0, atol=ROUNDOFF_F32)
+    np.testing.assert_allclose(fast.g, exact.g, rtol=0, atol=ROUNDOFF_F32)
 
 
 def test_shared_system_one_fixed_iteration_then_tail():
