@@ -16,8 +16,11 @@ compile time apart) on
   `dexp` from the exponential of a 12×12 block matrix, `dexpinv` by a linear solve): what
   a hand-written subclass gets.
 
-and reports steps per second for one body and for a vmapped batch, and the ratios
-SE(3)/SO(3) of the time per step (and to "SO(3) tensor"). Writes
+and reports the time per step for one body (`simulate`), for a vmapped batch
+(`jax.vmap(simulate)`), and for the same batch through `lievi.simulate_batch` where the
+pair has a structure-of-arrays fast path (`lievi.has_fast_path`: DEP on "SO(3)", and on
+"SE(3)" and "SE(3) block-diagonal" through `lievi/_batch/_fast_se3.py`), with the ratios
+SE(3)/SO(3) of each (and to "SO(3) tensor"). Writes
 `benchmarks/results/se3_step_cost.json`, with the load average at the start.
 
     python benchmarks/se3_step_cost.py [--batch 256] [--steps 2000]
@@ -112,6 +115,7 @@ def problems():
 def measure(body, g0, d, integrator, batch, steps, repeats=3):
     rng = np.random.default_rng(1)
     momenta = jnp.asarray(rng.normal(size=(batch, d)))
+    poses = jnp.broadcast_to(g0, (batch,) + g0.shape)
 
     def final(m0):
         sol = lievi.simulate(
@@ -119,13 +123,24 @@ def measure(body, g0, d, integrator, batch, steps, repeats=3):
         )
         return sol.m[-1]
 
+    def final_batch(m0):
+        sol = lievi.simulate_batch(
+            body, integrator, poses, m0, h=0.05, n_steps=steps, save=("m",), throw=False
+        )
+        return sol.m[:, -1]
+
     compile_single, run_single = timed(jax.jit(final), momenta[0], repeats=repeats)
     _, run_batch = timed(jax.jit(jax.vmap(final)), momenta, repeats=repeats)
-    return {
+    result = {
         "compile_s": compile_single,
         "single_us_per_step": 1e6 * run_single / steps,
         "batched_us_per_body_step": 1e6 * run_batch / (batch * steps),
+        "simulate_batch_us_per_body_step": None,
     }
+    if lievi.has_fast_path(body, integrator):
+        _, run_fast = timed(jax.jit(final_batch), momenta, repeats=repeats)
+        result["simulate_batch_us_per_body_step"] = 1e6 * run_fast / (batch * steps)
+    return result
 
 
 def main():
@@ -155,22 +170,35 @@ def main():
         f"load average at start {load:.1f}"
     )
     print(
-        f"{'integrator / group':<30}{'compile [s]':>12}{'1 body [µs/step]':>18}{'batch [µs/body-step]':>22}"
-        f"{'ratio to SO(3) 1 / batch':>26}"
+        f"{'integrator / group':<30}{'compile [s]':>12}{'1 body [µs/step]':>18}"
+        f"{'vmap [µs/body-step]':>21}{'simulate_batch':>16}"
+        f"{'ratio to SO(3): 1 / vmap / simulate_batch':>44}"
     )
     for name, r in results.items():
         base = results[name.split(" / ")[0] + " / SO(3)"]
         r["ratio_single_to_so3"] = r["single_us_per_step"] / base["single_us_per_step"]
         r["ratio_batched_to_so3"] = r["batched_us_per_body_step"] / base["batched_us_per_body_step"]
+        fast, fast_base = (
+            r["simulate_batch_us_per_body_step"],
+            base["simulate_batch_us_per_body_step"],
+        )
+        # simulate_batch against SO(3)'s simulate_batch, and against its vmap (the same
+        # structure-of-arrays step, one body at a time under `vmap`).
+        r["ratio_simulate_batch_to_so3"] = None if fast is None else fast / fast_base
+        r["ratio_simulate_batch_to_so3_vmap"] = (
+            None if fast is None else fast / base["batched_us_per_body_step"]
+        )
         tensor = results[name.split(" / ")[0] + " / SO(3) tensor"]
         r["ratio_single_to_so3_tensor"] = r["single_us_per_step"] / tensor["single_us_per_step"]
         r["ratio_batched_to_so3_tensor"] = (
             r["batched_us_per_body_step"] / tensor["batched_us_per_body_step"]
         )
+        fast_text = "—" if fast is None else f"{fast:.3g}"
+        ratio_text = "—" if fast is None else f"{r['ratio_simulate_batch_to_so3']:.2f}"
         print(
             f"{name:<30}{r['compile_s']:>12.2f}{r['single_us_per_step']:>18.3g}"
-            f"{r['batched_us_per_body_step']:>22.3g}"
-            f"{r['ratio_single_to_so3']:>14.2f} / {r['ratio_batched_to_so3']:.2f}"
+            f"{r['batched_us_per_body_step']:>21.3g}{fast_text:>16}"
+            f"{r['ratio_single_to_so3']:>20.2f} / {r['ratio_batched_to_so3']:.2f} / {ratio_text}"
         )
     out = pathlib.Path(__file__).parent / "results" / "se3_step_cost.json"
     out.parent.mkdir(exist_ok=True)

@@ -458,3 +458,12 @@ class NewtonKernel(AbstractBatchKernel):
 
     def with_fixed_iterations(self, fixed_iterations: int):
         return dataclasses.replace(self, fixed_iterations=fixed_iterations)
+
+    def on_se3(self):
+        if self.chart == "moser-veselov":
+            return None
+        from ._fast_se3 import SE3NewtonKernel
+
+        return SE3NewtonKernel(
+            self.chart, self.rtol, self.atol, self.max_steps, self.fixed_iterations
+        )

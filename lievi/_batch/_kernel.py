@@ -42,24 +42,58 @@ def materialise(values, one):
 
 
 class AbstractBatchKernel(eqx.Module):
-    """One step of a method on a batch of rigid bodies with principal moments, as
-    structure of arrays."""
+    """One step of a method on a batch of bodies, as structure of arrays.
+
+    The kernel owns its state layout: `constants` splits the system's per-body constants,
+    `carried` the initial elements, `elements` joins the saved entries back into group
+    elements; the momentum is one array per component. The defaults are those of a rigid
+    body on SO(3) with principal moments (3 moments, `g` as 9 entries, `Π` as 3).
+    """
 
     @abc.abstractmethod
     def prepare(self, inertia, h):
-        """Per-run constants from the principal moments `inertia` (3 arrays or scalars) and
-        the step `h` (an array `(B,)` or a scalar), computed once outside the loop."""
+        """Per-run constants from the system's constants `inertia` (what `constants`
+        returned: by default the 3 principal moments, arrays or scalars) and the step `h`
+        (an array `(B,)` or a scalar), computed once outside the loop."""
 
     @abc.abstractmethod
     def step(self, params, g, Pi, alive):
-        """Advance `(g, Π)` by one step.
+        """Advance `(g, m)` by one step.
 
-        `params`: what `prepare` returned; `g`: 9 arrays; `Π`: 3 arrays; `alive`: a boolean
-        `(B,)` mask of the bodies that have not failed (a failed body's step is computed but
-        must not cost extra work, e.g. Newton iterations past the fixed ones).
+        `params`: what `prepare` returned; `g`: the carried entries (`carried`); `Pi`: the
+        momentum's components (3 on SO(3)); `alive`: a boolean `(B,)` mask of the bodies
+        that have not failed (a failed body's step is computed but must not cost extra
+        work, e.g. Newton iterations past the fixed ones).
 
-        **Returns:** `(g_next, Π_next, result, iterations, residual)`, the last three per body.
+        **Returns:** `(g_next, m_next, result, iterations, residual)`, the last three per body.
         """
+
+    def constants(self, moments, batch: int):
+        """The system's per-body constants as structure of arrays, from what the system
+        handed `simulate_batch` (`AbstractLieSystem.batch_kernel`): by default the
+        principal moments `(3,)` or `(B, 3)`, as 3 arrays `(B,)`."""
+        return tuple(jnp.broadcast_to(moments[..., i], (batch,)) for i in range(3))
+
+    def turn_rates(self, constants, h):
+        """Per-run constants of `turn_squared` (computed once, outside the loop): by
+        default `|h|/I_p`."""
+        return tuple(jnp.abs(h) / constants[i] for i in range(3))
+
+    def turn_squared(self, rates, m):
+        """`(h|ω|)²`, the squared angle turned in one step at momentum `m` (components),
+        for the step bound `h|ω| ≤ integrator.step_bound()`: by default `|h I⁻¹Π|²`. A
+        square and products only: no division or square root per body-step."""
+        return sum((m[i] * rates[i]) ** 2 for i in range(3))
+
+    def elements(self, entries):
+        """Saved carried entries `(T, k, B)` back to group elements `(B, T, n, n)`: by
+        default the 9 entries of a rotation, row-major."""
+        return jnp.moveaxis(entries, -1, 0).reshape(entries.shape[-1], entries.shape[0], 3, 3)
+
+    def on_se3(self):
+        """This method's kernel for the free rigid body on SE(3) (`RigidBodySE3` without a
+        potential), or `None` where it has none (the default)."""
+        return None
 
     def with_fixed_iterations(self, fixed_iterations: int):
         """The kernel with this many Newton iterations before its convergence check

@@ -1,10 +1,13 @@
-"""`simulate_batch`: many bodies at once, with a fast path for the rigid body on SO(3).
+"""`simulate_batch`: many bodies at once, with fast paths for rigid bodies.
 
 Semantics are those of `jax.vmap(simulate)` over the bodies (the generic path is exactly
 that); for `RigidBody` with principal moments and the integrators that have one (`DEP`,
 `MoserVeselov`: `_fast_so3.py`; `LiePoissonSplitting`, `RK4`: `_fast_explicit.py`), a
 structure-of-arrays fast path computes the same iterates to round-off, 10–50× faster on
-CPU (`benchmarks/throughput.py`). Everything runs inside one jit-compiled `lax.scan`: no host
+CPU (`benchmarks/throughput.py`); for the free `RigidBodySE3` with `DEP` (both charts),
+`_fast_se3.py` (`benchmarks/se3_step_cost.py`). The system picks the kernel
+(`AbstractLieSystem.batch_kernel`) and the kernel owns its state layout
+(`AbstractBatchKernel`); nothing here depends on the group. Everything runs inside one jit-compiled `lax.scan`: no host
 synchronisation per step. For a potential with an advected parameter (`UniformGravity`:
 `Γ = gᵀe₃`) and a run that does not save `g`, the fast path carries the reduced state
 `(Π, Γ)` of the paper's §7 instead of `(Π, g)` (`AbstractBatchKernel.reduced`).
@@ -35,22 +38,26 @@ OPTIONAL_SAVE_FIELDS = ("advected",)
 
 
 def _fast_kernel(system, integrator, system_axis, fixed_iterations=None, carry_g=True):
-    """`(kernel, principal moments)` of the fast path for this pair, or None if it has none.
+    """`(kernel, constants)` of the fast path for this pair, or None if it has none.
 
     The integrator owns its structure-of-arrays step (`batch_kernel`), the system says
-    whether it is a rigid body with principal moments (`principal_moments`). With
-    `carry_g=False` (the caller does not save `g`) the kernel's reduced form is taken
-    where it has one (`AbstractBatchKernel.reduced`: `(Π, Γ)` in place of `(Π, g)`).
+    whether and how it applies (`AbstractLieSystem.batch_kernel`: e.g. a rigid body with
+    principal moments hands over its moments, `RigidBodySE3` the SE(3) form of the kernel
+    and its tensor). With `carry_g=False` (the caller does not save `g`) the kernel's
+    reduced form is taken where it has one (`AbstractBatchKernel.reduced`: `(Π, Γ)` in
+    place of `(Π, g)`).
     """
-    kernel = integrator.batch_kernel(system.potential)
-    moments = system.principal_moments(batched=system_axis is not None)
-    if kernel is None or moments is None:
+    adapted = system.batch_kernel(
+        integrator.batch_kernel(system.potential), batched=system_axis is not None
+    )
+    if adapted is None:
         return None
+    kernel, constants = adapted
     if not carry_g:
         kernel = kernel.reduced() or kernel
     if fixed_iterations is not None:
         kernel = kernel.with_fixed_iterations(fixed_iterations)
-    return kernel, moments
+    return kernel, constants
 
 
 def has_fast_path(
@@ -116,7 +123,8 @@ def simulate_batch(
     - `fast`: use the structure-of-arrays fast path when there is one (the integrator's
       `batch_kernel`, for a system with `principal_moments`: today the rigid body with
       principal moments of inertia and `DEP` (both charts), `MoserVeselov`,
-      `LiePoissonSplitting` or `RK4`; in `UniformGravity` (the heavy top) the first three). Its iterates equal the generic path's to
+      `LiePoissonSplitting` or `RK4`; in `UniformGravity` (the heavy top) the first three;
+      `RigidBodySE3` without a potential, any kinetic tensor, and `DEP`, both charts). Its iterates equal the generic path's to
       round-off, and so do its derivatives: reverse mode (`jax.grad`, `jax.vjp`) goes
       through the fast path, implicit steps by the implicit function theorem at each
       step's converged root with the closed-form 3×3 Jacobian (the Newton iterations are
@@ -124,7 +132,8 @@ def simulate_batch(
     - `fixed_iterations`: (fast path) Newton iterations every body takes before the one
       convergence check; bodies still above tolerance then continue, alone, up to the
       integrator's `max_steps`. Default: 3 (exp chart) or 4 (Cayley chart;
-      Moser–Veselov, whose fixed iterations are scalar ones, see `_fast_so3.py`). With
+      Moser–Veselov, whose fixed iterations are scalar ones, see `_fast_so3.py`); on
+      SE(3) 3 for both charts (Newton in the rotation part, `_fast_se3.py`). With
       `max_steps` equal to it (e.g. `DEP(max_steps=3)`) there is no data-dependent loop
       at all; bodies not converged then are reported as failed.
     - `unroll`: (fast path) steps per iteration of the compiled loop (`lax.scan`'s
@@ -221,15 +230,15 @@ def simulate_batch(
                 "`jax.vmap(lievi.RigidBody)(inertias)`."
             )
     if is_concrete(g0):
+        # The group's own test (`check_element`'s), per body: on SE(3) a pose is not an
+        # orthogonal matrix.
         with jax.ensure_compile_time_eval():
-            g = np.asarray(g0, dtype=float)
-            defect = np.abs(np.swapaxes(g, -1, -2) @ g - np.eye(n)).max(axis=(-2, -1))
-            defect = defect + np.abs(np.linalg.det(g) - 1)
+            defect = np.asarray(system.group.membership_defect(jnp.asarray(g0, float)))
         worst = int(np.argmax(defect))
         if defect[worst] > 1e-6:
             raise ValueError(
-                f"`g0[{worst}]` is not in the group: membership defect {defect[worst]:.3g} > 1e-6. "
-                "Pass rotation matrices, e.g. orthonormalise with a QR or polar decomposition."
+                f"`g0[{worst}]` is not in the group: membership defect {defect[worst]:.3g} > 1e-6 "
+                f"({system.group.membership_hint()})."
             )
 
     forcing = as_forcing(forcing)
@@ -252,7 +261,7 @@ def simulate_batch(
         else None
     )
     if fast_kernel is not None:
-        kernel, moments = fast_kernel
+        kernel, constants = fast_kernel
         # The traced input checks of `simulate`, per body (the generic path runs them
         # inside `simulate`): a bad body starts with `RESULTS.invalid_input`.
         valid = jax.vmap(input_valid, in_axes=(system_axis, 0, 0, None if h.ndim == 0 else 0))(
@@ -260,7 +269,7 @@ def simulate_batch(
         )
         solution = _simulate_fast(
             kernel,
-            moments,
+            constants,
             integrator.step_bound(),
             g0,
             m0,
@@ -387,21 +396,23 @@ def _scan(body, carry, length: int, segment: int | None, unroll: int = 1):
 
 @eqx.filter_jit
 def _simulate_fast(
-    kernel, moments, step_bound, g0, m0, h, n_steps, save_every, save, unroll, segment, valid=True
+    kernel, constants, step_bound, g0, m0, h, n_steps, save_every, save, unroll, segment, valid=True
 ):
     batch, dtype = g0.shape[0], m0.dtype
-    moments = jnp.asarray(moments, dtype)
-    # Structure of arrays: component-major, batch minor.
-    params = kernel.prepare(tuple(jnp.broadcast_to(moments[..., i], (batch,)) for i in range(3)), h)
-    # All of `g` (9 arrays), or the advected parameter alone on the reduced path (3).
+    constants = jax.tree.map(lambda x: jnp.asarray(x, dtype), constants)
+    # Structure of arrays: component-major, batch minor; the kernel owns the layout.
+    constants = kernel.constants(constants, batch)
+    params = kernel.prepare(constants, h)
+    # The kernel's carried entries of `g` (on SO(3) all 9, or the advected parameter
+    # alone on the reduced path).
     g = kernel.carried(g0)
-    Pi = tuple(m0[:, i] for i in range(3))
+    Pi = tuple(m0[:, i] for i in range(m0.shape[1]))
     nan = jnp.asarray(jnp.nan, dtype)
     int32 = jnp.int32
-    moments_soa = tuple(jnp.broadcast_to(moments[..., i], (batch,)) for i in range(3))
-    # |h|/I_p once, outside the loop: the per-step check below then needs no division and
-    # no square root (both run at a fraction of the rate of a product on CPU).
-    turn_rates = tuple(jnp.abs(h) / moment for moment in moments_soa)
+    # Per-run constants of the step-size check, once outside the loop: the per-step check
+    # then needs no division and no square root (both run at a fraction of the rate of a
+    # product on CPU).
+    turn_rates = kernel.turn_rates(constants, h)
 
     def _checked_step_result(g_next, Pi_next, Pi, step_result):
         """As `lievi._simulate.checked_step_result`: a non-finite `g` or `Π` is `nonfinite`,
@@ -411,9 +422,8 @@ def _simulate_fast(
             finite = finite & jnp.isfinite(x)
         ok = step_result == RESULTS.successful
         step_result = jnp.where(ok & ~finite, RESULTS.nonfinite, step_result)
-        # (h·|I⁻¹Π|)² > bound², as h·|I⁻¹Π| > bound but for rounding at the bound.
-        turn2 = sum((Pi[i] * turn_rates[i]) ** 2 for i in range(3))
-        too_large = turn2 > step_bound * step_bound
+        # (h|ω|)² > bound², as h|ω| > bound but for rounding at the bound.
+        too_large = kernel.turn_squared(turn_rates, Pi) > step_bound * step_bound
         return jnp.where(too_large, RESULTS.step_too_large, step_result).astype(int32)
 
     # Reverse mode keeps each step's input state and root (the solve is not repeated);
@@ -498,9 +508,8 @@ def _simulate_fast(
         stats["residual"] = out["residual"].T
     gs = ms = None
     if "g" in save:
-        # (T−1, 9, B) → (B, T, 3, 3), initial state first.
-        gs = jnp.moveaxis(out["g"], -1, 0).reshape(batch, n_saves, 3, 3)
-        gs = jnp.concatenate([g0[:, None], gs], axis=1)
+        # (T−1, k, B) → (B, T, n, n), initial state first.
+        gs = jnp.concatenate([g0[:, None], kernel.elements(out["g"])], axis=1)
     if "m" in save:
         ms = jnp.concatenate([m0[:, None], jnp.moveaxis(out["m"], -1, 0)], axis=1)
     advected = None

@@ -114,6 +114,16 @@ class AbstractLieSystem(eqx.Module):
         steps apply (`AbstractIntegrator.batch_kernel`), else `None`."""
         return None
 
+    def batch_kernel(self, kernel, batched: bool = False):
+        """`(kernel, constants)` for `simulate_batch`'s structure-of-arrays path, from an
+        integrator's `batch_kernel` (`None` where it has none), or `None` where no kernel
+        applies to this system. `constants` is what the kernel's `constants` splits (by
+        default the principal moments: a rigid body on SO(3), `principal_moments`)."""
+        moments = self.principal_moments(batched=batched)
+        if kernel is None or moments is None:
+            return None
+        return kernel, moments
+
     def closed_form_residual(self, equation: str, m, h):
         """`x ↦ (r(x), ∂r/∂x)` for the implicit step equation `equation` (`"exp"`, `"cayley"`:
         `DEP`'s chart; `"moser-veselov"`), written out by hand, or `None` (the integrator

@@ -150,6 +150,15 @@ class RigidBodySE3(AbstractLieSystem):
                     f"velocity); got eigenvalues {eigenvalues}."
                 )
 
+    def batch_kernel(self, kernel, batched: bool = False):
+        # The free body's structure-of-arrays DEP step (`lievi/_batch/_fast_se3.py`), on
+        # any SPD tensor; with a potential, `simulate_batch` takes the generic path (which
+        # runs `kernel_step` below under `vmap`). Only on `lievi.SE3` itself.
+        if kernel is None or self.potential is not None or not isinstance(self.group, SE3Group):
+            return None
+        se3 = kernel.on_se3()
+        return None if se3 is None else (se3, self.tensor)
+
     def kernel_step(self, kernel, g, m, h):
         # DEP (either chart) in closed form (`_se3_dep.py`, `_se3_newton.py`): the residual,
         # its Jacobian, the 6×6 solve, F, Ad_Fᵀ m and g F written out, so XLA fuses the

@@ -1,0 +1,688 @@
+"""A fast batched DEP step for the free rigid body on SE(3) (paper (4.8), (3.3), (2.9)).
+
+The SE(3) counterpart of `_fast_so3.py`, for `RigidBodySE3` with any symmetric positive
+definite 6×6 kinetic tensor `M` (Kirchhoff's body in a fluid, or `diag(J, m1)` in vacuum)
+and no potential, written for throughput over many bodies:
+
+- **structure of arrays**: the pose's top 3×4 block `[R | p]` is 12 arrays, the momentum
+  `m = (Π, P)` 6, the tensor 36, each of shape `(B,)` with the batch minor, so that XLA
+  emits long elementwise loops that it vectorises;
+- **Newton in the rotation part**: the DEP equation `dφ⁻¹(ξ)ᵀ Mξ/h = m` (4.8) splits as
+  `r_ω = K a + L b − Π`, `r_v = K′b − P` with `(a, b) = Mξ/h` (`_se3_dep.py`), and `r_v`
+  is linear in `b`: for a given `ω`, `b = K′(ω)⁻¹P` in closed form and
+  `v = A₂₂⁻¹(b − A₂₁ω)` (`A = M/h`). Newton runs on `ρ(ω) = r_ω(ω, v(ω))` with its 3×3
+  Jacobian — the Schur complement of the 6×6 one (`_reduced_residual`), solved by
+  Cramer's rule — instead of on the 6×6 system: a 3×3 solve and fewer operations per
+  iteration, and the root is the same (the generic path's, from the same explicit-Euler
+  guess `h M⁻¹m`). The convergence check is on the full six-component residual, so a
+  body reported converged satisfies the same test as on the generic path;
+- **a Newton policy for batches**: a fixed number of iterations, one residual check, and
+  a `while_loop` only for the bodies still above tolerance, up to `max_steps`; a body that
+  does not converge gets `RESULTS.newton_not_converged`;
+- **implicit differentiation**: the converged root `ξ` passes through `_at_root`, whose
+  derivative is the implicit function theorem's `dξ = −J⁻¹(∂r/∂m dm + ∂r/∂A dA)` with the
+  closed-form 6×6 Jacobian (`residual`) and a block solve with 3×3 Cramer inverses; the
+  Newton iterations are not differentiated.
+
+Then `F = φ(ξ)`, `m_{k+1} = Ad_Fᵀ m_k` (DLP (3.3)) and `g_{k+1} = g_k F` (2.9), the
+rotation block re-orthonormalised by one Newton–Schulz step as `lievi.SE3.compose` does.
+The tests compare the iterates and the gradients (with respect to `M`, `m_0`, `g_0`, `h`)
+with the generic path, and the Jacobians with `jax.jacfwd`.
+
+XLA on CPU fuses a cheap shared subexpression into each of its consumers, so some
+intermediate values are stored once (`materialise`); each stored value costs a kernel of
+its own, so only those whose recomputation costs more than that are (chosen by counting
+the operations in the compiled step and timing it, `benchmarks/se3_step_cost.py`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
+
+from .._integrators._newton import newton_tolerance
+from .._results import RESULTS
+from ._fast_so3 import _C, _P, _S, _cross, _dot, _horner, _solve3
+from ._kernel import ROOT_NAME, AbstractBatchKernel, materialise
+
+# (θ − sin θ)/θ³ = Σ (−1)ᵏ tᵏ/(2k + 3)!, t = θ²: 13 terms reach round-off at θ = π.
+_SINC3 = tuple((-1) ** k / math.factorial(2 * k + 3) for k in range(13))
+
+
+def _horner2(coefficients, u):
+    """`(p(u), p′(u), p″(u))`."""
+    value, first, second = (jnp.zeros_like(u) for _ in range(3))
+    for c in reversed(coefficients):
+        second = second * u + 2 * first
+        first = first * u + value
+        value = value * u + c
+    return value, first, second
+
+
+def _dexpinv_coefficients(t):
+    """`(c, c′, c″)` in `t = θ²`, `c = (1 − (θ/2)cot(θ/2))/θ² = P/(4S)` (`_fast_so3`'s
+    series in `u = t/4`)."""
+    S, S1, S2 = _horner2(_S, t / 4)
+    P, P1, P2 = _horner2(_P, t / 4)
+    N1 = P1 * S - P * S1
+    f1 = N1 / (4 * S * S)
+    f2 = ((P2 * S - P * S2) * S - 2 * S1 * N1) / (4 * S * S * S)
+    return P / (4 * S), f1 / 4, f2 / 16
+
+
+def _mv(X, y):
+    return tuple(X[i][0] * y[0] + X[i][1] * y[1] + X[i][2] * y[2] for i in range(3))
+
+
+def _exp_series(t):
+    """The exp chart's coefficients in `t = θ²`: `(c, c′, c″)` of `dexpinv`
+    (`_dexpinv_coefficients`) and `β = (1 − cos θ)/θ²`, `γ = (θ − sin θ)/θ³` of its inverse."""
+    c, c1, c2 = _dexpinv_coefficients(t)
+    S = _horner(_S, t / 4)
+    return c, c1, c2, S * S / 2, _horner(_SINC3, t)
+
+
+def _operator(chart, w, v, coefficients=None):
+    """The blocks `(K, L, K′)` of `dφ⁻¹(ξ)ᵀ = [[K, L], [0, K′]]` as 3×3 nested tuples, and
+    the exp chart's coefficients `(c, c′, c″)` (`None` for Cayley).
+
+    exp:    K = K′ = (1 − ct) + ω̂/2 + c ωωᵀ,
+            L = v̂/2 − (kt + 2cs) + k ωωᵀ + c(ωvᵀ + vωᵀ),  k = 2c′s;
+    Cayley: K′ = 1 + ω̂/2,  K = K′ + ωωᵀ/4,  L = v̂/2 + (ωvᵀ − s)/4
+    (`t = |ω|²`, `s = ω·v`; `_se3_dep.py`).
+    """
+    t, s = _dot(w, w), _dot(w, v)
+    if chart == "cayley":
+        diag_k, coef_ww, coefficients = 1.0, 0.25, None
+        diag_l, coef_l = -s / 4, 0.25
+    else:
+        coefficients = _dexpinv_coefficients(t) if coefficients is None else coefficients
+        c, c1, _ = coefficients
+        k = 2 * c1 * s
+        diag_k, coef_ww = 1 - c * t, c
+        diag_l = -(k * t + 2 * c * s)
+        coef_l = c
+    hw = ((None, -w[2], w[1]), (w[2], None, -w[0]), (-w[1], w[0], None))
+    hv = ((None, -v[2], v[1]), (v[2], None, -v[0]), (-v[1], v[0], None))
+    Kp, K, L = [], [], []
+    for i in range(3):
+        kp_row, k_row, l_row = [], [], []
+        for j in range(3):
+            if i == j:
+                kp = diag_k if chart == "exp" else 1.0
+                k = diag_k + coef_ww * w[i] * w[i]
+                if chart == "exp":
+                    l_entry = (
+                        diag_l + coefficients[1] * 2 * s * w[i] * w[i] + 2 * coef_l * w[i] * v[i]
+                    )
+                else:
+                    l_entry = diag_l + coef_l * w[i] * v[i]
+            else:
+                kp = hw[i][j] / 2
+                k = kp + coef_ww * w[i] * w[j]
+                if chart == "exp":
+                    l_entry = (
+                        hv[i][j] / 2
+                        + coefficients[1] * 2 * s * w[i] * w[j]
+                        + coef_l * (w[i] * v[j] + v[i] * w[j])
+                    )
+                else:
+                    l_entry = hv[i][j] / 2 + coef_l * w[i] * v[j]
+            kp_row.append(kp)
+            k_row.append(k)
+            l_row.append(l_entry)
+        Kp.append(tuple(kp_row))
+        K.append(tuple(k_row))
+        L.append(tuple(l_row))
+    K, L = tuple(K), tuple(L)
+    Kp = K if chart == "exp" else tuple(Kp)
+    return K, L, Kp, coefficients
+
+
+def _ones(x):
+    """An array of ones computed at run time (see `materialise`)."""
+    return x * 0 + 1
+
+
+def residual(chart, x, m, A, with_jacobian: bool):
+    """`r = dφ⁻¹(x)ᵀ A x − m` and, if asked, `∂r/∂x = dφ⁻¹(x)ᵀ A + E` (`_se3_dep.py`).
+
+    `x`, `m`: 6-tuples of arrays; `A = M/h`: 6×6 nested tuple. Returns `(r, J)`, `J` a 6×6
+    nested tuple (or `None`).
+    """
+    w, v = x[:3], x[3:]
+    mu = tuple(sum(A[i][j] * x[j] for j in range(6)) for i in range(6))
+    a, b = mu[:3], mu[3:]
+    K, L, Kp, coefficients = _operator(chart, w, v)
+    if with_jacobian:
+        # Every entry of J reads K, L, K′: stored once instead of recomputed in each
+        # consumer (`materialise`).
+        flat = materialise(
+            [e for X in (K, L) + ((Kp,) if chart == "cayley" else ()) for row in X for e in row],
+            _ones(x[0]),
+        )
+        K = tuple(tuple(flat[3 * i : 3 * i + 3]) for i in range(3))
+        L = tuple(tuple(flat[9 + 3 * i : 12 + 3 * i]) for i in range(3))
+        Kp = K if chart == "exp" else tuple(tuple(flat[18 + 3 * i : 21 + 3 * i]) for i in range(3))
+    Ka, Lb, Kpb = _mv(K, a), _mv(L, b), _mv(Kp, b)
+    r = tuple(Ka[i] + Lb[i] - m[i] for i in range(3)) + tuple(Kpb[i] - m[3 + i] for i in range(3))
+    if not with_jacobian:
+        return r, None
+
+    E_ww, E_wv, E_vw = _e_blocks(chart, w, v, a, b, Kpb, coefficients)
+    J = []
+    for i in range(3):
+        J.append(
+            tuple(
+                sum(K[i][k] * A[k][j] + L[i][k] * A[3 + k][j] for k in range(3))
+                + (E_ww[i][j] if j < 3 else E_wv[i][j - 3])
+                for j in range(6)
+            )
+        )
+    for i in range(3):
+        J.append(
+            tuple(
+                sum(Kp[i][k] * A[3 + k][j] for k in range(3)) + (E_vw[i][j] if j < 3 else 0)
+                for j in range(6)
+            )
+        )
+    return r, tuple(J)
+
+
+def _e_blocks(chart, w, v, a, b, Kpb, coefficients):
+    """`(E_ωω, E_ωv, E_vω)`: the blocks of `E = ∂(dφ⁻¹(ξ)ᵀμ)/∂ξ` at fixed `μ = (a, b)`
+    (`E_vv = 0`), `Kpb = K′b` (`_se3_dep._blocks`, `_se3_newton._jacobian`)."""
+    oa, ob, vb = _dot(w, a), _dot(w, b), _dot(v, b)
+    t, s = _dot(w, w), _dot(w, v)
+    if chart == "cayley":
+        # E_ωω = −â/2 + (ω·a + v·b)/4 + (ωaᵀ − bvᵀ)/4, E_ωv = −(K′b)^/2, E_vω = −b̂/2.
+        d = (oa + vb) / 4
+        E_ww = tuple(
+            tuple((d if i == j else 0) + (w[i] * a[j] - b[i] * v[j]) / 4 for j in range(3))
+            for i in range(3)
+        )
+        E_ww = _add_hat(E_ww, a, -0.5)
+        E_wv = _add_hat(((0,) * 3,) * 3, Kpb, -0.5)
+        E_vw = _add_hat(((0,) * 3,) * 3, b, -0.5)
+    else:
+        c, c1, c2 = coefficients
+        k = 2 * c1 * s
+        za = tuple(w[i] * oa - t * a[i] for i in range(3))
+        zb = tuple(w[i] * ob - t * b[i] for i in range(3))
+        lw = tuple(w[i] * vb + v[i] * ob - 2 * s * b[i] for i in range(3))
+        y = tuple(2 * c1 * zb[i] - 2 * c * b[i] for i in range(3))
+        u = tuple(
+            -2 * c * a[i] + 2 * c1 * (za[i] + lw[i]) + 4 * s * (c2 * zb[i] - c1 * b[i])
+            for i in range(3)
+        )
+        d_ww = c * (oa + vb) + k * ob
+        d_b = c * ob
+        ca_kb = tuple(c * a[j] + k * b[j] for j in range(3))
+        cb = tuple(c * b[j] for j in range(3))
+        E_ww = tuple(
+            tuple(
+                (d_ww if i == j else 0) + w[i] * ca_kb[j] + v[i] * cb[j] + u[i] * w[j] + y[i] * v[j]
+                for j in range(3)
+            )
+            for i in range(3)
+        )
+        E_ww = _add_hat(E_ww, a, -0.5)
+        D_b = tuple(
+            tuple((d_b if i == j else 0) + w[i] * cb[j] + y[i] * w[j] for j in range(3))
+            for i in range(3)
+        )
+        E_wv = E_vw = _add_hat(D_b, b, -0.5)
+    return E_ww, E_wv, E_vw
+
+
+def _add_hat(X, y, alpha):
+    """`X + α ŷ` (3×3 nested tuples), without adding the zero diagonal of `ŷ`."""
+    H = ((None, -y[2], y[1]), (y[2], None, -y[0]), (-y[1], y[0], None))
+    return tuple(
+        tuple(X[i][j] if H[i][j] is None else X[i][j] + alpha * H[i][j] for j in range(3))
+        for i in range(3)
+    )
+
+
+def _inverse3(M):
+    (a, b, c), (d, e, f), (g, h, i) = M
+    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
+    D, E, F = c * h - b * i, a * i - c * g, b * g - a * h
+    G, H, I = b * f - c * e, c * d - a * f, a * e - b * d
+    # A division: stored once, not recomputed by the nine entries that read it.
+    inv = 1 / (a * A + b * B + c * C)
+    return ((A * inv, D * inv, G * inv), (B * inv, E * inv, H * inv), (C * inv, F * inv, I * inv))
+
+
+def _factor(J):
+    """What `_solve` needs of `J = [[P, Q], [R, S]]`: `(P⁻¹, P⁻¹Q, R, (S − R P⁻¹Q)⁻¹)`,
+    block elimination with 3×3 Cramer inverses, materialised (each is read by several
+    consumers)."""
+    one = _ones(J[0][0])
+    P = tuple(J[i][:3] for i in range(3))
+    Q = tuple(J[i][3:] for i in range(3))
+    R = tuple(J[3 + i][:3] for i in range(3))
+    S = tuple(J[3 + i][3:] for i in range(3))
+    Pinv = _nested(materialise(_flat(_inverse3(P)), one))
+    PinvQ = tuple(
+        tuple(sum(Pinv[i][k] * Q[k][j] for k in range(3)) for j in range(3)) for i in range(3)
+    )
+    PinvQ = _nested(materialise(_flat(PinvQ), one))
+    schur = tuple(
+        tuple(S[i][j] - sum(R[i][k] * PinvQ[k][j] for k in range(3)) for j in range(3))
+        for i in range(3)
+    )
+    schur_inv = _nested(materialise(_flat(_inverse3(schur)), one))
+    return Pinv, PinvQ, R, schur_inv
+
+
+def _solve(factors, r):
+    """`J⁻¹ r` from `_factor(J)`: `x₂ = (S − R P⁻¹Q)⁻¹(r₂ − R P⁻¹r₁)`, `x₁ = P⁻¹r₁ − P⁻¹Q x₂`."""
+    Pinv, PinvQ, R, schur_inv = factors
+    y1 = _mv(Pinv, r[:3])
+    Ry1 = _mv(R, y1)
+    x2 = _mv(schur_inv, tuple(r[3 + i] - Ry1[i] for i in range(3)))
+    Qx2 = _mv(PinvQ, x2)
+    return tuple(y1[i] - Qx2[i] for i in range(3)) + x2
+
+
+def _flat(X):
+    return [e for row in X for e in row]
+
+
+def _nested(flat):
+    return tuple(tuple(flat[3 * i : 3 * i + 3]) for i in range(3))
+
+
+def _max_abs(r):
+    norm = jnp.abs(r[0])
+    for x in r[1:]:
+        norm = jnp.maximum(norm, jnp.abs(x))
+    return norm
+
+
+def _matmul(X, Y):
+    return tuple(
+        tuple(X[i][0] * Y[0][j] + X[i][1] * Y[1][j] + X[i][2] * Y[2][j] for j in range(3))
+        for i in range(3)
+    )
+
+
+def _block(A, i, j):
+    """The 3×3 block `(i, j)` of a 6×6 nested tuple."""
+    return tuple(tuple(A[3 * i + k][3 * j + l] for l in range(3)) for k in range(3))
+
+
+def _velocity_part(chart, w, m, C, series=None):
+    """`(q, v)` with `r_v(ω, v) = 0`: `q = b = K′(ω)⁻¹P`, `v = A₂₂⁻¹(q − A₂₁ω) = A₂₂⁻¹q − Tω`.
+
+    `K′⁻¹`: Cayley `(1 + ω̂/2)⁻¹ y = (y − ω×y/2 + ω(ω·y)/4)/(1 + t/4)`; exp
+    `(1 + ω̂/2 + c ω̂²)⁻¹ = 1 − β ω̂ + γ ω̂²`, `β = (1 − cos θ)/θ²`, `γ = (θ − sin θ)/θ³`
+    (the inverse of the SO(3) `dexpinv`, i.e. `dexp(−ω)`).
+    """
+    _, _, A22inv, T = C
+    P = m[3:]
+    t = _dot(w, w)
+    wP, oP = _cross(w, P), _dot(w, P)
+    if chart == "cayley":
+        scale = 1 / (1 + t / 4)
+        q = tuple((P[i] - wP[i] / 2 + w[i] * oP / 4) * scale for i in range(3))
+    else:
+        beta, gamma = (_exp_series(t) if series is None else series)[3:]
+        q = tuple(P[i] - beta * wP[i] + gamma * (w[i] * oP - t * P[i]) for i in range(3))
+    A22q, Tw = _mv(A22inv, q), _mv(T, w)
+    v = tuple(A22q[i] - Tw[i] for i in range(3))
+    return q, v
+
+
+def _reduced_residual(chart, w, m, C, with_jacobian: bool):
+    """The DEP equation with `v` eliminated: `ρ(ω) = r_ω(ω, v(ω))` where `v(ω)` solves
+    `r_v = K′(ω)(A₂₁ω + A₂₂v) − P = 0` exactly (`_velocity_part`), and, if asked, its 3×3
+    Jacobian, the Schur complement `J₁₁ − J₁₂J₂₂⁻¹J₂₁` of the 6×6 one (`residual`):
+
+        dρ/dω = K(S + ZQ) + E_ωv V + E_ωω + L Q,   Q = dq/dω = −K′⁻¹E_vω,
+        V = dv/dω = A₂₂⁻¹Q − T,
+
+    with the blocks `E` of `∂(dφ⁻¹(ξ)ᵀμ)/∂ξ` at fixed `μ = (a, q)` (`residual`) and the
+    per-run constants `S = A₁₁ − A₁₂A₂₂⁻¹A₂₁`, `Z = A₁₂A₂₂⁻¹`, `T = A₂₂⁻¹A₂₁` (`C`), so
+    that `K A₁₁ + K A₁₂V = K(S + ZQ)` and `a = A₁₁ω + A₁₂v = Sω + Zq`. Newton on `ρ` is
+    Newton on the 6×6 system with `v` re-solved after each step: the same root (the one
+    the generic path converges to from the explicit-Euler guess), a 3×3 solve.
+    Returns `(ρ, J, (q, v))`.
+    """
+    S, Z, A22inv, T = C
+    one = _ones(w[0])
+    series = None
+    if chart == "exp":
+        series = _exp_series(_dot(w, w))
+        if with_jacobian:
+            series = materialise(series, one)
+    q, v = _velocity_part(chart, w, m, C, series)
+    if with_jacobian:
+        q, v = materialise(q, one), materialise(v, one)
+    # a = A₁₁ω + A₁₂v = Sω + Zq.
+    Sw, Zq = _mv(S, w), _mv(Z, q)
+    a = tuple(Sw[i] + Zq[i] for i in range(3))
+    if chart == "cayley":
+        return _reduced_cayley(w, m, C, q, v, a, with_jacobian, one)
+    K, L, Kp, coefficients = _operator(chart, w, v, None if series is None else series[:3])
+    Ka, Lq = _mv(K, a), _mv(L, q)
+    rho = tuple(Ka[i] + Lq[i] - m[i] for i in range(3))
+    if not with_jacobian:
+        return rho, None, (q, v)
+    E_ww, E_wv, E_vw = _e_blocks(chart, w, v, a, q, m[3:], coefficients)
+    # Q = −K′⁻¹ E_vω, column by column (K′⁻¹ as `_velocity_part`).
+    t = _dot(w, w)
+    columns = []
+    for j in range(3):
+        y = tuple(-E_vw[i][j] for i in range(3))
+        wy, oy = _cross(w, y), _dot(w, y)
+        if chart == "cayley":
+            scale = 1 / (1 + t / 4)
+            columns.append(tuple((y[i] - wy[i] / 2 + w[i] * oy / 4) * scale for i in range(3)))
+        else:
+            beta, gamma = series[3:]
+            columns.append(
+                tuple(y[i] - beta * wy[i] + gamma * (w[i] * oy - t * y[i]) for i in range(3))
+            )
+    Q = tuple(tuple(columns[j][i] for j in range(3)) for i in range(3))
+    # K A₁₁ + K A₁₂V = K(S + ZQ), V = A₂₂⁻¹Q − T.
+    ZQ, A22Q = _matmul(Z, Q), _matmul(A22inv, Q)
+    U = tuple(tuple(S[i][j] + ZQ[i][j] for j in range(3)) for i in range(3))
+    V = tuple(tuple(A22Q[i][j] - T[i][j] for j in range(3)) for i in range(3))
+    KU, EV, LQ = _matmul(K, U), _matmul(E_wv, V), _matmul(L, Q)
+    J = tuple(
+        tuple(KU[i][j] + EV[i][j] + E_ww[i][j] + LQ[i][j] for j in range(3)) for i in range(3)
+    )
+    return rho, J, (q, v)
+
+
+def _reduced_cayley(w, m, C, q, v, a, with_jacobian, one):
+    """`_reduced_residual` for the Cayley chart, where `L q = v × K′q/2 = v × P/2`:
+
+        ρ = K a + v × P/2 − Π,
+        dρ/dω = −â/2 + (ω·a)/4 + ωaᵀ/4 + K(S + ZQ) − P̂V/2,
+        V = dv/dω = A₂₂⁻¹Q − T,   Q = dq/dω = K′⁻¹ q̂/2
+
+    (`K′q = P` ⇒ `dK′ q + K′ dq = 0`, `dK′ q = dω × q/2`).
+    """
+    S, Z, A22inv, T = C
+    Pi, P = m[:3], m[3:]
+    wa, oa = _cross(w, a), _dot(w, a)
+    vP = _cross(v, P)
+    rho = tuple(a[i] + wa[i] / 2 + w[i] * oa / 4 + vP[i] / 2 - Pi[i] for i in range(3))
+    if not with_jacobian:
+        return rho, None, (q, v)
+    t = _dot(w, w)
+    scale = 1 / (1 + t / 4)
+    W = ((0, -w[2], w[1]), (w[2], 0, -w[0]), (-w[1], w[0], 0))
+    Kpi = tuple(
+        tuple((((1 if i == j else 0) - W[i][j] / 2 + w[i] * w[j] / 4) * scale) for j in range(3))
+        for i in range(3)
+    )
+    qh = ((0, -q[2], q[1]), (q[2], 0, -q[0]), (-q[1], q[0], 0))
+    # Q = K′⁻¹ q̂/2 (q̂ has a zero diagonal).
+    Q = tuple(
+        tuple(sum(Kpi[i][k] * qh[k][j] for k in range(3) if k != j) / 2 for j in range(3))
+        for i in range(3)
+    )
+    # K A₁₁ + K A₁₂V = K(S + ZQ); −P̂V/2 with V = A₂₂⁻¹Q − T.
+    ZQ, A22Q = _matmul(Z, Q), _matmul(A22inv, Q)
+    U = tuple(tuple(S[i][j] + ZQ[i][j] for j in range(3)) for i in range(3))
+    V = tuple(tuple(A22Q[i][j] - T[i][j] for j in range(3)) for i in range(3))
+    K = tuple(
+        tuple((1 if i == j else 0) + W[i][j] / 2 + w[i] * w[j] / 4 for j in range(3))
+        for i in range(3)
+    )
+    KU = _matmul(K, U)
+    Ph = ((0, -P[2], P[1]), (P[2], 0, -P[0]), (-P[1], P[0], 0))
+    Ah = ((0, -a[2], a[1]), (a[2], 0, -a[0]), (-a[1], a[0], 0))
+    J = tuple(
+        tuple(
+            KU[i][j]
+            - sum(Ph[i][k] * V[k][j] for k in range(3) if k != i) / 2
+            - Ah[i][j] / 2
+            + w[i] * a[j] / 4
+            + (oa / 4 if i == j else 0)
+            for j in range(3)
+        )
+        for i in range(3)
+    )
+    return rho, J, (q, v)
+
+
+def _newton_step(chart, w, m, C):
+    rho, J, _ = _reduced_residual(chart, w, m, C, True)
+    delta = _solve3(J, rho)
+    return tuple(w[i] - delta[i] for i in range(3))
+
+
+def solve_increment(chart, m, A, C, guess, tolerance, fixed: int, max_steps: int, alive=True):
+    """Newton for the DEP equation on a batch, on `ω` with `v` eliminated
+    (`_reduced_residual`): `fixed` iterations from the rotation part of `guess`, one check
+    of the full residual `r(ω, v(ω))`, then (only if some body needs it) a `while_loop`
+    on the bodies above `tolerance` up to `max_steps`. Returns `(ξ, iterations, residual
+    ∞-norm, converged)` per body. Not differentiable (see `_at_root`)."""
+    fixed = min(fixed, max_steps)
+    w = guess[:3]
+    for _ in range(fixed):
+        w = _newton_step(chart, w, m, C)
+
+    def full(w):
+        _, v = _velocity_part(chart, w, m, C)
+        x = tuple(w) + tuple(v)
+        return x, _max_abs(residual(chart, x, m, A, False)[0])
+
+    x, norm = full(w)
+    iterations = jnp.full(norm.shape, fixed, jnp.int32)
+
+    def active(norm, iterations):
+        return alive & (norm > tolerance) & jnp.isfinite(norm) & (iterations < max_steps)
+
+    def cond(carry):
+        _, norm, iterations = carry
+        return jnp.any(active(norm, iterations))
+
+    def body(carry):
+        x, norm, iterations = carry
+        on = active(norm, iterations)
+        stepped, stepped_norm = full(_newton_step(chart, x[:3], m, C))
+        x = tuple(jnp.where(on, s, y) for s, y in zip(stepped, x))
+        norm = jnp.where(on, stepped_norm, norm)
+        return x, norm, iterations + on.astype(jnp.int32)
+
+    if max_steps > fixed:
+        unfinished = jnp.any(alive & ~(norm <= tolerance))
+        x, norm, iterations = jax.lax.cond(
+            unfinished,
+            lambda c: jax.lax.while_loop(cond, body, c),
+            lambda c: c,
+            (x, norm, iterations),
+        )
+    return x, iterations, norm, norm <= tolerance
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _at_root(chart, x, m, A):
+    """`x`, a root of `r(·; m, A)`, with the derivative of the root as a function of `(m, A)`."""
+    return x
+
+
+@_at_root.defjvp
+def _at_root_jvp(chart, primals, tangents):
+    # Implicit function theorem: J dx = −(∂r/∂m dm + ∂r/∂A dA), linear in the tangents, so
+    # JAX transposes it for reverse mode.
+    x, m, A = primals
+    _, dm, dA = tangents
+    _, dr = jax.jvp(lambda mm, AA: residual(chart, x, mm, AA, False)[0], (m, A), (dm, dA))
+    _, J = residual(chart, x, m, A, True)
+    # In reverse mode this is the transposed solve's result, read by every cotangent.
+    dr = materialise(dr, _ones(x[0]))
+    delta = _solve(_factor(J), dr)
+    return x, tuple(-d for d in delta)
+
+
+def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, alive=True):
+    """One DEP + DLP + reconstruction step on structure-of-arrays state.
+
+    `g`: 12 arrays, the rows of `[R | p]`; `m`: 6; `A = M/h`, `Ainv = h M⁻¹`: 6×6 nested
+    tuples of arrays or scalars. Returns `(g_next, m_next, result, iterations, residual)`;
+    reverse-mode differentiable in `g`, `m`, `A`.
+    """
+    stopped = jax.lax.stop_gradient((m, A, Ainv, C, tolerance))
+    sm, sA, sAinv, sC, stol = stopped
+    # The explicit-Euler guess `h M⁻¹ m` (`DEP.solve_increment`'s).
+    guess = tuple(sum(sAinv[i][j] * sm[j] for j in range(6)) for i in range(6))
+    x, iterations, norm, converged = solve_increment(
+        chart, sm, sA, sC, guess, stol, fixed, max_steps, alive
+    )
+    # A diverged solve continues from the finite guess: a masked failed step then
+    # contributes 0, not NaN, to a gradient.
+    finite = jnp.isfinite(x[0])
+    for y in x[1:]:
+        finite = finite & jnp.isfinite(y)
+    x = tuple(jnp.where(finite, y, y0) for y, y0 in zip(x, guess))
+    # Tagged before `_at_root`, whose derivative rule evaluates `J` at this input.
+    x = checkpoint_name(jax.lax.stop_gradient(x), ROOT_NAME)
+    x = _at_root(chart, x, m, A)
+    one = _ones(m[0])
+    # Stored once each (`materialise`): read by every entry of `F`, `m_{k+1}`, `g_{k+1}`.
+    x = materialise(x, one)
+
+    w, v = x[:3], x[3:]
+    t = _dot(w, w)
+    if chart == "exp":
+        S, C = _horner(_S, t / 4), _horner(_C, t / 4)
+        alpha, beta = S * C, S * S / 2  # sin θ/θ, (1 − cos θ)/θ²
+        gamma = _horner(_SINC3, t)  # (θ − sin θ)/θ³
+        wv, wwv = _cross(w, v), _dot(w, v)
+        # tF = (1 + β ω̂ + γ ω̂²) v, ω̂² v = ω(ω·v) − t v.
+        tF = tuple(v[i] + beta * wv[i] + gamma * (w[i] * wwv - t * v[i]) for i in range(3))
+    else:
+        alpha = 4 / (4 + t)
+        beta = alpha / 2
+    # RF = 1 + α ω̂ + β (ωωᵀ − t).
+    W = ((0, -w[2], w[1]), (w[2], 0, -w[0]), (-w[1], w[0], 0))
+    RF = tuple(
+        tuple(
+            alpha * W[i][j] + beta * w[i] * w[j] + ((1 - beta * t) if i == j else 0)
+            for j in range(3)
+        )
+        for i in range(3)
+    )
+    if chart == "cayley":
+        RFv = _mv(RF, v)
+        tF = tuple((v[i] + RFv[i]) / 2 for i in range(3))  # (1 − ω̂/2)⁻¹ v
+    RF, tF = _nested(materialise(_flat(RF), one)), materialise(tF, one)
+    # Ad_Fᵀ m = (RFᵀ(Π + P × tF), RFᵀ P).
+    Pi, P = m[:3], m[3:]
+    Pt = _cross(P, tF)
+    y = tuple(Pi[i] + Pt[i] for i in range(3))
+    m_next = tuple(sum(RF[k][i] * y[k] for k in range(3)) for i in range(3)) + tuple(
+        sum(RF[k][i] * P[k] for k in range(3)) for i in range(3)
+    )
+    # g F: R RF, one Newton–Schulz step R ← R − R(RᵀR − 1)/2 (as `SE3.compose`), p + R tF.
+    R = tuple(tuple(g[4 * i + j] for j in range(3)) for i in range(3))
+    p = tuple(g[4 * i + 3] for i in range(3))
+    Rn = tuple(tuple(sum(R[i][k] * RF[k][j] for k in range(3)) for j in range(3)) for i in range(3))
+    Rn = _nested(materialise(_flat(Rn), one))
+    G = tuple(
+        tuple(sum(Rn[k][i] * Rn[k][j] for k in range(3)) - (1 if i == j else 0) for j in range(3))
+        for i in range(3)
+    )
+    Rn = tuple(
+        tuple(Rn[i][j] - sum(Rn[i][k] * G[k][j] for k in range(3)) / 2 for j in range(3))
+        for i in range(3)
+    )
+    Rt = _mv(R, tF)
+    g_next = tuple(e for i in range(3) for e in (Rn[i][0], Rn[i][1], Rn[i][2], Rt[i] + p[i]))
+
+    result = jnp.where(converged, RESULTS.successful, RESULTS.newton_not_converged)
+    if chart == "exp":
+        # Beyond the injectivity radius of exp (rotation angle π) the root is on another branch.
+        result = jnp.where(t >= math.pi**2, RESULTS.step_too_large, result)
+    ok = jnp.isfinite(norm)
+    for y in m_next:
+        ok = ok & jnp.isfinite(y)
+    result = jnp.where(ok, result, RESULTS.nonfinite)
+    return g_next, m_next, result.astype(jnp.int32), iterations, norm
+
+
+# Newton iterations every body takes before the one convergence check (see
+# `_fast_so3.DEFAULT_FIXED_ITERATIONS`; measured with `benchmarks/se3_step_cost.py`).
+DEFAULT_FIXED_ITERATIONS = {"exp": 3, "cayley": 3}
+
+
+class SE3NewtonKernel(AbstractBatchKernel):
+    """`DEP`'s step (either chart) for `RigidBodySE3` without a potential (`dep_step`).
+
+    Its constants are the kinetic tensor's 36 entries (row-major); its state the 12
+    entries of `[R | p]` and the 6 of `m = (Π, P)`.
+    """
+
+    chart: str = eqx.field(static=True)
+    rtol: float | None = eqx.field(static=True)
+    atol: float | None = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+    fixed_iterations: int | None = eqx.field(default=None, static=True)
+
+    def constants(self, tensor, batch):
+        # The 36 entries of M, and those of M⁻¹ (not differentiated: the Newton guess and
+        # the step bound), one 6×6 inverse per body, once per run.
+        tensor = jnp.broadcast_to(tensor, (batch, 6, 6))
+        inverse = jnp.linalg.inv(jax.lax.stop_gradient(tensor))
+        return _entries(tensor), _entries(inverse)
+
+    def prepare(self, constants, h):
+        M, Minv = constants
+        A = tuple(tuple(e / h for e in row) for row in M)
+        # What the reduced Newton iteration reads (`_reduced_residual`): the Schur
+        # complement S = A₁₁ − A₁₂A₂₂⁻¹A₂₁, Z = A₁₂A₂₂⁻¹, A₂₂⁻¹ (Cramer), T = A₂₂⁻¹A₂₁.
+        # Not differentiated (Newton only; the root's derivative is `_at_root`'s).
+        blocks = jax.lax.stop_gradient(A)
+        A11, A12, A21 = _block(blocks, 0, 0), _block(blocks, 0, 1), _block(blocks, 1, 0)
+        A22inv = _inverse3(_block(blocks, 1, 1))
+        Z, T = _matmul(A12, A22inv), _matmul(A22inv, A21)
+        ZA21 = _matmul(Z, A21)
+        S = tuple(tuple(A11[i][j] - ZA21[i][j] for j in range(3)) for i in range(3))
+        C = (S, Z, A22inv, T)
+        return A, tuple(tuple(h * e for e in row) for row in Minv), C
+
+    def step(self, params, g, m, alive):
+        A, Ainv, C = params
+        fixed = self.fixed_iterations
+        fixed = DEFAULT_FIXED_ITERATIONS[self.chart] if fixed is None else fixed
+        tolerance = newton_tolerance(_max_abs(m), m[0].dtype, self.rtol, self.atol)
+        return dep_step(self.chart, g, m, A, Ainv, C, tolerance, fixed, self.max_steps, alive)
+
+    def with_fixed_iterations(self, fixed_iterations: int):
+        return dataclasses.replace(self, fixed_iterations=fixed_iterations)
+
+    def turn_rates(self, constants, h):
+        # |h| times the rotation rows of M⁻¹ (`SE3.exp_norm`: the rotation part of M⁻¹m).
+        Minv = constants[1]
+        return tuple(tuple(jnp.abs(h) * Minv[i][j] for j in range(6)) for i in range(3))
+
+    def turn_squared(self, rates, m):
+        omega = tuple(sum(rates[i][j] * m[j] for j in range(6)) for i in range(3))
+        return _dot(omega, omega)
+
+    def carried(self, g0):
+        return tuple(g0[:, i, j] for i in range(3) for j in range(4))
+
+    def elements(self, entries):
+        # (…, 12, B) → (B, …, 4, 4), the last row (0, 0, 0, 1).
+        top = jnp.moveaxis(entries, -1, 0).reshape(entries.shape[-1:] + entries.shape[:-2] + (3, 4))
+        last = jnp.broadcast_to(jnp.eye(4, dtype=top.dtype)[3], top.shape[:-2] + (1, 4))
+        return jnp.concatenate([top, last], axis=-2)
+
+
+def _entries(X):
+    """A `(B, 6, 6)` array as a 6×6 nested tuple of `(B,)` arrays."""
+    return tuple(tuple(X[:, i, j] for j in range(6)) for i in range(6))

@@ -1,0 +1,229 @@
+"""`simulate_batch` on SE(3): the structure-of-arrays DEP step (`lievi/_batch/_fast_se3.py`)
+equals the generic path (`jax.vmap(simulate)`) to round-off, in values, result codes and
+gradients; its reduced Newton iteration's Jacobian equals `jax.jacfwd`."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lievi
+from helpers import ROUNDOFF, ROUNDOFF_F32
+from lievi._batch import _fast_se3
+
+SE3 = lievi.SE3
+CHARTS = ("exp", "cayley")
+BATCH, STEPS, SAVE_EVERY = 8, 20, 5
+
+
+def random_tensors(rng, batch, kind):
+    """`kind`: "kirchhoff" (a full SPD 6×6 tensor) or "vacuum" (`diag(J, m1)`)."""
+    if kind == "kirchhoff":
+        B = rng.normal(size=(batch, 6, 6))
+        tensors = B @ np.swapaxes(B, -1, -2) / 6 + np.diag([1.0, 1.5, 2.0, 3.0, 4.0, 5.0])
+        return jnp.asarray(tensors)
+    inertia = rng.uniform(0.5, 2.0, size=(batch, 3))
+    mass = rng.uniform(1.0, 3.0, size=batch)
+    return jax.vmap(lambda J, m: lievi.RigidBodySE3(J, m).tensor)(
+        jnp.asarray(inertia), jnp.asarray(mass)
+    )
+
+
+def random_batch(rng, batch, kind="kirchhoff"):
+    tensors = random_tensors(rng, batch, kind)
+    bodies = jax.vmap(lambda M: lievi.RigidBodySE3(tensor=M))(tensors)
+    g0 = jax.vmap(SE3.exp)(jnp.asarray(rng.normal(size=(batch, 6))))
+    m0 = jnp.asarray(rng.normal(size=(batch, 6)))
+    h = jnp.asarray(rng.uniform(0.02, 0.2, size=batch))
+    return bodies, g0, m0, h
+
+
+@pytest.mark.parametrize("kind", ["kirchhoff", "vacuum"])
+@pytest.mark.parametrize("chart", CHARTS)
+def test_fast_equals_generic(chart, kind):
+    """Poses with translations, one system and one step per body: the same `g`, `m`,
+    result codes as the generic path, residuals within the Newton tolerance."""
+    bodies, g0, m0, h = random_batch(np.random.default_rng(5), BATCH, kind)
+    dep = lievi.DEP(chart=chart)
+    assert lievi.has_fast_path(bodies, dep, system_axis=0)
+    kwargs = dict(h=h, n_steps=STEPS, save_every=SAVE_EVERY, system_axis=0)
+    fast = lievi.simulate_batch(bodies, dep, g0, m0, **kwargs)
+    generic = lievi.simulate_batch(bodies, dep, g0, m0, fast=False, **kwargs)
+    assert fast.g.shape == generic.g.shape == (BATCH, STEPS // SAVE_EVERY + 1, 4, 4)
+    np.testing.assert_array_equal(fast.result, 0)
+    np.testing.assert_array_equal(generic.result, 0)
+    np.testing.assert_array_equal(fast.stats["failed_step"], -1)
+    np.testing.assert_allclose(fast.ts, generic.ts, rtol=0, atol=ROUNDOFF)
+    np.testing.assert_allclose(fast.g, generic.g, rtol=0, atol=ROUNDOFF)
+    np.testing.assert_allclose(fast.m, generic.m, rtol=0, atol=ROUNDOFF)
+    bound = 64 * np.finfo(np.float64).eps * np.abs(fast.m).max(axis=(1, 2))
+    assert np.all(fast.stats["residual"] <= bound[:, None])
+    # The fast path's last row stays exactly (0, 0, 0, 1).
+    np.testing.assert_array_equal(fast.g[:, :, 3], np.broadcast_to([0, 0, 0, 1.0], (BATCH, 5, 4)))
+
+
+def test_float32():
+    """float32 in, float32 out: the fast path matches the generic float32 run and the
+    float64 one to float32 round-off."""
+    bodies, g0, m0, _ = random_batch(np.random.default_rng(6), BATCH)
+    body = lievi.RigidBodySE3(tensor=bodies.tensor[0].astype(jnp.float32))
+    g32, m32 = g0.astype(jnp.float32), m0.astype(jnp.float32)
+    dep = lievi.DEP(chart="cayley")
+    kwargs = dict(n_steps=STEPS, save_every=SAVE_EVERY)
+    fast = lievi.simulate_batch(body, dep, g32, m32, h=jnp.float32(0.05), **kwargs)
+    generic = lievi.simulate_batch(body, dep, g32, m32, h=jnp.float32(0.05), fast=False, **kwargs)
+    body64 = lievi.RigidBodySE3(tensor=body.tensor.astype(jnp.float64))
+    exact = lievi.simulate_batch(
+        body64, dep, g32.astype(float), m32.astype(float), h=0.05, **kwargs
+    )
+    assert fast.m.dtype == jnp.float32 and fast.g.dtype == jnp.float32
+    np.testing.assert_array_equal(fast.result, 0)
+    np.testing.assert_allclose(fast.m, generic.m, rtol=0, atol=ROUNDOFF_F32)
+    np.testing.assert_allclose(fast.m, exact.m, rtol=0, atol=ROUNDOFF_F32)
+    np.testing.assert_allclose(fast.g, exact.g, rtol=0, atol=ROUNDOFF_F32)
+
+
+def test_shared_system_one_fixed_iteration_then_tail():
+    """One system for all bodies, one fixed Newton iteration: the `while_loop` tail
+    finishes every body, with the same iterates as the generic path."""
+    rng = np.random.default_rng(2)
+    bodies, g0, m0, _ = random_batch(rng, BATCH)
+    body = lievi.RigidBodySE3(tensor=bodies.tensor[0])
+    dep = lievi.DEP(chart="exp")
+    kwargs = dict(h=0.1, n_steps=STEPS, save_every=SAVE_EVERY)
+    one = lievi.simulate_batch(body, dep, g0, m0, fixed_iterations=1, **kwargs)
+    generic = lievi.simulate_batch(body, dep, g0, m0, fast=False, **kwargs)
+    np.testing.assert_allclose(one.g, generic.g, rtol=0, atol=ROUNDOFF)
+    np.testing.assert_allclose(one.m, generic.m, rtol=0, atol=ROUNDOFF)
+    assert np.all(one.stats["newton_iterations"] >= 2)  # the tail ran
+
+
+@pytest.mark.parametrize("chart", CHARTS)
+def test_reduced_jacobian(chart):
+    """The reduced residual `ρ(ω) = r_ω(ω, v(ω))` with `r_v(ω, v(ω)) = 0` and its
+    closed-form Jacobian, against the 6×6 residual and `jax.jacfwd`, at rotation angles
+    1e-9 … 2.5."""
+    rng = np.random.default_rng(3)
+    tensor = random_tensors(rng, 1, "kirchhoff")[0]
+    h = 0.1
+    kernel = _fast_se3.SE3NewtonKernel(chart, None, None, 20)
+    A, _, C = kernel.prepare(kernel.constants(tensor, 1), h)
+    A = jax.tree.map(lambda x: x[0], A)
+    C = jax.tree.map(lambda x: x[0], C)
+
+    @jax.jit
+    @jax.vmap
+    def errors(w, m):
+        m = tuple(m)
+
+        def rho(w):
+            return jnp.stack(_fast_se3._reduced_residual(chart, tuple(w), m, C, False)[0])
+
+        r, J, (_, v) = _fast_se3._reduced_residual(chart, tuple(w), m, C, True)
+        full, _ = _fast_se3.residual(chart, tuple(w) + tuple(v), m, A, False)
+        J = jnp.stack([jnp.stack(row) for row in J])
+        return (
+            jnp.max(jnp.abs(jnp.stack(r) - jnp.stack(full[:3]))),
+            jnp.max(jnp.abs(jnp.stack(full[3:]))),
+            jnp.max(jnp.abs(J - jax.jacfwd(rho)(w))) / jnp.max(jnp.abs(J)),
+        )
+
+    angles = jnp.array([1e-9, 1e-3, 0.3, 2.5])
+    w = jnp.asarray(rng.normal(size=(4, 3)))
+    w = angles[:, None] * w / jnp.linalg.norm(w, axis=-1)[:, None]
+    for error in errors(w, jnp.asarray(rng.normal(size=(4, 6)))):
+        assert float(jnp.max(error)) <= ROUNDOFF
+
+
+@pytest.mark.parametrize("chart", ["exp", pytest.param("cayley", marks=pytest.mark.slow)])
+def test_gradient_equals_generic(chart):
+    """Reverse mode through the fast path (implicit function theorem at each root, with the
+    closed-form 6×6 Jacobian) equals reverse mode through the generic path to ≤ 1e-10
+    relative, with respect to every body's tensor, m₀, g₀ and h; `checkpoint=True`
+    changes nothing."""
+    rng = np.random.default_rng(4)
+    batch, steps, save_every = 4, 9, 3
+    bodies, g0, m0, h = random_batch(rng, batch)
+    weights = (
+        jnp.asarray(rng.normal(size=(batch, 4, 4, 4))),
+        jnp.asarray(rng.normal(size=(batch, 4, 6))),
+    )
+    dep = lievi.DEP(chart=chart)
+
+    def loss(params, fast, checkpoint=False):
+        # g₀ perturbed through the exponential chart, so its gradient is a twist.
+        g = g0 @ jax.vmap(SE3.exp)(params["g0_chart"])
+        sol = lievi.simulate_batch(
+            jax.vmap(lambda M: lievi.RigidBodySE3(tensor=M))(params["tensor"]),
+            dep,
+            g,
+            params["m0"],
+            h=params["h"],
+            n_steps=steps,
+            save_every=save_every,
+            system_axis=0,
+            fast=fast,
+            checkpoint=checkpoint,
+        )
+        return jnp.sum(weights[0] * sol.g) + jnp.sum(weights[1] * sol.m)
+
+    params = {"tensor": bodies.tensor, "m0": m0, "h": h, "g0_chart": jnp.zeros((batch, 6))}
+    reference = jax.grad(loss)(params, False)
+    for checkpoint in (False, True):
+        gradient = jax.grad(loss)(params, True, checkpoint)
+        for key in params:
+            scale = np.max(np.abs(reference[key]))
+            assert scale > 0, key
+            np.testing.assert_allclose(
+                gradient[key], reference[key], rtol=0, atol=1e-10 * scale, err_msg=key
+            )
+
+
+def test_failures_are_reported_per_body():
+    """A body with a far too large step fails with the generic path's result code at the
+    same step, the others carry on unchanged; a Newton budget below what the step needs
+    gives `newton_not_converged` for every body, never a silent number; throw=True raises."""
+    rng = np.random.default_rng(1)
+    bodies, g0, m0, _ = random_batch(rng, 6)
+    h = jnp.full(6, 0.1).at[2].set(40.0)
+    dep = lievi.DEP(max_steps=6)
+    kwargs = dict(h=h, n_steps=8, save_every=1, system_axis=0, throw=False)
+    fast = lievi.simulate_batch(bodies, dep, g0, m0, **kwargs)
+    generic = lievi.simulate_batch(bodies, dep, g0, m0, fast=False, **kwargs)
+    ok = np.arange(6) != 2
+    assert fast.result[2] != lievi.RESULTS.successful
+    assert fast.result[2] == generic.result[2]
+    assert fast.stats["failed_step"][2] == generic.stats["failed_step"][2] >= 0
+    np.testing.assert_array_equal(fast.result[ok], 0)
+    np.testing.assert_allclose(fast.m[ok], generic.m[ok], rtol=0, atol=ROUNDOFF)
+    k = int(fast.stats["failed_step"][2])
+    assert np.all(np.isnan(fast.m[2, k + 1 :])) and np.all(np.isfinite(fast.m[2, : k + 1]))
+    with pytest.raises(Exception, match="a body failed"):
+        lievi.simulate_batch(bodies, dep, g0, m0, **{**kwargs, "throw": True})
+
+    one_step = lievi.DEP(max_steps=1)
+    kwargs = dict(h=0.1, n_steps=2, system_axis=0, throw=False)
+    fast = lievi.simulate_batch(bodies, one_step, g0, m0, **kwargs)
+    generic = lievi.simulate_batch(bodies, one_step, g0, m0, fast=False, **kwargs)
+    np.testing.assert_array_equal(fast.result, lievi.RESULTS.newton_not_converged)
+    np.testing.assert_array_equal(generic.result, lievi.RESULTS.newton_not_converged)
+    assert np.all(np.isnan(fast.m[:, -1]))
+
+
+def test_which_systems_take_the_fast_path():
+    """The free body takes it (DEP, both charts); a potential, or a method without an SE(3)
+    kernel, keeps the generic path; `g0` is checked with the group's own membership test."""
+    body = lievi.RigidBodySE3(jnp.array([1.0, 2.0, 3.0]), 2.0)
+    for chart in CHARTS:
+        assert lievi.has_fast_path(body, lievi.DEP(chart=chart))
+    assert not lievi.has_fast_path(body, lievi.RK4())
+    assert not lievi.has_fast_path(body, lievi.MoserVeselov())
+    falling = lievi.RigidBodySE3(
+        jnp.array([1.0, 2.0, 3.0]),
+        2.0,
+        potential=lievi.UniformGravitySE3(2.0, 9.81, jnp.array([0.1, 0.0, 0.05])),
+    )
+    assert not lievi.has_fast_path(falling, lievi.DEP())
+    g0 = jnp.broadcast_to(jnp.eye(4), (2, 4, 4)).at[1, 3, 0].set(0.5)
+    with pytest.raises(ValueError, match=r"`g0\[1\]` is not in the group.*last row"):
+        lievi.simulate_batch(body, lievi.DEP(), g0, jnp.ones((2, 6)), h=0.1, n_steps=1)
