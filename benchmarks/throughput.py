@@ -18,7 +18,7 @@ dtype is float32 only.
 
 Writes `benchmarks/results/<out>.json` and `<out>.png`.
 
-`--acceptance` is the issue's CPU acceptance configuration alone (a few minutes): batch
+`--acceptance` is the CPU acceptance configuration of the design targets alone (a few minutes): batch
 1e5, 100 steps, float64, final state only, every lievi method and diffrax Tsit5, checked
 against the targets (DEP exp ≥ 1e7, Moser–Veselov and splitting ≥ 3e7 body-steps/s, every
 method ≥ 10× diffrax, `jax.vmap(simulate)` included), into `throughput_cpu_acceptance.json`,
@@ -36,7 +36,7 @@ of mass, `γ = 1`; batch 1e5, 100 steps, float64, final state only) through the 
 on the reduced state `(Π, Γ)` (`g` not saved: the paper's §7) and on `(Π, g)`, against
 diffrax `Tsit5` on the heavy top's equations `Π̇ = Π × Ω + mγ Γ × ρ`, `Γ̇ = Γ × Ω` and
 against the free body's fast path (same method), in one run, into
-`throughput_heavy_top.json`; the issue's bars are ≥ 10× diffrax and within 2× of the
+`throughput_heavy_top.json`; the design bars are ≥ 10× diffrax and within 2× of the
 free body.
 """
 
@@ -176,7 +176,7 @@ def check_against_generic(name, fn, dtype, steps: int):
     )
 
 
-# The issue's CPU acceptance targets (float64, batch 1e5, 100 steps), body-steps/s.
+# The design's CPU acceptance targets (float64, batch 1e5, 100 steps), body-steps/s.
 TARGETS = {"DEP exp": 1e7, "Moser-Veselov": 3e7, "splitting": 3e7}
 ACCEPTANCE_METHODS = (
     "DEP exp",
