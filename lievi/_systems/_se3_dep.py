@@ -43,29 +43,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._batch._fast_so3 import _C, _P, _S, _dot
+from .._batch._fast_se3 import _dexpinv_coefficients as _dexpinv_coefficient
+from .._batch._fast_so3 import _C, _S, _dot
 from .._results import RESULTS
 from . import _se3_newton
-
-
-def _horner2(coefficients, u):
-    """`(p(u), p′(u), p″(u))` of the polynomial with these coefficients."""
-    value, first, second = (jnp.zeros_like(u) for _ in range(3))
-    for c in reversed(coefficients):
-        second = second * u + 2 * first
-        first = first * u + value
-        value = value * u + c
-    return value, first, second
-
-
-def _dexpinv_coefficient(t):
-    """`(c, c′, c″)` in `t = θ²` for `c = (1 − (θ/2)cot(θ/2))/θ²` `= f(u) = P/(4S)`, `u = t/4`."""
-    S, S1, S2 = _horner2(_S, t / 4)
-    P, P1, P2 = _horner2(_P, t / 4)
-    N1 = P1 * S - P * S1  # f′ = N1/(4S²)
-    f1 = N1 / (4 * S * S)
-    f2 = ((P2 * S - P * S2) * S - 2 * S1 * N1) / (4 * S * S * S)
-    return P / (4 * S), f1 / 4, f2 / 16
 
 
 # 3×3 matrices as nested tuples of scalars (structure of arrays).
