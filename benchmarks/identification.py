@@ -38,13 +38,10 @@ H, N_STEPS, EVERY, NOISE = 0.05, 400, 10, 0.01
 GUESS = jnp.array([1.5, 1.2, 1.0])
 
 
-def problem(n, seed=2):
-    rng = np.random.default_rng(seed)
-    Lambda = rng.uniform(0.2, 1.5, size=(n, 3))
-    inertias = jnp.asarray(Lambda.sum(-1, keepdims=True) - Lambda)
-    m0 = rng.normal(size=(n, 3))
-    momenta = jnp.asarray(m0 / np.linalg.norm(m0, axis=-1, keepdims=True))
-    clean = lievi.simulate_batch(
+def orientations(inertias, momenta, **kwargs):
+    """The sampled orientations of the model, every body from the identity."""
+    n = inertias.shape[0]
+    return lievi.simulate_batch(
         jax.vmap(lievi.RigidBody)(inertias),
         lievi.DEP(),
         jnp.broadcast_to(jnp.eye(3), (n, 3, 3)),
@@ -53,7 +50,17 @@ def problem(n, seed=2):
         n_steps=N_STEPS,
         save_every=EVERY,
         system_axis=0,
+        **kwargs,
     ).g
+
+
+def problem(n, seed=2):
+    rng = np.random.default_rng(seed)
+    Lambda = rng.uniform(0.2, 1.5, size=(n, 3))
+    inertias = jnp.asarray(Lambda.sum(-1, keepdims=True) - Lambda)
+    m0 = rng.normal(size=(n, 3))
+    momenta = jnp.asarray(m0 / np.linalg.norm(m0, axis=-1, keepdims=True))
+    clean = orientations(inertias, momenta)
     r = np.asarray(SO3.log(clean))
     r = r + NOISE * np.linalg.norm(r, axis=-1, keepdims=True) * rng.normal(size=r.shape)
     observed = SO3.exp(jnp.asarray(r))
@@ -64,22 +71,10 @@ def problem(n, seed=2):
 
 def baseline(inertias, momenta, observed):
     """Seconds of one batched forward run and one batched gradient of the orientation loss."""
-    n = inertias.shape[0]
 
     def loss(I):
-        sol = lievi.simulate_batch(
-            jax.vmap(lievi.RigidBody)(I),
-            lievi.DEP(),
-            jnp.broadcast_to(jnp.eye(3), (n, 3, 3)),
-            momenta,
-            h=H,
-            n_steps=N_STEPS,
-            save_every=EVERY,
-            save=("g",),
-            system_axis=0,
-            throw=False,
-        )
-        return jnp.sum((sol.g - observed) ** 2)
+        g = orientations(I, momenta, save=("g",), throw=False)
+        return jnp.sum((g - observed) ** 2)
 
     out = {}
     for name, fn in (("forward", jax.jit(loss)), ("gradient", jax.jit(jax.grad(loss)))):

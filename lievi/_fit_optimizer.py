@@ -89,7 +89,9 @@ class LBFGS(eqx.Module):
         return jnp.where(s.fresh, s.x, s.x + s.t * s.d)
 
     def restart(self, s: LBFGSState) -> LBFGSState:
-        return eqx.tree_at(lambda s: (s.count, s.fresh), s, (jnp.zeros_like(s.count), True))
+        return eqx.tree_at(
+            lambda s: (s.count, s.fresh), s, (jnp.zeros_like(s.count), jnp.asarray(True))
+        )
 
     def _direction(self, g, S, Y, count):
         """`−H g` by the two-loop recursion over the valid memory (newest first)."""
@@ -105,9 +107,7 @@ class LBFGS(eqx.Module):
             q = q - a * Y[i]
             alphas.append(a)
         yy = jnp.dot(Y[0], Y[0])
-        gamma = jnp.where(count > 0, sy[0] / jnp.maximum(yy, tiny), 1.0)
-        # First iteration (no curvature yet): a step of length at most 1 along −g.
-        gamma = jnp.where(count > 0, gamma, jnp.minimum(1.0, 1 / jnp.maximum(_norm(g), tiny)))
+        gamma = jnp.where(count > 0, sy[0] / jnp.maximum(yy, tiny), _first_scale(g))
         r = gamma * q
         for i in reversed(range(self.memory)):  # oldest to newest
             b = rho[i] * jnp.dot(Y[i], r)
@@ -120,11 +120,18 @@ class LBFGS(eqx.Module):
         # Round-off can make an old memory's direction ascend: forget it, go down −g.
         descent = (slope < 0) & jnp.all(jnp.isfinite(d))
         count = jnp.where(descent, s.count, 0)
-        d = jnp.where(descent, d, self._direction(s.g, s.S, s.Y, 0))
+        d = jnp.where(descent, d, -_first_scale(s.g) * s.g)
         return eqx.tree_at(
             lambda s: (s.d, s.t, s.slope, s.count, s.backtracks, s.fresh),
             s,
-            (d, jnp.ones_like(s.t), jnp.dot(s.g, d), count, jnp.zeros_like(s.backtracks), False),
+            (
+                d,
+                jnp.ones_like(s.t),
+                jnp.dot(s.g, d),
+                count,
+                jnp.zeros_like(s.backtracks),
+                jnp.asarray(False),
+            ),
         )
 
     def tell(self, s: LBFGSState, f, g):
@@ -223,3 +230,8 @@ class OptaxMachine(eqx.Module):
 
 def _norm(x):
     return jnp.sqrt(jnp.sum(x * x))
+
+
+def _first_scale(g):
+    """`H₀ = γI` before any curvature is known: a first step of length at most 1 along −g."""
+    return jnp.minimum(1.0, 1 / jnp.maximum(_norm(g), jnp.finfo(g.dtype).tiny))

@@ -742,6 +742,10 @@ class _Config(eqx.Module):
             leaves[f.index] = v
         return jax.tree.unflatten(treedef, leaves)
 
+    @property
+    def n_steps(self):
+        return (self.n_samples - 1) * self.sample_every
+
     def residuals(self, system, m0, g0, data, h, horizon):
         """One body: weighted residual vector, failed-sample penalty, count of failed
         samples, result."""
@@ -751,7 +755,7 @@ class _Config(eqx.Module):
             g0,
             m0,
             h=h,
-            n_steps=(self.n_samples - 1) * self.sample_every,
+            n_steps=self.n_steps,
             save_every=self.sample_every,
             throw=False,
         )
@@ -809,7 +813,7 @@ class _Config(eqx.Module):
             g0,
             m0,
             h=h,
-            n_steps=(self.n_samples - 1) * self.sample_every,
+            n_steps=self.n_steps,
             save_every=self.sample_every,
             save=("g", "m"),
             system_axis=0,

@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._batch._fast_se3 import _dexpinv_coefficients as _dexpinv_coefficient
+from .._batch._fast_se3 import _inverse3
 from .._batch._fast_so3 import _C, _S, _dot
 from .._results import RESULTS
 from . import _se3_newton
@@ -187,15 +188,6 @@ def _barrier(values):
     stacked = jnp.stack(jnp.broadcast_arrays(*leaves))
     stacked = jnp.sum(jnp.stack([stacked, jnp.zeros_like(stacked)]), axis=0)
     return jax.tree.unflatten(tree, [stacked[i] for i in range(len(leaves))])
-
-
-def _inverse3(M):
-    (a, b, c), (d, e, f), (g, h, i) = M
-    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
-    D, E, F = c * h - b * i, a * i - c * g, b * g - a * h
-    G, H, I = b * f - c * e, c * d - a * f, a * e - b * d
-    inv = 1 / (a * A + b * B + c * C)
-    return ((A * inv, D * inv, G * inv), (B * inv, E * inv, H * inv), (C * inv, F * inv, I * inv))
 
 
 def solve6(J, r):
