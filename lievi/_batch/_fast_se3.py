@@ -634,8 +634,9 @@ class SE3NewtonKernel(AbstractBatchKernel):
 
     def constants(self, tensor, batch):
         # The 36 entries of M, and those of M⁻¹ (not differentiated: the Newton guess and
-        # the step bound), one 6×6 inverse per body, once per run.
-        tensor = jnp.broadcast_to(tensor, (batch, 6, 6))
+        # the step bound), one 6×6 inverse per body, once per run. A tensor shared by the
+        # batch stays one set of scalars: broadcast inside the step's loops, 108 per-run
+        # constants would otherwise be arrays `(B,)` read from memory at every step.
         inverse = jnp.linalg.inv(jax.lax.stop_gradient(tensor))
         return _entries(tensor), _entries(inverse)
 
@@ -684,5 +685,5 @@ class SE3NewtonKernel(AbstractBatchKernel):
 
 
 def _entries(X):
-    """A `(B, 6, 6)` array as a 6×6 nested tuple of `(B,)` arrays."""
-    return tuple(tuple(X[:, i, j] for j in range(6)) for i in range(6))
+    """A `(…, 6, 6)` array as a 6×6 nested tuple of `(…)` arrays (`(B,)` or scalars)."""
+    return tuple(tuple(X[..., i, j] for j in range(6)) for i in range(6))
