@@ -23,7 +23,13 @@ pair has a structure-of-arrays fast path (`lievi.has_fast_path`: DEP on "SO(3)",
 SE(3)/SO(3) of each (and to "SO(3) tensor"). Writes
 `benchmarks/results/se3_step_cost.json`, with the load average at the start.
 
-    python benchmarks/se3_step_cost.py [--batch 256] [--steps 2000]
+    python benchmarks/se3_step_cost.py [--batch 256] [--steps 2000] [--one-thread] [--out NAME]
+
+`--one-thread` runs XLA on one thread (`--xla_cpu_multi_thread_eigen=false
+intra_op_parallelism_threads=1`, set before JAX starts): the figures are then the work per
+step, repeatable to a few per cent from run to run, where two threads on two cores add
+their synchronisation and whatever else the machine runs (ratios moved by up to 2× between
+runs). Pin the process to a core too, e.g. `taskset -c 1 python ...`.
 """
 
 from __future__ import annotations
@@ -32,7 +38,14 @@ import argparse
 import json
 import os
 import pathlib
+import sys
 import time
+
+if "--one-thread" in sys.argv:  # XLA reads its flags once, when JAX starts.
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "")
+        + " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+    )
 
 import jax
 
@@ -147,7 +160,14 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument(
+        "--one-thread", action="store_true", help="XLA on one thread (see the module doc)"
+    )
+    parser.add_argument(
+        "--out", default="se3_step_cost", help="JSON name under benchmarks/results/"
+    )
     args = parser.parse_args()
+    load = os.getloadavg()[0]
 
     integrators = {
         "DEP exp": lievi.DEP(chart="exp"),
@@ -164,10 +184,10 @@ def main():
                 body, g0, d, integrator, args.batch, steps, repeats=1 if slow else 3
             )
     device = str(jax.devices()[0])
-    load = os.getloadavg()[0]
+    threads = "one XLA thread" if args.one_thread else "XLA's default threads"
     print(
-        f"device: {device}, float64, batch {args.batch}, {args.steps} steps, final state only, "
-        f"load average at start {load:.1f}"
+        f"device: {device}, {threads}, float64, batch {args.batch}, {args.steps} steps, "
+        f"final state only, load average at start {load:.1f}"
     )
     print(
         f"{'integrator / group':<30}{'compile [s]':>12}{'1 body [µs/step]':>18}"
@@ -200,13 +220,14 @@ def main():
             f"{r['batched_us_per_body_step']:>21.3g}{fast_text:>16}"
             f"{r['ratio_single_to_so3']:>20.2f} / {r['ratio_batched_to_so3']:.2f} / {ratio_text}"
         )
-    out = pathlib.Path(__file__).parent / "results" / "se3_step_cost.json"
+    out = pathlib.Path(__file__).parent / "results" / f"{args.out}.json"
     out.parent.mkdir(exist_ok=True)
     out.write_text(
         json.dumps(
             {
                 "device": device,
                 "load_average_at_start": load,
+                "one_thread": args.one_thread,
                 "batch": args.batch,
                 "steps": args.steps,
                 "results": results,
