@@ -48,7 +48,7 @@ from jax.ad_checkpoint import checkpoint_name
 
 from .._integrators._newton import newton_tolerance
 from .._results import RESULTS
-from ._fast_so3 import _C, _P, _S, _cross, _dot, _horner, _solve3
+from ._fast_so3 import _C, _P, _S, _cross, _dot, _horner
 from ._kernel import ROOT_NAME, AbstractBatchKernel, materialise
 
 # (θ − sin θ)/θ³ = Σ (−1)ᵏ tᵏ/(2k + 3)!, t = θ²: 13 terms reach round-off at θ = π.
