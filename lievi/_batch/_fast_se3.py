@@ -48,7 +48,7 @@ from jax.ad_checkpoint import checkpoint_name
 
 from .._integrators._newton import newton_tolerance
 from .._results import RESULTS
-from ._fast_so3 import _C, _P, _S, _cross, _dot, _horner
+from ._fast_so3 import _C, _P, _S, _cross, _dot, _horner, _solve3
 from ._kernel import ROOT_NAME, AbstractBatchKernel, materialise
 
 # (θ − sin θ)/θ³ = Σ (−1)ᵏ tᵏ/(2k + 3)!, t = θ²: 13 terms reach round-off at θ = π.
@@ -457,29 +457,9 @@ def _reduced_cayley(w, m, C, q, v, a, with_jacobian, one):
     return rho, J, (q, v)
 
 
-def _solve3_each(J, r):
-    """`J⁻¹ r` by Cramer's rule, each component divided by the determinant on its own.
-
-    `_solve3` stores `1/det J` once (a division is never duplicated into several
-    consumers), and that stored value is one more loop over the batch that evaluates the
-    whole Jacobian. Here `det J` is cheap to re-evaluate inside each component's loop,
-    which evaluates the Jacobian anyway: three evaluations of `J` an iteration, not four.
-    """
-    (a, b, c), (d, e, f), (g, h, i) = J
-    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
-    D, E, F = c * h - b * i, a * i - c * g, b * g - a * h
-    G, H, I = b * f - c * e, c * d - a * f, a * e - b * d
-    det = a * A + b * B + c * C
-    return (
-        (A * r[0] + D * r[1] + G * r[2]) / det,
-        (B * r[0] + E * r[1] + H * r[2]) / det,
-        (C * r[0] + F * r[1] + I * r[2]) / det,
-    )
-
-
 def _newton_step(chart, w, m, C):
     rho, J, _ = _reduced_residual(chart, w, m, C, True)
-    delta = _solve3_each(J, rho)
+    delta = _solve3(J, rho, divide_each=True)
     return tuple(w[i] - delta[i] for i in range(3))
 
 

@@ -87,19 +87,30 @@ def _dot(x, y):
     return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
 
-def _solve3(J, r):
-    """`J⁻¹ r` for a 3×3 matrix given as nested tuples of arrays (Cramer's rule)."""
+def _solve3(J, r, divide_each: bool = False):
+    """`J⁻¹ r` for a 3×3 matrix given as nested tuples of arrays (Cramer's rule).
+
+    By default `1/det J` is computed once: XLA stores a division's result rather than
+    repeat it in each consumer, so that is one more loop over the batch, which evaluates
+    all of `J`. With `divide_each`, each component divides by `det J` itself. Use it where
+    `J` costs much more to evaluate than a division, as on SE(3): then `J` is evaluated
+    three times an iteration, not four.
+    """
     (a, b, c), (d, e, f), (g, h, i) = J
     # Cofactors: the adjugate's entries.
     A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
     D, E, F = c * h - b * i, a * i - c * g, b * g - a * h
     G, H, I = b * f - c * e, c * d - a * f, a * e - b * d
-    inv_det = 1 / (a * A + b * B + c * C)
-    return (
-        (A * r[0] + D * r[1] + G * r[2]) * inv_det,
-        (B * r[0] + E * r[1] + H * r[2]) * inv_det,
-        (C * r[0] + F * r[1] + I * r[2]) * inv_det,
+    det = a * A + b * B + c * C
+    numerators = (
+        A * r[0] + D * r[1] + G * r[2],
+        B * r[0] + E * r[1] + H * r[2],
+        C * r[0] + F * r[1] + I * r[2],
     )
+    if divide_each:
+        return tuple(n / det for n in numerators)
+    inv_det = 1 / det
+    return tuple(n * inv_det for n in numerators)
 
 
 def _residual_moser_veselov(x, Pi, A, with_jacobian: bool):
