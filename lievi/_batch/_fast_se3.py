@@ -5,8 +5,9 @@ definite 6×6 kinetic tensor `M` (Kirchhoff's body in a fluid, or `diag(J, m1)` 
 and no potential, written for throughput over many bodies:
 
 - **structure of arrays**: the pose's top 3×4 block `[R | p]` is 12 arrays, the momentum
-  `m = (Π, P)` 6, the tensor 36, each of shape `(B,)` with the batch minor, so that XLA
-  emits long elementwise loops that it vectorises;
+  `m = (Π, P)` 6, each of shape `(B,)` with the batch minor, so that XLA emits long
+  elementwise loops that it vectorises; the tensor's 36 entries are arrays `(B,)` when
+  each body has its own, scalars when the batch shares one;
 - **Newton in the rotation part**: the DEP equation `dφ⁻¹(ξ)ᵀ Mξ/h = m` (4.8) splits as
   `r_ω = K a + L b − Π`, `r_v = K′b − P` with `(a, b) = Mξ/h` (`_se3_dep.py`), and `r_v`
   is linear in `b`: for a given `ω`, `b = K′(ω)⁻¹P` in closed form and
