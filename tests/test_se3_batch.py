@@ -10,6 +10,7 @@ import pytest
 import lievi
 from helpers import ROUNDOFF, ROUNDOFF_F32
 from lievi._batch import _fast_se3
+from lievi._batch._kernel import compacted_tail
 
 SE3 = lievi.SE3
 CHARTS = ("exp", "cayley")
@@ -96,6 +97,62 @@ def test_shared_system_one_fixed_iteration_then_tail():
     np.testing.assert_allclose(one.g, generic.g, rtol=0, atol=ROUNDOFF)
     np.testing.assert_allclose(one.m, generic.m, rtol=0, atol=ROUNDOFF)
     assert np.all(one.stats["newton_iterations"] >= 2)  # the tail ran
+
+
+@pytest.mark.parametrize("chart", CHARTS)
+def test_stragglers_take_the_gathered_tail(chart):
+    """A few bodies with large steps among many small ones: only they continue after the
+    fixed iterations (gathered into a small batch, `compacted_tail`), and every body ends
+    on the generic path's iterates."""
+    rng = np.random.default_rng(9)
+    batch = 64
+    bodies, g0, m0, _ = random_batch(rng, batch)
+    body = lievi.RigidBodySE3(tensor=bodies.tensor[0])
+    m0 = m0.at[:3].multiply(8.0)  # 3 stragglers: |ξ| ≈ 0.5, beyond what 3 iterations reach
+    dep = lievi.DEP(chart=chart)
+    kwargs = dict(h=0.05, n_steps=STEPS, save_every=SAVE_EVERY, save=("g", "m", "stats"))
+    fast = lievi.simulate_batch(body, dep, g0, m0, **kwargs)
+    generic = lievi.simulate_batch(body, dep, g0, m0, fast=False, **kwargs)
+    np.testing.assert_array_equal(fast.result, 0)
+    np.testing.assert_allclose(fast.g, generic.g, rtol=0, atol=ROUNDOFF)
+    np.testing.assert_allclose(fast.m, generic.m, rtol=0, atol=ROUNDOFF)
+    fixed = _fast_se3.DEFAULT_FIXED_ITERATIONS[chart]
+    most = fast.stats["newton_iterations"].max(axis=1)
+    assert np.all(most[:3] > fixed) and np.all(most[3:] == fixed)
+
+
+@pytest.mark.parametrize("alive", ["all", "some"])
+@pytest.mark.parametrize("n_need", [0, 3, 20])
+def test_compacted_tail(n_need, alive):
+    """`compacted_tail` equals its loop run on the whole batch, whichever branch it takes
+    (none, gathered: at most B/8 bodies, whole batch), and leaves failed bodies alone."""
+    batch = 64
+    rng = np.random.default_rng(n_need)
+    x = jnp.zeros(batch, jnp.int32)
+    target = jnp.zeros(batch, jnp.int32).at[rng.permutation(batch)[:n_need]].set(
+        jnp.asarray(rng.integers(1, 5, size=n_need), jnp.int32)
+    )
+    mask = True if alive == "all" else jnp.asarray(rng.uniform(size=batch) > 0.3)
+
+    def run(state, args):
+        target, alive = args
+
+        def on(state):
+            return alive & (state[0] < target)
+
+        def body(state):
+            step = on(state).astype(jnp.int32)
+            return state[0] + step, state[1] + 10 * step
+
+        return jax.lax.while_loop(lambda s: jnp.any(on(s)), body, state)
+
+    state, args = (x, x + 7), (target, mask)
+    need = mask & (x < target)
+    got = jax.jit(lambda s, a: compacted_tail(need, run, s, a))(state, args)
+    expected = run(state, args)
+    for a, b in zip(got, expected):
+        np.testing.assert_array_equal(a, b)
+    assert int(jnp.sum(got[0] != x)) == int(jnp.sum(need))
 
 
 @pytest.mark.parametrize("chart", CHARTS)

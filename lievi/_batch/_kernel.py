@@ -20,6 +20,7 @@ import abc
 import dataclasses
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from .._results import RESULTS
@@ -39,6 +40,39 @@ def materialise(values, one):
     is simplified away: it is built from the state (`x·0 + 1`).
     """
     return tuple(v / one for v in values)
+
+
+def compacted_tail(need, run, state, args, fraction: int = 8):
+    """`run(state, args)` (a `while_loop` of Newton steps) for the bodies where `need`,
+    the others unchanged; nothing when no body needs it.
+
+    `state` and `args` are pytrees of per-body arrays `(B,)` (or scalars shared by the
+    batch). When at most `B // fraction` bodies need it (a few stragglers, the usual case),
+    they are gathered into arrays of that size, run there and scattered back: the loop
+    then costs a fraction of a step, where on the whole batch, masked, one iteration costs
+    about as much as a Newton iteration of every body. Otherwise the whole batch runs.
+    `run` must leave alone the bodies whose `args` mark them inactive: the gathered
+    padding is passed with `args[-1]` (the `alive` mask) false.
+    """
+    batch = jnp.shape(need)[0] if jnp.ndim(need) else 0
+    size = batch // fraction
+    if size < 1:
+        return jax.lax.cond(jnp.any(need), run, lambda s, _: s, state, args)
+    count = jnp.sum(need.astype(jnp.int32))
+
+    def gathered(state, args):
+        index = jnp.nonzero(need, size=size, fill_value=batch)[0]
+
+        def take(y):
+            return jnp.take(y, index, mode="clip") if jnp.ndim(y) else y
+
+        sub_state, sub_args = jax.tree.map(take, (state, args))
+        sub_args = (*sub_args[:-1], sub_args[-1] & (index < batch))
+        out = run(sub_state, sub_args)
+        return jax.tree.map(lambda y, s: y.at[index].set(s, mode="drop"), state, out)
+
+    branch = jnp.where(count == 0, 0, jnp.where(count <= size, 1, 2))
+    return jax.lax.switch(branch, (lambda s, _: s, gathered, run), state, args)
 
 
 class AbstractBatchKernel(eqx.Module):
