@@ -17,8 +17,11 @@ and no potential, written for throughput over many bodies:
   iteration, and the root is the same (the generic path's, from the same explicit-Euler
   guess `h M⁻¹m`). The convergence check is on the full six-component residual, so a
   body reported converged satisfies the same test as on the generic path;
-- **a Newton policy for batches**: a fixed number of iterations, one residual check, and
-  a `while_loop` only for the bodies still above tolerance, up to `max_steps`; a body that
+- **a Newton policy for batches**: a fixed number of iterations, the first a chord step
+  (`_chord_step`: the Jacobian at `ξ = 0`, constant per run, in place of the Jacobian at
+  the iterate: half a Newton step's cost, and it saves one), one residual check, and a
+  `while_loop` only for the bodies still above tolerance, up to `max_steps`, run on those
+  bodies gathered into a small batch when they are few (`compacted_tail`); a body that
   does not converge gets `RESULTS.newton_not_converged`;
 - **implicit differentiation**: the converged root `ξ` passes through `_at_root`, whose
   derivative is the implicit function theorem's `dξ = −J⁻¹(∂r/∂m dm + ∂r/∂A dA)` with the
@@ -510,7 +513,8 @@ def solve_increment(chart, m, A, C, guess, tolerance, fixed: int, max_steps: int
     (`_reduced_residual`): `fixed` iterations from the rotation part of `guess`, one check
     of the full residual `r(ω, v(ω))`, then (only if some body needs it) a `while_loop`
     on the bodies above `tolerance` up to `max_steps`. Returns `(ξ, iterations, residual
-    ∞-norm, converged)` per body. Not differentiable (see `_at_root`)."""
+    ∞-norm, converged)` per body. The first of the fixed iterations is a chord step
+    (`_chord_step`). Not differentiable (see `_at_root`)."""
     fixed = min(fixed, max_steps)
     w = guess[:3]
     for k in range(fixed):
@@ -633,8 +637,12 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
     return g_next, m_next, result.astype(jnp.int32), iterations, norm
 
 
-# Newton iterations every body takes before the one convergence check (see
-# `_fast_so3.DEFAULT_FIXED_ITERATIONS`; measured with `benchmarks/se3_step_cost.py`).
+# Iterations every body takes before the one convergence check (see
+# `_fast_so3.DEFAULT_FIXED_ITERATIONS`): a chord step and two Newton steps. From the
+# explicit-Euler guess they reach 64 ulps for every one of 2·10⁴ random bodies at
+# h = 0.05 (|ω| ≤ 0.3), and for all but about one in 10⁴ at h = 0.1; the rest finish in
+# the gathered tail. Measured with `benchmarks/se3_step_cost.py --one-thread`: 11–16 %
+# less time a step than three Newton steps from the guess.
 DEFAULT_FIXED_ITERATIONS = {"exp": 3, "cayley": 3}
 
 
@@ -663,7 +671,8 @@ class SE3NewtonKernel(AbstractBatchKernel):
         M, Minv = constants
         A = tuple(tuple(e / h for e in row) for row in M)
         # What the reduced Newton iteration reads (`_reduced_residual`): the Schur
-        # complement S = A₁₁ − A₁₂A₂₂⁻¹A₂₁, Z = A₁₂A₂₂⁻¹, A₂₂⁻¹ (Cramer), T = A₂₂⁻¹A₂₁.
+        # complement S = A₁₁ − A₁₂A₂₂⁻¹A₂₁, Z = A₁₂A₂₂⁻¹, A₂₂⁻¹ (Cramer), T = A₂₂⁻¹A₂₁,
+        # and S⁻¹ (the chord step's matrix, `_chord_step`).
         # Not differentiated (Newton only; the root's derivative is `_at_root`'s).
         blocks = jax.lax.stop_gradient(A)
         A11, A12, A21 = _block(blocks, 0, 0), _block(blocks, 0, 1), _block(blocks, 1, 0)

@@ -133,7 +133,8 @@ def simulate_batch(
       convergence check; bodies still above tolerance then continue, alone, up to the
       integrator's `max_steps`. Default: 3 (exp chart) or 4 (Cayley chart;
       Moser–Veselov, whose fixed iterations are scalar ones, see `_fast_so3.py`); on
-      SE(3) 3 for both charts (Newton in the rotation part, `_fast_se3.py`). With
+      SE(3) 3 for both charts, the first a chord step (the Jacobian at `ξ = 0`, see
+      `_fast_se3.py`); with coarse steps (`h|Ω| ≳ 0.2`) 4 may be faster there. With
       `max_steps` equal to it (e.g. `DEP(max_steps=3)`) there is no data-dependent loop
       at all; bodies not converged then are reported as failed.
     - `unroll`: (fast path) steps per iteration of the compiled loop (`lax.scan`'s
