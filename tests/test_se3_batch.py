@@ -129,8 +129,10 @@ def test_compacted_tail(n_need, alive):
     batch = 64
     rng = np.random.default_rng(n_need)
     x = jnp.zeros(batch, jnp.int32)
-    target = jnp.zeros(batch, jnp.int32).at[rng.permutation(batch)[:n_need]].set(
-        jnp.asarray(rng.integers(1, 5, size=n_need), jnp.int32)
+    target = (
+        jnp.zeros(batch, jnp.int32)
+        .at[rng.permutation(batch)[:n_need]]
+        .set(jnp.asarray(rng.integers(1, 5, size=n_need), jnp.int32))
     )
     mask = True if alive == "all" else jnp.asarray(rng.uniform(size=batch) > 0.3)
 
