@@ -7,8 +7,8 @@ compile time apart) on
 - SO(3) tensor: the same body given a full 3×3 inertia tensor (a rotated frame), which
   DEP solves by the generic path (`jax.jacfwd` Jacobian, `linalg.solve`);
 - SE(3): a body with a full 6×6 kinetic tensor (`lievi.RigidBodySE3`, Kirchhoff); DEP
-  takes its scalar closed-form step (`lievi/_systems/_se3_dep.py`), RK4 the closed forms
-  of `lievi.SE3`;
+  takes the structure-of-arrays closed-form step of `lievi._batch._fast_se3` (one body:
+  every component a scalar), RK4 the closed forms of `lievi.SE3`;
 - SE(3) block-diagonal: `M = diag(I, m 1₃)` with the SO(3) body's principal moments (the
   like-for-like counterpart of "SO(3)"), same closed-form step as "SE(3)";
 - SE(3) generic: the same body on a group that supplies only `hat`, `vee`, `log` and

@@ -9,7 +9,7 @@ and no potential, written for throughput over many bodies:
   elementwise loops that it vectorises; the tensor's 36 entries are arrays `(B,)` when
   each body has its own, scalars when the batch shares one;
 - **Newton in the rotation part**: the DEP equation `dφ⁻¹(ξ)ᵀ Mξ/h = m` (4.8) splits as
-  `r_ω = K a + L b − Π`, `r_v = K′b − P` with `(a, b) = Mξ/h` (`_se3_dep.py`), and `r_v`
+  `r_ω = K a + L b − Π`, `r_v = K′b − P` with `(a, b) = Mξ/h` (derivation below), and `r_v`
   is linear in `b`: for a given `ω`, `b = K′(ω)⁻¹P` in closed form and
   `v = A₂₂⁻¹(b − A₂₁ω)` (`A = M/h`). Newton runs on `ρ(ω) = r_ω(ω, v(ω))` with its 3×3
   Jacobian — the Schur complement of the 6×6 one (`_reduced_residual`), solved by
@@ -27,6 +27,32 @@ and no potential, written for throughput over many bodies:
   derivative is the implicit function theorem's `dξ = −J⁻¹(∂r/∂m dm + ∂r/∂A dA)` with the
   closed-form 6×6 Jacobian (`residual`) and a block solve with 3×3 Cramer inverses; the
   Newton iterations are not differentiated.
+
+Derivation. For increment `ξ = (ω, v)` and `μ = (a, b) = Mξ/h`, the left-invariant DEP
+equation `dφ⁻¹(ξ)ᵀ μ = m` has the block structure of `lievi.SE3`: with
+`K = dφ⁻¹_SO(3)(ω)ᵀ` (the SO(3) equation's operator) and `L` its translation block,
+
+    r_ω = K a + L b − Π,      r_v = K′ b − P,
+
+where, with `t = |ω|²`, `s = ω·v`,
+
+- exp chart: `K y = K′ y = y + ω×y/2 + c(t)(ω(ω·y) − t y)`, `c = (1 − (θ/2)cot(θ/2))/θ²`,
+  and `L y = v×y/2 + 2c′(t)s(ω(ω·y) − t y) + c(ω(v·y) + v(ω·y) − 2s y)` (the transpose of
+  `∂_v J⁻¹`, `lievi.SE3.dexpinv`'s lower-left block, expanded with
+  `v×(ω×y) = ω(v·y) − y s`);
+- Cayley chart: `K y = y + ω×y/2 + ω(ω·y)/4`, `K′ y = y + ω×y/2`, `L y = v×K′y/2` (the
+  transpose of `lievi.SE3.dcayinv`);
+
+and its Jacobian is `dφ⁻¹(ξ)ᵀ M/h + E`, with `E` the derivative of `dφ⁻¹(ξ)ᵀ μ` at fixed
+`μ` (`_e_blocks`; needs `c′` and `c″`). The coefficients are power series in `u = θ²/4`,
+accurate to round-off up to θ = π (the exp chart's domain), with no library
+trigonometry. The tests check `r`, `∂r/∂ξ`, the reduced Jacobian and the step with its
+gradients against `jax.jacfwd` of the residual built from `lievi.SE3.dexpinv`/`dcayinv`
+and against the generic path.
+
+The same kernel runs `simulate`'s step for one body (`RigidBodySE3.kernel_step`), every
+component a scalar; there the values stored once (`materialise`) are stacked into one
+array per group, each group one kernel launch.
 
 Then `F = φ(ξ)`, `m_{k+1} = Ad_Fᵀ m_k` (DLP (3.3)) and `g_{k+1} = g_k F` (2.9), the
 rotation block re-orthonormalised by one Newton–Schulz step as `lievi.SE3.compose` does.
@@ -99,7 +125,7 @@ def _operator(chart, w, v, coefficients=None):
     exp:    K = K′ = (1 − ct) + ω̂/2 + c ωωᵀ,
             L = v̂/2 − (kt + 2cs) + k ωωᵀ + c(ωvᵀ + vωᵀ),  k = 2c′s;
     Cayley: K′ = 1 + ω̂/2,  K = K′ + ωωᵀ/4,  L = v̂/2 + (ωvᵀ − s)/4
-    (`t = |ω|²`, `s = ω·v`; `_se3_dep.py`).
+    (`t = |ω|²`, `s = ω·v`; the module doc).
     """
     t, s = _dot(w, w), _dot(w, v)
     if chart == "cayley":
@@ -155,7 +181,7 @@ def _ones(x):
 
 
 def residual(chart, x, m, A, with_jacobian: bool):
-    """`r = dφ⁻¹(x)ᵀ A x − m` and, if asked, `∂r/∂x = dφ⁻¹(x)ᵀ A + E` (`_se3_dep.py`).
+    """`r = dφ⁻¹(x)ᵀ A x − m` and, if asked, `∂r/∂x = dφ⁻¹(x)ᵀ A + E` (the module doc).
 
     `x`, `m`: 6-tuples of arrays; `A = M/h`: 6×6 nested tuple. Returns `(r, J)`, `J` a 6×6
     nested tuple (or `None`).
@@ -201,7 +227,7 @@ def residual(chart, x, m, A, with_jacobian: bool):
 
 def _e_blocks(chart, w, v, a, b, Kpb, coefficients):
     """`(E_ωω, E_ωv, E_vω)`: the blocks of `E = ∂(dφ⁻¹(ξ)ᵀμ)/∂ξ` at fixed `μ = (a, b)`
-    (`E_vv = 0`), `Kpb = K′b` (`_se3_dep._blocks`, `_se3_newton._jacobian`)."""
+    (`E_vv = 0`), `Kpb = K′b`."""
     oa, ob, vb = _dot(w, a), _dot(w, b), _dot(v, b)
     t, s = _dot(w, w), _dot(w, v)
     if chart == "cayley":

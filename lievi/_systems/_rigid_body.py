@@ -78,6 +78,7 @@ class RigidBody(AbstractLieSystem):
         moments = self.principal_moments()
         if kernel is None or moments is None:
             return None
+        kernel = kernel.one_body()
         params = kernel.prepare(tuple(moments[i] for i in range(3)), h)
         components = tuple(g[i, j] for i in range(3) for j in range(3))
         g_next, m_next, *info = kernel.step(params, components, tuple(m[i] for i in range(3)), True)

@@ -27,12 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
 
-from .._batch._fast_so3 import NewtonKernel
 from .._checks import check_finite, check_spd, is_concrete
 from .._groups._base import MatrixLieGroup
 from .._groups._se3 import SE3, SE3Group
-from .._integrators._newton import newton_tolerance
-from . import _se3_dep
 from ._base import AbstractLieSystem
 from ._potential import AbstractPotential, as_potential
 
@@ -160,22 +157,22 @@ class RigidBodySE3(AbstractLieSystem):
         return None if se3 is None else (se3, self.tensor)
 
     def kernel_step(self, kernel, g, m, h):
-        # DEP (either chart) in closed form (`_se3_dep.py`, `_se3_newton.py`): the residual,
-        # its Jacobian, the 6×6 solve, F, Ad_Fᵀ m and g F written out, so XLA fuses the
-        # step; the same Newton iterates as the generic path. Other methods: generic.
-        # Only on `lievi.SE3` itself (a subclass with another group takes the generic path).
-        if (
-            not isinstance(self.group, SE3Group)
-            or not isinstance(kernel, NewtonKernel)
-            or kernel.chart not in ("exp", "cayley")
-        ):
+        # The batch kernel's DEP step (`lievi/_batch/_fast_se3.py`, either chart) on one
+        # body, every component a scalar (under `jax.vmap` a `(B,)` array): closed forms,
+        # Newton on the rotation part, the same root as the generic path. Other methods,
+        # and a subclass on another group: the generic path.
+        if kernel is None or not isinstance(self.group, SE3Group):
             return None
+        kernel = kernel.on_se3()
+        if kernel is None:
+            return None
+        kernel = kernel.one_body()
         dtype = jnp.result_type(self.tensor, m, g)
-        A = jnp.asarray(self.tensor, dtype) / h
-        tolerance = newton_tolerance(jnp.max(jnp.abs(m)), m.dtype, kernel.rtol, kernel.atol)
-        return _se3_dep.dep_step(
-            kernel.chart, g, m, A, h * self.velocity(m), tolerance, kernel.max_steps
-        )
+        params = kernel.prepare(kernel.constants(jnp.asarray(self.tensor, dtype), 1), h)
+        top = tuple(g[i, j] for i in range(3) for j in range(4))
+        g_next, m_next, *info = kernel.step(params, top, tuple(m[i] for i in range(6)), True)
+        last = jnp.asarray([[0, 0, 0, 1]], dtype)
+        return (jnp.concatenate([jnp.stack(g_next).reshape(3, 4), last]), jnp.stack(m_next), *info)
 
     def lagrangian(self, xi: Float[Array, 6]) -> Scalar:
         return jnp.dot(xi, self.legendre(xi)) / 2
