@@ -85,8 +85,8 @@ def test_float32():
 
 
 def test_shared_system_one_fixed_iteration_then_tail():
-    """One system for all bodies, one fixed Newton iteration: the `while_loop` tail
-    finishes every body, with the same iterates as the generic path."""
+    """One system for all bodies, one fixed iteration (the chord step): the `while_loop`
+    tail finishes every body, with the same iterates as the generic path."""
     rng = np.random.default_rng(2)
     bodies, g0, m0, _ = random_batch(rng, BATCH)
     body = lievi.RigidBodySE3(tensor=bodies.tensor[0])

@@ -496,8 +496,9 @@ def _chord_step(chart, w, m, C):
     From the explicit-Euler guess (`O(h²)` off the root) it gains an order of `h` for the
     cost of a residual, about half a Newton step's: two Newton steps then reach the
     tolerance where three were needed (`DEFAULT_FIXED_ITERATIONS`)."""
+    *_, S_inv = C
     rho, _, _ = _reduced_residual(chart, w, m, C, False)
-    delta = _mv(C[4], rho)
+    delta = _mv(S_inv, rho)
     return tuple(w[i] - delta[i] for i in range(3))
 
 

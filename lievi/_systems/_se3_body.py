@@ -169,10 +169,10 @@ class RigidBodySE3(AbstractLieSystem):
         kernel = kernel.one_body()
         dtype = jnp.result_type(self.tensor, m, g)
         params = kernel.prepare(kernel.constants(jnp.asarray(self.tensor, dtype), 1), h)
-        top = tuple(g[i, j] for i in range(3) for j in range(4))
-        g_next, m_next, *info = kernel.step(params, top, tuple(m[i] for i in range(6)), True)
-        last = jnp.asarray([[0, 0, 0, 1]], dtype)
-        return (jnp.concatenate([jnp.stack(g_next).reshape(3, 4), last]), jnp.stack(m_next), *info)
+        # The kernel's own state layout, on a batch of one, as scalars.
+        carried = tuple(e[0] for e in kernel.carried(g[None]))
+        g_next, m_next, *info = kernel.step(params, carried, tuple(m[i] for i in range(6)), True)
+        return (kernel.elements(jnp.stack(g_next)[:, None])[0], jnp.stack(m_next), *info)
 
     def lagrangian(self, xi: Float[Array, 6]) -> Scalar:
         return jnp.dot(xi, self.legendre(xi)) / 2
