@@ -3,11 +3,11 @@
 For DEP (exponential and Cayley charts) and RK4 this times `simulate` (final state only,
 compile time apart) on
 - SO(3): the HLW rigid body (`lievi.RigidBody`, 3 momenta, principal moments: DEP takes
-  the structure-of-arrays closed-form step of `lievi._batch._fast_so3`);
+  the structure-of-arrays closed-form step of `lievi._kernels._so3`);
 - SO(3) tensor: the same body given a full 3×3 inertia tensor (a rotated frame), which
   DEP solves by the generic path (`jax.jacfwd` Jacobian, `linalg.solve`);
 - SE(3): a body with a full 6×6 kinetic tensor (`lievi.RigidBodySE3`, Kirchhoff); DEP
-  takes the structure-of-arrays closed-form step of `lievi._batch._fast_se3` (one body:
+  takes the structure-of-arrays closed-form step of `lievi._kernels._se3` (one body:
   every component a scalar), RK4 the closed forms of `lievi.SE3`;
 - SE(3) block-diagonal: `M = diag(I, m 1₃)` with the SO(3) body's principal moments (the
   like-for-like counterpart of "SO(3)"), same closed-form step as "SE(3)";
@@ -19,7 +19,7 @@ compile time apart) on
 and reports the time per step for one body (`simulate`), for a vmapped batch
 (`jax.vmap(simulate)`), and for the same batch through `lievi.simulate_batch` where the
 pair has a structure-of-arrays fast path (`lievi.has_fast_path`: DEP on "SO(3)", and on
-"SE(3)" and "SE(3) block-diagonal" through `lievi/_batch/_fast_se3.py`), with the ratios
+"SE(3)" and "SE(3) block-diagonal" through `lievi/_kernels/_se3.py`), with the ratios
 SE(3)/SO(3) of each (and to "SO(3) tensor"). Writes
 `benchmarks/results/se3_step_cost.json`, with the load average at the start.
 

@@ -7,9 +7,6 @@ equations*, Nonlinearity 12 (1999) 1647–1662, in JAX.
 from importlib import metadata as _metadata
 
 from . import diagnostics as diagnostics
-from ._batch._simulate_batch import has_fast_path as has_fast_path
-from ._batch._simulate_batch import shard_batch as shard_batch
-from ._batch._simulate_batch import simulate_batch as simulate_batch
 from ._forcing import AbstractForcing as AbstractForcing
 from ._forcing import Control as Control
 from ._forcing import ForceLaw as ForceLaw
@@ -54,6 +51,9 @@ from ._reference import reference_solution as reference_solution
 from ._results import RESULTS as RESULTS
 from ._simulate import Solution as Solution
 from ._simulate import simulate as simulate
+from ._simulate_batch import has_fast_path as has_fast_path
+from ._simulate_batch import shard_batch as shard_batch
+from ._simulate_batch import simulate_batch as simulate_batch
 from ._systems._base import AbstractLieSystem as AbstractLieSystem
 from ._systems._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
 from ._systems._lie_lagrangian import LieLagrangian as LieLagrangian

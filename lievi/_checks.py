@@ -8,6 +8,7 @@ value gives `RESULTS.invalid_input` for that body — never a silent number.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -102,3 +103,22 @@ def input_valid(system, g0, m0, h, t0=0.0):
         & step_size_valid(h)
         & jnp.isfinite(t0)
     )
+
+
+def as_int(value):
+    """NumPy integers become Python ints (a static field must not hold a NumPy scalar)."""
+    return int(value) if isinstance(value, np.integer) else value
+
+
+def check_integer(name: str, value, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"`{name}` must be an integer ≥ {minimum}, got {value!r}.")
+    return int(value)
+
+
+def state_dtype(system, *arrays):
+    """The dtype a run computes in: NumPy promotion of the state, `h` and the system's
+    floating-point parameters (a float64 inertia with a float32 state runs in float64;
+    for float32 throughout, pass float32 parameters too)."""
+    params = [x for x in jax.tree.leaves(system) if eqx.is_inexact_array(x)]
+    return jnp.result_type(*arrays, *params, float)

@@ -62,13 +62,13 @@ import optax
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int
 
-from ._batch._simulate_batch import simulate_batch
 from ._checks import check_finite, is_concrete
 from ._fit_optimizer import LBFGS, OptaxMachine
 from ._groups._so3 import SO3
 from ._integrators._base import AbstractIntegrator
 from ._integrators._dep import DEP
 from ._simulate import simulate
+from ._simulate_batch import simulate_batch
 from ._systems._base import AbstractLieSystem
 from ._systems._rigid_body import RigidBody
 

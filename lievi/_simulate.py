@@ -10,10 +10,18 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ._checks import check_real_dtype, check_scalar, input_valid, is_concrete
+from ._checks import (
+    check_integer,
+    check_real_dtype,
+    check_scalar,
+    input_valid,
+    is_concrete,
+    state_dtype,
+)
 from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator, AbstractVariationalIntegrator
 from ._results import RESULTS
+from ._scan import checkpoint_segment, scan_in_segments
 from ._systems._base import AbstractLieSystem
 
 
@@ -63,18 +71,17 @@ class Solution(eqx.Module):
             raise ValueError(f"`frame` must be 'body' or 'spatial', got {frame!r}.")
         xi = _over_leading_axes(system.velocity, 1, self.m)
         # Left-invariant systems carry the body velocity, right-invariant the spatial one.
-        if frame == ("spatial" if system.side == "left" else "body"):
-            group = system.group
-            A = group.Ad(self.g if system.side == "left" else group.inverse(self.g))
-            xi = jnp.einsum("...ab,...b->...a", A, xi)
+        if frame != system.side.carried_frame():
+            xi = system.side.other_frame(system.group, self.g, xi)
         return xi
 
     def spatial_momentum(self, system: AbstractLieSystem) -> Float[Array, "T d"]:
-        """Momentum in the world frame along the trajectory: `gΠ` on SO(3).
+        """The momentum conserved by the symmetry, along the trajectory: `gΠ` on SO(3).
 
-        Left-invariant systems: `Ad*_{g⁻¹}Π = Ad_{g⁻¹}ᵀΠ` (`gΠ̂gᵀ` on SO(n)), conserved by the
-        free flow and kept to round-off by the geometric integrators. Right-invariant
-        systems carry the spatial momentum `μ` already: `Solution.m` is returned.
+        Left-invariant systems: the spatial momentum `Ad*_{g⁻¹}Π = Ad_{g⁻¹}ᵀΠ` (`gΠ̂gᵀ` on
+        SO(n)). Right-invariant systems: the body momentum `Ad_gᵀμ`. Conserved by the free
+        flow and kept to round-off by the geometric integrators; the same quantity as
+        `lievi.diagnostics.spatial_momentum`.
 
         **Arguments:**
 
@@ -82,10 +89,7 @@ class Solution(eqx.Module):
 
         **Returns:** shape `(T, d)` (leading batch axes kept).
         """
-        if system.side == "right":
-            return self.m
-        group = system.group
-        return jnp.einsum("...ba,...b->...a", group.Ad(group.inverse(self.g)), self.m)
+        return system.side.noether_momentum(system.group, self.g, self.m)
 
 
 def _over_leading_axes(fn, core_ndim: int, x):
@@ -93,12 +97,6 @@ def _over_leading_axes(fn, core_ndim: int, x):
     for _ in range(x.ndim - core_ndim):
         fn = jax.vmap(fn)
     return fn(x)
-
-
-def _check_integer(name: str, value, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"`{name}` must be an integer ≥ {minimum}, got {value!r}.")
-    return int(value)
 
 
 def _check_step_size(h) -> None:
@@ -178,8 +176,8 @@ def simulate(
     `jax.vmap` (many bodies) use `throw=False` to let a batch carry on and read the
     per-body `result`.
     """
-    n_steps = _check_integer("n_steps", n_steps, 1)
-    save_every = _check_integer("save_every", save_every, 1)
+    n_steps = check_integer("n_steps", n_steps, 1)
+    save_every = check_integer("save_every", save_every, 1)
     if n_steps % save_every:
         raise ValueError(f"`save_every` ({save_every}) must divide `n_steps` ({n_steps}).")
     _check_step_size(h)
@@ -216,7 +214,7 @@ def simulate(
         valid = system.element_valid(g1)
     m0 = _as_array("m0", m0)
     system.check_momentum("m0", m0)
-    segment = _checkpoint_segment(checkpoint, n_steps, save_every)
+    segment = checkpoint_segment(checkpoint, n_steps, save_every)
     progress = _progress_kind(progress_meter)
     forcing = as_forcing(forcing)
     dtype = state_dtype(system, g0, m0, h)
@@ -263,14 +261,6 @@ def _as_array(name: str, x):
     return jnp.asarray(x)
 
 
-def state_dtype(system, *arrays):
-    """The dtype a run computes in: NumPy promotion of the state, `h` and the system's
-    floating-point parameters (a float64 inertia with a float32 state runs in float64;
-    for float32 throughout, pass float32 parameters too)."""
-    params = [x for x in jax.tree.leaves(system) if eqx.is_inexact_array(x)]
-    return jnp.result_type(*arrays, *params, float)
-
-
 def checked_step_result(integrator, system, m, h, g_next, m_next, result):
     """The step's own code, completed by the checks every method gets: a non-finite `g`
     or `m` is `nonfinite` (not only the momentum: a NaN attitude is caught too), and a
@@ -279,46 +269,6 @@ def checked_step_result(integrator, system, m, h, g_next, m_next, result):
     result = jnp.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
     too_large = integrator.step_too_large(system, m, h)
     return jnp.where(too_large, RESULTS.step_too_large, result).astype(jnp.int32)
-
-
-def _checkpoint_segment(checkpoint, n_steps: int, save_every: int) -> int | None:
-    """Steps per `jax.checkpoint`-ed segment, or `None` for no checkpointing."""
-    if checkpoint is False or checkpoint is None:
-        return None
-    # A segment either lies inside one save interval or spans whole save intervals.
-    n_saves = n_steps // save_every
-    allowed = sorted(
-        {d for d in range(1, save_every + 1) if save_every % d == 0}
-        | {save_every * d for d in range(1, n_saves + 1) if n_saves % d == 0}
-    )
-    if checkpoint is True:
-        # √N segments of √N steps minimise stored states + one segment's internals.
-        return min(allowed, key=lambda c: abs(np.log(c) - 0.5 * np.log(n_steps)))
-    if (
-        isinstance(checkpoint, bool)
-        or not isinstance(checkpoint, (int, np.integer))
-        or checkpoint not in allowed
-    ):
-        raise ValueError(
-            f"`checkpoint` must be True, False, or a segment length in steps that divides "
-            f"`save_every` ({save_every}) or is a multiple of it dividing `n_steps` ({n_steps}); "
-            f"got {checkpoint!r}. Pass checkpoint=True to choose one near √n_steps."
-        )
-    return int(checkpoint)
-
-
-def _scan_in_segments(body, carry, length: int, segment: int | None, xs=None):
-    """`lax.scan(body, carry, xs, length)`, in `jax.checkpoint`-ed chunks of `segment`."""
-    if segment is None or segment >= length:
-        return jax.lax.scan(body, carry, xs, length=length)
-
-    @jax.checkpoint
-    def chunk(carry, xs):
-        return jax.lax.scan(body, carry, xs, length=segment)
-
-    xs = jax.tree.map(lambda x: x.reshape((length // segment, segment) + x.shape[1:]), xs)
-    carry, ys = jax.lax.scan(chunk, carry, xs, length=length // segment)
-    return carry, jax.tree.map(lambda y: y.reshape((length,) + y.shape[2:]), ys)
 
 
 def _progress_kind(progress_meter) -> str | None:
@@ -431,7 +381,7 @@ def _simulate(
     outer = segment // save_every if segment is not None and segment > save_every else None
 
     def one_save(carry, data):
-        carry, (iterations, residuals) = _scan_in_segments(one_step, carry, save_every, inner, data)
+        carry, (iterations, residuals) = scan_in_segments(one_step, carry, save_every, inner, data)
         g, m, result = carry[0], carry[1], carry[2]
         # No silent numbers past the failed step.
         ok = result == RESULTS.successful
@@ -449,7 +399,7 @@ def _simulate(
         lambda x: jnp.asarray(x, m0.dtype).reshape((n_saves, save_every) + jnp.shape(x)[1:]),
         per_step,
     )
-    final, (gs, ms, iterations, total, residuals) = _scan_in_segments(
+    final, (gs, ms, iterations, total, residuals) = scan_in_segments(
         one_save, init, n_saves, outer, per_step
     )
     _, _, result, failed_step, _ = final

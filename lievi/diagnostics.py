@@ -65,9 +65,7 @@ def spatial_momentum(
     Left-invariant: the spatial momentum `Ad*_{g⁻¹} Π = Ad_{g⁻¹}ᵀ Π` (`g Π` on SO(3), `g Π̂ gᵀ`
     on SO(n)). Right-invariant: the body momentum `Ad_gᵀ μ`.
     """
-    group = system.group
-    A = group.Ad(group.inverse(g)) if system.side == "left" else group.Ad(g)
-    return jnp.einsum("...ba,...b->...a", A, m)
+    return system.side.noether_momentum(system.group, g, m)
 
 
 def orthogonality_defect(system: AbstractLieSystem, g: Float[Array, "*batch n n"]):
@@ -106,7 +104,7 @@ def _del_residual(system, integrator, g, h):
     def residual(g_prev, g_k, g_next):
         def action(eta):
             e = group.exp(eta)
-            moved = g_k @ e if system.side == "left" else e @ g_k
+            moved = system.side.translate(g_k, e)
             return integrator.discrete_lagrangian(
                 system, g_prev, moved, h
             ) + integrator.discrete_lagrangian(system, moved, g_next, h)

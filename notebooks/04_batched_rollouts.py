@@ -20,7 +20,7 @@
 # own inertia, initial state and step size. For the rigid body with principal moments and
 # `DEP` (both charts), `MoserVeselov`, `LiePoissonSplitting` or `RK4` it uses a
 # structure-of-arrays fast path (closed-form Newton or explicit updates on component arrays,
-# `lievi/_batch/_fast_so3.py`, `lievi/_batch/_fast_explicit.py`) whose iterates equal per-body
+# `lievi/_kernels/_so3.py`, `lievi/_kernels/_explicit.py`) whose iterates equal per-body
 # `lievi.simulate` to round-off (`tests/test_batch.py`).
 #
 # This notebook

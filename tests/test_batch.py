@@ -13,7 +13,7 @@ import pytest
 
 import lievi
 from helpers import ROUNDOFF, ROUNDOFF_F32, random_rotation
-from lievi._batch import _explicit_adjoints, _fast_explicit, _fast_so3
+from lievi._kernels import _explicit_adjoints, _explicit_primal, _so3, _soa
 
 CHARTS = ("exp", "cayley")
 # Every integrator with a fast path.
@@ -104,7 +104,7 @@ def test_closed_form_jacobian(chart, scale):
             )
         return dinv(x).T @ body.legendre(x / h) - Pi
 
-    r, J = _fast_so3._residual(chart, tuple(xi), tuple(Pi), tuple(inertia / h), True)
+    r, J = _so3._residual(chart, tuple(xi), tuple(Pi), tuple(inertia / h), True)
     scale_r = 1 + np.abs(residual(xi)).max()
     np.testing.assert_allclose(np.array(r), residual(xi), rtol=0, atol=ROUNDOFF * scale_r)
     np.testing.assert_allclose(
@@ -127,7 +127,7 @@ def test_sincos(dtype):
         ]
     )
     x = jnp.asarray(x, dtype)
-    s, c = jax.jit(_fast_explicit.sincos)(x)
+    s, c = jax.jit(_explicit_primal.sincos)(x)
     exact = np.asarray(x, np.float64)
     eps = np.finfo(dtype).eps
     np.testing.assert_allclose(np.asarray(s, np.float64), np.sin(exact), rtol=0, atol=eps)
@@ -205,9 +205,9 @@ def test_moser_veselov_scalar_solve_at_large_steps():
     h = jnp.asarray(rng.uniform(0.2, 0.6, 64))
     A = tuple(bodies.inertia[:, i] / h for i in range(3))
     Pi = tuple(m0[:, i] for i in range(3))
-    x = _fast_so3._moser_veselov_by_scalar_newton(Pi, A, 4)
-    residual = _fast_so3._max_abs(_fast_so3._residual_moser_veselov(x, Pi, A, False)[0])
-    assert np.sum(~(residual <= 64 * np.finfo(np.float64).eps * (1 + _fast_so3._max_abs(Pi)))) >= 5
+    x = _so3._moser_veselov_by_scalar_newton(Pi, A, 4)
+    residual = _soa.max_abs(_so3._residual_moser_veselov(x, Pi, A, False)[0])
+    assert np.sum(~(residual <= 64 * np.finfo(np.float64).eps * (1 + _soa.max_abs(Pi)))) >= 5
 
     kwargs = dict(h=h, n_steps=10, save_every=10, system_axis=0, throw=False)
     mv = lievi.MoserVeselov()
@@ -387,11 +387,11 @@ def test_explicit_step_derivative_rules(method, rows):
 
     g, Pi = arrays(3 * rows), arrays(3, -2.0, 2.0)
     if method == "splitting":
-        rule, plain = _explicit_adjoints.splitting_flow, _fast_explicit.splitting_primal
+        rule, plain = _explicit_adjoints.splitting_flow, _explicit_primal.splitting_primal
         # h/I: per body up to angles of several turns (every quadrant of `sincos`).
         per_body, shared = arrays(3, 0.05, 2.0), tuple(jnp.asarray(x) for x in (0.3, 0.2, 0.1))
     else:
-        rule, plain = _explicit_adjoints.rk4_flow, _fast_explicit.rk4_primal
+        rule, plain = _explicit_adjoints.rk4_flow, _explicit_primal.rk4_primal
         per_body, shared = arrays(3, 0.05, 0.5), tuple(jnp.asarray(x) for x in (0.1, 0.2, 0.3))
 
     def close(a, b):
@@ -521,7 +521,7 @@ def test_reduced_heavy_top_equals_reconstructed(name):
     the reconstructed run's `(Π_k, g_kᵀe₃)` to round-off, with the same per-body result
     codes and NaN masking; bodies that fail (a NaN centre of mass: invalid input; a spin
     too fast for the step: step too large) fail alike and do not disturb the others."""
-    from lievi._batch._simulate_batch import _fast_kernel
+    from lievi._simulate_batch import _fast_kernel
 
     rng = np.random.default_rng(11)
     batch = 6

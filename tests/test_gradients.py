@@ -23,7 +23,7 @@ import pytest
 import lievi
 from helpers import hlw_problem
 from lievi import SO3
-from lievi._integrators._newton import newton_solve
+from lievi._newton import newton_solve
 
 N_STEPS = 1000  # the acceptance test: 1000 steps of the HLW body
 H = 0.05

@@ -1,4 +1,4 @@
-"""`simulate_batch` on SE(3): the structure-of-arrays DEP step (`lievi/_batch/_fast_se3.py`)
+"""`simulate_batch` on SE(3): the structure-of-arrays DEP step (`lievi/_kernels/_se3.py`)
 equals the generic path (`jax.vmap(simulate)`) to round-off, in values, result codes and
 gradients; its reduced Newton iteration's Jacobian equals `jax.jacfwd`."""
 
@@ -9,8 +9,8 @@ import pytest
 
 import lievi
 from helpers import ROUNDOFF, ROUNDOFF_F32
-from lievi._batch import _fast_se3
-from lievi._batch._kernel import compacted_tail
+from lievi._kernels import _se3, _se3_residual
+from lievi._kernels._base import compacted_tail
 
 SE3 = lievi.SE3
 CHARTS = ("exp", "cayley")
@@ -116,7 +116,7 @@ def test_stragglers_take_the_gathered_tail(chart):
     np.testing.assert_array_equal(fast.result, 0)
     np.testing.assert_allclose(fast.g, generic.g, rtol=0, atol=ROUNDOFF)
     np.testing.assert_allclose(fast.m, generic.m, rtol=0, atol=ROUNDOFF)
-    fixed = _fast_se3.DEFAULT_FIXED_ITERATIONS[chart]
+    fixed = _se3.DEFAULT_FIXED_ITERATIONS[chart]
     most = fast.stats["newton_iterations"].max(axis=1)
     assert np.all(most[:3] > fixed) and np.all(most[3:] == fixed)
 
@@ -165,7 +165,7 @@ def test_reduced_jacobian(chart):
     rng = np.random.default_rng(3)
     tensor = random_tensors(rng, 1, "kirchhoff")[0]
     h = 0.1
-    kernel = _fast_se3.SE3NewtonKernel(chart, None, None, 20)
+    kernel = _se3.SE3NewtonKernel(chart, None, None, 20)
     # A tensor shared by the batch: per-run constants are scalars.
     A, _, C = kernel.prepare(kernel.constants(tensor, 1), h)
 
@@ -175,10 +175,10 @@ def test_reduced_jacobian(chart):
         m = tuple(m)
 
         def rho(w):
-            return jnp.stack(_fast_se3._reduced_residual(chart, tuple(w), m, C, False)[0])
+            return jnp.stack(_se3._reduced_residual(chart, tuple(w), m, C, False)[0])
 
-        r, J, (_, v) = _fast_se3._reduced_residual(chart, tuple(w), m, C, True)
-        full, _ = _fast_se3.residual(chart, tuple(w) + tuple(v), m, A, False)
+        r, J, (_, v) = _se3._reduced_residual(chart, tuple(w), m, C, True)
+        full, _ = _se3_residual.residual(chart, tuple(w) + tuple(v), m, A, False)
         J = jnp.stack([jnp.stack(row) for row in J])
         return (
             jnp.max(jnp.abs(jnp.stack(r) - jnp.stack(full[:3]))),

@@ -344,12 +344,12 @@ def test_non_rigid_g0_is_rejected(g0):
     ],
 )
 def test_closed_form_step_equals_generic(chart, gradients):
-    """`RigidBodySE3`'s DEP step (closed forms, the batch kernel `_fast_se3.py` on one
+    """`RigidBodySE3`'s DEP step (closed forms, the batch kernel `_kernels/_se3.py` on one
     body) against the generic path (`jax.jacfwd` of the residual built from
     `SE3.dexpinv`/`dcayinv`, `linalg.solve`): the 6×6 residual, Jacobian and block solve at
     rotation angles 1e-9 … 2.5, the step, and (slow set) gradients through the implicit
     derivative."""
-    from lievi._batch import _fast_se3
+    from lievi._kernels import _se3, _se3_residual
 
     rng = np.random.default_rng(3)
     B = rng.normal(size=(6, 6))
@@ -364,8 +364,8 @@ def test_closed_form_step_equals_generic(chart, gradients):
         def generic(x):
             return dchart_inverse(x).T @ (M @ x / h) - m
 
-        r, J = _fast_se3.residual(chart, tuple(xi), tuple(m), A, True)
-        solved = jnp.stack(_fast_se3._solve(_fast_se3._factor(J), r))
+        r, J = _se3_residual.residual(chart, tuple(xi), tuple(m), A, True)
+        solved = jnp.stack(_se3_residual.solve6(_se3_residual.factor(J), r))
         r, J = jnp.stack(r), jnp.stack([jnp.stack(row) for row in J])
         return (
             jnp.max(jnp.abs(r - generic(xi))),
@@ -406,9 +406,9 @@ def test_closed_form_step_equals_generic(chart, gradients):
         (_, (g1, m1, info)), (_, (g2, m2, info2)) = jax.jit(fast)(m, M), jax.jit(reference)(m, M)
         grads = grads2 = ()
     assert info.result == lievi.RESULTS.successful
-    # A chord step and two Newton steps (`_fast_se3.DEFAULT_FIXED_ITERATIONS`), where the
+    # A chord step and two Newton steps (`_se3.DEFAULT_FIXED_ITERATIONS`), where the
     # generic path stops at convergence.
-    assert int(info.iterations) == _fast_se3.DEFAULT_FIXED_ITERATIONS[chart]
+    assert int(info.iterations) == _se3.DEFAULT_FIXED_ITERATIONS[chart]
     assert int(info2.iterations) >= 2
     assert float(jnp.max(jnp.abs(g1 - g2))) <= ROUNDOFF
     assert float(jnp.max(jnp.abs(m1 - m2))) <= ROUNDOFF

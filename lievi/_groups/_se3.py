@@ -39,7 +39,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._base import MatrixLieGroup
-from ._so3 import SO3, _cosc, _dexpinv_coefficient, _dot, _sinc3
+from ._series import cosc, dexpinv_coefficient, dot, sinc3
+from ._so3 import SO3
 
 
 def _split(x):
@@ -71,8 +72,8 @@ def _coefficient_and_derivative(coefficient, omega, v):
     Forward mode through the "double where" of `_series_or_exact` differentiates the
     branch that is used (the series near 0), so the derivative is as NaN-free as the value.
     """
-    t2 = _dot(omega, omega)
-    dt2 = 2 * _dot(omega, v)
+    t2 = dot(omega, omega)
+    dt2 = 2 * dot(omega, v)
     c, dc = jax.jvp(coefficient, (t2,), (dt2,))
     return c[..., None, None], dc[..., None, None]
 
@@ -209,8 +210,8 @@ class SE3Group(MatrixLieGroup):
         """`Σ ad_ξⁿ/(n+1)! = [[J, 0], [Q, J]]`, `J = I + a Ω + b Ω²`, `Q = ∂_v J`."""
         omega, v = _split(x)
         W, V = SO3.hat(omega), SO3.hat(v)
-        a, da = _coefficient_and_derivative(_cosc, omega, v)  # (1 − cos θ)/θ²
-        b, db = _coefficient_and_derivative(_sinc3, omega, v)  # (θ − sin θ)/θ³
+        a, da = _coefficient_and_derivative(cosc, omega, v)  # (1 − cos θ)/θ²
+        b, db = _coefficient_and_derivative(sinc3, omega, v)  # (θ − sin θ)/θ³
         W2 = W @ W
         J = jnp.eye(3, dtype=x.dtype) + a * W + b * W2
         Q = da * W + a * V + db * W2 + b * (W @ V + V @ W)
@@ -220,7 +221,7 @@ class SE3Group(MatrixLieGroup):
         """Inverse of `dexp`: `[[J⁻¹, 0], [∂_v J⁻¹, J⁻¹]]`, `J⁻¹ = I − Ω/2 + c Ω²`."""
         omega, v = _split(x)
         W, V = SO3.hat(omega), SO3.hat(v)
-        c, dc = _coefficient_and_derivative(_dexpinv_coefficient, omega, v)
+        c, dc = _coefficient_and_derivative(dexpinv_coefficient, omega, v)
         Jinv = jnp.eye(3, dtype=x.dtype) - W / 2 + c * (W @ W)
         Qinv = -V / 2 + dc * (W @ W) + c * (W @ V + V @ W)
         return _blocks(Jinv, jnp.zeros_like(Jinv), Qinv, Jinv)
@@ -259,7 +260,7 @@ class SE3Group(MatrixLieGroup):
     def casimirs(self, m: Float[Array, "*batch 6"]) -> Float[Array, "*batch 2"]:
         """The Casimirs of `se(3)*` at `m = (Π, P)`: `(|P|², P·Π)` (Kirchhoff's equations)."""
         Pi, P = _split(m)
-        return jnp.stack([_dot(P, P), _dot(P, Pi)], axis=-1)
+        return jnp.stack([dot(P, P), dot(P, Pi)], axis=-1)
 
 
 SE3 = SE3Group()

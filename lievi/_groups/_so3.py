@@ -13,68 +13,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._series import cosc, dexpinv_coefficient, dot, outer, sinc, sinc3, small_threshold
 from ._son import AbstractSpecialOrthogonal
-
-
-def _small_threshold(dtype) -> float:
-    # Taylor series below are exact to O(θ¹⁰); the switch point keeps the truncation
-    # error and the cancellation error of the exact forms both near machine epsilon.
-    return 1e-3 if jnp.finfo(dtype).bits >= 64 else 1e-1
-
-
-def _series_or_exact(theta2, exact, coefficients):
-    """`exact(θ²)` away from 0, the power series `Σ c_k θ^{2k}` near 0, safe for AD."""
-    small = theta2 < _small_threshold(theta2.dtype)
-    safe = jnp.where(small, jnp.ones_like(theta2), theta2)
-    series = jnp.zeros_like(theta2)
-    for c in reversed(coefficients):
-        series = series * theta2 + c
-    return jnp.where(small, series, exact(safe))
-
-
-def _sinc(t2):  # sin θ / θ
-    return _series_or_exact(
-        t2,
-        lambda s: jnp.sin(jnp.sqrt(s)) / jnp.sqrt(s),
-        (1, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880),
-    )
-
-
-def _cosc(t2):  # (1 − cos θ) / θ² = 2 sin²(θ/2) / θ², written without cancellation
-    return _series_or_exact(
-        t2,
-        lambda s: 2 * jnp.sin(jnp.sqrt(s) / 2) ** 2 / s,
-        (1 / 2, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800),
-    )
-
-
-def _sinc3(t2):  # (θ − sin θ) / θ³
-    return _series_or_exact(
-        t2,
-        lambda s: (jnp.sqrt(s) - jnp.sin(jnp.sqrt(s))) / (s * jnp.sqrt(s)),
-        (1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800),
-    )
-
-
-def _dexpinv_coefficient(t2):  # (1 − (θ/2) cot(θ/2)) / θ²
-    def exact(s):
-        half = jnp.sqrt(s) / 2
-        sin = jnp.sin(half)
-        # dexpinv is singular at θ = 2πk (k ≥ 1): there sin(θ/2) is round-off, and the
-        # quotient would be a huge finite number (~1e16); report it as non-finite.
-        singular = jnp.abs(sin) <= 4 * jnp.finfo(s.dtype).eps * half
-        value = (1 - half * jnp.cos(half) / jnp.where(singular, 1.0, sin)) / s
-        return jnp.where(singular, jnp.inf, value)
-
-    return _series_or_exact(t2, exact, (1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160))
-
-
-def _dot(x, y):
-    return jnp.sum(x * y, axis=-1)
-
-
-def _outer(x, y):
-    return x[..., :, None] * y[..., None, :]
 
 
 class SO3Group(AbstractSpecialOrthogonal):
@@ -123,19 +63,19 @@ class SO3Group(AbstractSpecialOrthogonal):
 
     def exp(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
         """Rodrigues: `I + (sin θ/θ) x̂ + ((1 − cos θ)/θ²) x̂²`."""
-        t2 = _dot(x, x)[..., None, None]
+        t2 = dot(x, x)[..., None, None]
         X = self.hat(x)
-        return jnp.eye(3, dtype=x.dtype) + _sinc(t2) * X + _cosc(t2) * (X @ X)
+        return jnp.eye(3, dtype=x.dtype) + sinc(t2) * X + cosc(t2) * (X @ X)
 
     def log(self, g: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
         """Principal logarithm, `|log g| ≤ π`; accurate up to and at θ = π."""
         dtype = g.dtype
         c = (jnp.trace(g, axis1=-2, axis2=-1) - 1) / 2  # cos θ
         v = self.vee(g)  # sin θ · axis
-        vv = _dot(v, v)  # sin² θ
+        vv = dot(v, v)  # sin² θ
         tiny = jnp.finfo(dtype).tiny
         # Near 0 means tan²θ = |v|²/cos²θ below the threshold (and cos θ > 0).
-        small = (c > 0) & (vv < _small_threshold(dtype) * c * c)
+        small = (c > 0) & (vv < small_threshold(dtype) * c * c)
         near_pi = c < 0
 
         # Away from 0 and π: θ/sin θ · v with θ = atan2(sin θ, cos θ) (no acos of a
@@ -164,7 +104,7 @@ class SO3Group(AbstractSpecialOrthogonal):
         bkk = jnp.take_along_axis(diag, k[..., None], axis=-1)[..., 0]
         denominator = jnp.where(near_pi, bkk * (1 - c), 1.0)
         axis = column / jnp.sqrt(jnp.maximum(denominator, tiny))[..., None]
-        orientation = jnp.where(_dot(axis, v) < 0, -1.0, 1.0)
+        orientation = jnp.where(dot(axis, v) < 0, -1.0, 1.0)
         opposite = (orientation * theta)[..., None] * axis
 
         out = jnp.where(small[..., None], near_zero, generic)
@@ -172,19 +112,19 @@ class SO3Group(AbstractSpecialOrthogonal):
 
     def dexp(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
         """`I + ((1 − cos θ)/θ²) x̂ + ((θ − sin θ)/θ³) x̂²`."""
-        t2 = _dot(x, x)[..., None, None]
+        t2 = dot(x, x)[..., None, None]
         X = self.hat(x)
-        return jnp.eye(3, dtype=x.dtype) + _cosc(t2) * X + _sinc3(t2) * (X @ X)
+        return jnp.eye(3, dtype=x.dtype) + cosc(t2) * X + sinc3(t2) * (X @ X)
 
     def dexpinv(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
         """`I − x̂/2 + (1/θ²)(1 − (θ/2)cot(θ/2)) x̂²` (docs/theory/closed-forms.md)."""
-        t2 = _dot(x, x)[..., None, None]
+        t2 = dot(x, x)[..., None, None]
         X = self.hat(x)
-        return jnp.eye(3, dtype=x.dtype) - X / 2 + _dexpinv_coefficient(t2) * (X @ X)
+        return jnp.eye(3, dtype=x.dtype) - X / 2 + dexpinv_coefficient(t2) * (X @ X)
 
     def cay(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
         """`(I − x̂/2)⁻¹(I + x̂/2) = I + 4/(4 + θ²) (x̂ + x̂²/2)`."""
-        alpha = (4 / (4 + _dot(x, x)))[..., None, None]
+        alpha = (4 / (4 + dot(x, x)))[..., None, None]
         X = self.hat(x)
         return jnp.eye(3, dtype=x.dtype) + alpha * (X + X @ X / 2)
 
@@ -194,12 +134,12 @@ class SO3Group(AbstractSpecialOrthogonal):
 
     def dcay(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
         """`4/(4 + θ²) (I + x̂/2)`."""
-        alpha = (4 / (4 + _dot(x, x)))[..., None, None]
+        alpha = (4 / (4 + dot(x, x)))[..., None, None]
         return alpha * (jnp.eye(3, dtype=x.dtype) + self.hat(x) / 2)
 
     def dcayinv(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
         """`I − x̂/2 + x xᵀ/4` (docs/theory/closed-forms.md)."""
-        return jnp.eye(3, dtype=x.dtype) - self.hat(x) / 2 + _outer(x, x) / 4
+        return jnp.eye(3, dtype=x.dtype) - self.hat(x) / 2 + outer(x, x) / 4
 
 
 SO3 = SO3Group()

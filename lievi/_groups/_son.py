@@ -26,7 +26,7 @@ from ._base import MatrixLieGroup
 
 
 @functools.cache
-def _planes(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def planes(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     pairs = sorted(((i, j) for i in range(n) for j in range(i + 1, n)), reverse=True)
     i = np.array([p[0] for p in pairs], dtype=np.int32)
     j = np.array([p[1] for p in pairs], dtype=np.int32)
@@ -44,7 +44,7 @@ class AbstractSpecialOrthogonal(MatrixLieGroup):
 
     def hat(self, x: Float[Array, "*batch d"]) -> Float[Array, "*batch n n"]:
         n = self.matrix_dim
-        i, j, sign = _planes(n)
+        i, j, sign = planes(n)
         if x.shape[-1] != len(i):
             raise ValueError(
                 f"so({n}) coordinates must have last axis {len(i)}, got shape {x.shape}."
@@ -54,7 +54,7 @@ class AbstractSpecialOrthogonal(MatrixLieGroup):
         return X.at[..., j, i].set(signed).at[..., i, j].set(-signed)
 
     def vee(self, X: Float[Array, "*batch n n"]) -> Float[Array, "*batch d"]:
-        i, j, sign = _planes(self.matrix_dim)
+        i, j, sign = planes(self.matrix_dim)
         # The skew part's coordinates: exact on so(n), a projection elsewhere.
         return jnp.asarray(sign, X.dtype) * (X[..., j, i] - X[..., i, j]) / 2
 

@@ -16,11 +16,12 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int, Scalar
 
-from .._batch._kernel import KickKernel
 from .._forcing import AbstractStepForce
+from .._kernels._base import AbstractBatchKernel, kernels_enabled
+from .._kernels._kick import KickKernel
+from .._newton import newton_solve
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
-from ._newton import newton_solve
 
 
 class StepInfo(eqx.Module):
@@ -76,15 +77,37 @@ class AbstractIntegrator(eqx.Module):
         xi = system.velocity(m)
         return jnp.abs(h) * system.group.exp_norm(xi) > self.step_bound()
 
-    def batch_kernel(self, potential=None):
-        """This method's structure-of-arrays step for batches of rigid bodies with principal
-        moments in `potential` (`None`: free bodies), an `AbstractBatchKernel`, or `None`
-        where it has none.
+    def kernels(self) -> tuple[AbstractBatchKernel, ...]:
+        """This method's structure-of-arrays steps of the free system, one per kind of
+        system they serve (each says which in `AbstractBatchKernel.physics`); none by
+        default. A kernel computes the iterates of the generic step, faster."""
+        return ()
 
-        `simulate_batch` runs it when the system has principal moments
-        (`AbstractLieSystem.principal_moments`); it computes the iterates of `step`.
-        """
+    def free_kernel(self, system: AbstractLieSystem, batched: bool = False):
+        """The kernel of `kernels()` that applies to `system` (free of its potential), or
+        `None`: then the generic step runs. `batched`: `system` is a batch built with
+        `jax.vmap`. The one place that decides (`kernels_enabled` turns every kernel off,
+        for the reference path the kernels are tested against)."""
+        if not kernels_enabled():
+            return None
+        for kernel in self.kernels():
+            if kernel.physics(system, batched) is not None:
+                return kernel
         return None
+
+    def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
+        """The kernel `simulate_batch` runs for `system` (its potential included), or
+        `None`: by default the free kernel, for a free system."""
+        return self.free_kernel(system, batched) if system.potential is None else None
+
+    def kernel_step(self, system: AbstractLieSystem, g, m, h: Scalar):
+        """One free step by this method's kernel for `system`, or `None` where none
+        applies: `simulate`'s step runs the same kernel code as `simulate_batch`."""
+        kernel = self.free_kernel(system)
+        if kernel is None:
+            return None
+        g_next, m_next, result, iterations, residual = kernel.one_body_step(system, g, m, h)
+        return g_next, m_next, StepInfo(result, iterations, residual)
 
 
 class AbstractKickIntegrator(AbstractIntegrator):
@@ -111,18 +134,13 @@ class AbstractKickIntegrator(AbstractIntegrator):
     ) -> tuple[Float[Array, "n n"], Float[Array, " d"], StepInfo]:
         """The step of the system without its potential."""
 
-    def free_batch_kernel(self):
-        """The structure-of-arrays `free_step` for batches of rigid bodies, or `None`."""
-        return None
-
-    def batch_kernel(self, potential=None):
-        free = self.free_batch_kernel()
-        if free is None or potential is None:
+    def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
+        free = self.free_kernel(system, batched)
+        if free is None or system.potential is None:
             return free
-        if not KickKernel.applies_to(potential):
-            return None
         # Kick – free step – kick, as `step`, where the potential has a closed-form torque.
-        return KickKernel(free, potential)
+        kernel = KickKernel(free, system.potential)
+        return kernel if kernel.physics(system, batched) is not None else None
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
         if system.potential is None and force is None:
@@ -228,7 +246,7 @@ class AbstractVariationalIntegrator(AbstractKickIntegrator):
 
         def perturbed(eta):
             e = group.exp(eta)
-            g = g0 @ e if system.side == "left" else e @ g0
+            g = system.side.translate(g0, e)
             return self.discrete_lagrangian(system, g, g1, h)
 
         return -jax.grad(perturbed)(jnp.zeros(group.algebra_dim, g0.dtype))

@@ -49,14 +49,15 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float, Scalar
 
-from .._batch._fast_so3 import NewtonKernel
+from .._checks import as_int
+from .._kernels._se3 import SE3NewtonKernel
+from .._kernels._so3 import NewtonKernel
+from .._newton import check_newton_options, newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from ._base import AbstractVariationalIntegrator, StepInfo
-from ._newton import check_newton_options, newton_solve, newton_tolerance
 
 CHARTS = ("exp", "cayley")
 
@@ -66,11 +67,6 @@ def _chart(group, chart: str):
     if chart == "exp":
         return group.exp, group.log, group.dexpinv
     return group.cay, group.cayinv, group.dcayinv
-
-
-def _as_int(value):
-    """NumPy integers become Python ints (a static field must not hold a NumPy scalar)."""
-    return int(value) if isinstance(value, np.integer) else value
 
 
 class DEP(AbstractVariationalIntegrator):
@@ -90,7 +86,7 @@ class DEP(AbstractVariationalIntegrator):
     - `rtol`, `atol`: the Newton solve stops when `‖residual‖_∞ ≤ atol + rtol·‖m‖_∞`
       (momentum units). Default: `rtol` = 64 ulps of the dtype, `atol` = 0 — a relative
       test, so the computed trajectory does not depend on the units (see
-      `lievi._integrators._newton.newton_tolerance`).
+      `lievi._newton.newton_tolerance`).
     - `max_steps`: maximum Newton iterations per step; exceeding it is reported as
       `RESULTS.newton_not_converged`.
     """
@@ -98,7 +94,7 @@ class DEP(AbstractVariationalIntegrator):
     chart: str = eqx.field(default="exp", static=True)
     rtol: float | None = eqx.field(default=None, static=True)
     atol: float | None = eqx.field(default=None, static=True)
-    max_steps: int = eqx.field(default=20, static=True, converter=_as_int)
+    max_steps: int = eqx.field(default=20, static=True, converter=as_int)
 
     def __check_init__(self):
         if self.chart not in CHARTS:
@@ -112,56 +108,45 @@ class DEP(AbstractVariationalIntegrator):
         # The adjoint Lagrangian −L_d(g_{k+1}, g_k; −h) equals L_d: φ⁻¹(F⁻¹) = −φ⁻¹(F).
         return True
 
-    def free_batch_kernel(self):
-        return NewtonKernel(self.chart, self.rtol, self.atol, self.max_steps)
+    def kernels(self):
+        # Closed forms for the rigid body with principal moments, and for any free body on SE(3).
+        options = (self.chart, self.rtol, self.atol, self.max_steps)
+        return NewtonKernel(*options), SE3NewtonKernel(*options)
 
     def kinetic_discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
         group = system.group
         _, chart_inverse, _ = _chart(group, self.chart)
-        increment = group.inverse(g0) @ g1 if system.side == "left" else g1 @ group.inverse(g0)
+        increment = system.side.increment(group, g0, g1)
         return h * system.lagrangian(chart_inverse(increment) / h)
 
     def solve_increment(self, system: AbstractLieSystem, m: Float[Array, " d"], h: Scalar):
         """Solve the DEP equation for the increment coordinates `ξ_k` given `m_k`."""
         group = system.group
         _, _, dchart_inverse = _chart(group, self.chart)
-        sign = 1 if system.side == "left" else -1
+        sign = system.side.sign
 
         def residual(xi):
             return dchart_inverse(sign * xi).T @ system.legendre(xi / h) - m
 
         tolerance = newton_tolerance(jnp.max(jnp.abs(m)), m.dtype, self.rtol, self.atol)
         # Explicit-Euler guess `h·ξ(m)`: O(h²) from the root, so Newton needs few steps.
-        # A system with a hand-written residual and Jacobian (the rigid body) skips the
-        # generic `jacfwd` + `linalg.solve`: the same iterates, several times faster.
-        closed_form = (
-            system.closed_form_residual(self.chart, m, h) if system.side == "left" else None
-        )
-        return newton_solve(
-            residual, h * system.velocity(m), tolerance, self.max_steps, closed_form
-        )
+        return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps)
 
     def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
-        # A system that runs the structure-of-arrays step on itself (the rigid body with
-        # principal moments, the free body on SE(3)) takes it: the same root, closed forms
-        # throughout, and under `jax.vmap` the batched kernel (`AbstractBatchKernel.one_body`
-        # sets its Newton policy for one body).
-        fast = system.kernel_step(self.free_batch_kernel(), g, m, h)
+        # Where a kernel applies (the rigid body with principal moments, the free body on
+        # SE(3)): the same root, closed forms throughout, and under `jax.vmap` the batched
+        # kernel (`AbstractBatchKernel.one_body` sets its Newton policy for one body).
+        fast = self.kernel_step(system, g, m, h)
         if fast is not None:
-            g_next, m_next, result, iterations, residual = fast
-            return g_next, m_next, StepInfo(result, iterations, residual)
+            return fast
         group = system.group
         chart, _, _ = _chart(group, self.chart)
         xi, info = self.solve_increment(system, m, h)
         F = chart(xi)
         # `compose`, not `@`: a group may keep its product on the group to round-off (SE(3)
         # re-orthonormalises the rotation block; the momentum of a symmetry relies on it).
-        if system.side == "left":
-            g_next = group.compose(g, F)
-            m_next = group.Ad(F).T @ m
-        else:
-            g_next = group.compose(F, g)
-            m_next = group.Ad(group.inverse(F)).T @ m
+        g_next = system.side.compose(group, g, F)
+        m_next = system.side.momentum_after(group, F, m)
 
         result = jnp.where(info.converged, RESULTS.successful, RESULTS.newton_not_converged)
         if self.chart == "exp":

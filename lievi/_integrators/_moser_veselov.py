@@ -24,7 +24,7 @@ exactly equivalent to the original. Its right-hand side is `h·dcayinv(x) Π` in
 coordinates, and its left-hand side is the Legendre map of the system, `I x` on SO(3). We
 solve it by Newton's method from the explicit-Euler guess `h I⁻¹ Π` (O(h²) from the root;
 the Jacobian there is `J + O(h)`, well conditioned since `J` is positive definite) with
-`lievi._integrators._newton.newton_solve`, so the step differentiates by the implicit function theorem.
+`lievi._newton.newton_solve`, so the step differentiates by the implicit function theorem.
 
 The rigid body on SO(3) maps to `Λ = ½ tr(I)·Id − I` (for principal moments
 `I₁ = Λ₂ + Λ₃, …`). A full inertia tensor gives a symmetric, non-diagonal `Λ`; the
@@ -45,15 +45,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
 
-from .._batch._fast_so3 import NewtonKernel
-from .._checks import check_shape, is_concrete
+from .._checks import as_int, check_shape, is_concrete
+from .._kernels._so3 import NewtonKernel
+from .._newton import check_newton_options, newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from .._systems._generalized_rigid_body import GeneralizedRigidBody
 from .._systems._rigid_body import RigidBody
 from ._base import AbstractVariationalIntegrator, StepInfo
-from ._dep import _as_int
-from ._newton import check_newton_options, newton_solve, newton_tolerance
 
 
 def check_rigid_body(method: str, system: AbstractLieSystem) -> None:
@@ -80,7 +79,7 @@ def moser_veselov_Lambda(system: RigidBody | GeneralizedRigidBody) -> Float[Arra
     return jnp.trace(inertia) / 2 * jnp.eye(3, dtype=inertia.dtype) - inertia
 
 
-def _check_pair_sums(method: str, system) -> None:
+def check_pair_sums(method: str, system) -> None:
     """Eagerly reject `Λᵢ + Λⱼ ≤ 0` (a system built around its own checks, e.g. by tree_at)."""
     if isinstance(system, GeneralizedRigidBody):
         if is_concrete(system.Lambda):
@@ -125,7 +124,7 @@ class MoserVeselov(AbstractVariationalIntegrator):
 
     rtol: float | None = eqx.field(default=None, static=True)
     atol: float | None = eqx.field(default=None, static=True)
-    max_steps: int = eqx.field(default=20, static=True, converter=_as_int)
+    max_steps: int = eqx.field(default=20, static=True, converter=as_int)
 
     def __check_init__(self):
         check_newton_options(self.max_steps, self.rtol, self.atol)
@@ -137,8 +136,8 @@ class MoserVeselov(AbstractVariationalIntegrator):
         # −L_d(g₁, g₀; −h) = tr((I − g₁ᵀg₀)Λ)/h = L_d(g₀, g₁; h): tr(AᵀΛ) = tr(AΛ).
         return True
 
-    def free_batch_kernel(self):
-        return NewtonKernel("moser-veselov", self.rtol, self.atol, self.max_steps)
+    def kernels(self):
+        return (NewtonKernel("moser-veselov", self.rtol, self.atol, self.max_steps),)
 
     def kinetic_discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
         """`tr((I − g₀ᵀg₁)Λ)/h`, Moser–Veselov's `tr(g_k Λ g_{k+1}ᵀ)` up to scale and shift."""
@@ -182,19 +181,20 @@ class MoserVeselov(AbstractVariationalIntegrator):
         """Solve `J(X) = h (I − X/2) Π̂ (I + X/2)` for the Cayley coordinates `x` of `F = Ωᵀ`."""
         residual = self.residual(system, m, h)
         tolerance = newton_tolerance(jnp.max(jnp.abs(m)), m.dtype, self.rtol, self.atol)
-        # The rigid body's hand-written residual and Jacobian, where it has them.
-        closed_form = system.closed_form_residual("moser-veselov", m, h)
-        return newton_solve(
-            residual, h * system.velocity(m), tolerance, self.max_steps, closed_form
-        )
+        return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps)
 
     def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
         check_rigid_body("MoserVeselov", system)
-        _check_pair_sums("MoserVeselov", system)
+        check_pair_sums("MoserVeselov", system)
         group = system.group
         n, d = group.matrix_dim, group.algebra_dim
         check_shape("g", g, (n, n), f"an element of SO({n})")
         check_shape("m", m, (d,), f"momentum coordinates of so({n})*")
+        # The kernel (the rigid body with principal moments) and the generic solve end on
+        # the same root or report the same failure: one branch rule (`on_branch`).
+        fast = self.kernel_step(system, g, m, h)
+        if fast is not None:
+            return fast
         x, info = self.solve_increment(system, m, h)
         F = group.cay(x)  # F = Ωᵀ = g_k⁻¹ g_{k+1}
         g_next = g @ F

@@ -58,10 +58,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
 
-from .._checks import check_scalar, step_size_valid
+from .._checks import check_scalar, state_dtype, step_size_valid
 from .._groups._so3 import SO3
 from .._results import RESULTS
-from .._simulate import state_dtype
 from .._systems._base import AbstractLieSystem
 from .._systems._rigid_body import RigidBody
 from ._base import AbstractIntegrator, StepInfo

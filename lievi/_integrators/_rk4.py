@@ -24,8 +24,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Scalar
 
-from .._batch._fast_explicit import RK4Kernel
 from .._checks import check_shape
+from .._kernels._explicit import RK4Kernel
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from ._base import AbstractIntegrator, StepInfo
@@ -38,10 +38,8 @@ def euler_poincare_vector_field(system: AbstractLieSystem, g, m, force=None, t=0
     """
     group = system.group
     xi = system.velocity(m)
-    if system.side == "left":
-        g_dot, m_dot = g @ group.hat(xi), group.ad(xi).T @ m
-    else:
-        g_dot, m_dot = group.hat(xi) @ g, -group.ad(xi).T @ m
+    g_dot = system.side.tangent(group, g, xi)
+    m_dot = system.side.coadjoint_sign() * group.ad(xi).T @ m
     if system.potential is not None:
         m_dot = m_dot + system.force(g)
     if force is not None:
@@ -64,8 +62,8 @@ class RK4(AbstractIntegrator):
         # y ≤ 2√2; beyond it `g` and `m` grow geometrically (det g → −4e4 was seen).
         return 2 * math.sqrt(2)
 
-    def batch_kernel(self, potential=None):
-        return RK4Kernel() if potential is None else None
+    def kernels(self):
+        return (RK4Kernel(),)
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
         group = system.group
@@ -73,11 +71,11 @@ class RK4(AbstractIntegrator):
         check_shape("g", g, (n, n), f"a {n}×{n} group element")
         check_shape("m", m, (d,), f"momentum coordinates of dimension {d}")
         # The kernel integrates the free, unforced body: otherwise the generic field.
-        kernel = self.batch_kernel(system.potential) if force is None else None
-        fast = system.kernel_step(kernel, g, m, h)
+        fast = None
+        if force is None and system.potential is None:
+            fast = self.kernel_step(system, g, m, h)
         if fast is not None:  # closed forms on components (the rigid body, principal moments)
-            g_next, m_next, result, iterations, residual = fast
-            return g_next, m_next, StepInfo(result, iterations, residual)
+            return fast
 
         def f(s, y):
             return euler_poincare_vector_field(system, *y, force=force, t=s)

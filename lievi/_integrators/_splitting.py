@@ -40,14 +40,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Scalar
 
-from .._batch._fast_explicit import SplittingKernel
 from .._checks import check_shape
-from .._groups._son import _planes
+from .._groups._son import planes
+from .._kernels._explicit import SplittingKernel
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from .._systems._generalized_rigid_body import GeneralizedRigidBody
 from ._base import AbstractKickIntegrator, StepInfo
-from ._moser_veselov import _check_pair_sums, check_rigid_body
+from ._moser_veselov import check_pair_sums, check_rigid_body
 
 
 def _principal_frame(system):
@@ -105,24 +105,23 @@ class LiePoissonSplitting(AbstractKickIntegrator):
         # A palindromic (Strang) product of exact flows: Φ_{−h} = Φ_h⁻¹.
         return True
 
-    def free_batch_kernel(self):
-        return SplittingKernel()
+    def kernels(self):
+        return (SplittingKernel(),)
 
     def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
         check_rigid_body("LiePoissonSplitting", system)
-        _check_pair_sums("LiePoissonSplitting", system)
+        check_pair_sums("LiePoissonSplitting", system)
         group = system.group
         n, d = group.matrix_dim, group.algebra_dim
         check_shape("g", g, (n, n), f"an element of SO({n})")
         check_shape("m", m, (d,), f"momentum coordinates of so({n})*")
-        fast = system.kernel_step(self.free_batch_kernel(), g, m, h)
+        fast = self.kernel_step(system, g, m, h)
         if fast is not None:  # closed forms on components (the rigid body, principal moments)
-            g_next, m_next, result, iterations, residual = fast
-            return g_next, m_next, StepInfo(result, iterations, residual)
+            return fast
         moments, Q = _principal_frame(system)
         if Q is not None:
             g, m = g @ Q, Q.T @ m
-        i, j, sign = _planes(n)
+        i, j, sign = planes(n)
         last = d - 1
         # The palindrome p = 0 … d−2 (h/2), d−1 (h), d−2 … 0 (h/2).
         order = np.r_[np.arange(last), last, np.arange(last)[::-1]]

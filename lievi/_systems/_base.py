@@ -23,8 +23,7 @@ from jaxtyping import Array, Float, Scalar
 from .._checks import check_finite, check_shape, is_concrete
 from .._groups._base import MatrixLieGroup
 from ._potential import AbstractPotential
-
-SIDES = ("left", "right")
+from ._side import Side
 
 
 class AbstractLieSystem(eqx.Module):
@@ -36,7 +35,7 @@ class AbstractLieSystem(eqx.Module):
     """
 
     group: eqx.AbstractVar[MatrixLieGroup]
-    side: eqx.AbstractVar[str]
+    side: eqx.AbstractVar[Side]
     potential: eqx.AbstractVar[AbstractPotential | None]
 
     def __check_init__(self):
@@ -98,7 +97,7 @@ class AbstractLieSystem(eqx.Module):
 
         def along(eta):
             E = self.group.hat(eta)
-            return self.potential(g + (g @ E if self.side == "left" else E @ g))
+            return self.potential(g + self.side.translate(g, E))
 
         return -jax.grad(along)(jnp.zeros(d, jnp.result_type(g, float)))
 
@@ -108,32 +107,11 @@ class AbstractLieSystem(eqx.Module):
             return m
         return m + dt * self.force(g)
 
-    def principal_moments(self, batched: bool = False):
-        """Principal moments of inertia `(3,)` (`(B, 3)` for a batch of systems built with
-        `jax.vmap`, `batched=True`) if this is a rigid body on SO(3) whose fast batched
-        steps apply (`AbstractIntegrator.batch_kernel`), else `None`."""
-        return None
-
-    def batch_kernel(self, kernel, batched: bool = False):
-        """`(kernel, constants)` for `simulate_batch`'s structure-of-arrays path, from an
-        integrator's `batch_kernel` (`None` where it has none), or `None` where no kernel
-        applies to this system. `constants` is what the kernel's `constants` splits (by
-        default the principal moments: a rigid body on SO(3), `principal_moments`)."""
-        moments = self.principal_moments(batched=batched)
-        if kernel is None or moments is None:
-            return None
-        return kernel, moments
-
-    def closed_form_residual(self, equation: str, m, h):
-        """`x ↦ (r(x), ∂r/∂x)` for the implicit step equation `equation` (`"exp"`, `"cayley"`:
-        `DEP`'s chart; `"moser-veselov"`), written out by hand, or `None` (the integrator
-        then builds `r` from the group and the Lagrangian and its Jacobian by `jax.jacfwd`)."""
-        return None
-
-    def kernel_step(self, kernel, g, m, h):
-        """One step of `kernel` (an integrator's `batch_kernel`) on this one system, as
-        `(g_next, m_next, result, iterations, residual)`, or `None` where the kernel does not
-        apply (the integrator then takes its generic step)."""
+    def kinetic_tensor(self):
+        """The tensor `M` of a quadratic reduced Lagrangian `l(ξ) = ½ ξᵀMξ` in the algebra
+        basis — a vector where `M` is diagonal (a rigid body's principal moments) — or
+        `None` where `l` is not known to be quadratic (the default). Physics only: an
+        integrator's fast kernels read it to decide whether they apply."""
         return None
 
     def check_element(self, name: str, g) -> None:

@@ -15,9 +15,10 @@ import numpy as np
 from jaxtyping import Array, Float, Scalar
 
 from .._checks import check_finite, is_concrete
-from .._groups._son import SOn, _planes
+from .._groups._son import SOn, planes
 from ._base import AbstractLieSystem
 from ._potential import AbstractPotential, as_potential
+from ._side import Side
 
 
 class GeneralizedRigidBody(AbstractLieSystem):
@@ -33,7 +34,7 @@ class GeneralizedRigidBody(AbstractLieSystem):
     Lambda: Float[Array, " n"]
     potential: AbstractPotential | None
     group: SOn = eqx.field(static=True)
-    side: str = eqx.field(default="left", static=True)
+    side: Side = eqx.field(default=Side.LEFT, static=True)
 
     def __init__(self, Lambda, potential=None):
         self.potential = as_potential(potential)
@@ -60,7 +61,7 @@ class GeneralizedRigidBody(AbstractLieSystem):
     @property
     def plane_inertia(self) -> Float[Array, " d"]:
         """`Λᵢ + Λⱼ` for each plane `(i, j)`, in the coordinate order of `SOn`."""
-        i, j, _ = _planes(self.group.n)
+        i, j, _ = planes(self.group.n)
         Lambda = jnp.asarray(self.Lambda)
         return Lambda[i] + Lambda[j]
 

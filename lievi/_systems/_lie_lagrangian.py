@@ -8,8 +8,9 @@ import equinox as eqx
 from jaxtyping import Array, Float, Scalar
 
 from .._groups._base import MatrixLieGroup
-from ._base import SIDES, AbstractLieSystem
+from ._base import AbstractLieSystem
 from ._potential import AbstractPotential, as_potential
+from ._side import Side
 
 
 class LieLagrangian(AbstractLieSystem):
@@ -27,19 +28,17 @@ class LieLagrangian(AbstractLieSystem):
     """
 
     group: MatrixLieGroup = eqx.field(static=True)
-    side: str = eqx.field(static=True)
+    side: Side = eqx.field(static=True)
     l: Callable[[Float[Array, " d"]], Scalar]
     potential: AbstractPotential | None
 
     def __init__(self, group: MatrixLieGroup, l: Callable, side: str = "left", potential=None):
         self.group = group
         self.l = l
-        self.side = side
+        self.side = _as_side(side)
         self.potential = as_potential(potential)
 
     def __check_init__(self):
-        if self.side not in SIDES:
-            raise ValueError(f"`side` must be one of {SIDES}, got {self.side!r}.")
         if not callable(self.l):
             raise ValueError(f"`l` must be a callable reduced Lagrangian ξ ↦ l(ξ), got {self.l!r}.")
         if not isinstance(self.group, MatrixLieGroup):
@@ -47,3 +46,12 @@ class LieLagrangian(AbstractLieSystem):
 
     def lagrangian(self, xi: Float[Array, " d"]) -> Scalar:
         return self.l(xi)
+
+
+def _as_side(side) -> Side:
+    """`Side` from `"left"`/`"right"` (or a `Side`), with an error naming the argument."""
+    try:
+        return Side(side)
+    except ValueError:
+        sides = tuple(s.value for s in Side)
+        raise ValueError(f"`side` must be one of {sides}, got {side!r}.") from None

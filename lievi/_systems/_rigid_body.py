@@ -11,12 +11,12 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
-from .._batch import _fast_so3
 from .._checks import check_spd
 from .._groups._base import MatrixLieGroup
 from .._groups._so3 import SO3
 from ._base import AbstractLieSystem
 from ._potential import AbstractPotential, UniformGravity, as_potential
+from ._side import Side
 
 
 class RigidBody(AbstractLieSystem):
@@ -36,13 +36,13 @@ class RigidBody(AbstractLieSystem):
     inertia: Float[Array, 3] | Float[Array, "3 3"]
     potential: AbstractPotential | None
     group: MatrixLieGroup = eqx.field(static=True)
-    side: str = eqx.field(static=True)
+    side: Side = eqx.field(static=True)
 
     def __init__(self, inertia, potential=None):
         self.inertia = inertia
         self.potential = as_potential(potential)
         self.group = SO3
-        self.side = "left"
+        self.side = Side.LEFT
 
     def __check_init__(self):
         shape = jnp.shape(self.inertia)
@@ -68,36 +68,9 @@ class RigidBody(AbstractLieSystem):
         inertia = jnp.asarray(self.inertia)
         return jnp.diag(inertia) if inertia.ndim == 1 else inertia
 
-    def principal_moments(self, batched: bool = False):
-        inertia = jnp.asarray(self.inertia)
-        return inertia if inertia.ndim == 1 + batched else None
-
-    def kernel_step(self, kernel, g, m, h):
-        # The structure-of-arrays step on one body: every component a scalar (under
-        # `jax.vmap` a `(B,)` array, so `vmap(simulate)` runs the batched kernel).
-        moments = self.principal_moments()
-        if kernel is None or moments is None:
-            return None
-        kernel = kernel.one_body()
-        params = kernel.prepare(tuple(moments[i] for i in range(3)), h)
-        components = tuple(g[i, j] for i in range(3) for j in range(3))
-        g_next, m_next, *info = kernel.step(params, components, tuple(m[i] for i in range(3)), True)
-        return (jnp.stack(g_next).reshape(3, 3), jnp.stack(m_next), *info)
-
-    def closed_form_residual(self, equation: str, m, h):
-        # Closed forms for principal moments (`lievi._batch._fast_so3`, where they are
-        # derived and checked against `jax.jacfwd`); a full tensor uses the generic path.
-        inertia = jnp.asarray(self.inertia)
-        if inertia.ndim != 1:
-            return None
-        A = tuple(inertia[i] / h for i in range(3))
-        Pi = tuple(m[i] for i in range(3))
-
-        def residual_and_jacobian(x):
-            r, J = _fast_so3._residual(equation, tuple(x[i] for i in range(3)), Pi, A, True)
-            return jnp.stack(r), jnp.stack([jnp.stack(row) for row in J])
-
-        return residual_and_jacobian
+    def kinetic_tensor(self) -> Float[Array, 3] | Float[Array, "3 3"]:
+        # Principal moments `(3,)` or the full tensor, as given.
+        return self.inertia
 
     def lagrangian(self, xi: Float[Array, 3]) -> Scalar:
         return jnp.dot(xi, self.legendre(xi)) / 2

@@ -29,9 +29,10 @@ from jaxtyping import Array, Float, Scalar
 
 from .._checks import check_finite, check_spd, is_concrete
 from .._groups._base import MatrixLieGroup
-from .._groups._se3 import SE3, SE3Group
+from .._groups._se3 import SE3
 from ._base import AbstractLieSystem
 from ._potential import AbstractPotential, as_potential
+from ._side import Side
 
 
 def _inertia_matrix(inertia):
@@ -111,7 +112,7 @@ class RigidBodySE3(AbstractLieSystem):
     tensor: Float[Array, "6 6"]
     potential: AbstractPotential | None
     group: MatrixLieGroup = eqx.field(static=True)
-    side: str = eqx.field(static=True)
+    side: Side = eqx.field(static=True)
 
     def __init__(self, inertia=None, mass=None, *, tensor=None, potential=None):
         if tensor is None:
@@ -126,7 +127,7 @@ class RigidBodySE3(AbstractLieSystem):
         self.tensor = tensor
         self.potential = as_potential(potential)
         self.group = SE3
-        self.side = "left"
+        self.side = Side.LEFT
 
     def __check_init__(self):
         shape = jnp.shape(self.tensor)
@@ -147,32 +148,8 @@ class RigidBodySE3(AbstractLieSystem):
                     f"velocity); got eigenvalues {eigenvalues}."
                 )
 
-    def batch_kernel(self, kernel, batched: bool = False):
-        # The free body's structure-of-arrays DEP step (`lievi/_batch/_fast_se3.py`), on
-        # any SPD tensor; with a potential, `simulate_batch` takes the generic path (which
-        # runs `kernel_step` below under `vmap`). Only on `lievi.SE3` itself.
-        if kernel is None or self.potential is not None or not isinstance(self.group, SE3Group):
-            return None
-        se3 = kernel.on_se3()
-        return None if se3 is None else (se3, self.tensor)
-
-    def kernel_step(self, kernel, g, m, h):
-        # The batch kernel's DEP step (`lievi/_batch/_fast_se3.py`, either chart) on one
-        # body, every component a scalar (under `jax.vmap` a `(B,)` array): closed forms,
-        # Newton on the rotation part, the same root as the generic path. Other methods,
-        # and a subclass on another group: the generic path.
-        if kernel is None or not isinstance(self.group, SE3Group):
-            return None
-        kernel = kernel.on_se3()
-        if kernel is None:
-            return None
-        kernel = kernel.one_body()
-        dtype = jnp.result_type(self.tensor, m, g)
-        params = kernel.prepare(kernel.constants(jnp.asarray(self.tensor, dtype), 1), h)
-        # The kernel's own state layout, on a batch of one, as scalars.
-        carried = tuple(e[0] for e in kernel.carried(g[None]))
-        g_next, m_next, *info = kernel.step(params, carried, tuple(m[i] for i in range(6)), True)
-        return (kernel.elements(jnp.stack(g_next)[:, None])[0], jnp.stack(m_next), *info)
+    def kinetic_tensor(self) -> Float[Array, "6 6"]:
+        return self.tensor
 
     def lagrangian(self, xi: Float[Array, 6]) -> Scalar:
         return jnp.dot(xi, self.legendre(xi)) / 2

@@ -1,4 +1,4 @@
-"""Hand-written tangents of the explicit fast steps (`_fast_explicit.py`).
+"""Hand-written tangents of the explicit fast steps (`_kernels/_explicit.py`).
 
 Plain autodiff of `splitting_step` differentiates the polynomial `sincos` term by term,
 and the 3×3 products that compose the five sub-flows entry by entry. Here each step is a
@@ -6,7 +6,7 @@ and the 3×3 products that compose the five sub-flows entry by entry. Here each 
 in the tangents, with coefficients the backward pass recomputes cheaply from the step's
 input (`simulate_batch` keeps only that, `jax.checkpoint`), and JAX transposes it for
 reverse mode; forward mode (`jax.jvp`, `jax.jacfwd`) keeps working. The tests compare
-both modes with plain autodiff of the same arithmetic (`_fast_explicit.splitting_primal`,
+both modes with plain autodiff of the same arithmetic (`_explicit_primal.splitting_primal`,
 `rk4_primal`).
 
 **Splitting** (paper §6). The five sub-flows are rotations `F_j = exp(α_j ê_{p_j})` with
@@ -20,7 +20,7 @@ both modes with plain autodiff of the same arithmetic (`_fast_explicit.splitting
 (`dF = ŵ F`, `ŵ` the hat map), `w` accumulated from the inside out. The derivative of
 each sine and cosine is the other one (no polynomial is differentiated), the momenta's
 tangents rotate as 2×2 blocks, and `dg'` reuses the step's own `F` (rebuilt from the
-quaternion the step stores, `_fast_explicit.splitting_primal`).
+quaternion the step stores, `_explicit_primal.splitting_primal`).
 
 **RK4**. The step depends on `h` and `I` only through the ratios `h/I_p` (`rk4_step`):
 with `w_i = (h/I)·Π_i`, the stages are `k_i = f(y_i) = (g_i ŵ_i, Π_i × w_i)`,
@@ -38,15 +38,13 @@ from __future__ import annotations
 
 import jax
 
-# A module import, attributes read at call time: `_fast_explicit` imports this module too
-# (its steps call the rules).
-from . import _fast_explicit
+from . import _explicit_primal
 
 
 @jax.custom_jvp
 def splitting_flow(g, Pi, rate):
-    """`(g_next, Π_next)` of one splitting step, as `_fast_explicit.splitting_step`."""
-    g_next, Pi_next, *_ = _fast_explicit.splitting_primal(g, Pi, rate)
+    """`(g_next, Π_next)` of one splitting step, as `_explicit.splitting_step`."""
+    g_next, Pi_next, *_ = _explicit_primal.splitting_primal(g, Pi, rate)
     return g_next, Pi_next
 
 
@@ -54,8 +52,8 @@ def splitting_flow(g, Pi, rate):
 def _splitting_flow_jvp(primals, tangents):
     g, Pi, R = primals
     dg, dPi, dR = tangents
-    g_next, Pi_next, rotations, momenta, F = _fast_explicit.splitting_primal(g, Pi, R)
-    subflows = _fast_explicit.SUBFLOWS
+    g_next, Pi_next, rotations, momenta, F = _explicit_primal.splitting_primal(g, Pi, R)
+    subflows = _explicit_primal.SUBFLOWS
     dPi = list(dPi)
     dalpha = []
     for (p, fraction), (c, s), before, after in zip(subflows, rotations, momenta, momenta[1:]):
@@ -76,9 +74,9 @@ def _splitting_flow_jvp(primals, tangents):
     # dg' = (dg + g ŵ) F, row by row (`x ŵ = x × w`).
     rows = []
     for i in range(len(g) // 3):
-        gw = _cross(g[3 * i : 3 * i + 3], w)
+        gw = cross(g[3 * i : 3 * i + 3], w)
         rows += [dg[3 * i + k] + gw[k] for k in range(3)]
-    return (g_next, Pi_next), (_fast_explicit._matmul3(tuple(rows), F), tuple(dPi))
+    return (g_next, Pi_next), (_explicit_primal.matmul3(tuple(rows), F), tuple(dPi))
 
 
 def _rotate(p, c, s, v):
@@ -95,14 +93,14 @@ def _rotate(p, c, s, v):
     return v
 
 
-def _cross(x, y):
+def cross(x, y):
     return (x[1] * y[2] - x[2] * y[1], x[2] * y[0] - x[0] * y[2], x[0] * y[1] - x[1] * y[0])
 
 
 @jax.custom_jvp
 def rk4_flow(g, Pi, rate):
-    """`(g_next, Π_next)` of one RK4 step, as `_fast_explicit.rk4_step`."""
-    g_next, Pi_next, _ = _fast_explicit.rk4_primal(g, Pi, rate)
+    """`(g_next, Π_next)` of one RK4 step, as `_explicit.rk4_step`."""
+    g_next, Pi_next, _ = _explicit_primal.rk4_primal(g, Pi, rate)
     return g_next, Pi_next
 
 
@@ -110,7 +108,7 @@ def rk4_flow(g, Pi, rate):
 def _rk4_flow_jvp(primals, tangents):
     g, Pi, rate = primals
     dg, dPi, drate = tangents
-    g_next, Pi_next, stages = _fast_explicit.rk4_primal(g, Pi, rate)
+    g_next, Pi_next, stages = _explicit_primal.rk4_primal(g, Pi, rate)
     slopes = []
     for c, ((gi, Pii), _, w) in zip((None, 0.5, 0.5, 1.0), stages):
         if c is None:
@@ -120,11 +118,11 @@ def _rk4_flow_jvp(primals, tangents):
             dgi = tuple(d + c * dk for d, dk in zip(dg, dkg))
             dPii = tuple(d + c * dk for d, dk in zip(dPi, dkP))
         dw = tuple(dPii[i] * rate[i] + Pii[i] * drate[i] for i in range(3))
-        dkP = tuple(a + b for a, b in zip(_cross(dPii, w), _cross(Pii, dw)))
+        dkP = tuple(a + b for a, b in zip(cross(dPii, w), cross(Pii, dw)))
         dkg = []
         for i in range(len(g) // 3):
-            a = _cross(dgi[3 * i : 3 * i + 3], w)
-            b = _cross(gi[3 * i : 3 * i + 3], dw)
+            a = cross(dgi[3 * i : 3 * i + 3], w)
+            b = cross(gi[3 * i : 3 * i + 3], dw)
             dkg += [a[k] + b[k] for k in range(3)]
         slopes.append((tuple(dkg), dkP))
 

@@ -17,15 +17,42 @@ re-evaluates the explicit part of a step from the stored root instead of solving
 from __future__ import annotations
 
 import abc
-import dataclasses
+import contextlib
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._results import RESULTS
+from .._groups._so3 import SO3
 
 ROOT_NAME = "lievi_step_root"
+
+# Whether integrators may run their kernels (`AbstractIntegrator.free_kernel`).
+_ENABLED = [True]
+
+
+def kernels_enabled() -> bool:
+    """Whether the fast kernels are on (they are, except inside `reference_path`)."""
+    return _ENABLED[0]
+
+
+@contextlib.contextmanager
+def reference_path():
+    """Turn every kernel off: inside, `simulate` and `simulate_batch` take the generic path
+    (the residual from the group and the Lagrangian, its Jacobian by `jax.jacfwd`, the
+    Newton system by `linalg.solve`), the independent reference the kernels are tested
+    against (`tests/test_kernel_parity.py`). Internal: for tests and benchmarks.
+
+    The switch is read when a program is traced, so JAX's compiled programs are dropped
+    on entry and exit (a program compiled with kernels must not be reused without them).
+    """
+    jax.clear_caches()
+    _ENABLED[0] = False
+    try:
+        yield
+    finally:
+        _ENABLED[0] = True
+        jax.clear_caches()
 
 
 def materialise(values, one, stack: bool = True):
@@ -45,7 +72,7 @@ def materialise(values, one, stack: bool = True):
     alone). Three, because XLA fuses the computation of a short stack into one loop but
     computes each entry of a longer one (9, 12) in a loop of its own (measured: 0.98
     against 1.10 µs a step, Cayley chart).
-    `stack=False` stores them one by one (see its use in `_fast_se3`).
+    `stack=False` stores them one by one (see its use in `_se3`).
     """
     if stack and all(jnp.ndim(v) == 0 for v in values):
         out = []
@@ -116,10 +143,24 @@ class AbstractBatchKernel(eqx.Module):
         **Returns:** `(g_next, m_next, result, iterations, residual)`, the last three per body.
         """
 
-    def constants(self, moments, batch: int):
-        """The system's per-body constants as structure of arrays, from what the system
-        handed `simulate_batch` (`AbstractLieSystem.batch_kernel`): by default the
-        principal moments `(3,)` or `(B, 3)`, as 3 arrays `(B,)`."""
+    def physics(self, system, batched: bool = False):
+        """The constants of `system` this kernel runs on, or `None` where it does not
+        apply to `system` (the integrator then takes its generic step).
+
+        The kernel reads the system's physics (its group, side and kinetic tensor,
+        `AbstractLieSystem.kinetic_tensor`); systems know nothing of kernels. By default:
+        a left-invariant system on `SO3` with principal moments of inertia, shape `(3,)`
+        (`(B, 3)` for a batch of systems built with `jax.vmap`, `batched=True`)."""
+        tensor = system.kinetic_tensor()
+        if system.group != SO3 or system.side != "left" or tensor is None:
+            return None
+        return tensor if jnp.ndim(tensor) == 1 + batched else None
+
+    def constants(self, moments, batch: int | None):
+        """`physics`'s constants as structure of arrays: by default the principal moments
+        `(3,)` or `(B, 3)`, as 3 arrays `(B,)` (`batch=None`: one body, 3 scalars)."""
+        if batch is None:
+            return tuple(moments[..., i] for i in range(3))
         return tuple(jnp.broadcast_to(moments[..., i], (batch,)) for i in range(3))
 
     def turn_rates(self, constants, h):
@@ -139,14 +180,23 @@ class AbstractBatchKernel(eqx.Module):
         return jnp.moveaxis(entries, -1, 0).reshape(entries.shape[-1], entries.shape[0], 3, 3)
 
     def one_body(self):
-        """This kernel as `simulate` runs it on one body (`AbstractLieSystem.kernel_step`,
-        every component a scalar): by default the same."""
+        """This kernel as `simulate` runs it on one body (`one_body_step`, every component a
+        scalar): by default the same."""
         return self
 
-    def on_se3(self):
-        """This method's kernel for the free rigid body on SE(3) (`RigidBodySE3` without a
-        potential), or `None` where it has none (the default)."""
-        return None
+    def one_body_step(self, system, g, m, h):
+        """One step of this kernel on one system, `(g_next, m_next, result, iterations,
+        residual)`: `simulate`'s step where the kernel applies (`physics`). Every component
+        is a scalar, so under `jax.vmap` (a `(B,)` array each) this is the batched kernel.
+        """
+        kernel = self.one_body()
+        params = kernel.prepare(kernel.constants(self.physics(system), None), h)
+        # The kernel's own state layout, on a batch of one, as scalars.
+        carried = tuple(e[0] for e in kernel.carried(g[None]))
+        momentum = tuple(m[i] for i in range(m.shape[0]))
+        g_next, m_next, *info = kernel.step(params, carried, momentum, True)
+        g_next = kernel.elements(jnp.stack(g_next)[None, :, None])[0, 0]
+        return (g_next, jnp.stack(m_next), *info)
 
     def with_fixed_iterations(self, fixed_iterations: int):
         """The kernel with this many Newton iterations before its convergence check
@@ -169,75 +219,3 @@ class AbstractBatchKernel(eqx.Module):
         """The advected parameter `Γ` (3 arrays) from the carried state, or `None` where
         this kernel's system has none."""
         return None
-
-
-class KickKernel(AbstractBatchKernel):
-    """A free kernel between two half kicks of a potential's torque (paper §7): the step of
-    `AbstractKickIntegrator` (`Π⁺ = Π + (h/2)M(g_k)`, free step, `Π_{k+1} = Π⁻ + (h/2)M(g_{k+1})`)
-    for a potential with a closed-form `rigid_body_torque` (e.g. `UniformGravity`).
-
-    With `reduced_state` (see `reduced`) the configuration carried is the advected
-    parameter `Γ = gᵀa` alone, and the kicks are `M(Γ)`: the free kernel maps `Γᵀ`, one
-    row, as it maps each row of `g` (`r ↦ r F_k`), so `Γ_{k+1} = F_kᵀΓ_k` — the
-    Bobenko–Suris reduced discrete Lie–Poisson equations on `(Π, Γ)` (paper §7), with
-    the same floating-point operations on `Π` and on `Γ` as the run that carries `g`.
-    """
-
-    free: AbstractBatchKernel
-    potential: eqx.Module
-    reduced_state: bool = eqx.field(default=False, static=True)
-
-    @staticmethod
-    def applies_to(potential) -> bool:
-        """Whether `potential` has a closed-form rigid-body torque."""
-        return potential.rigid_body_torque(tuple(jnp.zeros(()) for _ in range(9))) is not None
-
-    def with_fixed_iterations(self, fixed_iterations: int):
-        return dataclasses.replace(self, free=self.free.with_fixed_iterations(fixed_iterations))
-
-    def reduced(self):
-        if self.reduced_state:
-            return self
-        zeros = tuple(jnp.zeros(()) for _ in range(3))
-        if (
-            self.potential.advected_direction() is None
-            or self.potential.rigid_body_advected_torque(zeros) is None
-        ):
-            return None
-        return dataclasses.replace(self, reduced_state=True)
-
-    def _advected_of_rows(self, g):
-        # Γ_j = Σ_i a_i g_ij (a may carry a batch axis first, like the potential's leaves).
-        a = jnp.asarray(self.potential.advected_direction(), g[0].dtype)
-        return tuple(sum(a[..., i] * g[3 * i + j] for i in range(3)) for j in range(3))
-
-    def carried(self, g0):
-        g = super().carried(g0)
-        return self._advected_of_rows(g) if self.reduced_state else g
-
-    def advected(self, state):
-        if self.reduced_state:
-            return state
-        if self.potential.advected_direction() is None:
-            return None
-        return self._advected_of_rows(state)
-
-    def _torque(self, state):
-        if self.reduced_state:
-            return self.potential.rigid_body_advected_torque(state)
-        return self.potential.rigid_body_torque(state)
-
-    def prepare(self, inertia, h):
-        return self.free.prepare(inertia, h), h / 2
-
-    def step(self, params, g, Pi, alive):
-        free_params, half = params
-        torque = self._torque(g)
-        Pi = tuple(p + half * t for p, t in zip(Pi, torque))
-        g_next, Pi_next, result, iterations, residual = self.free.step(free_params, g, Pi, alive)
-        torque = self._torque(g_next)
-        Pi_next = tuple(p + half * t for p, t in zip(Pi_next, torque))
-        # A non-finite torque shows up only after the free step's own checks.
-        finite = jnp.isfinite(Pi_next[0]) & jnp.isfinite(Pi_next[1]) & jnp.isfinite(Pi_next[2])
-        result = jnp.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
-        return g_next, Pi_next, result, iterations, residual

@@ -2,10 +2,10 @@
 
 Semantics are those of `jax.vmap(simulate)` over the bodies (the generic path is exactly
 that); for `RigidBody` with principal moments and the integrators that have one (`DEP`,
-`MoserVeselov`: `_fast_so3.py`; `LiePoissonSplitting`, `RK4`: `_fast_explicit.py`), a
+`MoserVeselov`: `_kernels/_so3.py`; `LiePoissonSplitting`, `RK4`: `_kernels/_explicit.py`), a
 structure-of-arrays fast path computes the same iterates to round-off, 10–50× faster on
 CPU (`benchmarks/throughput.py`); for the free `RigidBodySE3` with `DEP` (both charts),
-`_fast_se3.py` (`benchmarks/se3_step_cost.py`). The system picks the kernel
+`_kernels/_se3.py` (`benchmarks/se3_step_cost.py`). The system picks the kernel
 (`AbstractLieSystem.batch_kernel`) and the kernel owns its state layout
 (`AbstractBatchKernel`); nothing here depends on the group. Everything runs inside one jit-compiled `lax.scan`: no host
 synchronisation per step. For a potential with an advected parameter (`UniformGravity`:
@@ -24,13 +24,21 @@ import jax.numpy as jnp
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
-from .._checks import check_finite, check_real_dtype, input_valid, is_concrete
-from .._forcing import as_forcing
-from .._integrators._base import AbstractIntegrator
-from .._results import RESULTS
-from .._simulate import Solution, _check_integer, _checkpoint_segment, simulate, state_dtype
-from .._systems._base import AbstractLieSystem
-from ._kernel import ROOT_NAME
+from ._checks import (
+    check_finite,
+    check_integer,
+    check_real_dtype,
+    input_valid,
+    is_concrete,
+    state_dtype,
+)
+from ._forcing import as_forcing
+from ._integrators._base import AbstractIntegrator
+from ._kernels._base import ROOT_NAME
+from ._results import RESULTS
+from ._scan import checkpoint_segment
+from ._simulate import Solution, simulate
+from ._systems._base import AbstractLieSystem
 
 SAVE_FIELDS = ("g", "m", "stats")
 # Saved only on request: the advected parameter Γ of the potential (`Solution.advected`).
@@ -40,19 +48,17 @@ OPTIONAL_SAVE_FIELDS = ("advected",)
 def _fast_kernel(system, integrator, system_axis, fixed_iterations=None, carry_g=True):
     """`(kernel, constants)` of the fast path for this pair, or None if it has none.
 
-    The integrator owns its structure-of-arrays step (`batch_kernel`), the system says
-    whether and how it applies (`AbstractLieSystem.batch_kernel`: e.g. a rigid body with
-    principal moments hands over its moments, `RigidBodySE3` the SE(3) form of the kernel
-    and its tensor). With `carry_g=False` (the caller does not save `g`) the kernel's
+    The integrator decides (`AbstractIntegrator.batch_kernel`), and the kernel reads the
+    system's constants it runs on (`AbstractBatchKernel.physics`: the principal moments,
+    the SE(3) tensor). With `carry_g=False` (the caller does not save `g`) the kernel's
     reduced form is taken where it has one (`AbstractBatchKernel.reduced`: `(Π, Γ)` in
     place of `(Π, g)`).
     """
-    adapted = system.batch_kernel(
-        integrator.batch_kernel(system.potential), batched=system_axis is not None
-    )
-    if adapted is None:
+    batched = system_axis is not None
+    kernel = integrator.batch_kernel(system, batched)
+    if kernel is None:
         return None
-    kernel, constants = adapted
+    constants = kernel.physics(system, batched)
     if not carry_g:
         kernel = kernel.reduced() or kernel
     if fixed_iterations is not None:
@@ -132,9 +138,9 @@ def simulate_batch(
     - `fixed_iterations`: (fast path) Newton iterations every body takes before the one
       convergence check; bodies still above tolerance then continue, alone, up to the
       integrator's `max_steps`. Default: 3 (exp chart) or 4 (Cayley chart;
-      Moser–Veselov, whose fixed iterations are scalar ones, see `_fast_so3.py`); on
+      Moser–Veselov, whose fixed iterations are scalar ones, see `_kernels/_so3.py`); on
       SE(3) 3 for both charts, the first a chord step (the Jacobian at `ξ = 0`, see
-      `_fast_se3.py`); with coarse steps (`h|Ω| ≳ 0.2`) 4 may be faster there. With
+      `_kernels/_se3.py`); with coarse steps (`h|Ω| ≳ 0.2`) 4 may be faster there. With
       `max_steps` equal to it (e.g. `DEP(max_steps=3)`) there is no data-dependent loop
       at all; bodies not converged then are reported as failed.
     - `unroll`: (fast path) steps per iteration of the compiled loop (`lax.scan`'s
@@ -165,8 +171,8 @@ def simulate_batch(
     To spread the batch over several devices, place the inputs with
     `lievi.shard_batch`; the jit-compiled loop then runs sharded (see the README).
     """
-    n_steps = _check_integer("n_steps", n_steps, 1)
-    save_every = n_steps if save_every is None else _check_integer("save_every", save_every, 1)
+    n_steps = check_integer("n_steps", n_steps, 1)
+    save_every = n_steps if save_every is None else check_integer("save_every", save_every, 1)
     if n_steps % save_every:
         raise ValueError(f"`save_every` ({save_every}) must divide `n_steps` ({n_steps}).")
     if isinstance(save, str):
@@ -190,8 +196,8 @@ def simulate_batch(
     if system_axis not in (None, 0):
         raise ValueError(f"`system_axis` must be None (shared system) or 0, got {system_axis!r}.")
     if fixed_iterations is not None:
-        fixed_iterations = _check_integer("fixed_iterations", fixed_iterations, 1)
-    unroll = _check_integer("unroll", unroll, 1)
+        fixed_iterations = check_integer("fixed_iterations", fixed_iterations, 1)
+    unroll = check_integer("unroll", unroll, 1)
     n, d = system.group.matrix_dim, system.group.algebra_dim
     for name, x in (("g0", g0), ("m0", m0), ("h", h)):
         if isinstance(x, (bool, np.bool_)):
@@ -253,7 +259,7 @@ def simulate_batch(
             check_finite("forcing", x)
     dtype = state_dtype(system, g0, m0, h)
     g0, m0, h = jnp.asarray(g0, dtype), jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
-    segment = _checkpoint_segment(checkpoint, n_steps, save_every)
+    segment = checkpoint_segment(checkpoint, n_steps, save_every)
     # Forced runs take the generic path (the kernels integrate unforced bodies).
     use_fast = fast and forcing is None
     fast_kernel = (

@@ -1,6 +1,6 @@
 """A fast batched DEP step for the free rigid body on SE(3) (paper (4.8), (3.3), (2.9)).
 
-The SE(3) counterpart of `_fast_so3.py`, for `RigidBodySE3` with any symmetric positive
+The SE(3) counterpart of `_kernels/_so3.py`, for `RigidBodySE3` with any symmetric positive
 definite 6×6 kinetic tensor `M` (Kirchhoff's body in a fluid, or `diag(J, m1)` in vacuum)
 and no potential, written for throughput over many bodies:
 
@@ -28,29 +28,9 @@ and no potential, written for throughput over many bodies:
   closed-form 6×6 Jacobian (`residual`) and a block solve with 3×3 Cramer inverses; the
   Newton iterations are not differentiated.
 
-Derivation. For increment `ξ = (ω, v)` and `μ = (a, b) = Mξ/h`, the left-invariant DEP
-equation `dφ⁻¹(ξ)ᵀ μ = m` has the block structure of `lievi.SE3`: with
-`K = dφ⁻¹_SO(3)(ω)ᵀ` (the SO(3) equation's operator) and `L` its translation block,
+The derivation of the residual and its Jacobian is in `_se3_residual.py`.
 
-    r_ω = K a + L b − Π,      r_v = K′ b − P,
-
-where, with `t = |ω|²`, `s = ω·v`,
-
-- exp chart: `K y = K′ y = y + ω×y/2 + c(t)(ω(ω·y) − t y)`, `c = (1 − (θ/2)cot(θ/2))/θ²`,
-  and `L y = v×y/2 + 2c′(t)s(ω(ω·y) − t y) + c(ω(v·y) + v(ω·y) − 2s y)` (the transpose of
-  `∂_v J⁻¹`, `lievi.SE3.dexpinv`'s lower-left block, expanded with
-  `v×(ω×y) = ω(v·y) − y s`);
-- Cayley chart: `K y = y + ω×y/2 + ω(ω·y)/4`, `K′ y = y + ω×y/2`, `L y = v×K′y/2` (the
-  transpose of `lievi.SE3.dcayinv`);
-
-and its Jacobian is `dφ⁻¹(ξ)ᵀ M/h + E`, with `E` the derivative of `dφ⁻¹(ξ)ᵀ μ` at fixed
-`μ` (`_e_blocks`; needs `c′` and `c″`). The coefficients are power series in `u = θ²/4`,
-accurate to round-off up to θ = π (the exp chart's domain), with no library
-trigonometry. The tests check `r`, `∂r/∂ξ`, the reduced Jacobian and the step with its
-gradients against `jax.jacfwd` of the residual built from `lievi.SE3.dexpinv`/`dcayinv`
-and against the generic path.
-
-The same kernel runs `simulate`'s step for one body (`RigidBodySE3.kernel_step`), every
+The same kernel runs `simulate`'s step for one body (`AbstractBatchKernel.one_body_step`), every
 component a scalar; there the values stored once (`materialise`) are stacked into one
 array per group, each group one kernel launch.
 
@@ -59,10 +39,8 @@ rotation block re-orthonormalised by one Newton–Schulz step as `lievi.SE3.comp
 The tests compare the iterates and the gradients (with respect to `M`, `m_0`, `g_0`, `h`)
 with the generic path, and the Jacobians with `jax.jacfwd`.
 
-XLA on CPU fuses a cheap shared subexpression into each of its consumers, so some
-intermediate values are stored once (`materialise`); each stored value costs a kernel of
-its own, so only those whose recomputation costs more than that are (chosen by counting
-the operations in the compiled step and timing it, `benchmarks/se3_step_cost.py`).
+Values stored once (`materialise`) were chosen by counting the operations in the
+compiled step and timing it (`benchmarks/se3_step_cost.py`).
 """
 
 from __future__ import annotations
@@ -76,258 +54,25 @@ import jax
 import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
-from .._integrators._newton import newton_tolerance
+from .._groups._se3 import SE3
+from .._newton import newton_tolerance
 from .._results import RESULTS
-from ._fast_so3 import _C, _P, _S, _cross, _dot, _horner, _solve3
-from ._kernel import ROOT_NAME, AbstractBatchKernel, compacted_tail, materialise
-
-# (θ − sin θ)/θ³ = Σ (−1)ᵏ tᵏ/(2k + 3)!, t = θ²: 13 terms reach round-off at θ = π.
-_SINC3 = tuple((-1) ** k / math.factorial(2 * k + 3) for k in range(13))
-
-
-def _horner2(coefficients, u):
-    """`(p(u), p′(u), p″(u))`."""
-    value, first, second = (jnp.zeros_like(u) for _ in range(3))
-    for c in reversed(coefficients):
-        second = second * u + 2 * first
-        first = first * u + value
-        value = value * u + c
-    return value, first, second
-
-
-def _dexpinv_coefficients(t):
-    """`(c, c′, c″)` in `t = θ²`, `c = (1 − (θ/2)cot(θ/2))/θ² = P/(4S)` (`_fast_so3`'s
-    series in `u = t/4`)."""
-    S, S1, S2 = _horner2(_S, t / 4)
-    P, P1, P2 = _horner2(_P, t / 4)
-    N1 = P1 * S - P * S1
-    f1 = N1 / (4 * S * S)
-    f2 = ((P2 * S - P * S2) * S - 2 * S1 * N1) / (4 * S * S * S)
-    return P / (4 * S), f1 / 4, f2 / 16
-
-
-def _mv(X, y):
-    return tuple(X[i][0] * y[0] + X[i][1] * y[1] + X[i][2] * y[2] for i in range(3))
-
-
-def _exp_series(t):
-    """The exp chart's coefficients in `t = θ²`: `(c, c′, c″)` of `dexpinv`
-    (`_dexpinv_coefficients`) and `β = (1 − cos θ)/θ²`, `γ = (θ − sin θ)/θ³` of its inverse."""
-    c, c1, c2 = _dexpinv_coefficients(t)
-    S = _horner(_S, t / 4)
-    return c, c1, c2, S * S / 2, _horner(_SINC3, t)
-
-
-def _operator(chart, w, v, coefficients=None):
-    """The blocks `(K, L, K′)` of `dφ⁻¹(ξ)ᵀ = [[K, L], [0, K′]]` as 3×3 nested tuples, and
-    the exp chart's coefficients `(c, c′, c″)` (`None` for Cayley).
-
-    exp:    K = K′ = (1 − ct) + ω̂/2 + c ωωᵀ,
-            L = v̂/2 − (kt + 2cs) + k ωωᵀ + c(ωvᵀ + vωᵀ),  k = 2c′s;
-    Cayley: K′ = 1 + ω̂/2,  K = K′ + ωωᵀ/4,  L = v̂/2 + (ωvᵀ − s)/4
-    (`t = |ω|²`, `s = ω·v`; the module doc).
-    """
-    t, s = _dot(w, w), _dot(w, v)
-    if chart == "cayley":
-        diag_k, coef_ww, coefficients = 1.0, 0.25, None
-        diag_l, coef_l = -s / 4, 0.25
-    else:
-        coefficients = _dexpinv_coefficients(t) if coefficients is None else coefficients
-        c, c1, _ = coefficients
-        k = 2 * c1 * s
-        diag_k, coef_ww = 1 - c * t, c
-        diag_l = -(k * t + 2 * c * s)
-        coef_l = c
-    hw = ((None, -w[2], w[1]), (w[2], None, -w[0]), (-w[1], w[0], None))
-    hv = ((None, -v[2], v[1]), (v[2], None, -v[0]), (-v[1], v[0], None))
-    Kp, K, L = [], [], []
-    for i in range(3):
-        kp_row, k_row, l_row = [], [], []
-        for j in range(3):
-            if i == j:
-                kp = diag_k if chart == "exp" else 1.0
-                k = diag_k + coef_ww * w[i] * w[i]
-                if chart == "exp":
-                    l_entry = (
-                        diag_l + coefficients[1] * 2 * s * w[i] * w[i] + 2 * coef_l * w[i] * v[i]
-                    )
-                else:
-                    l_entry = diag_l + coef_l * w[i] * v[i]
-            else:
-                kp = hw[i][j] / 2
-                k = kp + coef_ww * w[i] * w[j]
-                if chart == "exp":
-                    l_entry = (
-                        hv[i][j] / 2
-                        + coefficients[1] * 2 * s * w[i] * w[j]
-                        + coef_l * (w[i] * v[j] + v[i] * w[j])
-                    )
-                else:
-                    l_entry = hv[i][j] / 2 + coef_l * w[i] * v[j]
-            kp_row.append(kp)
-            k_row.append(k)
-            l_row.append(l_entry)
-        Kp.append(tuple(kp_row))
-        K.append(tuple(k_row))
-        L.append(tuple(l_row))
-    K, L = tuple(K), tuple(L)
-    Kp = K if chart == "exp" else tuple(Kp)
-    return K, L, Kp, coefficients
-
-
-def _ones(x):
-    """An array of ones computed at run time (see `materialise`)."""
-    return x * 0 + 1
-
-
-def residual(chart, x, m, A, with_jacobian: bool):
-    """`r = dφ⁻¹(x)ᵀ A x − m` and, if asked, `∂r/∂x = dφ⁻¹(x)ᵀ A + E` (the module doc).
-
-    `x`, `m`: 6-tuples of arrays; `A = M/h`: 6×6 nested tuple. Returns `(r, J)`, `J` a 6×6
-    nested tuple (or `None`).
-    """
-    w, v = x[:3], x[3:]
-    mu = tuple(sum(A[i][j] * x[j] for j in range(6)) for i in range(6))
-    a, b = mu[:3], mu[3:]
-    K, L, Kp, coefficients = _operator(chart, w, v)
-    if with_jacobian:
-        # Every entry of J reads K, L, K′: stored once instead of recomputed in each
-        # consumer (`materialise`).
-        flat = materialise(
-            [e for X in (K, L) + ((Kp,) if chart == "cayley" else ()) for row in X for e in row],
-            _ones(x[0]),
-        )
-        K = tuple(tuple(flat[3 * i : 3 * i + 3]) for i in range(3))
-        L = tuple(tuple(flat[9 + 3 * i : 12 + 3 * i]) for i in range(3))
-        Kp = K if chart == "exp" else tuple(tuple(flat[18 + 3 * i : 21 + 3 * i]) for i in range(3))
-    Ka, Lb, Kpb = _mv(K, a), _mv(L, b), _mv(Kp, b)
-    r = tuple(Ka[i] + Lb[i] - m[i] for i in range(3)) + tuple(Kpb[i] - m[3 + i] for i in range(3))
-    if not with_jacobian:
-        return r, None
-
-    E_ww, E_wv, E_vw = _e_blocks(chart, w, v, a, b, Kpb, coefficients)
-    J = []
-    for i in range(3):
-        J.append(
-            tuple(
-                sum(K[i][k] * A[k][j] + L[i][k] * A[3 + k][j] for k in range(3))
-                + (E_ww[i][j] if j < 3 else E_wv[i][j - 3])
-                for j in range(6)
-            )
-        )
-    for i in range(3):
-        J.append(
-            tuple(
-                sum(Kp[i][k] * A[3 + k][j] for k in range(3)) + (E_vw[i][j] if j < 3 else 0)
-                for j in range(6)
-            )
-        )
-    return r, tuple(J)
-
-
-def _e_blocks(chart, w, v, a, b, Kpb, coefficients):
-    """`(E_ωω, E_ωv, E_vω)`: the blocks of `E = ∂(dφ⁻¹(ξ)ᵀμ)/∂ξ` at fixed `μ = (a, b)`
-    (`E_vv = 0`), `Kpb = K′b`."""
-    oa, ob, vb = _dot(w, a), _dot(w, b), _dot(v, b)
-    t, s = _dot(w, w), _dot(w, v)
-    if chart == "cayley":
-        # E_ωω = −â/2 + (ω·a + v·b)/4 + (ωaᵀ − bvᵀ)/4, E_ωv = −(K′b)^/2, E_vω = −b̂/2.
-        d = (oa + vb) / 4
-        E_ww = tuple(
-            tuple((d if i == j else 0) + (w[i] * a[j] - b[i] * v[j]) / 4 for j in range(3))
-            for i in range(3)
-        )
-        E_ww = _add_hat(E_ww, a, -0.5)
-        E_wv = _add_hat(((0,) * 3,) * 3, Kpb, -0.5)
-        E_vw = _add_hat(((0,) * 3,) * 3, b, -0.5)
-    else:
-        c, c1, c2 = coefficients
-        k = 2 * c1 * s
-        za = tuple(w[i] * oa - t * a[i] for i in range(3))
-        zb = tuple(w[i] * ob - t * b[i] for i in range(3))
-        lw = tuple(w[i] * vb + v[i] * ob - 2 * s * b[i] for i in range(3))
-        y = tuple(2 * c1 * zb[i] - 2 * c * b[i] for i in range(3))
-        u = tuple(
-            -2 * c * a[i] + 2 * c1 * (za[i] + lw[i]) + 4 * s * (c2 * zb[i] - c1 * b[i])
-            for i in range(3)
-        )
-        d_ww = c * (oa + vb) + k * ob
-        d_b = c * ob
-        ca_kb = tuple(c * a[j] + k * b[j] for j in range(3))
-        cb = tuple(c * b[j] for j in range(3))
-        E_ww = tuple(
-            tuple(
-                (d_ww if i == j else 0) + w[i] * ca_kb[j] + v[i] * cb[j] + u[i] * w[j] + y[i] * v[j]
-                for j in range(3)
-            )
-            for i in range(3)
-        )
-        E_ww = _add_hat(E_ww, a, -0.5)
-        D_b = tuple(
-            tuple((d_b if i == j else 0) + w[i] * cb[j] + y[i] * w[j] for j in range(3))
-            for i in range(3)
-        )
-        E_wv = E_vw = _add_hat(D_b, b, -0.5)
-    return E_ww, E_wv, E_vw
-
-
-def _add_hat(X, y, alpha):
-    """`X + α ŷ` (3×3 nested tuples), without adding the zero diagonal of `ŷ`."""
-    H = ((None, -y[2], y[1]), (y[2], None, -y[0]), (-y[1], y[0], None))
-    return tuple(
-        tuple(X[i][j] if H[i][j] is None else X[i][j] + alpha * H[i][j] for j in range(3))
-        for i in range(3)
-    )
-
-
-def _inverse3(M):
-    (a, b, c), (d, e, f), (g, h, i) = M
-    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
-    D, E, F = c * h - b * i, a * i - c * g, b * g - a * h
-    G, H, I = b * f - c * e, c * d - a * f, a * e - b * d
-    # A division: stored once, not recomputed by the nine entries that read it.
-    inv = 1 / (a * A + b * B + c * C)
-    return ((A * inv, D * inv, G * inv), (B * inv, E * inv, H * inv), (C * inv, F * inv, I * inv))
-
-
-def _factor(J):
-    """What `_solve` needs of `J = [[P, Q], [R, S]]`: `(P⁻¹, P⁻¹Q, R, (S − R P⁻¹Q)⁻¹)`,
-    block elimination with 3×3 Cramer inverses, materialised (each is read by several
-    consumers)."""
-    one = _ones(J[0][0])
-    P = tuple(J[i][:3] for i in range(3))
-    Q = tuple(J[i][3:] for i in range(3))
-    R = tuple(J[3 + i][:3] for i in range(3))
-    S = tuple(J[3 + i][3:] for i in range(3))
-    Pinv = _nested(materialise(_flat(_inverse3(P)), one))
-    PinvQ = tuple(
-        tuple(sum(Pinv[i][k] * Q[k][j] for k in range(3)) for j in range(3)) for i in range(3)
-    )
-    PinvQ = _nested(materialise(_flat(PinvQ), one))
-    schur = tuple(
-        tuple(S[i][j] - sum(R[i][k] * PinvQ[k][j] for k in range(3)) for j in range(3))
-        for i in range(3)
-    )
-    schur_inv = _nested(materialise(_flat(_inverse3(schur)), one))
-    return Pinv, PinvQ, R, schur_inv
-
-
-def _solve(factors, r):
-    """`J⁻¹ r` from `_factor(J)`: `x₂ = (S − R P⁻¹Q)⁻¹(r₂ − R P⁻¹r₁)`, `x₁ = P⁻¹r₁ − P⁻¹Q x₂`."""
-    Pinv, PinvQ, R, schur_inv = factors
-    y1 = _mv(Pinv, r[:3])
-    Ry1 = _mv(R, y1)
-    x2 = _mv(schur_inv, tuple(r[3 + i] - Ry1[i] for i in range(3)))
-    Qx2 = _mv(PinvQ, x2)
-    return tuple(y1[i] - Qx2[i] for i in range(3)) + x2
-
-
-def _flat(X):
-    return [e for row in X for e in row]
-
-
-def _nested(flat):
-    return tuple(tuple(flat[3 * i : 3 * i + 3]) for i in range(3))
+from ._base import ROOT_NAME, AbstractBatchKernel, compacted_tail, materialise
+from ._se3_residual import SINC3, e_blocks, exp_series, factor, mv, ones, operator, residual, solve6
+from ._soa import (
+    C_SERIES,
+    S_SERIES,
+    block,
+    cross,
+    dot,
+    entries,
+    flat,
+    horner,
+    inverse3,
+    matmul,
+    nested,
+    solve3,
+)
 
 
 def _max_abs(r):
@@ -335,18 +80,6 @@ def _max_abs(r):
     for x in r[1:]:
         norm = jnp.maximum(norm, jnp.abs(x))
     return norm
-
-
-def _matmul(X, Y):
-    return tuple(
-        tuple(X[i][0] * Y[0][j] + X[i][1] * Y[1][j] + X[i][2] * Y[2][j] for j in range(3))
-        for i in range(3)
-    )
-
-
-def _block(A, i, j):
-    """The 3×3 block `(i, j)` of a 6×6 nested tuple."""
-    return tuple(tuple(A[3 * i + k][3 * j + l] for l in range(3)) for k in range(3))
 
 
 def _velocity_part(chart, w, m, C, series=None):
@@ -358,15 +91,15 @@ def _velocity_part(chart, w, m, C, series=None):
     """
     _, _, A22inv, T, _ = C
     P = m[3:]
-    t = _dot(w, w)
-    wP, oP = _cross(w, P), _dot(w, P)
+    t = dot(w, w)
+    wP, oP = cross(w, P), dot(w, P)
     if chart == "cayley":
         scale = 1 / (1 + t / 4)
         q = tuple((P[i] - wP[i] / 2 + w[i] * oP / 4) * scale for i in range(3))
     else:
-        beta, gamma = (_exp_series(t) if series is None else series)[3:]
+        beta, gamma = (exp_series(t) if series is None else series)[3:]
         q = tuple(P[i] - beta * wP[i] + gamma * (w[i] * oP - t * P[i]) for i in range(3))
-    A22q, Tw = _mv(A22inv, q), _mv(T, w)
+    A22q, Tw = mv(A22inv, q), mv(T, w)
     v = tuple(A22q[i] - Tw[i] for i in range(3))
     return q, v
 
@@ -387,10 +120,10 @@ def _reduced_residual(chart, w, m, C, with_jacobian: bool):
     Returns `(ρ, J, (q, v))`.
     """
     S, Z, A22inv, T, _ = C
-    one = _ones(w[0])
+    one = ones(w[0])
     series = None
     if chart == "exp":
-        series = _exp_series(_dot(w, w))
+        series = exp_series(dot(w, w))
         if with_jacobian:
             # Not stacked for one body: stacked, this group made the exp step under
             # `jax.vmap(simulate)` 30× slower (XLA's fusion of the stacked Horner chains;
@@ -400,22 +133,22 @@ def _reduced_residual(chart, w, m, C, with_jacobian: bool):
     if with_jacobian:
         q, v = materialise(q, one), materialise(v, one)
     # a = A₁₁ω + A₁₂v = Sω + Zq.
-    Sw, Zq = _mv(S, w), _mv(Z, q)
+    Sw, Zq = mv(S, w), mv(Z, q)
     a = tuple(Sw[i] + Zq[i] for i in range(3))
     if chart == "cayley":
         return _reduced_cayley(w, m, C, q, v, a, with_jacobian, one)
-    K, L, Kp, coefficients = _operator(chart, w, v, None if series is None else series[:3])
-    Ka, Lq = _mv(K, a), _mv(L, q)
+    K, L, Kp, coefficients = operator(chart, w, v, None if series is None else series[:3])
+    Ka, Lq = mv(K, a), mv(L, q)
     rho = tuple(Ka[i] + Lq[i] - m[i] for i in range(3))
     if not with_jacobian:
         return rho, None, (q, v)
-    E_ww, E_wv, E_vw = _e_blocks(chart, w, v, a, q, m[3:], coefficients)
+    E_ww, E_wv, E_vw = e_blocks(chart, w, v, a, q, m[3:], coefficients)
     # Q = −K′⁻¹ E_vω, column by column (K′⁻¹ as `_velocity_part`).
-    t = _dot(w, w)
+    t = dot(w, w)
     columns = []
     for j in range(3):
         y = tuple(-E_vw[i][j] for i in range(3))
-        wy, oy = _cross(w, y), _dot(w, y)
+        wy, oy = cross(w, y), dot(w, y)
         if chart == "cayley":
             scale = 1 / (1 + t / 4)
             columns.append(tuple((y[i] - wy[i] / 2 + w[i] * oy / 4) * scale for i in range(3)))
@@ -426,10 +159,10 @@ def _reduced_residual(chart, w, m, C, with_jacobian: bool):
             )
     Q = tuple(tuple(columns[j][i] for j in range(3)) for i in range(3))
     # K A₁₁ + K A₁₂V = K(S + ZQ), V = A₂₂⁻¹Q − T.
-    ZQ, A22Q = _matmul(Z, Q), _matmul(A22inv, Q)
+    ZQ, A22Q = matmul(Z, Q), matmul(A22inv, Q)
     U = tuple(tuple(S[i][j] + ZQ[i][j] for j in range(3)) for i in range(3))
     V = tuple(tuple(A22Q[i][j] - T[i][j] for j in range(3)) for i in range(3))
-    KU, EV, LQ = _matmul(K, U), _matmul(E_wv, V), _matmul(L, Q)
+    KU, EV, LQ = matmul(K, U), matmul(E_wv, V), matmul(L, Q)
     J = tuple(
         tuple(KU[i][j] + EV[i][j] + E_ww[i][j] + LQ[i][j] for j in range(3)) for i in range(3)
     )
@@ -447,12 +180,12 @@ def _reduced_cayley(w, m, C, q, v, a, with_jacobian, one):
     """
     S, Z, A22inv, T, _ = C
     Pi, P = m[:3], m[3:]
-    wa, oa = _cross(w, a), _dot(w, a)
-    vP = _cross(v, P)
+    wa, oa = cross(w, a), dot(w, a)
+    vP = cross(v, P)
     rho = tuple(a[i] + wa[i] / 2 + w[i] * oa / 4 + vP[i] / 2 - Pi[i] for i in range(3))
     if not with_jacobian:
         return rho, None, (q, v)
-    t = _dot(w, w)
+    t = dot(w, w)
     scale = 1 / (1 + t / 4)
     W = ((0, -w[2], w[1]), (w[2], 0, -w[0]), (-w[1], w[0], 0))
     Kpi = tuple(
@@ -466,14 +199,14 @@ def _reduced_cayley(w, m, C, q, v, a, with_jacobian, one):
         for i in range(3)
     )
     # K A₁₁ + K A₁₂V = K(S + ZQ); −P̂V/2 with V = A₂₂⁻¹Q − T.
-    ZQ, A22Q = _matmul(Z, Q), _matmul(A22inv, Q)
+    ZQ, A22Q = matmul(Z, Q), matmul(A22inv, Q)
     U = tuple(tuple(S[i][j] + ZQ[i][j] for j in range(3)) for i in range(3))
     V = tuple(tuple(A22Q[i][j] - T[i][j] for j in range(3)) for i in range(3))
     K = tuple(
         tuple((1 if i == j else 0) + W[i][j] / 2 + w[i] * w[j] / 4 for j in range(3))
         for i in range(3)
     )
-    KU = _matmul(K, U)
+    KU = matmul(K, U)
     Ph = ((0, -P[2], P[1]), (P[2], 0, -P[0]), (-P[1], P[0], 0))
     Ah = ((0, -a[2], a[1]), (a[2], 0, -a[0]), (-a[1], a[0], 0))
     J = tuple(
@@ -498,13 +231,13 @@ def _chord_step(chart, w, m, C):
     tolerance where three were needed (`DEFAULT_FIXED_ITERATIONS`)."""
     *_, S_inv = C
     rho, _, _ = _reduced_residual(chart, w, m, C, False)
-    delta = _mv(S_inv, rho)
+    delta = mv(S_inv, rho)
     return tuple(w[i] - delta[i] for i in range(3))
 
 
 def _newton_step(chart, w, m, C):
     rho, J, _ = _reduced_residual(chart, w, m, C, True)
-    delta = _solve3(J, rho, divide_each=True)
+    delta = solve3(J, rho, divide_each=True)
     return tuple(w[i] - delta[i] for i in range(3))
 
 
@@ -576,8 +309,8 @@ def _at_root_jvp(chart, primals, tangents):
     _, dr = jax.jvp(lambda mm, AA: residual(chart, x, mm, AA, False)[0], (m, A), (dm, dA))
     _, J = residual(chart, x, m, A, True)
     # In reverse mode this is the transposed solve's result, read by every cotangent.
-    dr = materialise(dr, _ones(x[0]))
-    delta = _solve(_factor(J), dr)
+    dr = materialise(dr, ones(x[0]))
+    delta = solve6(factor(J), dr)
     return x, tuple(-d for d in delta)
 
 
@@ -604,17 +337,17 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
     # Tagged before `_at_root`, whose derivative rule evaluates `J` at this input.
     x = checkpoint_name(jax.lax.stop_gradient(x), ROOT_NAME)
     x = _at_root(chart, x, m, A)
-    one = _ones(m[0])
+    one = ones(m[0])
     # Stored once each (`materialise`): read by every entry of `F`, `m_{k+1}`, `g_{k+1}`.
     x = materialise(x, one)
 
     w, v = x[:3], x[3:]
-    t = _dot(w, w)
+    t = dot(w, w)
     if chart == "exp":
-        S, C = _horner(_S, t / 4), _horner(_C, t / 4)
+        S, C = horner(S_SERIES, t / 4), horner(C_SERIES, t / 4)
         alpha, beta = S * C, S * S / 2  # sin θ/θ, (1 − cos θ)/θ²
-        gamma = _horner(_SINC3, t)  # (θ − sin θ)/θ³
-        wv, wwv = _cross(w, v), _dot(w, v)
+        gamma = horner(SINC3, t)  # (θ − sin θ)/θ³
+        wv, wwv = cross(w, v), dot(w, v)
         # tF = (1 + β ω̂ + γ ω̂²) v, ω̂² v = ω(ω·v) − t v.
         tF = tuple(v[i] + beta * wv[i] + gamma * (w[i] * wwv - t * v[i]) for i in range(3))
     else:
@@ -630,12 +363,12 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
         for i in range(3)
     )
     if chart == "cayley":
-        RFv = _mv(RF, v)
+        RFv = mv(RF, v)
         tF = tuple((v[i] + RFv[i]) / 2 for i in range(3))  # (1 − ω̂/2)⁻¹ v
-    RF, tF = _nested(materialise(_flat(RF), one)), materialise(tF, one)
+    RF, tF = nested(materialise(flat(RF), one)), materialise(tF, one)
     # Ad_Fᵀ m = (RFᵀ(Π + P × tF), RFᵀ P).
     Pi, P = m[:3], m[3:]
-    Pt = _cross(P, tF)
+    Pt = cross(P, tF)
     y = tuple(Pi[i] + Pt[i] for i in range(3))
     m_next = tuple(sum(RF[k][i] * y[k] for k in range(3)) for i in range(3)) + tuple(
         sum(RF[k][i] * P[k] for k in range(3)) for i in range(3)
@@ -644,7 +377,7 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
     R = tuple(tuple(g[4 * i + j] for j in range(3)) for i in range(3))
     p = tuple(g[4 * i + 3] for i in range(3))
     Rn = tuple(tuple(sum(R[i][k] * RF[k][j] for k in range(3)) for j in range(3)) for i in range(3))
-    Rn = _nested(materialise(_flat(Rn), one))
+    Rn = nested(materialise(flat(Rn), one))
     G = tuple(
         tuple(sum(Rn[k][i] * Rn[k][j] for k in range(3)) - (1 if i == j else 0) for j in range(3))
         for i in range(3)
@@ -653,7 +386,7 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
         tuple(Rn[i][j] - sum(Rn[i][k] * G[k][j] for k in range(3)) / 2 for j in range(3))
         for i in range(3)
     )
-    Rt = _mv(R, tF)
+    Rt = mv(R, tF)
     g_next = tuple(e for i in range(3) for e in (Rn[i][0], Rn[i][1], Rn[i][2], Rt[i] + p[i]))
 
     result = jnp.where(converged, RESULTS.successful, RESULTS.newton_not_converged)
@@ -668,7 +401,7 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
 
 
 # Iterations every body takes before the one convergence check (see
-# `_fast_so3.DEFAULT_FIXED_ITERATIONS`): a chord step and two Newton steps. From the
+# `_so3.DEFAULT_FIXED_ITERATIONS`): a chord step and two Newton steps. From the
 # explicit-Euler guess they reach 64 ulps for every one of 2·10⁴ random bodies at
 # h = 0.05 (|ω| ≤ 0.3), and for all but about one in 10⁴ at h = 0.1; the rest finish in
 # the gathered tail. Measured with `benchmarks/se3_step_cost.py --one-thread`: 11–16 %
@@ -689,13 +422,20 @@ class SE3NewtonKernel(AbstractBatchKernel):
     max_steps: int = eqx.field(static=True)
     fixed_iterations: int | None = eqx.field(default=None, static=True)
 
+    def physics(self, system, batched: bool = False):
+        # A left-invariant system on `SE3` with a quadratic Lagrangian `½ξᵀMξ`: its 6×6 `M`.
+        tensor = system.kinetic_tensor()
+        if system.group != SE3 or system.side != "left" or tensor is None:
+            return None
+        return tensor if jnp.shape(tensor)[batched:] == (6, 6) else None
+
     def constants(self, tensor, batch):
         # The 36 entries of M, and those of M⁻¹ (not differentiated: the Newton guess and
         # the step bound), one 6×6 inverse per body, once per run. A tensor shared by the
         # batch stays one set of scalars: broadcast inside the step's loops, 108 per-run
         # constants would otherwise be arrays `(B,)` read from memory at every step.
         inverse = jnp.linalg.inv(jax.lax.stop_gradient(tensor))
-        return _entries(tensor), _entries(inverse)
+        return entries(tensor), entries(inverse)
 
     def prepare(self, constants, h):
         M, Minv = constants
@@ -705,12 +445,12 @@ class SE3NewtonKernel(AbstractBatchKernel):
         # and S⁻¹ (the chord step's matrix, `_chord_step`).
         # Not differentiated (Newton only; the root's derivative is `_at_root`'s).
         blocks = jax.lax.stop_gradient(A)
-        A11, A12, A21 = _block(blocks, 0, 0), _block(blocks, 0, 1), _block(blocks, 1, 0)
-        A22inv = _inverse3(_block(blocks, 1, 1))
-        Z, T = _matmul(A12, A22inv), _matmul(A22inv, A21)
-        ZA21 = _matmul(Z, A21)
+        A11, A12, A21 = block(blocks, 0, 0), block(blocks, 0, 1), block(blocks, 1, 0)
+        A22inv = inverse3(block(blocks, 1, 1))
+        Z, T = matmul(A12, A22inv), matmul(A22inv, A21)
+        ZA21 = matmul(Z, A21)
         S = tuple(tuple(A11[i][j] - ZA21[i][j] for j in range(3)) for i in range(3))
-        C = (S, Z, A22inv, T, _inverse3(S))
+        C = (S, Z, A22inv, T, inverse3(S))
         return A, tuple(tuple(h * e for e in row) for row in Minv), C
 
     def step(self, params, g, m, alive):
@@ -730,7 +470,7 @@ class SE3NewtonKernel(AbstractBatchKernel):
 
     def turn_squared(self, rates, m):
         omega = tuple(sum(rates[i][j] * m[j] for j in range(6)) for i in range(3))
-        return _dot(omega, omega)
+        return dot(omega, omega)
 
     def carried(self, g0):
         return tuple(g0[:, i, j] for i in range(3) for j in range(4))
@@ -740,8 +480,3 @@ class SE3NewtonKernel(AbstractBatchKernel):
         top = jnp.moveaxis(entries, -1, 0).reshape(entries.shape[-1:] + entries.shape[:-2] + (3, 4))
         last = jnp.broadcast_to(jnp.eye(4, dtype=top.dtype)[3], top.shape[:-2] + (1, 4))
         return jnp.concatenate([top, last], axis=-2)
-
-
-def _entries(X):
-    """A `(…, 6, 6)` array as a 6×6 nested tuple of `(…)` arrays (`(B,)` or scalars)."""
-    return tuple(tuple(X[..., i, j] for j in range(6)) for i in range(6))

@@ -1,14 +1,10 @@
-"""Fast batched steps of the explicit rigid-body integrators on SO(3): splitting and RK4.
-
-The structure-of-arrays counterparts of `LiePoissonSplitting` (`_splitting.py`, paper §6)
-and `RK4` (`_rk4.py`) for a rigid body with principal moments `I`, as `_fast_so3.py` is
-for `DEP`: every component its own `(B,)` array (batch minor), closed forms, no batched
-3×3 matrix products. They compute the same iterates as the per-body methods to round-off
-(the tests compare them).
+"""The arithmetic of the explicit rigid-body steps on SO(3) (splitting and RK4), as
+structure of arrays: the primal computations that the kernels (`_explicit.py`) run and
+whose tangents `_explicit_adjoints.py` writes by hand.
 
 The splitting's sub-flows are rotations by angles `α = f h Π_p / I_p`; on CPU `jnp.sin`
 and `jnp.cos` are scalar library calls, several times slower than the rest of the step
-(measured, see `_fast_so3.py`), so `sincos` below evaluates both by a Cody–Waite
+(measured, see `_kernels/_so3.py`), so `sincos` below evaluates both by a Cody–Waite
 reduction to `|r| ≤ π/4` and polynomials of degree 15 and 14, accurate to about one ulp
 for `|α| ≲ 10⁴` in float32 and far beyond in float64 (the tests compare with `jnp.sin`).
 """
@@ -20,9 +16,7 @@ import math
 
 import jax.numpy as jnp
 
-from .._results import RESULTS
-from . import _explicit_adjoints
-from ._kernel import AbstractBatchKernel, materialise
+from ._base import materialise
 
 _HALF_PI = decimal.Decimal("3.14159265358979323846264338327950288419716939937510582097494") / 2
 
@@ -118,13 +112,6 @@ def sincos(x):
     return _sin_quarter_turns(r, r * r, q), _sin_quarter_turns(r, r * r, q + 1)
 
 
-def _finite_result(Pi, g):
-    finite = jnp.isfinite(Pi[0])
-    for x in (*Pi[1:], *g):
-        finite = finite & jnp.isfinite(x)
-    return jnp.where(finite, RESULTS.successful, RESULTS.nonfinite).astype(jnp.int32)
-
-
 def _quaternion_product(a, b):
     """`a ⊗ b` for quaternions `(w, x, y, z)`: `R(a ⊗ b) = R(a) R(b)`. Entries may be Python
     zeros (an axis rotation `(cos α/2, sin α/2 e_p)` has two), whose products are left out."""
@@ -165,7 +152,7 @@ def _rotation_of_quaternion(quaternion):
     )
 
 
-def _matmul3(X, Y):
+def matmul3(X, Y):
     """`X Y` for 3×3 matrices as 9 arrays; `X` may also be fewer rows (3 arrays a row),
     e.g. the advected row `Γᵀ`."""
     return tuple(
@@ -207,30 +194,7 @@ def splitting_primal(g, Pi, rate):
     # Π_{k+1} = Fᵀ Π_k (as a row, Π_kᵀ F): equal to the sequential rotations to round-off
     # (`momenta[-1]`), and its loops read the 4 stored quaternion components instead of
     # the 10 sines and cosines.
-    return _matmul3(g, F), _matmul3(momenta[0], F), rotations, momenta, F
-
-
-def splitting_step(g, Pi, rate):
-    """One `LiePoissonSplitting` step: axes 0, 1 (h/2), 2 (h), 1, 0 (h/2), as `_splitting.py`.
-
-    Sub-flow about axis `p` for a fraction `f` of the step: `F_j = exp(α ê_p)` with
-    `α = f Π_p h/I_p`, `Π ← F_jᵀ Π` (`Π_p` does not change). The five rotations are
-    composed as unit quaternions `(cos α/2, sin α/2 e_p)` into `F = F_1⋯F_5`, and
-    `g ← g F` once (equal to rotating `g` five times, to round-off). `g`: 9 arrays
-    (row-major), or only some of its rows (as `dep_step`), `Pi`: 3 arrays, `rate`: `h/I_p`,
-    3 arrays or scalars. Returns `(g_next, Pi_next, result)`. Differentiable by the
-    hand-written tangent of `_explicit_adjoints.splitting_flow`.
-
-    Cost (XLA on CPU, float64): the step is bound by the arrays of `B` numbers it writes
-    and reads back, more than by its arithmetic. Per body-step the five sine/cosine
-    pairs of the half angles (10 numbers, each from one polynomial) and the four
-    quaternion components are stored; the momenta between sub-flows and `F` are
-    recomputed where they are read. Storing the 9 entries of `F` instead of the
-    quaternion, and each angle (a division by `I/h`), was measured 1.2–1.4× slower at
-    batch 1e5 (same run).
-    """
-    g, Pi = _explicit_adjoints.splitting_flow(tuple(g), tuple(Pi), tuple(rate))
-    return g, Pi, _finite_result(Pi, g)
+    return matmul3(g, F), matmul3(momenta[0], F), rotations, momenta, F
 
 
 def rk4_field(g, Pi, w):
@@ -271,43 +235,3 @@ def rk4_primal(g, Pi, rate):
 
 def _axpy(a, k, y):
     return tuple(yi + a * ki for yi, ki in zip(y, k))
-
-
-def rk4_step(g, Pi, rate):
-    """One `RK4` step on `ṁ = Π × Ω`, `ġ = g Ω̂`, `Ω = I⁻¹Π` (`_rk4.py`), component-wise.
-
-    `rate`: `h/I_p`, 3 arrays or scalars. The step and the moments enter only through
-    these ratios (`h f(y; I) = f(y; I/h)`, the field is linear in `I⁻¹`): the stages use
-    the increments `h k_i = (g ŵ_i, Π_i × w_i)`, `w_i = (h/I)·Π_i`, so reverse mode
-    carries three cotangents of the parameters, not four. Differentiable by the
-    hand-written tangent of `_explicit_adjoints.rk4_flow`.
-    """
-    g_next, Pi_next = _explicit_adjoints.rk4_flow(tuple(g), tuple(Pi), tuple(rate))
-    return g_next, Pi_next, _finite_result(Pi_next, g_next)
-
-
-def _explicit_info(Pi):
-    # Explicit: no Newton iterations, zero residual (as the per-body `StepInfo`).
-    return jnp.zeros(jnp.shape(Pi[0]), jnp.int32), jnp.zeros(jnp.shape(Pi[0]), Pi[0].dtype)
-
-
-class SplittingKernel(AbstractBatchKernel):
-    """`splitting_step` for `LiePoissonSplitting`."""
-
-    def prepare(self, inertia, h):
-        return tuple(h / moment for moment in inertia)
-
-    def step(self, params, g, Pi, alive):
-        g_next, Pi_next, result = splitting_step(g, Pi, params)
-        return (g_next, Pi_next, result, *_explicit_info(Pi))
-
-
-class RK4Kernel(AbstractBatchKernel):
-    """`rk4_step` for `RK4`."""
-
-    def prepare(self, inertia, h):
-        return tuple(h / moment for moment in inertia)
-
-    def step(self, params, g, Pi, alive):
-        g_next, Pi_next, result = rk4_step(g, Pi, params)
-        return (g_next, Pi_next, result, *_explicit_info(Pi))

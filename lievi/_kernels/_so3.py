@@ -52,65 +52,20 @@ import jax
 import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
-from .._integrators._newton import newton_tolerance
+from .._newton import newton_tolerance
 from .._results import RESULTS
-from ._kernel import ROOT_NAME, AbstractBatchKernel, materialise
-
-# Power-series coefficients in u = φ², φ = θ/2. Eleven terms: the first omitted term is
-# below 1e-18 at φ = π/2 (θ = π).
-_N_TERMS = 11
-_S = tuple((-1) ** k / math.factorial(2 * k + 1) for k in range(_N_TERMS))  # sin φ / φ
-_C = tuple((-1) ** k / math.factorial(2 * k) for k in range(_N_TERMS))  # cos φ
-_P = tuple((-1) ** (k + 1) * 2 * k / math.factorial(2 * k + 1) for k in range(1, _N_TERMS + 1))
-
-
-def _horner(coefficients, u):
-    value = jnp.zeros_like(u)
-    for c in reversed(coefficients):
-        value = value * u + c
-    return value
-
-
-def _horner_with_derivative(coefficients, u):
-    value, derivative = jnp.zeros_like(u), jnp.zeros_like(u)
-    for c in reversed(coefficients):
-        derivative = derivative * u + value
-        value = value * u + c
-    return value, derivative
-
-
-def _cross(x, y):
-    return (x[1] * y[2] - x[2] * y[1], x[2] * y[0] - x[0] * y[2], x[0] * y[1] - x[1] * y[0])
-
-
-def _dot(x, y):
-    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
-
-
-def _solve3(J, r, divide_each: bool = False):
-    """`J⁻¹ r` for a 3×3 matrix given as nested tuples of arrays (Cramer's rule).
-
-    By default `1/det J` is computed once: XLA stores a division's result rather than
-    repeat it in each consumer, so that is one more loop over the batch, which evaluates
-    all of `J`. With `divide_each`, each component divides by `det J` itself. Use it where
-    `J` costs much more to evaluate than a division, as on SE(3): then `J` is evaluated
-    three times an iteration, not four.
-    """
-    (a, b, c), (d, e, f), (g, h, i) = J
-    # Cofactors: the adjugate's entries.
-    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
-    D, E, F = c * h - b * i, a * i - c * g, b * g - a * h
-    G, H, I = b * f - c * e, c * d - a * f, a * e - b * d
-    det = a * A + b * B + c * C
-    numerators = (
-        A * r[0] + D * r[1] + G * r[2],
-        B * r[0] + E * r[1] + H * r[2],
-        C * r[0] + F * r[1] + I * r[2],
-    )
-    if divide_each:
-        return tuple(n / det for n in numerators)
-    inv_det = 1 / det
-    return tuple(n * inv_det for n in numerators)
+from ._base import ROOT_NAME, AbstractBatchKernel, materialise
+from ._soa import (
+    C_SERIES,
+    P_SERIES,
+    S_SERIES,
+    cross,
+    dot,
+    horner,
+    horner_with_derivative,
+    max_abs,
+    solve3,
+)
 
 
 def _residual_moser_veselov(x, Pi, A, with_jacobian: bool):
@@ -119,8 +74,8 @@ def _residual_moser_veselov(x, Pi, A, with_jacobian: bool):
     `MoserVeselov`'s residual `J(X)/h − vee((1 − X/2) Π̂ (1 + X/2))` on SO(3) written out
     (`vee([Π̂, X̂]) = Π×x`, `vee(X̂Π̂X̂) = −(x·Π)x`); `F = cay(x)`.
     """
-    px = _cross(Pi, x)
-    d = _dot(x, Pi)
+    px = cross(Pi, x)
+    d = dot(x, Pi)
     r = tuple(A[i] * x[i] - Pi[i] - px[i] / 2 - d * x[i] / 4 for i in range(3))
     if not with_jacobian:
         return r, None
@@ -141,17 +96,17 @@ def _residual(chart, xi, Pi, A, with_jacobian: bool):
     if chart == "moser-veselov":
         return _residual_moser_veselov(xi, Pi, A, with_jacobian)
     w = tuple(A[i] * xi[i] for i in range(3))
-    d = _dot(xi, w)
-    t = _dot(xi, xi)
-    xw = _cross(xi, w)
+    d = dot(xi, w)
+    t = dot(xi, xi)
+    xw = cross(xi, w)
     if chart == "exp":
         u = t / 4
         if with_jacobian:
-            S, dS = _horner_with_derivative(_S, u)
-            P, dP = _horner_with_derivative(_P, u)
+            S, dS = horner_with_derivative(S_SERIES, u)
+            P, dP = horner_with_derivative(P_SERIES, u)
             dc = (dP * S - P * dS) / (16 * S * S)
         else:
-            S, P = _horner(_S, u), _horner(_P, u)
+            S, P = horner(S_SERIES, u), horner(P_SERIES, u)
         c = P / (4 * S)
         v = tuple(xi[i] * d - t * w[i] for i in range(3))
         r = tuple(w[i] + xw[i] / 2 + c * v[i] - Pi[i] for i in range(3))
@@ -183,10 +138,6 @@ def _residual(chart, xi, Pi, A, with_jacobian: bool):
             row.append(entry)
         rows.append(tuple(row))
     return r, tuple(rows)
-
-
-def _max_abs(x):
-    return jnp.maximum(jnp.maximum(jnp.abs(x[0]), jnp.abs(x[1])), jnp.abs(x[2]))
 
 
 def _explicit_euler_guess(Pi, A):
@@ -246,7 +197,7 @@ def _moser_veselov_by_scalar_newton(Pi, A, iterations: int):
 def moser_veselov_on_branch(x, Pi, A):
     """`MoserVeselov.on_branch` in closed form: the symmetric part of the Jacobian,
     `B = A − ¼(x·Π)1 − ⅛(xΠᵀ + Πxᵀ)`, is positive definite (Sylvester's criterion)."""
-    s = _dot(x, Pi)
+    s = dot(x, Pi)
     b = [[-(x[i] * Pi[j] + Pi[i] * x[j]) / 8 for j in range(3)] for i in range(3)]
     for i in range(3):
         b[i][i] = b[i][i] + A[i] - s / 4
@@ -276,10 +227,10 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
         xi = _explicit_euler_guess(Pi, A)
         for _ in range(fixed):
             r, J = _residual(chart, xi, Pi, A, True)
-            delta = _solve3(J, r)
+            delta = solve3(J, r)
             xi = tuple(xi[i] - delta[i] for i in range(3))
     r, _ = _residual(chart, xi, Pi, A, False)
-    norm = _max_abs(r)
+    norm = max_abs(r)
     if restartable:
         # A root of the quartic off the branch rule (`moser_veselov_on_branch`) is not
         # the generic path's root: such a body restarts from the explicit-Euler guess.
@@ -298,10 +249,10 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
         xi, norm, iterations = carry
         on = active(norm, iterations)
         r, J = _residual(chart, xi, Pi, A, True)
-        delta = _solve3(J, r)
+        delta = solve3(J, r)
         xi = tuple(jnp.where(on, xi[i] - delta[i], xi[i]) for i in range(3))
         r, _ = _residual(chart, xi, Pi, A, False)
-        norm = jnp.where(on, _max_abs(r), norm)
+        norm = jnp.where(on, max_abs(r), norm)
         return xi, norm, iterations + on.astype(jnp.int32)
 
     def restart(carry):
@@ -311,7 +262,7 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
         # `MoserVeselov` would have started. Once, on entering the tail.
         xi, norm, iterations = carry
         guess = _explicit_euler_guess(Pi, A)
-        guess_norm = _max_abs(_residual(chart, guess, Pi, A, False)[0])
+        guess_norm = max_abs(_residual(chart, guess, Pi, A, False)[0])
         back = ~(norm <= tolerance) & ~(norm <= guess_norm)
         xi = tuple(jnp.where(back, guess[i], xi[i]) for i in range(3))
         # A restarted body gets the generic path's full budget of `max_steps` Newton
@@ -353,7 +304,7 @@ def _at_root_jvp(chart, primals, tangents):
     # gradient of a batch of 1e5 exp-chart bodies 16 % faster; materialising `ξ̄` too
     # was slower).
     dr = materialise(dr, Pi[0] * 0 + 1)
-    delta = _solve3(J, dr)
+    delta = solve3(J, dr)
     return xi, tuple(-d for d in delta)
 
 
@@ -395,10 +346,10 @@ def dep_step(chart, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int, 
     xi, iterations, norm, converged = differentiable_increment(
         chart, Pi, A, tolerance, fixed_iterations, max_steps, alive
     )
-    t = _dot(xi, xi)
+    t = dot(xi, xi)
     if chart == "exp":
         u = t / 4
-        S, C = _horner(_S, u), _horner(_C, u)
+        S, C = horner(S_SERIES, u), horner(C_SERIES, u)
         a, b = S * C, S * S / 2
     else:
         a = 4 / (4 + t)
@@ -414,8 +365,8 @@ def dep_step(chart, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int, 
         for i in range(len(g) // 3)
         for j in range(3)
     )
-    xp = _cross(xi, Pi)
-    dp = _dot(xi, Pi)
+    xp = cross(xi, Pi)
+    dp = dot(xi, Pi)
     Pi_next = tuple(Pi[i] - a * xp[i] + b * (xi[i] * dp - t * Pi[i]) for i in range(3))
 
     result = jnp.where(converged, RESULTS.successful, RESULTS.newton_not_converged)
@@ -464,7 +415,7 @@ class NewtonKernel(AbstractBatchKernel):
         fixed = self.fixed_iterations
         fixed = DEFAULT_FIXED_ITERATIONS[self.chart] if fixed is None else fixed
         # The tolerance policy of every implicit step (`simulate`'s too): relative by default.
-        tolerance = newton_tolerance(_max_abs(Pi), Pi[0].dtype, self.rtol, self.atol)
+        tolerance = newton_tolerance(max_abs(Pi), Pi[0].dtype, self.rtol, self.atol)
         return dep_step(self.chart, g, Pi, params, tolerance, fixed, self.max_steps, alive)
 
     def with_fixed_iterations(self, fixed_iterations: int):
@@ -475,12 +426,3 @@ class NewtonKernel(AbstractBatchKernel):
         # two fused loops, so testing after each costs little (measured for one body:
         # 0.58 µs a step against 0.65 µs with the fixed iterations, exp chart).
         return self.with_fixed_iterations(0)
-
-    def on_se3(self):
-        if self.chart == "moser-veselov":
-            return None
-        from ._fast_se3 import SE3NewtonKernel
-
-        return SE3NewtonKernel(
-            self.chart, self.rtol, self.atol, self.max_steps, self.fixed_iterations
-        )

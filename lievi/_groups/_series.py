@@ -1,0 +1,71 @@
+"""NaN-safe scalar series of the SO(3) and SE(3) closed forms (θ² as the argument).
+
+Each coefficient is its exact expression away from θ = 0 and a Taylor series near it,
+selected with the "double where" (the unused branch gets a safe input), so that values
+and reverse-mode derivatives are finite at the identity (docs/theory/closed-forms.md).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+
+def small_threshold(dtype) -> float:
+    # Taylor series below are exact to O(θ¹⁰); the switch point keeps the truncation
+    # error and the cancellation error of the exact forms both near machine epsilon.
+    return 1e-3 if jnp.finfo(dtype).bits >= 64 else 1e-1
+
+
+def series_or_exact(theta2, exact, coefficients):
+    """`exact(θ²)` away from 0, the power series `Σ c_k θ^{2k}` near 0, safe for AD."""
+    small = theta2 < small_threshold(theta2.dtype)
+    safe = jnp.where(small, jnp.ones_like(theta2), theta2)
+    series = jnp.zeros_like(theta2)
+    for c in reversed(coefficients):
+        series = series * theta2 + c
+    return jnp.where(small, series, exact(safe))
+
+
+def sinc(t2):  # sin θ / θ
+    return series_or_exact(
+        t2,
+        lambda s: jnp.sin(jnp.sqrt(s)) / jnp.sqrt(s),
+        (1, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880),
+    )
+
+
+def cosc(t2):  # (1 − cos θ) / θ² = 2 sin²(θ/2) / θ², written without cancellation
+    return series_or_exact(
+        t2,
+        lambda s: 2 * jnp.sin(jnp.sqrt(s) / 2) ** 2 / s,
+        (1 / 2, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800),
+    )
+
+
+def sinc3(t2):  # (θ − sin θ) / θ³
+    return series_or_exact(
+        t2,
+        lambda s: (jnp.sqrt(s) - jnp.sin(jnp.sqrt(s))) / (s * jnp.sqrt(s)),
+        (1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800),
+    )
+
+
+def dexpinv_coefficient(t2):  # (1 − (θ/2) cot(θ/2)) / θ²
+    def exact(s):
+        half = jnp.sqrt(s) / 2
+        sin = jnp.sin(half)
+        # dexpinv is singular at θ = 2πk (k ≥ 1): there sin(θ/2) is round-off, and the
+        # quotient would be a huge finite number (~1e16); report it as non-finite.
+        singular = jnp.abs(sin) <= 4 * jnp.finfo(s.dtype).eps * half
+        value = (1 - half * jnp.cos(half) / jnp.where(singular, 1.0, sin)) / s
+        return jnp.where(singular, jnp.inf, value)
+
+    return series_or_exact(t2, exact, (1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160))
+
+
+def dot(x, y):
+    return jnp.sum(x * y, axis=-1)
+
+
+def outer(x, y):
+    return x[..., :, None] * y[..., None, :]

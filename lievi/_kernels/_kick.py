@@ -1,0 +1,103 @@
+"""The kick – free step – kick kernel: a free kernel between two half kicks of a potential.
+
+The structure-of-arrays form of `AbstractKickIntegrator`'s step (paper §7), for
+potentials with a closed-form rigid-body torque.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from .._groups._so3 import SO3
+from .._results import RESULTS
+from ._base import AbstractBatchKernel
+
+
+class KickKernel(AbstractBatchKernel):
+    """A free kernel between two half kicks of a potential's torque (paper §7): the step of
+    `AbstractKickIntegrator` (`Π⁺ = Π + (h/2)M(g_k)`, free step, `Π_{k+1} = Π⁻ + (h/2)M(g_{k+1})`)
+    for a potential with a closed-form `rigid_body_torque` (e.g. `UniformGravity`).
+
+    With `reduced_state` (see `reduced`) the configuration carried is the advected
+    parameter `Γ = gᵀa` alone, and the kicks are `M(Γ)`: the free kernel maps `Γᵀ`, one
+    row, as it maps each row of `g` (`r ↦ r F_k`), so `Γ_{k+1} = F_kᵀΓ_k` — the
+    Bobenko–Suris reduced discrete Lie–Poisson equations on `(Π, Γ)` (paper §7), with
+    the same floating-point operations on `Π` and on `Γ` as the run that carries `g`.
+    """
+
+    free: AbstractBatchKernel
+    potential: eqx.Module
+    reduced_state: bool = eqx.field(default=False, static=True)
+
+    @staticmethod
+    def applies_to(potential) -> bool:
+        """Whether `potential` has a closed-form rigid-body torque."""
+        return potential.rigid_body_torque(tuple(jnp.zeros(()) for _ in range(9))) is not None
+
+    def physics(self, system, batched: bool = False):
+        # The torques are those of a rigid body on SO(3) (9 entries of `g`).
+        if system.group != SO3 or not self.applies_to(self.potential):
+            return None
+        return self.free.physics(system, batched)
+
+    def constants(self, values, batch):
+        return self.free.constants(values, batch)
+
+    def turn_rates(self, constants, h):
+        return self.free.turn_rates(constants, h)
+
+    def turn_squared(self, rates, m):
+        return self.free.turn_squared(rates, m)
+
+    def with_fixed_iterations(self, fixed_iterations: int):
+        return dataclasses.replace(self, free=self.free.with_fixed_iterations(fixed_iterations))
+
+    def reduced(self):
+        if self.reduced_state:
+            return self
+        zeros = tuple(jnp.zeros(()) for _ in range(3))
+        if (
+            self.potential.advected_direction() is None
+            or self.potential.rigid_body_advected_torque(zeros) is None
+        ):
+            return None
+        return dataclasses.replace(self, reduced_state=True)
+
+    def _advected_of_rows(self, g):
+        # Γ_j = Σ_i a_i g_ij (a may carry a batch axis first, like the potential's leaves).
+        a = jnp.asarray(self.potential.advected_direction(), g[0].dtype)
+        return tuple(sum(a[..., i] * g[3 * i + j] for i in range(3)) for j in range(3))
+
+    def carried(self, g0):
+        g = super().carried(g0)
+        return self._advected_of_rows(g) if self.reduced_state else g
+
+    def advected(self, state):
+        if self.reduced_state:
+            return state
+        if self.potential.advected_direction() is None:
+            return None
+        return self._advected_of_rows(state)
+
+    def _torque(self, state):
+        if self.reduced_state:
+            return self.potential.rigid_body_advected_torque(state)
+        return self.potential.rigid_body_torque(state)
+
+    def prepare(self, inertia, h):
+        return self.free.prepare(inertia, h), h / 2
+
+    def step(self, params, g, Pi, alive):
+        free_params, half = params
+        torque = self._torque(g)
+        Pi = tuple(p + half * t for p, t in zip(Pi, torque))
+        g_next, Pi_next, result, iterations, residual = self.free.step(free_params, g, Pi, alive)
+        torque = self._torque(g_next)
+        Pi_next = tuple(p + half * t for p, t in zip(Pi_next, torque))
+        # A non-finite torque shows up only after the free step's own checks.
+        finite = jnp.isfinite(Pi_next[0]) & jnp.isfinite(Pi_next[1]) & jnp.isfinite(Pi_next[2])
+        result = jnp.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
+        return g_next, Pi_next, result, iterations, residual

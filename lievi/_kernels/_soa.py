@@ -1,0 +1,110 @@
+"""Structure-of-arrays arithmetic shared by the fast kernels.
+
+A vector is a tuple of arrays (one per component, each `(B,)` with the batch minor, or
+scalars for one body), a matrix a tuple of rows. Everything here is elementwise, so XLA
+fuses it into long vectorised loops; there is no library trigonometry (on CPU `jnp.sin`
+is a scalar libm call, ~12× slower than a 12-term polynomial in the same loop, measured):
+the trigonometric coefficients of the SO(3) charts are power series in `u = φ²`,
+`φ = θ/2`, accurate to round-off for `θ ≤ π` (docs/theory/closed-forms.md).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+
+# Power-series coefficients in u = φ², φ = θ/2. Eleven terms: the first omitted term is
+# below 1e-18 at φ = π/2 (θ = π).
+N_TERMS = 11
+S_SERIES = tuple((-1) ** k / math.factorial(2 * k + 1) for k in range(N_TERMS))  # sin φ / φ
+C_SERIES = tuple((-1) ** k / math.factorial(2 * k) for k in range(N_TERMS))  # cos φ
+P_SERIES = tuple((-1) ** (k + 1) * 2 * k / math.factorial(2 * k + 1) for k in range(1, N_TERMS + 1))
+
+
+def horner(coefficients, u):
+    value = jnp.zeros_like(u)
+    for c in reversed(coefficients):
+        value = value * u + c
+    return value
+
+
+def horner_with_derivative(coefficients, u):
+    value, derivative = jnp.zeros_like(u), jnp.zeros_like(u)
+    for c in reversed(coefficients):
+        derivative = derivative * u + value
+        value = value * u + c
+    return value, derivative
+
+
+def cross(x, y):
+    return (x[1] * y[2] - x[2] * y[1], x[2] * y[0] - x[0] * y[2], x[0] * y[1] - x[1] * y[0])
+
+
+def dot(x, y):
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+
+
+def solve3(J, r, divide_each: bool = False):
+    """`J⁻¹ r` for a 3×3 matrix given as nested tuples of arrays (Cramer's rule).
+
+    By default `1/det J` is computed once: XLA stores a division's result rather than
+    repeat it in each consumer, so that is one more loop over the batch, which evaluates
+    all of `J`. With `divide_each`, each component divides by `det J` itself. Use it where
+    `J` costs much more to evaluate than a division, as on SE(3): then `J` is evaluated
+    three times an iteration, not four.
+    """
+    (a, b, c), (d, e, f), (g, h, i) = J
+    # Cofactors: the adjugate's entries.
+    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
+    D, E, F = c * h - b * i, a * i - c * g, b * g - a * h
+    G, H, I = b * f - c * e, c * d - a * f, a * e - b * d
+    det = a * A + b * B + c * C
+    numerators = (
+        A * r[0] + D * r[1] + G * r[2],
+        B * r[0] + E * r[1] + H * r[2],
+        C * r[0] + F * r[1] + I * r[2],
+    )
+    if divide_each:
+        return tuple(n / det for n in numerators)
+    inv_det = 1 / det
+    return tuple(n * inv_det for n in numerators)
+
+
+def max_abs(x):
+    return jnp.maximum(jnp.maximum(jnp.abs(x[0]), jnp.abs(x[1])), jnp.abs(x[2]))
+
+
+def inverse3(M):
+    (a, b, c), (d, e, f), (g, h, i) = M
+    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
+    D, E, F = c * h - b * i, a * i - c * g, b * g - a * h
+    G, H, I = b * f - c * e, c * d - a * f, a * e - b * d
+    # A division: stored once, not recomputed by the nine entries that read it.
+    inv = 1 / (a * A + b * B + c * C)
+    return ((A * inv, D * inv, G * inv), (B * inv, E * inv, H * inv), (C * inv, F * inv, I * inv))
+
+
+def flat(X):
+    return [e for row in X for e in row]
+
+
+def nested(flat):
+    return tuple(tuple(flat[3 * i : 3 * i + 3]) for i in range(3))
+
+
+def matmul(X, Y):
+    return tuple(
+        tuple(X[i][0] * Y[0][j] + X[i][1] * Y[1][j] + X[i][2] * Y[2][j] for j in range(3))
+        for i in range(3)
+    )
+
+
+def block(A, i, j):
+    """The 3×3 block `(i, j)` of a 6×6 nested tuple."""
+    return tuple(tuple(A[3 * i + k][3 * j + l] for l in range(3)) for k in range(3))
+
+
+def entries(X):
+    """A `(…, 6, 6)` array as a 6×6 nested tuple of `(…)` arrays (`(B,)` or scalars)."""
+    return tuple(tuple(X[..., i, j] for j in range(6)) for i in range(6))
