@@ -49,10 +49,10 @@ from ._integrators._rk4 import RK4 as RK4
 from ._integrators._splitting import LiePoissonSplitting as LiePoissonSplitting
 from ._reference import reference_solution as reference_solution
 from ._results import RESULTS as RESULTS
+from ._sharding import shard_batch as shard_batch
 from ._simulate import Solution as Solution
 from ._simulate import simulate as simulate
 from ._simulate_batch import has_fast_path as has_fast_path
-from ._simulate_batch import shard_batch as shard_batch
 from ._simulate_batch import simulate_batch as simulate_batch
 from ._systems._base import AbstractLieSystem as AbstractLieSystem
 from ._systems._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody

@@ -7,6 +7,8 @@ steps inside a segment on the way back: memory `O(n/segment + segment)` instead 
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import numpy as np
 
@@ -37,14 +39,18 @@ def checkpoint_segment(checkpoint, n_steps: int, save_every: int) -> int | None:
     return int(checkpoint)
 
 
-def scan_in_segments(body, carry, length: int, segment: int | None, xs=None):
-    """`lax.scan(body, carry, xs, length)`, in `jax.checkpoint`-ed chunks of `segment`."""
-    if segment is None or segment >= length:
-        return jax.lax.scan(body, carry, xs, length=length)
+def scan_in_segments(body, carry, length: int, segment: int | None, xs=None, unroll: int = 1):
+    """`lax.scan(body, carry, xs, length)`, in `jax.checkpoint`-ed chunks of `segment` steps
+    (reverse mode then stores the carry at chunk boundaries only). `unroll`: as `lax.scan`'s.
 
-    @jax.checkpoint
+    `prevent_cse=False`: the checkpointed chunk is itself the body of a scan, where JAX's
+    common-subexpression guard is not needed (see `jax.checkpoint`) and would only cost."""
+    if segment is None or segment >= length:
+        return jax.lax.scan(body, carry, xs, length=length, unroll=min(unroll, length))
+
+    @functools.partial(jax.checkpoint, prevent_cse=False)
     def chunk(carry, xs):
-        return jax.lax.scan(body, carry, xs, length=segment)
+        return jax.lax.scan(body, carry, xs, length=segment, unroll=min(unroll, segment))
 
     xs = jax.tree.map(lambda x: x.reshape((length // segment, segment) + x.shape[1:]), xs)
     carry, ys = jax.lax.scan(chunk, carry, xs, length=length // segment)

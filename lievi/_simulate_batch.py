@@ -15,14 +15,12 @@ synchronisation per step. For a potential with an advected parameter (`UniformGr
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.ad_checkpoint import checkpoint_name
 
 from ._checks import (
     check_finite,
@@ -34,10 +32,10 @@ from ._checks import (
 )
 from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator
-from ._kernels._base import ROOT_NAME
 from ._results import RESULTS
 from ._scan import checkpoint_segment
 from ._simulate import Solution, simulate
+from ._simulate_kernel import simulate_kernel
 from ._systems._base import AbstractLieSystem
 
 SAVE_FIELDS = ("g", "m", "stats")
@@ -274,7 +272,7 @@ def simulate_batch(
         valid = jax.vmap(input_valid, in_axes=(system_axis, 0, 0, None if h.ndim == 0 else 0))(
             system, g0, m0, h
         )
-        solution = _simulate_fast(
+        solution = simulate_kernel(
             kernel,
             constants,
             integrator.step_bound(),
@@ -385,178 +383,3 @@ def _simulate_vmap(
             system, solution.g
         )
     return _keep(eqx.tree_at(lambda s: s.stats, solution, stats), save, advected)
-
-
-def _scan(body, carry, length: int, segment: int | None, unroll: int = 1):
-    """`lax.scan(body, carry, None, length)`, in `jax.checkpoint`-ed chunks of `segment` steps
-    (reverse mode then stores the carry at chunk boundaries only)."""
-    if segment is None or segment >= length:
-        return jax.lax.scan(body, carry, None, length=length, unroll=min(unroll, length))
-
-    @functools.partial(jax.checkpoint, prevent_cse=False)
-    def chunk(carry, _):
-        return jax.lax.scan(body, carry, None, length=segment, unroll=min(unroll, segment))
-
-    carry, ys = jax.lax.scan(chunk, carry, None, length=length // segment)
-    return carry, jax.tree.map(lambda y: y.reshape((length,) + y.shape[2:]), ys)
-
-
-@eqx.filter_jit
-def _simulate_fast(
-    kernel, constants, step_bound, g0, m0, h, n_steps, save_every, save, unroll, segment, valid=True
-):
-    batch, dtype = g0.shape[0], m0.dtype
-    constants = jax.tree.map(lambda x: jnp.asarray(x, dtype), constants)
-    # Structure of arrays: component-major, batch minor; the kernel owns the layout.
-    constants = kernel.constants(constants, batch)
-    params = kernel.prepare(constants, h)
-    # The kernel's carried entries of `g` (on SO(3) all 9, or the advected parameter
-    # alone on the reduced path).
-    g = kernel.carried(g0)
-    Pi = tuple(m0[:, i] for i in range(m0.shape[1]))
-    nan = jnp.asarray(jnp.nan, dtype)
-    int32 = jnp.int32
-    # Per-run constants of the step-size check, once outside the loop: the per-step check
-    # then needs no division and no square root (both run at a fraction of the rate of a
-    # product on CPU).
-    turn_rates = kernel.turn_rates(constants, h)
-
-    def _checked_step_result(g_next, Pi_next, Pi, step_result):
-        """As `lievi._simulate.checked_step_result`: a non-finite `g` or `Π` is `nonfinite`,
-        a step beyond `integrator.step_bound()` (`h·|I⁻¹Π|`) is `step_too_large`."""
-        finite = jnp.isfinite(g_next[0])
-        for x in (*g_next[1:], *Pi_next):
-            finite = finite & jnp.isfinite(x)
-        ok = step_result == RESULTS.successful
-        step_result = jnp.where(ok & ~finite, RESULTS.nonfinite, step_result)
-        # (h|ω|)² > bound², as h|ω| > bound but for rounding at the bound.
-        too_large = kernel.turn_squared(turn_rates, Pi) > step_bound * step_bound
-        return jnp.where(too_large, RESULTS.step_too_large, step_result).astype(int32)
-
-    # Reverse mode keeps each step's input state and root (the solve is not repeated);
-    # everything else in the step is recomputed from them in the backward pass.
-    @functools.partial(
-        jax.checkpoint,
-        prevent_cse=False,
-        policy=jax.checkpoint_policies.save_only_these_names(ROOT_NAME),
-    )
-    def one_step(carry, _):
-        (g, Pi, result, failed_step, k), (total, most, worst) = carry
-        alive = result == RESULTS.successful
-        g_next, Pi_next, step_result, iterations, residual = kernel.step(params, g, Pi, alive)
-        step_result = _checked_step_result(g_next, Pi_next, Pi, step_result)
-        newly_failed = alive & (step_result != RESULTS.successful)
-        failed_step = jnp.where(newly_failed, k, failed_step)
-        result = RESULTS.first_failure(result, step_result)
-        # Saved for the backward pass (one byte a body-step): the mask is all the backward
-        # needs of the step's checks, which would otherwise re-evaluate the whole step
-        # (`g_next`, the Newton residual) just to know which bodies survived it.
-        ok = checkpoint_name(result == RESULTS.successful, ROOT_NAME)
-        # As in `simulate`: after a failure the carried state stays at the last good one
-        # (later steps run on finite numbers, so a masked failure cannot turn a gradient
-        # into NaN; the kernel spends no extra iterations on it); the saved state is NaN.
-        g_next = tuple(jnp.where(ok, x, y) for x, y in zip(g_next, g))
-        Pi_next = tuple(jnp.where(ok, x, y) for x, y in zip(Pi_next, Pi))
-        # Statistics are reduced in the carry, not stacked per step: a (steps, B) output
-        # would cost more memory traffic than the state itself.
-        iterations = jnp.where(alive, iterations, 0)
-        residual = jnp.where(alive, residual, -jnp.inf)
-        counters = (total + iterations, jnp.maximum(most, iterations), jnp.fmax(worst, residual))
-        return ((g_next, Pi_next, result, failed_step, k + 1), counters), None
-
-    zero_counters = (
-        jnp.zeros((batch,), int32),
-        jnp.zeros((batch,), int32),
-        jnp.full((batch,), -jnp.inf, dtype),
-    )
-    # Checkpointed segments inside one save interval, or spanning whole save intervals.
-    inner = segment if segment is not None and segment < save_every else None
-    outer = segment // save_every if segment is not None and segment >= save_every else None
-
-    def one_save(state, _):
-        (state, (total, most, worst)), _ = _scan(
-            one_step, (state, zero_counters), save_every, inner, unroll
-        )
-        ok = state[2] == RESULTS.successful
-        out = {"iterations": total}
-        if "g" in save:
-            out["g"] = jnp.where(ok, jnp.stack(state[0]), nan)
-        if "m" in save:
-            out["m"] = jnp.where(ok, jnp.stack(state[1]), nan)
-        if "advected" in save:
-            out["advected"] = jnp.where(ok, jnp.stack(kernel.advected(state[0])), nan)
-        if "stats" in save:
-            out["max_iterations"] = most
-            out["residual"] = worst
-        return state, out
-
-    init = (
-        g,
-        Pi,
-        jnp.broadcast_to(
-            jnp.where(valid, RESULTS.successful, RESULTS.invalid_input), (batch,)
-        ).astype(int32),
-        jnp.broadcast_to(jnp.where(valid, -1, 0), (batch,)).astype(int32),
-        jnp.asarray(0, int32),
-    )
-    final, out = _scan(one_save, init, n_steps // save_every, outer)
-    _, _, result, failed_step, _ = final
-    n_saves = n_steps // save_every
-    # As `simulate`: t0 + h·save_every·k with t0 = 0.
-    ts = (h[:, None] if h.ndim else h) * save_every * jnp.arange(n_saves + 1, dtype=dtype)
-    ts = jnp.broadcast_to(ts, (batch, n_saves + 1))
-    stats = {
-        "failed_step": failed_step,
-        "total_newton_iterations": jnp.sum(out["iterations"], axis=0),
-        "num_steps": jnp.full((batch,), n_steps),
-    }
-    if "stats" in save:
-        stats["newton_iterations"] = out["max_iterations"].T
-        stats["residual"] = out["residual"].T
-    gs = ms = None
-    if "g" in save:
-        # (T−1, k, B) → (B, T, n, n), initial state first.
-        gs = jnp.concatenate([g0[:, None], kernel.elements(out["g"])], axis=1)
-    if "m" in save:
-        ms = jnp.concatenate([m0[:, None], jnp.moveaxis(out["m"], -1, 0)], axis=1)
-    advected = None
-    if "advected" in save:
-        advected0 = jnp.stack(kernel.advected(g), axis=-1)
-        advected = jnp.concatenate(
-            [advected0[:, None], jnp.moveaxis(out["advected"], -1, 0)], axis=1
-        )
-    return Solution(ts=ts, g=gs, m=ms, result=result, stats=stats, advected=advected)
-
-
-def shard_batch(tree, devices=None):
-    """Place every array leaf of `tree` on `devices`, split along its leading (batch) axis.
-
-    Builds a one-axis `jax.sharding.Mesh` named `"batch"` over `devices` (default: all
-    local devices, `jax.local_devices()`) and puts each array with a
-    `NamedSharding(mesh, PartitionSpec("batch"))`. `simulate_batch` on sharded inputs is
-    then partitioned by XLA: each device integrates its own bodies (the bodies do not
-    interact; the only communication is the fast path's "is any body unconverged" test).
-    Scalars are replicated. The batch size must be a multiple of the number of devices.
-    """
-    devices = jax.local_devices() if devices is None else list(devices)
-    if not devices:
-        raise ValueError(
-            "`devices` is empty; pass at least one device (default: all local devices)."
-        )
-    mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
-    split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
-    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-
-    def place(x):
-        if not eqx.is_array(x):
-            return x
-        if jnp.ndim(x) == 0:
-            return jax.device_put(x, replicated)
-        if jnp.shape(x)[0] % len(devices):
-            raise ValueError(
-                f"the batch axis ({jnp.shape(x)[0]}) must be a multiple of the number of "
-                f"devices ({len(devices)}); pad the batch or pass fewer `devices`."
-            )
-        return jax.device_put(x, split)
-
-    return jax.tree_util.tree_map(place, tree)
