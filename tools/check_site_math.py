@@ -9,7 +9,7 @@ Fails (exit 1, listing page and text) when
   `tools/mkdocs_math.py`), still holds TeX: `$…\\command…$`, `$$…$$`, `\\(…\\)` or
   `\\[…\\]`;
 - a page with math does not load MathJax, or loads it from elsewhere than the site itself
-  (a CDN), or the site lacks MathJax's script or fonts.
+  (a CDN), or the site lacks MathJax's script.
 
 It reads the static HTML, so it says nothing of whether MathJax then runs: the screenshots
 of `tools/docs_screenshots.py` show that.
@@ -23,9 +23,8 @@ from html.parser import HTMLParser
 from pathlib import Path
 from urllib.parse import urljoin, urlparse
 
-MATHJAX = "assets/mathjax/tex-chtml-full.js"
+MATHJAX = "assets/mathjax/tex-svg-full.js"
 MATHJAX_CONFIG = "javascripts/mathjax.js"
-MATHJAX_FONT = "assets/mathjax/output/chtml/fonts/woff-v2/MathJax_Main-Regular.woff"
 MATH_CLASS = "arithmatex"
 
 VERBATIM = {"pre", "code", "kbd", "samp", "script", "style", "textarea", "svg", "math"}
@@ -129,7 +128,7 @@ def check_page(html: str, page_url: str, site: Path | None) -> list[str]:
 
 def check_site(site: Path) -> list[str]:
     problems = []
-    for needed in (MATHJAX, MATHJAX_CONFIG, MATHJAX_FONT):
+    for needed in (MATHJAX, MATHJAX_CONFIG):
         if not (site / needed).is_file():
             problems.append(f"{needed}: missing from the site (MathJax is served with it)")
     pages = sorted(site.rglob("*.html"))

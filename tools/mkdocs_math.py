@@ -19,10 +19,11 @@ from pathlib import Path
 
 from mkdocs.structure.files import File
 
-# What the site serves: the combined TeX-input / CommonHTML-output component (every TeX
-# extension included, so nothing is loaded on demand), its web fonts, and the licence.
+# What the site serves: the combined TeX-input / SVG-output component (every TeX extension
+# included, so nothing is loaded on demand; SVG output draws the glyphs itself, so there
+# are no web fonts to fetch) and the licence.
 MATHJAX_DEST = "assets/mathjax"
-MATHJAX_FILES = ("tex-chtml-full.js", "output/chtml/fonts/woff-v2/*.woff")
+MATHJAX_FILES = ("tex-svg-full.js",)
 
 
 def mathjax_root() -> Path:

@@ -9,7 +9,8 @@ window.MathJax = {
     processEnvironments: true,
     tags: "ams",
   },
-  // (MathJax loads its fonts from beside its own script: assets/mathjax/output/chtml/.)
+  // SVG output: the glyphs are paths, defined once per page (no web fonts to load).
+  svg: { fontCache: "global" },
   options: {
     ignoreHtmlClass: ".*|",
     processHtmlClass: "arithmatex",
