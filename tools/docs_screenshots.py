@@ -29,6 +29,8 @@ PAGES = [
     ("home", ""),
     ("theory-equations", "theory/equations/"),
     ("theory-closed-forms", "theory/closed-forms/"),
+    ("theory-conventions", "theory/conventions/"),
+    ("theory-checks", "theory/checks/"),
     ("notebook-heavy-top", "notebooks/05_heavy_top/"),
     ("api-simulate", "api/simulate/"),
 ]
