@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import abc
 import importlib.util
-import sys
 import time
 from typing import Any, ClassVar
 
@@ -141,7 +140,10 @@ class TextProgressMeter(AbstractProgressMeter):
 
 
 def _has_tqdm() -> bool:
-    return importlib.util.find_spec("tqdm") is not None
+    try:
+        return importlib.util.find_spec("tqdm") is not None
+    except ValueError:  # imported already, by a loader that sets no spec
+        return True
 
 
 class TqdmProgressMeter(AbstractProgressMeter):
@@ -156,7 +158,7 @@ class TqdmProgressMeter(AbstractProgressMeter):
     desc: str = eqx.field(default="lievi.simulate", static=True)
 
     def __check_init__(self):
-        if "tqdm" not in sys.modules and not _has_tqdm():
+        if not _has_tqdm():
             raise ImportError(
                 "TqdmProgressMeter needs tqdm: `pip install tqdm` (or `lievi[progress]`), "
                 "or use lievi.TextProgressMeter()."

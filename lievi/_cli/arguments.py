@@ -138,7 +138,7 @@ def _check_step(args: argparse.Namespace) -> str | None:
     if h * n_steps > MAX_TIME:
         return (
             f"--h {h:g} with --steps {n_steps}: T = h·N = {h * n_steps:.3g} exceeds "
-            f"{MAX_TIME:g} (the reference solution alone would take minutes); "
+            f"{MAX_TIME:g} (the DOP853 reference solves all of [0, T] before any method runs); "
             "take fewer steps or a smaller h"
         )
     return None
