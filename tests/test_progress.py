@@ -72,9 +72,9 @@ def test_meter_under_vmap(capsys):
     body, g0, m0 = hlw_problem()
     meter = lievi.TextProgressMeter(delay=0.0)
     run = jax.vmap(
-        lambda m: lievi.simulate(
-            body, SPLITTING, g0, m, h=0.1, n_steps=50, progress_meter=meter
-        ).m[-1]
+        lambda m: lievi.simulate(body, SPLITTING, g0, m, h=0.1, n_steps=50, progress_meter=meter).m[
+            -1
+        ]
     )
     out = run(jnp.stack([m0, 2 * m0]))
     assert out.shape == (2, 3) and jnp.all(jnp.isfinite(out))
