@@ -47,6 +47,11 @@ from ._integrators._moser_veselov import MoserVeselov as MoserVeselov
 from ._integrators._preprocessed_dmv import PreprocessedMoserVeselov as PreprocessedMoserVeselov
 from ._integrators._rk4 import RK4 as RK4
 from ._integrators._splitting import LiePoissonSplitting as LiePoissonSplitting
+from ._optimal_control import OptimalControlSolution as OptimalControlSolution
+from ._optimal_control import solve_optimal_control as solve_optimal_control
+from ._progress import NoProgressMeter as NoProgressMeter
+from ._progress import TextProgressMeter as TextProgressMeter
+from ._progress import TqdmProgressMeter as TqdmProgressMeter
 from ._reference import reference_solution as reference_solution
 from ._results import RESULTS as RESULTS
 from ._sharding import shard_batch as shard_batch

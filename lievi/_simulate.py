@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -20,6 +18,7 @@ from ._checks import (
 )
 from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator, AbstractVariationalIntegrator
+from ._progress import AbstractProgressMeter, NoProgressMeter, as_progress_meter
 from ._results import RESULTS
 from ._scan import checkpoint_segment, scan_in_segments
 from ._systems._base import AbstractLieSystem
@@ -116,7 +115,7 @@ def simulate(
     t0=0.0,
     throw: bool = True,
     checkpoint: bool | int = False,
-    progress_meter: bool | str = False,
+    progress_meter: AbstractProgressMeter | bool | str = False,
     forcing=None,
     args=None,
 ) -> Solution:
@@ -149,11 +148,13 @@ def simulate(
       length in steps; it must divide `save_every` or be a multiple of it that divides
       `n_steps`. No effect on values or on forward-mode derivatives.
     - `progress_meter`: report progress of a long run while it computes (diffrax's
-      `progress_meter` convention): `"text"` prints the percentage done, `"tqdm"` draws a
-      tqdm bar (needs `pip install tqdm`), `True` picks tqdm where it is installed and text
-      otherwise, `False` (default) reports nothing. Updated about every 1% of the steps from
-      inside the compiled loop (`jax.debug.callback`), so it also works under an outer
-      `jit`; no effect on values.
+      `progress_meter` convention): `lievi.NoProgressMeter()` (the default, also `False`),
+      `lievi.TextProgressMeter()` (also `"text"`: the percentage done on one line updated
+      in place, printed once the run has taken a second), `lievi.TqdmProgressMeter()`
+      (also `"tqdm"`: a tqdm bar, needs `pip install tqdm`); `True` picks tqdm where it is
+      installed and text otherwise. Updated about every 1% of the steps from inside the
+      compiled loop (`jax.debug.callback`), so it also works under an outer `jit`; no
+      effect on values.
     - `forcing`: an external generalised force (for the rigid body, the body torque):
       `lievi.Control(u)` with `u` of shape `(n_steps, d)` held over each step,
       `lievi.ForceLaw(fn)` with `fn(t, g, m, args)` (feedback, damping), or a tuple of
@@ -215,7 +216,7 @@ def simulate(
     m0 = _as_array("m0", m0)
     system.check_momentum("m0", m0)
     segment = checkpoint_segment(checkpoint, n_steps, save_every)
-    progress = _progress_kind(progress_meter)
+    progress = as_progress_meter(progress_meter)
     forcing = as_forcing(forcing)
     dtype = state_dtype(system, g0, m0, h)
     if forcing is not None:
@@ -271,73 +272,6 @@ def checked_step_result(integrator, system, m, h, g_next, m_next, result):
     return jnp.where(too_large, RESULTS.step_too_large, result).astype(jnp.int32)
 
 
-def _progress_kind(progress_meter) -> str | None:
-    """`None` (off), `"text"` or `"tqdm"` from the `progress_meter` argument."""
-    has_tqdm = importlib.util.find_spec("tqdm") is not None
-    if progress_meter is False or progress_meter is None:
-        return None
-    if progress_meter is True:
-        return "tqdm" if has_tqdm else "text"
-    if progress_meter == "text":
-        return "text"
-    if progress_meter == "tqdm":
-        if not has_tqdm:
-            raise ValueError(
-                "`progress_meter='tqdm'` needs tqdm: `pip install tqdm`, or pass "
-                "progress_meter='text'."
-            )
-        return "tqdm"
-    raise ValueError(
-        f"`progress_meter` must be False, True, 'text' or 'tqdm', got {progress_meter!r}."
-    )
-
-
-class _ProgressReport:
-    """Host side of the progress meter: a line per update, or one tqdm bar per run.
-
-    Called from the compiled loop with the fraction done; a fraction of 0 starts a run
-    and 1 ends it (under `vmap` the fraction arrives batched, identical in every lane).
-    """
-
-    def __init__(self, kind: str):
-        self.kind = kind
-        self.bar = None
-        self.last = -1.0
-
-    def __call__(self, fraction) -> None:
-        fraction = float(np.max(fraction))
-        if fraction == self.last:
-            return  # the same update from another lane of a vmapped run
-        self.last = fraction
-        if self.kind == "text":
-            print(f"lievi.simulate: {100 * fraction:6.2f}%", flush=True)
-        else:
-            if self.bar is None or fraction == 0.0:
-                from tqdm.auto import tqdm
-
-                self.bar = tqdm(total=100, desc="lievi.simulate", unit="%")
-            self.bar.n = round(100 * fraction, 2)
-            self.bar.refresh()
-            if fraction >= 1.0:
-                self.bar.close()
-                self.bar = None
-
-
-_PROGRESS = {"text": _ProgressReport("text"), "tqdm": _ProgressReport("tqdm")}
-
-
-def _report_progress(progress: str | None, k, n_steps: int):
-    """Send `k / n_steps` to the host about every 1% of the steps (`k` counts steps done)."""
-    if progress is None:
-        return
-    stride = max(1, n_steps // 100)
-
-    def report(k):
-        jax.debug.callback(_PROGRESS[progress], k / n_steps)
-
-    jax.lax.cond((k % stride == 0) | (k == n_steps), report, lambda k: None, k)
-
-
 @eqx.filter_jit
 def _simulate(
     system,
@@ -350,12 +284,12 @@ def _simulate(
     save_every: int,
     segment: int | None = None,
     valid=True,
-    progress: str | None = None,
+    progress: AbstractProgressMeter = NoProgressMeter(),
     forcing=None,
     args=None,
 ) -> Solution:
     nan = jnp.asarray(jnp.nan, m0.dtype)
-    _report_progress(progress, jnp.asarray(0, jnp.int32), n_steps)
+    progress.report(jnp.asarray(0, jnp.int32), n_steps)
 
     def one_step(carry, data):
         g, m, result, failed_step, k = carry
@@ -374,7 +308,7 @@ def _simulate(
         # cannot turn the gradient of a masked loss into NaN. The saved state is NaN.
         g_next = jnp.where(ok, g_next, g)
         m_next = jnp.where(ok, m_next, m)
-        _report_progress(progress, k + 1, n_steps)
+        progress.report(k + 1, n_steps)
         return (g_next, m_next, result, failed_step, k + 1), (info.iterations, info.residual)
 
     inner = segment if segment is not None and segment < save_every else None

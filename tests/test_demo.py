@@ -6,10 +6,12 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
-from lievi import _demo
-from lievi.__main__ import build_parser
+import lievi
+from lievi._cli import build_parser, demo, problems
+from lievi._cli import main as cli_main
 
 
 def test_demo_in_process_json_and_plot(tmp_path, capsys):
@@ -18,7 +20,7 @@ def test_demo_in_process_json_and_plot(tmp_path, capsys):
     args = build_parser().parse_args(
         ["demo", "--steps", "50", "--plot", str(plot), "--json", str(table)]
     )
-    assert _demo.main(args) == 0
+    assert demo.main(args) == 0
 
     out = capsys.readouterr().out
     assert "Hairer–Lubich–Wanner" in out
@@ -28,7 +30,7 @@ def test_demo_in_process_json_and_plot(tmp_path, capsys):
     assert document["problem"]["n_steps"] == 50
     assert math.isclose(document["problem"]["T"], 5.0)
     rows = document["rows"]
-    assert [row["integrator"] for row in rows] == [name for name, _ in _demo.INTEGRATORS]
+    assert [row["integrator"] for row in rows] == [name for name, _ in problems.INTEGRATORS]
     for row in rows:
         assert row["integrator"] in out
         assert row["result"] == 0
@@ -60,14 +62,15 @@ def test_demo_in_process_json_and_plot(tmp_path, capsys):
 
 
 def test_demo_reports_failure(tmp_path, capsys):
-    # h = 4 takes the exponential chart past its injectivity radius on the first step.
+    # h = 2.5: the first step turns the body by h·|ω₀| = 3.39 rad, inside the largest step
+    # bound of the methods (the order-6 composition's 3.93, so the command line takes it)
+    # but past π: the exponential chart reports `step_too_large` at step 0, as data.
     table = tmp_path / "demo.json"
-    args = build_parser().parse_args(["demo", "--steps", "3", "--h", "4", "--json", str(table)])
-    assert _demo.main(args) == 1
+    assert cli_main(["demo", "--steps", "3", "--h", "2.5", "--json", str(table)]) == 1
     out = capsys.readouterr().out
     assert "failed at step 0" in out
     rows = {row["integrator"]: row for row in json.loads(table.read_text())["rows"]}
-    assert rows["DEP exp chart"]["result"] == 2
+    assert rows["DEP exp chart"]["result"] == lievi.RESULTS.step_too_large
     assert rows["DEP exp chart"]["error_m"] is None  # NaN is written as null
 
 
@@ -85,17 +88,56 @@ def test_demo_subprocess():
     assert proc.returncode == 0, proc.stderr
     lines = proc.stdout.splitlines()
     assert any(line.startswith("integrator") for line in lines)
-    for name, _ in _demo.INTEGRATORS:
+    for name, _ in problems.INTEGRATORS:
         row = [line for line in lines if line.startswith(name)]
         assert len(row) == 1, proc.stdout
         assert row[0].split()[-3] == "0"  # result code column
 
 
-def test_cli_rejects_bad_arguments():
-    parser = build_parser()
-    for argv in (["demo", "--steps", "0"], ["demo", "--h", "-1"], ["demo", "--h", "nan"], []):
-        with pytest.raises(SystemExit):
-            parser.parse_args(argv)
+BAD_ARGUMENTS = [
+    (["demo", "--steps", "0"], "--steps"),
+    (["demo", "--steps", "1.5"], "--steps"),
+    (["demo", "--steps", "100000000000000000000000"], "--steps"),
+    (["demo", "--h", "-1"], "--h"),
+    (["demo", "--h", "0"], "--h"),
+    (["demo", "--h", "nan"], "--h"),
+    (["demo", "--h", "inf"], "--h"),
+    (["demo", "--h", "1e-320"], "smallest normal"),  # subnormal
+    (["demo", "--h", "1e9", "--steps", "1"], "step bound"),
+    (["demo", "--h", "3000"], "step bound"),
+    (["demo", "--problem", "heavy-top", "--h", "3"], "step bound"),
+    (["demo", "--h", "2", "--steps", "1000"], "T = h·N"),
+    (["demo", "--problem", "control", "--h", "0.1"], "--steps"),
+    (["demo", "--problem", "control", "--steps", "100000"], "--steps"),
+    (["demo", "--problem", "nope"], "--problem"),
+    ([], "COMMAND"),
+]
+
+
+@pytest.mark.parametrize("argv, names", BAD_ARGUMENTS)
+def test_cli_rejects_bad_arguments(argv, names, capsys, monkeypatch):
+    """Every bad option ends in one error line (exit status 2) before any computation."""
+    ran = []
+    monkeypatch.setattr(lievi, "reference_solution", lambda *a, **k: ran.append(a))
+    monkeypatch.setattr(demo, "main", lambda args: ran.append(args))
+    with pytest.raises(SystemExit) as exit_:
+        cli_main(argv)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    (line,) = [line for line in err.splitlines() if "error:" in line]
+    assert line.startswith("python -m lievi") and names in line, err
+    assert "Traceback" not in err and not ran
+
+
+def test_cli_step_bound_names_the_largest_step(capsys):
+    with pytest.raises(SystemExit):
+        cli_main(["demo", "--h", "3000"])
+    line = capsys.readouterr().err.splitlines()[-1]
+    largest = float(line.rsplit("--h ≤ ", 1)[1])
+    body, _, m0 = problems.hlw_problem()
+    rate = float(np.linalg.norm(body.velocity(m0)))
+    bound = max(i.step_bound() for _, i in problems.INTEGRATORS)
+    assert largest == pytest.approx(bound / rate, rel=1e-2)
 
 
 def test_demo_heavy_top(tmp_path, capsys):
@@ -106,17 +148,17 @@ def test_demo_heavy_top(tmp_path, capsys):
     args = build_parser().parse_args(
         ["demo", "--problem", "heavy-top", "--steps", "40", "--json", str(table)]
     )
-    assert _demo.main(args) == 0
+    assert demo.main(args) == 0
     out = capsys.readouterr().out
     assert "heavy top" in out and "Π·Γ" in out
     document = json.loads(table.read_text(encoding="utf-8"))
     assert document["problem"]["name"] == "asymmetric heavy top"
-    assert document["problem"]["center_of_mass"] == list(_demo.CENTER_OF_MASS)
+    assert document["problem"]["center_of_mass"] == list(problems.CENTER_OF_MASS)
     rows = {row["integrator"]: row for row in document["rows"]}
     expected = [
         name
-        for name, i in _demo.INTEGRATORS
-        if not isinstance(i, _demo.lievi.PreprocessedMoserVeselov)
+        for name, i in problems.INTEGRATORS
+        if not isinstance(i, lievi.PreprocessedMoserVeselov)
     ]
     assert list(rows) == expected
     for name, row in rows.items():
@@ -134,12 +176,11 @@ def test_demo_heavy_top(tmp_path, capsys):
 def test_demo_checks_output_paths_before_the_run(tmp_path, capsys, monkeypatch):
     """A bad --json/--plot path is reported before any computation (exit status 2)."""
     ran = []
-    monkeypatch.setattr(_demo, "run_integrator", lambda *a, **k: ran.append(a))
+    monkeypatch.setattr(demo, "run_integrator", lambda *a, **k: ran.append(a))
     missing = tmp_path / "no" / "such" / "dir" / "out.json"
-    args = build_parser().parse_args(
-        ["demo", "--steps", "3", "--json", str(missing), "--plot", str(tmp_path)]
-    )
-    assert _demo.main(args) == 2
+    with pytest.raises(SystemExit) as exit_:
+        cli_main(["demo", "--steps", "3", "--json", str(missing), "--plot", str(tmp_path)])
+    assert exit_.value.code == 2
     err = capsys.readouterr().err
     assert "--json" in err and "does not exist" in err
     assert "--plot" in err and "is a directory" in err
@@ -153,12 +194,12 @@ def test_demo_bad_json_keeps_the_plot(tmp_path, capsys, monkeypatch):
     def fail(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr(_demo, "write_json", fail)
+    monkeypatch.setattr(demo, "write_json", fail)
     plot = tmp_path / "demo.png"
     args = build_parser().parse_args(
         ["demo", "--steps", "3", "--json", str(tmp_path / "t.json"), "--plot", str(plot)]
     )
-    assert _demo.main(args) == 1
+    assert demo.main(args) == 1
     captured = capsys.readouterr()
     assert "disk full" in captured.err and "--json" in captured.err
     assert plot.exists() and plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -1,6 +1,12 @@
-"""`simulate(..., progress_meter=...)`: progress reported from inside the compiled loop."""
+"""`simulate(..., progress_meter=...)`: progress reported from inside the compiled loop.
+
+The text meter writes one line, rewritten in place, and only once a run has taken its
+`delay` (1 s by default): a quick run prints nothing.
+"""
 
 import re
+import sys
+import types
 
 import jax
 import jax.numpy as jnp
@@ -9,66 +15,114 @@ import pytest
 
 import lievi
 from helpers import hlw_problem
+from lievi import _progress
+from lievi._progress import as_progress_meter
+
+SPLITTING = lievi.LiePoissonSplitting()
 
 
-def reported(capsys) -> list[float]:
+def printed(capsys) -> str:
     jax.effects_barrier()  # wait for the host callbacks
-    return [float(x) for x in re.findall(r"lievi\.simulate:\s+([\d.]+)%", capsys.readouterr().out)]
+    return capsys.readouterr().out
 
 
-def test_text_meter_reports_monotone_progress_and_changes_nothing(capsys):
+def percents(line: str) -> list[float]:
+    return [float(x) for x in re.findall(r"lievi\.simulate:\s+([\d.]+)%", line)]
+
+
+def test_quick_run_prints_nothing_and_values_do_not_change(capsys):
     body, g0, m0 = hlw_problem()
     kwargs = dict(h=0.1, n_steps=400, save_every=4)
-    plain = lievi.simulate(body, lievi.LiePoissonSplitting(), g0, m0, **kwargs)
-    assert reported(capsys) == []
-    metered = lievi.simulate(
-        body, lievi.LiePoissonSplitting(), g0, m0, progress_meter="text", **kwargs
-    )
-    percents = reported(capsys)
-    assert percents[0] == 0.0 and percents[-1] == 100.0
-    assert np.all(np.diff(percents) > 0) and 50 <= len(percents) <= 102  # about every 1%
-    np.testing.assert_array_equal(metered.m, plain.m)
-    np.testing.assert_array_equal(metered.g, plain.g)
+    plain = lievi.simulate(body, SPLITTING, g0, m0, **kwargs)
+    assert printed(capsys) == ""
+    for meter in ("text", lievi.TextProgressMeter()):  # well under the 1 s delay
+        metered = lievi.simulate(body, SPLITTING, g0, m0, progress_meter=meter, **kwargs)
+        assert printed(capsys) == ""
+        np.testing.assert_array_equal(metered.m, plain.m)
+        np.testing.assert_array_equal(metered.g, plain.g)
+
+
+def test_text_meter_updates_one_line_in_place(capsys):
+    body, g0, m0 = hlw_problem()
+    meter = lievi.TextProgressMeter(delay=0.0)
+    lievi.simulate(body, SPLITTING, g0, m0, h=0.1, n_steps=400, save_every=4, progress_meter=meter)
+    out = printed(capsys)
+    assert out.count("\n") == 1 and out.endswith("\n")  # one line ...
+    updates = out.rstrip("\n").split("\r")[1:]  # ... rewritten after each carriage return
+    values = [p for u in updates for p in percents(u)]
+    assert len(values) == len(updates)
+    assert values[0] == 0.0 and values[-1] == 100.0
+    assert np.all(np.diff(values) > 0) and 50 <= len(values) <= 102  # about every 1%
+
+
+def test_text_meter_starts_once_the_delay_has_passed(capsys, monkeypatch):
+    """A clock that advances 0.02 s per reading: nothing for the first second (about half
+    the updates), then the same line updated to 100%."""
+    clock = iter(0.02 * np.arange(10_000))
+    monkeypatch.setattr(_progress, "time", types.SimpleNamespace(monotonic=lambda: next(clock)))
+    body, g0, m0 = hlw_problem()
+    lievi.simulate(body, SPLITTING, g0, m0, h=0.1, n_steps=100, progress_meter="text")
+    out = printed(capsys)
+    values = percents(out)
+    assert out.count("\n") == 1 and out.startswith("\r")
+    assert 20 <= values[0] <= 80 and values[-1] == 100.0, values
 
 
 def test_meter_under_vmap(capsys):
     body, g0, m0 = hlw_problem()
+    meter = lievi.TextProgressMeter(delay=0.0)
     run = jax.vmap(
-        lambda m: lievi.simulate(
-            body, lievi.LiePoissonSplitting(), g0, m, h=0.1, n_steps=50, progress_meter="text"
-        ).m[-1]
+        lambda m: lievi.simulate(body, SPLITTING, g0, m, h=0.1, n_steps=50, progress_meter=meter).m[
+            -1
+        ]
     )
     out = run(jnp.stack([m0, 2 * m0]))
     assert out.shape == (2, 3) and jnp.all(jnp.isfinite(out))
-    percents = reported(capsys)
-    assert percents[0] == 0.0 and percents[-1] == 100.0
+    values = percents(printed(capsys))
+    assert values[0] == 0.0 and values[-1] == 100.0
+    assert np.all(np.diff(values) > 0)  # each update once, not once per lane
+
+
+def test_shorthands():
+    assert as_progress_meter(False) == lievi.NoProgressMeter()
+    assert as_progress_meter(None) == lievi.NoProgressMeter()
+    assert as_progress_meter("text") == lievi.TextProgressMeter()
+    assert isinstance(as_progress_meter(True), (lievi.TqdmProgressMeter, lievi.TextProgressMeter))
+    meter = lievi.TextProgressMeter(delay=5.0, prefix="run")
+    assert as_progress_meter(meter) is meter
 
 
 def test_bad_progress_meter():
     body, g0, m0 = hlw_problem()
-    with pytest.raises(ValueError, match="`progress_meter`"):
-        lievi.simulate(body, lievi.DEP(), g0, m0, h=0.1, n_steps=2, progress_meter="bar")
+    for bad in ("bar", 1, object()):
+        with pytest.raises(ValueError, match="`progress_meter`"):
+            lievi.simulate(body, lievi.DEP(), g0, m0, h=0.1, n_steps=2, progress_meter=bad)
+    with pytest.raises(ValueError, match="delay"):
+        lievi.TextProgressMeter(delay=-1.0)
+
+
+def test_tqdm_meter_without_tqdm(monkeypatch):
+    monkeypatch.setitem(sys.modules, "tqdm", None)  # as if not installed
+    with pytest.raises(ImportError, match="pip install tqdm"):
+        lievi.TqdmProgressMeter()
+    body, g0, m0 = hlw_problem()
+    with pytest.raises(ValueError, match="needs tqdm"):
+        lievi.simulate(body, lievi.DEP(), g0, m0, h=0.1, n_steps=2, progress_meter="tqdm")
+    assert as_progress_meter(True) == lievi.TextProgressMeter()
 
 
 def test_tqdm_meter(capsys):
     pytest.importorskip("tqdm")
     body, g0, m0 = hlw_problem()
-    sol = lievi.simulate(
-        body, lievi.LiePoissonSplitting(), g0, m0, h=0.1, n_steps=100, progress_meter="tqdm"
-    )
+    sol = lievi.simulate(body, SPLITTING, g0, m0, h=0.1, n_steps=100, progress_meter="tqdm")
     jax.effects_barrier()
     assert "lievi.simulate" in capsys.readouterr().err
     assert jnp.all(jnp.isfinite(sol.m))
 
 
-def test_tqdm_report_without_tqdm(monkeypatch):
-    """The host side of the tqdm meter with a stand-in `tqdm.auto.tqdm`: one bar per run,
-    moved to the reported percentage and closed at 100%."""
-    import sys
-    import types
-
-    from lievi._simulate import _ProgressReport
-
+def test_tqdm_meter_with_a_stand_in_tqdm(monkeypatch):
+    """With a stand-in `tqdm.auto.tqdm`: one bar per run, moved to each reported
+    percentage once (also under `vmap`) and closed at 100%."""
     bars = []
 
     class Bar:
@@ -86,9 +140,14 @@ def test_tqdm_report_without_tqdm(monkeypatch):
     fake.tqdm = Bar
     monkeypatch.setitem(sys.modules, "tqdm", types.ModuleType("tqdm"))
     monkeypatch.setitem(sys.modules, "tqdm.auto", fake)
-    report = _ProgressReport("tqdm")
+    body, g0, m0 = hlw_problem()
+    meter = lievi.TqdmProgressMeter()
+    run = jax.vmap(
+        lambda m: lievi.simulate(body, SPLITTING, g0, m, h=0.1, n_steps=20, progress_meter=meter)
+    )
     for _run in range(2):  # two runs in a row
-        for fraction in [0.0, 0.25, 0.25, 0.5, 1.0]:  # a repeat, as from a vmapped lane
-            report(np.array([fraction, fraction]))
+        run(jnp.stack([m0, 2 * m0]))
+        jax.effects_barrier()
     assert len(bars) == 2
-    assert all(bar.closed and bar.positions == [0.0, 25.0, 50.0, 100.0] for bar in bars)
+    for bar in bars:
+        assert bar.closed and bar.positions == [5.0 * k for k in range(21)], bar.positions

@@ -1,0 +1,225 @@
+"""`solve_optimal_control`: discrete optimal control through `simulate`.
+
+The controls are a held sequence `u` (`lievi.Control`: one generalised force per step,
+entering the step through the discrete Lagrange–d'Alembert principle), the cost is
+`Σ_k h|u_k|²`, and the terminal conditions `c = (log(g_f⁻¹ g_N), m_N − m_f) = 0` are
+imposed by an augmented Lagrangian `λ·c + (ρ/2)|c|²`: for fixed `λ` it is minimised by
+`optax.lbfgs` in a `lax.while_loop`, with exact gradients through `lievi.simulate`; then
+`λ ← λ + ρc` (the method of multipliers), so the conditions are met to round-off rather
+than to `O(1/ρ)`.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optax.tree_utils as otu
+from jaxtyping import Array, Float
+
+from ._forcing import Control
+from ._simulate import Solution, simulate
+
+
+class OptimalControlSolution(eqx.Module):
+    """The result of `lievi.solve_optimal_control`.
+
+    **Attributes:**
+
+    - `controls`: the optimal control sequence `u`, shape `(n_steps, d)`.
+    - `solution`: the trajectory it drives (`lievi.simulate` with `forcing=Control(u)`,
+      every step saved, `throw=False`: read `solution.result`).
+    - `converged`: whether `constraint_violation ≤ tol`.
+    - `iterations`: multiplier updates (outer iterations) taken.
+    - `inner_iterations`: L-BFGS iterations, summed over the outer iterations.
+    - `constraint_violation`: `max|c|` at the end, `c` the terminal defect.
+    - `cost`: `Σ_k h|u_k|²`.
+    - `multipliers`: the final Lagrange multipliers `λ` of the terminal conditions.
+    """
+
+    controls: Float[Array, "N d"]
+    solution: Solution
+    converged: bool
+    iterations: int
+    inner_iterations: int
+    constraint_violation: float
+    cost: float
+    multipliers: Float[Array, " c"]
+
+
+class _Problem(eqx.Module):
+    """The data of one problem (traced by the compiled inner solve)."""
+
+    system: eqx.Module
+    integrator: eqx.Module
+    g0: Array
+    m0: Array
+    g_target: Array
+    m_target: Array | None
+    h: Array
+
+    def defect(self, u):
+        """The terminal defect `c`: zero exactly at the target."""
+        n = u.shape[0]
+        sol = simulate(
+            self.system,
+            self.integrator,
+            self.g0,
+            self.m0,
+            h=self.h,
+            n_steps=n,
+            save_every=n,
+            forcing=Control(u),
+            throw=False,
+        )
+        group = self.system.group
+        c = [group.log(group.compose(group.inverse(self.g_target), sol.g[-1]))]
+        if self.m_target is not None:
+            c.append(sol.m[-1] - self.m_target)
+        return jnp.concatenate(c)
+
+    def cost(self, u):
+        return self.h * jnp.sum(u**2)
+
+
+def _lbfgs(fun, x0, max_iter: int, tol, memory_size: int):
+    """Minimise `fun` from `x0` with `optax.lbfgs` in a `lax.while_loop`; stops when the
+    gradient norm is below `tol` or after `max_iter` iterations. Returns `(x, iterations)`."""
+    opt = optax.lbfgs(memory_size=memory_size)
+    value_and_grad = optax.value_and_grad_from_state(fun)
+
+    def step(carry):
+        x, state = carry
+        value, grad = value_and_grad(x, state=state)
+        updates, state = opt.update(grad, state, x, value=value, grad=grad, value_fn=fun)
+        return optax.apply_updates(x, updates), state
+
+    def keep_going(carry):
+        _, state = carry
+        count, grad = otu.tree_get(state, "count"), otu.tree_get(state, "grad")
+        return (count == 0) | ((count < max_iter) & (otu.tree_norm(grad) >= tol))
+
+    x, state = jax.lax.while_loop(keep_going, step, (x0, opt.init(x0)))
+    return x, otu.tree_get(state, "count")
+
+
+@eqx.filter_jit
+def _inner_solve(problem: _Problem, u, multiplier, penalty, tol, max_iter: int, memory: int):
+    """One augmented-Lagrangian subproblem: `u`, its defect, and the L-BFGS iterations."""
+
+    def objective(u):
+        c = problem.defect(u)
+        return problem.cost(u) + multiplier @ c + penalty / 2 * c @ c
+
+    u, iterations = _lbfgs(objective, u, max_iter, tol, memory)
+    return u, problem.defect(u), iterations
+
+
+def solve_optimal_control(
+    system,
+    integrator,
+    g0: Float[Array, "n n"],
+    m0: Float[Array, " d"],
+    target,
+    n_steps: int,
+    h,
+    *,
+    u0: Float[Array, "N d"] | None = None,
+    penalty: float = 100.0,
+    tol: float = 1e-12,
+    max_iterations: int = 15,
+    max_inner_iterations: int = 3000,
+    gradient_tol: float = 1e-11,
+    memory_size: int = 20,
+) -> OptimalControlSolution:
+    """The control sequence of least effort `Σ_k h|u_k|²` that takes `system` from
+    `(g0, m0)` to `target` in `n_steps` steps of `integrator`.
+
+    The control `u_k` is held over step `k` (`lievi.Control(u)`: for a rigid body, the
+    body torque). The terminal conditions `c = (log(g_f⁻¹ g_N), m_N − m_f) = 0` are imposed
+    by an augmented Lagrangian `λ·c + (ρ/2)|c|²`, minimised over `u` by `optax.lbfgs`
+    with exact gradients through `lievi.simulate`, followed by the multiplier update
+    `λ ← λ + ρc`, until `max|c| ≤ tol` (the method of multipliers: the conditions are met
+    to round-off, not to `O(1/ρ)`). Each subproblem is one compiled call.
+
+    **Arguments:**
+
+    - `system`, `integrator`: as for `lievi.simulate`; the integrator must take a force
+      (`lievi.AbstractKickIntegrator`, e.g. `lievi.DEP()`).
+    - `g0`, `m0`: the initial state (momentum in algebra coordinates).
+    - `target`: `(g_f, m_f)`, the terminal configuration and momentum (`m_f = 0`: arrive
+      at rest), or `(g_f, None)` for a free terminal momentum.
+    - `n_steps`: the number of steps (and of controls), a Python `int ≥ 1`.
+    - `h`: the step size; the horizon is `T = n_steps · h`.
+    - `u0`: the initial guess, shape `(n_steps, d)`; zeros by default.
+    - `penalty`: `ρ` of the augmented Lagrangian.
+    - `tol`: the terminal-defect tolerance `max|c|` that ends the outer loop.
+    - `max_iterations`: the most multiplier updates.
+    - `max_inner_iterations`, `gradient_tol`, `memory_size`: of each L-BFGS subproblem
+      (it stops when the gradient norm falls below `gradient_tol`).
+
+    **Returns:** an `OptimalControlSolution`: the controls, the trajectory they drive, and
+    the convergence report (`converged`, `iterations`, `constraint_violation`, `cost`).
+    Not converging is reported there, not raised.
+    """
+    if isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer)) or n_steps < 1:
+        raise ValueError(f"`n_steps` must be an integer ≥ 1, got {n_steps!r}.")
+    if not (isinstance(target, tuple) and len(target) == 2):
+        raise ValueError(
+            "`target` must be a pair `(g_f, m_f)` (`m_f = None`: a free final momentum)."
+        )
+    for name, value in (("max_iterations", max_iterations), ("memory_size", memory_size)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"`{name}` must be an integer ≥ 1, got {value!r}.")
+    g_target, m_target = target
+    d = system.group.algebra_dim
+    dtype = jnp.result_type(g0, m0, h, float)
+    if u0 is None:
+        u0 = jnp.zeros((n_steps, d), dtype)
+    u = jnp.asarray(u0, dtype)
+    if u.shape != (n_steps, d):
+        raise ValueError(f"`u0` must have shape (n_steps, d) = {(n_steps, d)}, got {u.shape}.")
+    problem = _Problem(
+        system,
+        integrator,
+        jnp.asarray(g0, dtype),
+        jnp.asarray(m0, dtype),
+        jnp.asarray(g_target, dtype),
+        None if m_target is None else jnp.asarray(m_target, dtype),
+        jnp.asarray(h, dtype),
+    )
+    multiplier = jnp.zeros(d if m_target is None else 2 * d, dtype)
+    penalty_, gradient_tol_ = jnp.asarray(penalty, dtype), jnp.asarray(gradient_tol, dtype)
+    outer = inner = 0
+    violation = float("nan")
+    for outer in range(1, max_iterations + 1):
+        u, c, iterations = _inner_solve(
+            problem, u, multiplier, penalty_, gradient_tol_, max_inner_iterations, memory_size
+        )
+        inner += int(iterations)
+        multiplier = multiplier + penalty * c
+        violation = float(jnp.max(jnp.abs(c)))
+        if violation <= tol or not np.isfinite(violation):
+            break
+    solution = simulate(
+        system,
+        integrator,
+        problem.g0,
+        problem.m0,
+        h=problem.h,
+        n_steps=n_steps,
+        forcing=Control(u),
+        throw=False,
+    )
+    return OptimalControlSolution(
+        controls=u,
+        solution=solution,
+        converged=bool(violation <= tol),
+        iterations=outer,
+        inner_iterations=inner,
+        constraint_violation=violation,
+        cost=float(problem.cost(u)),
+        multipliers=multiplier,
+    )
