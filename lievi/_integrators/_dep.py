@@ -52,21 +52,13 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
 from .._checks import as_int
+from .._groups._charts import AbstractChart, as_chart
 from .._kernels._se3 import SE3NewtonKernel
-from .._kernels._so3 import NewtonKernel
+from .._kernels._so3 import DEPEquation, NewtonKernel
 from .._newton import check_newton_options, newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from ._base import AbstractVariationalIntegrator, StepInfo
-
-CHARTS = ("exp", "cayley")
-
-
-def _chart(group, chart: str):
-    """`(φ, φ⁻¹, dφ⁻¹)` of a named chart."""
-    if chart == "exp":
-        return group.exp, group.log, group.dexpinv
-    return group.cay, group.cayinv, group.dcayinv
 
 
 class DEP(AbstractVariationalIntegrator):
@@ -91,14 +83,12 @@ class DEP(AbstractVariationalIntegrator):
       `RESULTS.newton_not_converged`.
     """
 
-    chart: str = eqx.field(default="exp", static=True)
+    chart: AbstractChart = eqx.field(default="exp", static=True, converter=as_chart)
     rtol: float | None = eqx.field(default=None, static=True)
     atol: float | None = eqx.field(default=None, static=True)
     max_steps: int = eqx.field(default=20, static=True, converter=as_int)
 
     def __check_init__(self):
-        if self.chart not in CHARTS:
-            raise ValueError(f"`chart` must be one of {CHARTS}, got {self.chart!r}.")
         check_newton_options(self.max_steps, self.rtol, self.atol)
 
     def order(self) -> int:
@@ -111,22 +101,20 @@ class DEP(AbstractVariationalIntegrator):
     def kernels(self):
         # Closed forms for the rigid body with principal moments, and for any free body on SE(3).
         options = (self.chart, self.rtol, self.atol, self.max_steps)
-        return NewtonKernel(*options), SE3NewtonKernel(*options)
+        return NewtonKernel(DEPEquation(self.chart), *options[1:]), SE3NewtonKernel(*options)
 
     def kinetic_discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
         group = system.group
-        _, chart_inverse, _ = _chart(group, self.chart)
         increment = system.side.increment(group, g0, g1)
-        return h * system.lagrangian(chart_inverse(increment) / h)
+        return h * system.lagrangian(self.chart.inverse(group, increment) / h)
 
     def solve_increment(self, system: AbstractLieSystem, m: Float[Array, " d"], h: Scalar):
         """Solve the DEP equation for the increment coordinates `ξ_k` given `m_k`."""
         group = system.group
-        _, _, dchart_inverse = _chart(group, self.chart)
         sign = system.side.sign
 
         def residual(xi):
-            return dchart_inverse(sign * xi).T @ system.legendre(xi / h) - m
+            return self.chart.dinverse(group, sign * xi).T @ system.legendre(xi / h) - m
 
         tolerance = newton_tolerance(jnp.max(jnp.abs(m)), m.dtype, self.rtol, self.atol)
         # Explicit-Euler guess `h·ξ(m)`: O(h²) from the root, so Newton needs few steps.
@@ -140,20 +128,16 @@ class DEP(AbstractVariationalIntegrator):
         if fast is not None:
             return fast
         group = system.group
-        chart, _, _ = _chart(group, self.chart)
         xi, info = self.solve_increment(system, m, h)
-        F = chart(xi)
+        F = self.chart.map(group, xi)
         # `compose`, not `@`: a group may keep its product on the group to round-off (SE(3)
         # re-orthonormalises the rotation block; the momentum of a symmetry relies on it).
         g_next = system.side.compose(group, g, F)
         m_next = system.side.momentum_after(group, F, m)
 
         result = jnp.where(info.converged, RESULTS.successful, RESULTS.newton_not_converged)
-        if self.chart == "exp":
-            # Beyond the injectivity radius (angle π on SO(n)) the "root" belongs to
-            # another branch of log and the step is meaningless.
-            too_large = group.exp_norm(xi) >= group.exp_radius
-            result = jnp.where(too_large, RESULTS.step_too_large, result)
+        off_branch = self.chart.beyond_branch(group.exp_norm(xi) ** 2, group.exp_radius)
+        result = jnp.where(off_branch, RESULTS.step_too_large, result)
         finite = jnp.isfinite(info.residual) & jnp.all(jnp.isfinite(m_next))
         result = jnp.where(finite, result, RESULTS.nonfinite)
         return g_next, m_next, StepInfo(result, info.iterations, info.residual)

@@ -46,7 +46,7 @@ import numpy as np
 from jaxtyping import Array, Float, Scalar
 
 from .._checks import as_int, check_shape, is_concrete
-from .._kernels._so3 import NewtonKernel
+from .._kernels._so3 import MoserVeselovEquation, NewtonKernel
 from .._newton import check_newton_options, newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
@@ -137,7 +137,7 @@ class MoserVeselov(AbstractVariationalIntegrator):
         return True
 
     def kernels(self):
-        return (NewtonKernel("moser-veselov", self.rtol, self.atol, self.max_steps),)
+        return (NewtonKernel(MoserVeselovEquation(), self.rtol, self.atol, self.max_steps),)
 
     def kinetic_discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
         """`tr((I − g₀ᵀg₁)Λ)/h`, Moser–Veselov's `tr(g_k Λ g_{k+1}ᵀ)` up to scale and shift."""

@@ -390,9 +390,8 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
     g_next = tuple(e for i in range(3) for e in (Rn[i][0], Rn[i][1], Rn[i][2], Rt[i] + p[i]))
 
     result = jnp.where(converged, RESULTS.successful, RESULTS.newton_not_converged)
-    if chart == "exp":
-        # Beyond the injectivity radius of exp (rotation angle π) the root is on another branch.
-        result = jnp.where(t >= math.pi**2, RESULTS.step_too_large, result)
+    # The chart's branch rule (exp: a rotation angle of π or more is on another branch).
+    result = jnp.where(chart.beyond_branch(t, math.pi), RESULTS.step_too_large, result)
     ok = jnp.isfinite(norm)
     for y in m_next:
         ok = ok & jnp.isfinite(y)
@@ -401,7 +400,7 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
 
 
 # Iterations every body takes before the one convergence check (see
-# `_so3.DEFAULT_FIXED_ITERATIONS`): a chord step and two Newton steps. From the
+# `_so3.DEPEquation.fixed_iterations`): a chord step and two Newton steps. From the
 # explicit-Euler guess they reach 64 ulps for every one of 2·10⁴ random bodies at
 # h = 0.05 (|ω| ≤ 0.3), and for all but about one in 10⁴ at h = 0.1; the rest finish in
 # the gathered tail. Measured with `benchmarks/se3_step_cost.py --one-thread`: 11–16 %

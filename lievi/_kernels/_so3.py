@@ -43,6 +43,7 @@ then `F = φ(ξ) = 1 + a ξ̂ + b ξ̂²` (exp: `a = S C`, `b = S²/2`; Cayley: 
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import functools
 import math
@@ -52,6 +53,7 @@ import jax
 import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
+from .._groups._charts import AbstractChart
 from .._newton import newton_tolerance
 from .._results import RESULTS
 from ._base import ROOT_NAME, AbstractBatchKernel, materialise
@@ -92,9 +94,8 @@ def _residual_moser_veselov(x, Pi, A, with_jacobian: bool):
     return r, tuple(rows)
 
 
-def _residual(chart, xi, Pi, A, with_jacobian: bool):
-    if chart == "moser-veselov":
-        return _residual_moser_veselov(xi, Pi, A, with_jacobian)
+def _dep_residual(chart, xi, Pi, A, with_jacobian: bool):
+    """`r = dφ⁻¹(ξ)ᵀ Aξ − Π` and its Jacobian, for the exp or Cayley chart (derivation above)."""
     w = tuple(A[i] * xi[i] for i in range(3))
     d = dot(xi, w)
     t = dot(xi, xi)
@@ -210,7 +211,7 @@ def moser_veselov_on_branch(x, Pi, A):
     return (b[0][0] > 0) & (minor2 > 0) & (det > 0)
 
 
-def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True):
+def solve_increment(equation, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True):
     """Newton for the DEP equation on a batch: `fixed_iterations`, then a check.
 
     Returns `(ξ, iterations, residual ∞-norm, converged)`, all per body. For Moser–Veselov
@@ -220,16 +221,9 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
     Not differentiable (a `while_loop`); `differentiable_increment` is.
     """
     fixed = min(fixed_iterations, max_steps)
-    restartable = chart == "moser-veselov"
-    if restartable:
-        xi = _moser_veselov_by_scalar_newton(Pi, A, fixed)
-    else:
-        xi = _explicit_euler_guess(Pi, A)
-        for _ in range(fixed):
-            r, J = _residual(chart, xi, Pi, A, True)
-            delta = solve3(J, r)
-            xi = tuple(xi[i] - delta[i] for i in range(3))
-    r, _ = _residual(chart, xi, Pi, A, False)
+    restartable = equation.restartable()
+    xi = equation.start(Pi, A, fixed)
+    r, _ = equation.residual(xi, Pi, A, False)
     norm = max_abs(r)
     if restartable:
         # A root of the quartic off the branch rule (`moser_veselov_on_branch`) is not
@@ -248,10 +242,10 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
     def body(carry):
         xi, norm, iterations = carry
         on = active(norm, iterations)
-        r, J = _residual(chart, xi, Pi, A, True)
+        r, J = equation.residual(xi, Pi, A, True)
         delta = solve3(J, r)
         xi = tuple(jnp.where(on, xi[i] - delta[i], xi[i]) for i in range(3))
-        r, _ = _residual(chart, xi, Pi, A, False)
+        r, _ = equation.residual(xi, Pi, A, False)
         norm = jnp.where(on, max_abs(r), norm)
         return xi, norm, iterations + on.astype(jnp.int32)
 
@@ -262,7 +256,7 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
         # `MoserVeselov` would have started. Once, on entering the tail.
         xi, norm, iterations = carry
         guess = _explicit_euler_guess(Pi, A)
-        guess_norm = max_abs(_residual(chart, guess, Pi, A, False)[0])
+        guess_norm = max_abs(equation.residual(guess, Pi, A, False)[0])
         back = ~(norm <= tolerance) & ~(norm <= guess_norm)
         xi = tuple(jnp.where(back, guess[i], xi[i]) for i in range(3))
         # A restarted body gets the generic path's full budget of `max_steps` Newton
@@ -284,20 +278,20 @@ def solve_increment(chart, Pi, A, tolerance, fixed_iterations: int, max_steps: i
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _at_root(chart, xi, Pi, A):
+def _at_root(equation, xi, Pi, A):
     """`ξ`, a root of `r(·; Π, A)`, with the derivative of the root as a function of `(Π, A)`."""
     return xi
 
 
 @_at_root.defjvp
-def _at_root_jvp(chart, primals, tangents):
+def _at_root_jvp(equation, primals, tangents):
     # Implicit function theorem: r(ξ(Π, A); Π, A) = 0 ⇒ J dξ = −(∂r/∂Π dΠ + ∂r/∂A dA).
     # Linear in the tangents with coefficients from the primal point, so JAX transposes it
     # for reverse mode; the transposed Cramer solve costs what the forward one does.
     xi, Pi, A = primals
     _, dPi, dA = tangents
-    _, dr = jax.jvp(lambda P, B: _residual(chart, xi, P, B, False)[0], (Pi, A), (dPi, dA))
-    _, J = _residual(chart, xi, Pi, A, True)
+    _, dr = jax.jvp(lambda P, B: equation.residual(xi, P, B, False)[0], (Pi, A), (dPi, dA))
+    _, J = equation.residual(xi, Pi, A, True)
     # Materialised: in reverse mode this is the transposed solve's result `λ = J⁻ᵀ ξ̄`,
     # which every cotangent of `Π` and `A` needs; stored once, rather than the solve
     # (with `J`) re-evaluated inside each of their six fused loops (measured: the
@@ -309,7 +303,7 @@ def _at_root_jvp(chart, primals, tangents):
 
 
 def differentiable_increment(
-    chart, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True
+    equation, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True
 ):
     """`solve_increment` whose `ξ` differentiates by the implicit function theorem at the root.
 
@@ -318,7 +312,7 @@ def differentiable_increment(
     """
     stopped = jax.lax.stop_gradient((Pi, A, tolerance))
     xi, iterations, norm, converged = solve_increment(
-        chart, *stopped, fixed_iterations, max_steps, alive
+        equation, *stopped, fixed_iterations, max_steps, alive
     )
     # A diverged solve (reported through the residual) continues from the finite
     # explicit-Euler guess: the implicit derivative is then evaluated at a finite point,
@@ -330,30 +324,24 @@ def differentiable_increment(
     # backward pass must find the input stored (a tag on the output alone is a different
     # variable, and the backward pass then re-runs the Newton iterations to recompute it).
     xi = checkpoint_name(jax.lax.stop_gradient(xi), ROOT_NAME)
-    return _at_root(chart, xi, Pi, A), iterations, norm, converged
+    return _at_root(equation, xi, Pi, A), iterations, norm, converged
 
 
-def dep_step(chart, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True):
+def dep_step(equation, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True):
     """One DEP + DLP + reconstruction step on structure-of-arrays state.
 
-    `chart`: `"exp"`, `"cayley"` (`DEP`) or `"moser-veselov"` (`MoserVeselov`: the
-    Cayley chart with the Moser–Veselov residual).
+    `equation`: `DEPEquation(chart)` (`DEP`) or `MoserVeselovEquation()` (`MoserVeselov`:
+    the Cayley chart with the Moser–Veselov residual).
     `g`: 9 arrays (row-major), or the rows of `g` that are carried (3 arrays a row: each
     row `r` becomes `r F`, so the reduced state's `Γᵀ = aᵀg` is one row), `Pi`: 3 arrays,
     `A = I/h`: 3 arrays (or scalars).
     Returns `(g_next, Pi_next, result, iterations, residual)`; reverse-mode differentiable.
     """
     xi, iterations, norm, converged = differentiable_increment(
-        chart, Pi, A, tolerance, fixed_iterations, max_steps, alive
+        equation, Pi, A, tolerance, fixed_iterations, max_steps, alive
     )
     t = dot(xi, xi)
-    if chart == "exp":
-        u = t / 4
-        S, C = horner(S_SERIES, u), horner(C_SERIES, u)
-        a, b = S * C, S * S / 2
-    else:
-        a = 4 / (4 + t)
-        b = a / 2
+    a, b = equation.increment_coefficients(t)
     # F = 1 + a ξ̂ + b (ξξᵀ − t 1).
     X = (0, -xi[2], xi[1], xi[2], 0, -xi[0], -xi[1], xi[0], 0)
     F = [a * X[3 * i + j] + b * xi[i] * xi[j] for i in range(3) for j in range(3)]
@@ -370,12 +358,8 @@ def dep_step(chart, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int, 
     Pi_next = tuple(Pi[i] - a * xp[i] + b * (xi[i] * dp - t * Pi[i]) for i in range(3))
 
     result = jnp.where(converged, RESULTS.successful, RESULTS.newton_not_converged)
-    if chart == "moser-veselov":
-        off_branch = converged & ~moser_veselov_on_branch(xi, Pi, A)
-        result = jnp.where(off_branch, RESULTS.step_too_large, result)
-    if chart == "exp":
-        # Beyond the injectivity radius of exp (angle π) the root is on another branch.
-        result = jnp.where(t >= math.pi**2, RESULTS.step_too_large, result)
+    off_branch = equation.off_branch(xi, Pi, A, t, converged)
+    result = jnp.where(off_branch, RESULTS.step_too_large, result)
     finite = jnp.isfinite(norm)
     for p in Pi_next:
         finite = finite & jnp.isfinite(p)
@@ -392,17 +376,105 @@ def dep_step(chart, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int, 
 # (`_moser_veselov_by_scalar_newton`, ~40 operations each): four reach 64 ulps for every
 # one of 10⁵ such bodies. Bodies that need more continue in a `while_loop` up to
 # `max_steps`.
-DEFAULT_FIXED_ITERATIONS = {"exp": 3, "cayley": 4, "moser-veselov": 4}
+
+
+class AbstractSO3Equation(eqx.Module):
+    """The implicit equation of a step on SO(3) with principal moments, and what goes with
+    it: its closed-form residual and Jacobian, the Newton start, the increment
+    `F = 1 + a ξ̂ + b ξ̂²` of its root, and its branch rule."""
+
+    @abc.abstractmethod
+    def fixed_iterations(self) -> int:
+        """Newton iterations every body takes before the convergence check (see above)."""
+
+    def restartable(self) -> bool:
+        """Whether a body left off the branch by `start` restarts from the explicit-Euler
+        guess in the tail (default: no)."""
+        return False
+
+    @abc.abstractmethod
+    def residual(self, xi, Pi, A, with_jacobian: bool):
+        """`(r, ∂r/∂ξ)` (the Jacobian `None` without `with_jacobian`)."""
+
+    @abc.abstractmethod
+    def start(self, Pi, A, iterations: int):
+        """The iterate after `iterations` fixed Newton steps from the start."""
+
+    @abc.abstractmethod
+    def increment_coefficients(self, t):
+        """`(a, b)` of `F = 1 + a ξ̂ + b ξ̂²` at `t = |ξ|²`."""
+
+    @abc.abstractmethod
+    def off_branch(self, xi, Pi, A, t, converged):
+        """Whether the iterate `ξ` is not on the branch continued from `h → 0` (reported
+        `step_too_large`); the same rule as the integrator's generic step."""
+
+
+class DEPEquation(AbstractSO3Equation):
+    """`DEP`'s equation `dφ⁻¹(ξ)ᵀ Iξ/h = Π` (4.8) in the chart `chart`."""
+
+    chart: AbstractChart = eqx.field(static=True)
+
+    def fixed_iterations(self) -> int:
+        return _DEP_FIXED_ITERATIONS[self.chart.name]
+
+    def residual(self, xi, Pi, A, with_jacobian: bool):
+        return _dep_residual(self.chart, xi, Pi, A, with_jacobian)
+
+    def start(self, Pi, A, iterations: int):
+        xi = _explicit_euler_guess(Pi, A)
+        for _ in range(iterations):
+            r, J = self.residual(xi, Pi, A, True)
+            delta = solve3(J, r)
+            xi = tuple(xi[i] - delta[i] for i in range(3))
+        return xi
+
+    def increment_coefficients(self, t):
+        if self.chart == "exp":
+            u = t / 4
+            S, C = horner(S_SERIES, u), horner(C_SERIES, u)
+            return S * C, S * S / 2
+        a = 4 / (4 + t)
+        return a, a / 2
+
+    def off_branch(self, xi, Pi, A, t, converged):
+        return self.chart.beyond_branch(t, math.pi)
+
+
+class MoserVeselovEquation(AbstractSO3Equation):
+    """`MoserVeselov`'s equation (5.4)–(5.6) in Cayley coordinates (`F = cay(x)`)."""
+
+    def fixed_iterations(self) -> int:
+        return 4
+
+    def restartable(self) -> bool:
+        return True
+
+    def residual(self, xi, Pi, A, with_jacobian: bool):
+        return _residual_moser_veselov(xi, Pi, A, with_jacobian)
+
+    def start(self, Pi, A, iterations: int):
+        return _moser_veselov_by_scalar_newton(Pi, A, iterations)
+
+    def increment_coefficients(self, t):
+        a = 4 / (4 + t)
+        return a, a / 2
+
+    def off_branch(self, xi, Pi, A, t, converged):
+        return converged & ~moser_veselov_on_branch(xi, Pi, A)
+
+
+_DEP_FIXED_ITERATIONS = {"exp": 3, "cayley": 4}
 
 
 class NewtonKernel(AbstractBatchKernel):
     """The implicit step (`dep_step`) of `DEP` (both charts) or `MoserVeselov`.
 
-    `chart`: `"exp"`, `"cayley"` or `"moser-veselov"`; `rtol`, `atol`, `max_steps`: the
-    integrator's; `fixed_iterations`: see `solve_increment` (default per chart above).
+    `equation`: a `DEPEquation` or `MoserVeselovEquation`; `rtol`, `atol`, `max_steps`: the
+    integrator's; `fixed_iterations`: see `solve_increment` (default: the equation's).
     """
 
-    chart: str = eqx.field(static=True)
+    equation: AbstractSO3Equation = eqx.field(static=True)
     rtol: float | None = eqx.field(static=True)
     atol: float | None = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
@@ -413,10 +485,10 @@ class NewtonKernel(AbstractBatchKernel):
 
     def step(self, params, g, Pi, alive):
         fixed = self.fixed_iterations
-        fixed = DEFAULT_FIXED_ITERATIONS[self.chart] if fixed is None else fixed
+        fixed = self.equation.fixed_iterations() if fixed is None else fixed
         # The tolerance policy of every implicit step (`simulate`'s too): relative by default.
         tolerance = newton_tolerance(max_abs(Pi), Pi[0].dtype, self.rtol, self.atol)
-        return dep_step(self.chart, g, Pi, params, tolerance, fixed, self.max_steps, alive)
+        return dep_step(self.equation, g, Pi, params, tolerance, fixed, self.max_steps, alive)
 
     def with_fixed_iterations(self, fixed_iterations: int):
         return dataclasses.replace(self, fixed_iterations=fixed_iterations)
