@@ -95,7 +95,7 @@ def simulate_kernel(
 
     def one_save(state, _):
         (state, (total, most, worst)), _ = scan_in_segments(
-            one_step, (state, zero_counters), save_every, inner, unroll
+            one_step, (state, zero_counters), save_every, inner, unroll=unroll
         )
         ok = state[2] == RESULTS.successful
         out = {"iterations": total}

@@ -48,6 +48,7 @@ equals the left-invariant run of `(g_k⁻¹, −μ_k)` for `l̃(ξ) = l(−ξ)`;
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
@@ -108,14 +109,36 @@ class DEP(AbstractVariationalIntegrator):
         increment = system.side.increment(group, g0, g1)
         return h * system.lagrangian(self.chart.inverse(group, increment) / h)
 
-    def solve_increment(self, system: AbstractLieSystem, m: Float[Array, " d"], h: Scalar):
-        """Solve the DEP equation for the increment coordinates `ξ_k` given `m_k`."""
+    def residual(self, system: AbstractLieSystem, m: Float[Array, " d"], h: Scalar):
+        """`ξ ↦ dφ⁻¹(±ξ)ᵀ ∇l(ξ/h) − m`: the DEP equation (4.8) in momentum form."""
         group = system.group
         sign = system.side.sign
 
         def residual(xi):
             return self.chart.dinverse(group, sign * xi).T @ system.legendre(xi / h) - m
 
+        return residual
+
+    def on_branch(self, system: AbstractLieSystem, m: Float[Array, " d"], h: Scalar, xi):
+        """The branch rule: `ξ` is on the root branch continued from `h → 0`.
+
+        Along that branch the residual's Jacobian `J(ξ)` starts at `∇²l/h` (determinant of
+        the sign of `h^d`) and stays non-singular until the branch folds, where Newton stops
+        converging; so a converged root whose `det J` has the other sign was reached across
+        a fold — a root of (4.8) that no step continued from `h → 0` ends on (it can lie far
+        inside the step bound: an anisotropic body at `h|Ω| = 0.56` was seen to converge
+        to one). Such a root is reported as `RESULTS.step_too_large`, on both paths; and for
+        the exp chart a root at a rotation angle of π or more (`ExpChart.beyond_branch`).
+        """
+        group = system.group
+        J = jax.jacfwd(self.residual(system, m, h))(xi)
+        same_sign = jnp.linalg.det(J) * jnp.sign(h) ** group.algebra_dim > 0
+        beyond = self.chart.beyond_branch(group.exp_norm(xi) ** 2, group.exp_radius)
+        return same_sign & ~beyond
+
+    def solve_increment(self, system: AbstractLieSystem, m: Float[Array, " d"], h: Scalar):
+        """Solve the DEP equation for the increment coordinates `ξ_k` given `m_k`."""
+        residual = self.residual(system, m, h)
         tolerance = newton_tolerance(jnp.max(jnp.abs(m)), m.dtype, self.rtol, self.atol)
         # Explicit-Euler guess `h·ξ(m)`: O(h²) from the root, so Newton needs few steps.
         return newton_solve(residual, h * system.velocity(m), tolerance, self.max_steps)
@@ -136,8 +159,8 @@ class DEP(AbstractVariationalIntegrator):
         m_next = system.side.momentum_after(group, F, m)
 
         result = jnp.where(info.converged, RESULTS.successful, RESULTS.newton_not_converged)
-        off_branch = self.chart.beyond_branch(group.exp_norm(xi) ** 2, group.exp_radius)
-        result = jnp.where(off_branch, RESULTS.step_too_large, result)
+        on_branch = self.on_branch(system, m, h, jax.lax.stop_gradient(xi))
+        result = jnp.where(on_branch, result, RESULTS.step_too_large)
         finite = jnp.isfinite(info.residual) & jnp.all(jnp.isfinite(m_next))
         result = jnp.where(finite, result, RESULTS.nonfinite)
         return g_next, m_next, StepInfo(result, info.iterations, info.residual)

@@ -342,6 +342,7 @@ def dep_step(equation, g, Pi, A, tolerance, fixed_iterations: int, max_steps: in
     )
     t = dot(xi, xi)
     a, b = equation.increment_coefficients(t)
+    off_branch = equation.off_branch(jax.lax.stop_gradient(xi), Pi, A, t, converged)
     # F = 1 + a ξ̂ + b (ξξᵀ − t 1).
     X = (0, -xi[2], xi[1], xi[2], 0, -xi[0], -xi[1], xi[0], 0)
     F = [a * X[3 * i + j] + b * xi[i] * xi[j] for i in range(3) for j in range(3)]
@@ -358,7 +359,6 @@ def dep_step(equation, g, Pi, A, tolerance, fixed_iterations: int, max_steps: in
     Pi_next = tuple(Pi[i] - a * xp[i] + b * (xi[i] * dp - t * Pi[i]) for i in range(3))
 
     result = jnp.where(converged, RESULTS.successful, RESULTS.newton_not_converged)
-    off_branch = equation.off_branch(xi, Pi, A, t, converged)
     result = jnp.where(off_branch, RESULTS.step_too_large, result)
     finite = jnp.isfinite(norm)
     for p in Pi_next:
@@ -438,7 +438,13 @@ class DEPEquation(AbstractSO3Equation):
         return a, a / 2
 
     def off_branch(self, xi, Pi, A, t, converged):
-        return self.chart.beyond_branch(t, math.pi)
+        # `DEP.on_branch`: `det J` of the sign of `det A` (the branch continued from h → 0
+        # has not crossed a fold), and the chart's own rule.
+        _, J = self.residual(xi, Pi, A, True)
+        (a, b, c), (d, e, f), (g, h, i) = J
+        det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+        folded = ~(det * (A[0] * A[1] * A[2]) > 0)
+        return folded | self.chart.beyond_branch(t, math.pi)
 
 
 class MoserVeselovEquation(AbstractSO3Equation):
