@@ -4,6 +4,10 @@ Checks on *values* (positivity, orthogonality, NaN) raise only when the value is
 concrete, i.e. when the function is called eagerly. Under `jit`/`vmap`/`grad` the values
 are tracers; there the same checks run inside the computation (`input_valid`) and a bad
 value gives `RESULTS.invalid_input` for that body — never a silent number.
+
+A parameter check is written once, as a *condition*: a traceable boolean array and the
+message that names the parameter (`Conditions`). `raise_if_violated` is its eager form
+(a concrete `False` raises the message) and `all_hold` its traced form (`input_valid`).
 """
 
 from __future__ import annotations
@@ -12,6 +16,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+# `(holds, message)`: a traceable boolean array and the `ValueError` message if it fails.
+Conditions = list[tuple[jax.Array, str]]
 
 
 def is_concrete(*xs) -> bool:
@@ -31,21 +38,81 @@ def check_finite(name: str, x) -> None:
         raise ValueError(f"`{name}` contains NaN or inf; pass finite values.")
 
 
+def spd_conditions(name: str, matrix) -> Conditions:
+    """`matrix` (`(k, k)`) finite, symmetric to 1e-10 relative and positive definite, as
+    conditions (traceable; `check_spd` raises on them eagerly)."""
+    m = jnp.asarray(matrix)
+    m = m.astype(jnp.result_type(m, float))
+    finite = jnp.all(jnp.isfinite(m))
+    m = jnp.where(finite, m, jnp.eye(m.shape[-1], dtype=m.dtype))
+    transpose = jnp.swapaxes(m, -1, -2)
+    symmetric = jnp.all(jnp.abs(m - transpose) <= 1e-10 * jnp.max(jnp.abs(m)))
+    positive = jnp.min(jnp.linalg.eigvalsh((m + transpose) / 2)) > 0
+    return [
+        (finite, f"`{name}` contains NaN or inf; pass finite values."),
+        (symmetric, f"`{name}` must be symmetric; symmetrise it as (M + Mᵀ)/2."),
+        (positive, f"`{name}` must be positive definite (all eigenvalues > 0)."),
+    ]
+
+
 def check_spd(name: str, matrix) -> None:
-    """Symmetric positive definite, for a concrete (…, k, k) array (the dtype is checked
-    for traced arrays too; their values are checked by `input_valid`)."""
+    """Symmetric positive definite (`spd_conditions`), for a concrete (k, k) array (the
+    dtype is checked for traced arrays too; their values are checked by `input_valid`)."""
     check_real_dtype(name, matrix)
-    if not is_concrete(matrix):
+    raise_if_violated(lambda: spd_conditions(name, matrix), matrix)
+
+
+def finite_conditions(tree, name: str | None = None) -> Conditions:
+    """Every floating-point array of `tree` finite, one condition per array, named by its
+    field (or `name`)."""
+    conditions = []
+    for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
+        if eqx.is_inexact_array(leaf):
+            keys = [
+                k.name if isinstance(k, jax.tree_util.GetAttrKey) else k.key
+                for k in path
+                if isinstance(k, (jax.tree_util.GetAttrKey, jax.tree_util.DictKey))
+            ]
+            label = keys[-1] if keys else name or "parameter"
+            message = f"`{label}` contains NaN or inf; pass finite values."
+            conditions.append((jnp.all(jnp.isfinite(leaf)), message))
+    return conditions
+
+
+def all_hold(conditions: Conditions):
+    """The traced form of a list of conditions: one boolean array."""
+    valid = jnp.asarray(True)
+    for holds, _ in conditions:
+        valid = valid & jnp.all(holds)
+    return valid
+
+
+def raise_if_violated(conditions, *values) -> None:
+    """The eager form: when `values` (the arrays the conditions are computed from) are
+    concrete, evaluate `conditions()` now — also inside an outer `jit` — and raise the
+    first failed condition's message. Traced values are left to `all_hold`."""
+    arrays = [x for x in jax.tree.leaves(values) if eqx.is_array(x)]
+    if not is_concrete(*arrays):
         return
-    m = np.asarray(matrix, dtype=float)
-    check_finite(name, m)
-    if not np.allclose(m, np.swapaxes(m, -1, -2), rtol=1e-10, atol=1e-12 * np.abs(m).max()):
-        raise ValueError(f"`{name}` must be symmetric; symmetrise it as (I + Iᵀ)/2.")
-    if np.any(np.linalg.eigvalsh(m) <= 0):
-        raise ValueError(
-            f"`{name}` must be positive definite (all eigenvalues > 0); got eigenvalues "
-            f"{np.linalg.eigvalsh(m)}."
-        )
+    with jax.ensure_compile_time_eval():
+        for holds, message in conditions():
+            if not bool(jnp.all(holds)):
+                raise ValueError(message)
+
+
+def membership_tolerance(dtype) -> float:
+    """The one bound on a group element's membership defect (`membership_defect`, e.g.
+    `‖gᵀg − I‖_F + |det g − 1|`), eager and traced: 1e-6, or 64 ulps of `dtype` where
+    that is larger (float32: 7.6e-6)."""
+    return max(1e-6, 64 * float(jnp.finfo(jnp.result_type(dtype, float)).eps))
+
+
+def drifts_off_group(dtype) -> bool:
+    """Whether a long run in `dtype` can drift out of `membership_tolerance`: products of
+    group elements add an ulp of defect each, a random walk `~√N ε` that passes 64 ulps
+    within a few thousand float32 steps (float64 would need ~1e19). Such runs keep `g`
+    on the group (`MatrixLieGroup.project`) wherever they save it."""
+    return float(jnp.finfo(jnp.result_type(dtype, float)).eps) > 1e-10
 
 
 def check_scalar(name: str, x, *, positive: bool = False) -> None:

@@ -62,7 +62,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float, Int
 
-from ._checks import check_finite, is_concrete
+from ._checks import check_finite, is_concrete, membership_tolerance
 from ._fit_optimizer import LBFGS, OptaxMachine
 from ._groups._so3 import SO3
 from ._integrators._base import AbstractIntegrator
@@ -673,11 +673,7 @@ def _check_rotations(name, x, group):
     if not is_concrete(x):
         return
     x = np.asarray(x)
-    tol = (
-        max(1e-6, 100 * float(np.finfo(x.dtype).eps))
-        if np.issubdtype(x.dtype, np.floating)
-        else 1e-6
-    )
+    tol = membership_tolerance(x.dtype)
     with jax.ensure_compile_time_eval():
         defect = np.asarray(group.membership_defect(jnp.asarray(x, float)))
     if np.any(defect > tol):

@@ -12,6 +12,7 @@ from ._checks import (
     check_integer,
     check_real_dtype,
     check_scalar,
+    drifts_off_group,
     input_valid,
     is_concrete,
     state_dtype,
@@ -40,8 +41,10 @@ class Solution(eqx.Module):
       (−1 if none); `total_newton_iterations`; `num_steps`.
     - `advected`: the advected parameter `Γ = gᵀa` of the system's potential (the body
       frame's view of gravity's vertical for `UniformGravity`; paper §7), shape `(T, n)`,
-      where it was asked for (`simulate_batch(save=(..., "advected"))`), else `None`.
-      A run that saves `Γ` but not `g` carries `(Π, Γ)` alone on the fast path.
+      for a potential that has one (`AbstractPotential.advected_direction`) whenever `g`
+      is saved (read off it) or it was asked for (`simulate_batch(save=(..., "advected"))`),
+      else `None`. A batched run that saves `Γ` but not `g` carries `(Π, Γ)` alone on the
+      fast path (`simulate_batch`).
     """
 
     ts: Float[Array, " T"]
@@ -200,7 +203,7 @@ def simulate(
             raise ValueError(
                 "`g1` needs a variational integrator (one with a discrete Lagrangian)."
             )
-        g1 = _as_array("g1", g1)
+        g1 = g1_given = _as_array("g1", g1)
         system.check_element("g1", g1)
         dtype = state_dtype(system, g0, g1, h)
         g0, g1 = jnp.asarray(g0, dtype), jnp.asarray(g1, dtype)
@@ -212,7 +215,7 @@ def simulate(
                 "half-turn for chart='cayley' or the Moser–Veselov Lagrangian). Pass `g1` "
                 "closer to `g0` (a smaller step) or pass `m0` instead."
             )
-        valid = system.element_valid(g1)
+        valid = system.element_valid(g1_given)
     m0 = _as_array("m0", m0)
     system.check_momentum("m0", m0)
     segment = checkpoint_segment(checkpoint, n_steps, save_every)
@@ -221,10 +224,11 @@ def simulate(
     dtype = state_dtype(system, g0, m0, h)
     if forcing is not None:
         forcing.check(system, n_steps, dtype, args)
-    g0, m0, h, t0 = (jnp.asarray(x, dtype) for x in (g0, m0, h, t0))
     # The eager checks above raise for concrete values; this repeats them inside the
-    # computation, so a traced bad value (under jit/vmap) is reported per body.
+    # computation, so a traced bad value (under jit/vmap) is reported per body. Before the
+    # cast: `g0` is held to the membership tolerance of its own dtype, as eagerly.
     valid = valid & input_valid(system, g0, m0, h, t0)
+    g0, m0, h, t0 = (jnp.asarray(x, dtype) for x in (g0, m0, h, t0))
     solution = _simulate(
         system,
         integrator,
@@ -317,6 +321,11 @@ def _simulate(
     def one_save(carry, data):
         carry, (iterations, residuals) = scan_in_segments(one_step, carry, save_every, inner, data)
         g, m, result = carry[0], carry[1], carry[2]
+        if drifts_off_group(g.dtype):
+            # Low precision: the saved state, from which a run may be continued, is kept
+            # on the group (to `membership_tolerance`), as is the state carried on.
+            g = system.group.project(g)
+            carry = (g, *carry[1:])
         # No silent numbers past the failed step.
         ok = result == RESULTS.successful
         g, m = jnp.where(ok, g, nan), jnp.where(ok, m, nan)
@@ -345,10 +354,20 @@ def _simulate(
         "total_newton_iterations": jnp.sum(total),
         "num_steps": jnp.asarray(n_steps),
     }
+    gs = jnp.concatenate([g0[None], gs])
     return Solution(
         ts=ts,
-        g=jnp.concatenate([g0[None], gs]),
+        g=gs,
         m=jnp.concatenate([m0[None], ms]),
         result=result,
         stats=stats,
+        advected=advected_of(system, gs),
     )
+
+
+def advected_of(system, g):
+    """`Γ = gᵀa` of the system's potential for saved elements `g` (any leading axes), or
+    `None` where the potential has no advected direction (`Solution.advected`)."""
+    if system.potential is None or system.potential.advected_direction() is None:
+        return None
+    return system.potential.advected(g)

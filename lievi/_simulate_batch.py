@@ -26,15 +26,17 @@ from ._checks import (
     check_finite,
     check_integer,
     check_real_dtype,
+    drifts_off_group,
     input_valid,
     is_concrete,
+    membership_tolerance,
     state_dtype,
 )
 from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator
 from ._results import RESULTS
 from ._scan import checkpoint_segment
-from ._simulate import Solution, simulate
+from ._simulate import Solution, advected_of, simulate
 from ._simulate_kernel import simulate_kernel
 from ._systems._base import AbstractLieSystem
 
@@ -67,8 +69,50 @@ def _fast_kernel(system, integrator, system_axis, fixed_iterations=None, carry_g
 def has_fast_path(
     system: AbstractLieSystem, integrator: AbstractIntegrator, system_axis=None
 ) -> bool:
-    """Whether `simulate_batch` has a structure-of-arrays fast path for this pair."""
+    """Whether `simulate_batch` has a structure-of-arrays fast path for this pair
+    (`system_axis` as in `simulate_batch`, inferred for a batch built with `jax.vmap`)."""
+    system_axis = infer_system_axis(system, system_axis)
     return _fast_kernel(system, integrator, system_axis) is not None
+
+
+def _is_one_system(system) -> bool:
+    """Whether `system` describes one system: its energy of one momentum `(d,)` and its
+    potential at one element `(n, n)` are scalars (by shapes alone, nothing computed)."""
+    n, d = system.group.matrix_dim, system.group.algebra_dim
+    dtype = state_dtype(system)
+    g, m = jax.ShapeDtypeStruct((n, n), dtype), jax.ShapeDtypeStruct((d,), dtype)
+    try:
+        shapes = eqx.filter_eval_shape(
+            lambda s, g, m: (s.energy(m), s.potential_energy(g)), system, g, m
+        )
+    except Exception:  # e.g. a (B, 3) inertia against a (3,) momentum
+        return False
+    return all(jnp.shape(x) == () for x in shapes)
+
+
+def infer_system_axis(system, system_axis, batch: int | None = None):
+    """`system_axis`, or for `None` the axis a batch of systems carries: `None` for one
+    system, `0` for a batch built with `jax.vmap` (every array leaf with the same leading
+    size — `batch`, where known — and one system per index along it). Anything else
+    raises a `ValueError` that says what to pass."""
+    if system_axis is not None or _is_one_system(system):
+        return system_axis
+    leaves = jax.tree.leaves(eqx.filter(system, eqx.is_array))
+    sizes = sorted({jnp.shape(x)[0] if jnp.ndim(x) else 0 for x in leaves})
+    first = jax.tree.map(lambda x: x[0] if eqx.is_array(x) and jnp.ndim(x) else x, system)
+    if len(sizes) == 1 and sizes[0] > 0 and _is_one_system(first):
+        if batch is None or sizes == [batch]:
+            return 0
+        raise ValueError(
+            f"`system` is a batch of {sizes[0]} systems (e.g. built with `jax.vmap`) but `g0` "
+            f"has {batch} bodies; pass one system per body and `system_axis=0`."
+        )
+    raise ValueError(
+        "`system` is not one system (its energy or potential is not a scalar) nor a batch "
+        f"along the leading axis of its array leaves (leading sizes {sizes}). For a batch "
+        "built with `jax.vmap(lievi.RigidBody)(inertias)` pass `system_axis=0`; for one "
+        "system shared by all bodies, build it from unbatched parameters."
+    )
 
 
 def _check_batch(name, x, shape_tail, what):
@@ -117,13 +161,20 @@ def simulate_batch(
       "advected")` (default `("g", "m", "stats")`); the omitted ones are `None` in the
       `Solution` (the summary statistics `failed_step`, `total_newton_iterations`,
       `num_steps` are always kept). Storing nothing but the final state is what makes
-      very large batches fit in memory. `"advected"` (for a potential with an advected
-      parameter, e.g. `UniformGravity`: `AbstractPotential.advected_direction`) stores
-      `Γ_k = g_kᵀa` as `Solution.advected`, `(B, T, 3)`. When `g` is not saved, the fast
-      path of such a system carries `(Π, Γ)` instead of `(Π, g)` — the reduced discrete
+      very large batches fit in memory. For a potential with an advected parameter
+      (e.g. `UniformGravity`: `AbstractPotential.advected_direction`) `Γ_k = g_kᵀa` is
+      `Solution.advected`, `(B, T, 3)`, whenever `"g"` or `"advected"` is saved.
+      **`save` also picks the algorithm of such a system's fast path:** without `"g"`
+      it carries the reduced state `(Π, Γ)` instead of `(Π, g)` — the reduced discrete
       Lie–Poisson equations of the paper's §7, `Γ_{k+1} = F_kᵀΓ_k`, half the state —
-      and gives the same `Π_k`, `Γ_k` to round-off (docs/potentials.md).
-    - `system_axis`: `None` or `0`, as `in_axes` of `jax.vmap` for `system`.
+      which gives the same `Π_k`, `Γ_k` to round-off (docs/potentials.md); with `"g"` it
+      carries `g`.
+    - `system_axis`: `None` or `0`, as `in_axes` of `jax.vmap` for `system`. Left at
+      `None` for a batch of systems built with `jax.vmap` (every array leaf one dimension
+      larger than one system's, with leading size `B`), it is inferred as `0`; a system
+      that is neither one system nor such a batch raises a `ValueError`. (A batch of
+      three principal-moment vectors, `(3, 3)`, is also one valid inertia tensor: pass
+      `system_axis=0` for it.)
     - `fast`: use the structure-of-arrays fast path when there is one (the integrator's
       `batch_kernel`, for a system with `principal_moments`: today the rigid body with
       principal moments of inertia and `DEP` (both charts), `MoserVeselov`,
@@ -224,6 +275,7 @@ def simulate_batch(
             raise ValueError(
                 f"`h` has subnormal values (below {tiny:.3g}); pass normal step sizes."
             )
+    system_axis = infer_system_axis(system, system_axis, batch)
     if system_axis == 0:
         sizes = {
             jnp.shape(x)[0] for x in jax.tree_util.tree_leaves(eqx.filter(system, eqx.is_array))
@@ -239,11 +291,11 @@ def simulate_batch(
         # orthogonal matrix.
         with jax.ensure_compile_time_eval():
             defect = np.asarray(system.group.membership_defect(jnp.asarray(g0, float)))
-        worst = int(np.argmax(defect))
-        if defect[worst] > 1e-6:
+        worst, bound = int(np.argmax(defect)), membership_tolerance(g0.dtype)
+        if defect[worst] > bound:
             raise ValueError(
-                f"`g0[{worst}]` is not in the group: membership defect {defect[worst]:.3g} > 1e-6 "
-                f"({system.group.membership_hint()})."
+                f"`g0[{worst}]` is not in the group: membership defect {defect[worst]:.3g} > "
+                f"{bound:.2g} ({system.group.membership_hint()})."
             )
 
     forcing = as_forcing(forcing)
@@ -256,6 +308,8 @@ def simulate_batch(
                 )
             check_finite("forcing", x)
     dtype = state_dtype(system, g0, m0, h)
+    # `g0` as given: held to the membership tolerance of its own dtype (as eagerly).
+    g0_given = g0
     g0, m0, h = jnp.asarray(g0, dtype), jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
     segment = checkpoint_segment(checkpoint, n_steps, save_every)
     # Forced runs take the generic path (the kernels integrate unforced bodies).
@@ -270,7 +324,7 @@ def simulate_batch(
         # The traced input checks of `simulate`, per body (the generic path runs them
         # inside `simulate`): a bad body starts with `RESULTS.invalid_input`.
         valid = jax.vmap(input_valid, in_axes=(system_axis, 0, 0, None if h.ndim == 0 else 0))(
-            system, g0, m0, h
+            system, g0_given, m0, h
         )
         solution = simulate_kernel(
             kernel,
@@ -285,12 +339,20 @@ def simulate_batch(
             unroll,
             segment,
             valid,
+            system.group if "g" in save and drifts_off_group(dtype) else None,
         )
+        if solution.advected is None and solution.g is not None:
+            solution = eqx.tree_at(
+                lambda s: s.advected,
+                solution,
+                _advected(system, system_axis, solution.g),
+                is_leaf=lambda x: x is None,
+            )
     else:
         solution = _simulate_vmap(
             system,
             integrator,
-            g0,
+            g0_given,
             m0,
             h,
             n_steps,
@@ -319,17 +381,24 @@ def simulate_batch(
     return solution
 
 
-def _keep(solution: Solution, save, advected=None) -> Solution:
+def _advected(system, system_axis, g):
+    """`Solution.advected` of a batch, read off the saved elements `g` `(B, T, n, n)`
+    (`None` where the potential has no advected direction)."""
+    return jax.vmap(advected_of, in_axes=(system_axis, 0))(system, g)
+
+
+def _keep(solution: Solution, save) -> Solution:
     stats = dict(solution.stats)
     if "stats" not in save:
         del stats["newton_iterations"], stats["residual"]
+    keep_advected = "g" in save or "advected" in save
     return Solution(
         ts=solution.ts,
         g=solution.g if "g" in save else None,
         m=solution.m if "m" in save else None,
         result=solution.result,
         stats=stats,
-        advected=advected,
+        advected=solution.advected if keep_advected else None,
     )
 
 
@@ -376,10 +445,5 @@ def _simulate_vmap(
         )
     stats = dict(solution.stats)
     stats["num_steps"] = jnp.broadcast_to(jnp.asarray(n_steps), (g0.shape[0],))
-    advected = None
-    if "advected" in save:
-        # Γ_k = g_kᵀa from the saved elements (NaN after a failure, as `g`).
-        advected = jax.vmap(lambda s, g: s.potential.advected(g), in_axes=(system_axis, 0))(
-            system, solution.g
-        )
-    return _keep(eqx.tree_at(lambda s: s.stats, solution, stats), save, advected)
+    # `simulate` gives Γ_k = g_kᵀa from the saved elements (NaN after a failure, as `g`).
+    return _keep(eqx.tree_at(lambda s: s.stats, solution, stats), save)

@@ -23,8 +23,22 @@ from ._simulate import Solution
 
 @eqx.filter_jit
 def simulate_kernel(
-    kernel, constants, step_bound, g0, m0, h, n_steps, save_every, save, unroll, segment, valid=True
+    kernel,
+    constants,
+    step_bound,
+    g0,
+    m0,
+    h,
+    n_steps,
+    save_every,
+    save,
+    unroll,
+    segment,
+    valid=True,
+    group=None,
 ):
+    """`group`: where given, the carried elements are put back on it (`project`) at each
+    save, as `simulate` does in low precision (`lievi._checks.drifts_off_group`)."""
     batch, dtype = g0.shape[0], m0.dtype
     constants = jax.tree.map(lambda x: jnp.asarray(x, dtype), constants)
     # Structure of arrays: component-major, batch minor; the kernel owns the layout.
@@ -97,6 +111,10 @@ def simulate_kernel(
         (state, (total, most, worst)), _ = scan_in_segments(
             one_step, (state, zero_counters), save_every, inner, unroll=unroll
         )
+        if group is not None:
+            # (k, B) entries → (B, n, n) elements → projected → the kernel's entries.
+            elements = group.project(kernel.elements(jnp.stack(state[0])[None])[:, 0])
+            state = (kernel.carried(elements), *state[1:])
         ok = state[2] == RESULTS.successful
         out = {"iterations": total}
         if "g" in save:

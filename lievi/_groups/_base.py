@@ -70,6 +70,11 @@ class MatrixLieGroup(eqx.Module):
     def inverse(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
         return jnp.linalg.inv(g)
 
+    def project(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
+        """`g` moved back onto the group where round-off has moved it off (a defect `δ`
+        becomes `O(δ²)`; on the group the identity up to round-off). Default: `g`."""
+        return g
+
     def basis(self, dtype=float) -> Float[Array, "d n n"]:
         """The basis matrices `E_a = hat(e_a)`, stacked."""
         return self.hat(jnp.eye(self.algebra_dim, dtype=dtype))

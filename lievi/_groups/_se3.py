@@ -149,11 +149,13 @@ class SE3Group(MatrixLieGroup):
         it is the identity up to round-off, so the map is the same, and the defect stays
         at one rounding instead of accumulating.
         """
-        R = self.rotation(a) @ self.rotation(b)
-        eye = jnp.eye(3, dtype=R.dtype)
-        R = R - R @ (jnp.swapaxes(R, -1, -2) @ R - eye) / 2
+        R = SO3.project(self.rotation(a) @ self.rotation(b))
         p = _matvec(self.rotation(a), self.translation(b)) + self.translation(a)
         return _homogeneous(R, p)
+
+    def project(self, g: Float[Array, "*batch 4 4"]) -> Float[Array, "*batch 4 4"]:
+        """The rotation block by `SO3.project`, the last row reset to `(0, 0, 0, 1)`."""
+        return _homogeneous(SO3.project(self.rotation(g)), self.translation(g))
 
     def bracket(self, x, y):
         """`[(ω₁, v₁), (ω₂, v₂)] = (ω₁ × ω₂, ω₁ × v₂ − ω₂ × v₁)`."""

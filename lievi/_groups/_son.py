@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._checks import membership_tolerance
 from ._base import MatrixLieGroup
 
 
@@ -65,6 +66,12 @@ class AbstractSpecialOrthogonal(MatrixLieGroup):
 
     def inverse(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
         return jnp.swapaxes(g, -1, -2)
+
+    def project(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
+        """One Newton–Schulz step of the polar decomposition, `g ← g(3I − gᵀg)/2`: maps an
+        orthogonality defect `δ` to `O(δ²)`."""
+        eye = jnp.eye(g.shape[-1], dtype=g.dtype)
+        return g - g @ (jnp.swapaxes(g, -1, -2) @ g - eye) / 2
 
     def membership_defect(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch"]:
         """`‖gᵀg − I‖_F + |det g − 1|` (the determinant term catches reflections)."""
@@ -137,9 +144,8 @@ class AbstractSpecialOrthogonal(MatrixLieGroup):
 
     def log_checked(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch d"]:
         """`log(g)`, or NaN where `g` is not a rotation (membership defect
-        `‖gᵀg − I‖_F + |det g − 1|` above 1e-6, or a few hundred ulps in float32)."""
-        bound = max(1e-6, 64 * float(jnp.finfo(g.dtype).eps))
-        inside = self.membership_defect(g) <= bound
+        `‖gᵀg − I‖_F + |det g − 1|` above `membership_tolerance`: 1e-6, 64 ulps in float32)."""
+        inside = self.membership_defect(g) <= membership_tolerance(g.dtype)
         eye = jnp.eye(self.matrix_dim, dtype=g.dtype)
         safe = jnp.where(inside[..., None, None], g, eye)
         return jnp.where(inside[..., None], self.log(safe), jnp.nan)

@@ -19,7 +19,7 @@ from jaxtyping import Array, Float, Int, Scalar
 from .._forcing import AbstractStepForce
 from .._kernels._base import AbstractBatchKernel, kernels_enabled
 from .._kernels._kick import KickKernel
-from .._newton import newton_solve
+from .._newton import newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 
@@ -153,7 +153,11 @@ class AbstractKickIntegrator(AbstractIntegrator):
         m_next = system.kick(g_next, m_next, h / 2)
         iterations, residual, result = info.iterations, info.residual, info.result
         if force is not None:
-            m_next, kick = forced_end_kick(force, t + h, g_next, m_next, h, info.result)
+            # The integrator's stopping test (`newton_tolerance`), relative by default.
+            tolerances = getattr(self, "rtol", None), getattr(self, "atol", None)
+            m_next, kick = forced_end_kick(
+                force, t + h, g_next, m_next, h, info.result, *tolerances
+            )
             iterations, residual = (
                 iterations + kick.iterations,
                 jnp.maximum(residual, kick.residual),
@@ -179,12 +183,24 @@ def _checked_force(force, t, g, m):
     return jnp.asarray(value, m.dtype)
 
 
-def forced_end_kick(force: AbstractStepForce, t, g, m_minus, h, result_before=RESULTS.successful):
+def forced_end_kick(
+    force: AbstractStepForce,
+    t,
+    g,
+    m_minus,
+    h,
+    result_before=RESULTS.successful,
+    rtol: float | None = None,
+    atol: float | None = None,
+):
     """`m` with `m = m⁻ + (h/2) f(t, g, m)`: the end-of-step discrete force `f_k⁺`.
 
     Explicit when the force does not depend on the momentum (a held control); otherwise
     an implicit Euler half step solved by Newton's method from the explicit guess,
-    differentiated implicitly. Returns `(m, StepInfo)`; a solve that does not converge is
+    differentiated implicitly, to the tolerance of every implicit step
+    (`lievi._newton.newton_tolerance` with the integrator's `rtol`, `atol`: relative to
+    the size of the momentum, so the step does not depend on the units). Returns
+    `(m, StepInfo)`; a solve that does not converge within `END_KICK_MAX_STEPS` is
     reported as `RESULTS.newton_not_converged`.
     """
     zero = jnp.zeros((), m_minus.dtype)
@@ -198,16 +214,16 @@ def forced_end_kick(force: AbstractStepForce, t, g, m_minus, h, result_before=RE
         return m - m_minus - h / 2 * _checked_force(force, t, g, m)
 
     guess = m_minus + h / 2 * _checked_force(force, t, g, m_minus)
-    tolerance = END_KICK_ULPS * jnp.finfo(m_minus.dtype).eps * (1 + jnp.max(jnp.abs(m_minus)))
+    # The terms of the equation are of the size of `m⁻` and of the root (≈ the guess).
+    scale = jnp.maximum(jnp.max(jnp.abs(m_minus)), jnp.max(jnp.abs(guess)))
+    tolerance = newton_tolerance(scale, m_minus.dtype, rtol, atol)
     m, info = newton_solve(residual, guess, tolerance, END_KICK_MAX_STEPS)
     ok = info.converged | (result_before != RESULTS.successful)
     result = jnp.where(ok, RESULTS.successful, RESULTS.newton_not_converged)
     return m, StepInfo(result.astype(jnp.int32), info.iterations, info.residual)
 
 
-# The end-of-step kick's Newton solve: stop at 64 ulps of |m| (the residual cannot be
-# computed more accurately), report failure after 20 iterations.
-END_KICK_ULPS = 64
+# The end-of-step kick's Newton solve reports failure after 20 iterations.
 END_KICK_MAX_STEPS = 20
 
 

@@ -20,7 +20,16 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
-from .._checks import check_finite, check_shape, is_concrete
+from .._checks import (
+    Conditions,
+    all_hold,
+    check_finite,
+    check_shape,
+    finite_conditions,
+    is_concrete,
+    membership_tolerance,
+    raise_if_violated,
+)
 from .._groups._base import MatrixLieGroup
 from ._potential import AbstractPotential
 from ._side import Side
@@ -39,6 +48,8 @@ class AbstractLieSystem(eqx.Module):
     potential: eqx.AbstractVar[AbstractPotential | None]
 
     def __check_init__(self):
+        # After the subclass's own checks (shapes, dtypes): the parameter values, eagerly.
+        raise_if_violated(self.parameter_conditions, self)
         if self.potential is None:
             return
         n = self.group.matrix_dim
@@ -90,6 +101,11 @@ class AbstractLieSystem(eqx.Module):
         right-invariant: `M_i = −d/dε V(exp(ε e_i) g)`. By autodiff along the first-order
         curve `g (I + ε ê_i)` (resp. `(I + ε ê_i) g`), which has the same derivative and
         costs no exponential. Zero for a free system.
+
+        NaN where `V(g)` itself is not finite (its value comes with the derivative at no
+        extra cost): a potential past a singularity, e.g. a log barrier `−k log g₃₃` once
+        `g₃₃ < 0`, can have a finite derivative, and the step that reached it must be
+        reported (`RESULTS.nonfinite`), not integrated on.
         """
         d = self.group.algebra_dim
         if self.potential is None:
@@ -99,7 +115,8 @@ class AbstractLieSystem(eqx.Module):
             E = self.group.hat(eta)
             return self.potential(g + self.side.translate(g, E))
 
-        return -jax.grad(along)(jnp.zeros(d, jnp.result_type(g, float)))
+        value, gradient = jax.value_and_grad(along)(jnp.zeros(d, jnp.result_type(g, float)))
+        return jnp.where(jnp.isfinite(value), -gradient, jnp.nan)
 
     def kick(self, g: Float[Array, "n n"], m: Float[Array, " d"], dt: Scalar) -> Float[Array, " d"]:
         """`m + dt·M(g)`: the exact flow of the potential for a time `dt` (`g` is fixed)."""
@@ -115,39 +132,49 @@ class AbstractLieSystem(eqx.Module):
         return None
 
     def check_element(self, name: str, g) -> None:
-        """Raise `ValueError` unless `g` is an `(n, n)` finite element of the group."""
+        """Raise `ValueError` unless `g` is an `(n, n)` finite element of the group (to
+        `membership_tolerance` of its dtype, the bound of `element_valid`)."""
         n = self.group.matrix_dim
         check_shape(name, g, (n, n), f"a {n}×{n} group element")
         check_finite(name, g)
         if is_concrete(g):
             # Evaluated now even when `simulate` is being traced by an outer `jit` with a
             # concrete `g` captured from outside.
+            g = jnp.asarray(g)
+            bound = membership_tolerance(g.dtype)
             with jax.ensure_compile_time_eval():
                 defect = float(self.group.membership_defect(jnp.asarray(g, float)))
-            if defect > 1e-6:
+            if defect > bound:
                 raise ValueError(
-                    f"`{name}` is not in the group: membership defect {defect:.3g} > 1e-6 "
-                    f"({self.group.membership_hint()})."
+                    f"`{name}` is not in the group: membership defect {defect:.3g} > "
+                    f"{bound:.2g} ({self.group.membership_hint()})."
                 )
 
+    def parameter_conditions(self) -> Conditions:
+        """The admissible parameters, as conditions (`lievi._checks.Conditions`): here
+        finite, and the potential's own (`AbstractPotential.parameter_conditions`).
+        Subclasses add theirs. One definition for both forms: the constructor raises on a
+        concrete violation, and `parameters_valid` is their traced conjunction."""
+        fields = {k: v for k, v in vars(self).items() if k != "potential"}
+        conditions = finite_conditions(fields)
+        if self.potential is not None and hasattr(self.potential, "parameter_conditions"):
+            conditions = conditions + self.potential.parameter_conditions()
+        return conditions
+
     def parameters_valid(self):
-        """A boolean array: the parameters are admissible (here: finite). Traceable, so
-        `simulate` checks it under `jit`/`vmap` too and reports `RESULTS.invalid_input`."""
-        valid = jnp.asarray(True)
-        for leaf in jax.tree.leaves(self):
-            if eqx.is_inexact_array(leaf):
-                valid = valid & jnp.all(jnp.isfinite(leaf))
-        return valid
+        """A boolean array: the parameters are admissible (`parameter_conditions`).
+        Traceable, so `simulate` checks it under `jit`/`vmap` too and reports
+        `RESULTS.invalid_input`."""
+        return all_hold(self.parameter_conditions())
 
     def element_valid(self, g):
-        """A boolean array: `g` is a finite group element (membership defect ≤ 1e-6, the
-        bound of `check_element`; a few hundred ulps in float32). Traceable."""
+        """A boolean array: `g` is a finite group element (membership defect within
+        `membership_tolerance`, the bound of `check_element`). Traceable."""
         dtype = jnp.result_type(g, float)
         g = jnp.asarray(g, dtype)
-        bound = max(1e-6, 64 * float(jnp.finfo(dtype).eps))
         finite = jnp.all(jnp.isfinite(g))
         safe = jnp.where(finite, g, jnp.eye(g.shape[-1], dtype=dtype))
-        return finite & (self.group.membership_defect(safe) <= bound)
+        return finite & (self.group.membership_defect(safe) <= membership_tolerance(dtype))
 
     def check_momentum(self, name: str, m) -> None:
         """Raise `ValueError` unless `m` is a finite `(d,)` momentum."""

@@ -11,10 +11,8 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float, Scalar
 
-from .._checks import check_finite, is_concrete
 from .._groups._son import SOn, planes
 from ._base import AbstractLieSystem
 from ._potential import AbstractPotential, as_potential
@@ -44,19 +42,15 @@ class GeneralizedRigidBody(AbstractLieSystem):
         self.Lambda = Lambda
         self.group = SOn(shape[0])
 
-    def __check_init__(self):
-        if is_concrete(self.Lambda):
-            check_finite("Lambda", self.Lambda)
-            pair_sums = np.asarray(self.plane_inertia)
-            if np.any(pair_sums <= 0):
-                raise ValueError(
-                    "`Lambda` must satisfy Λᵢ + Λⱼ > 0 for all i ≠ j (positive-definite "
-                    f"inertia operator); smallest pair sum is {pair_sums.min():.3g}."
-                )
-
-    def parameters_valid(self):
-        """Finite `Λ` with `Λᵢ + Λⱼ > 0` for all `i ≠ j` (traceable)."""
-        return super().parameters_valid() & jnp.all(self.plane_inertia > 0)
+    def parameter_conditions(self):
+        """Finite `Λ` with `Λᵢ + Λⱼ > 0` for all `i ≠ j`."""
+        return super().parameter_conditions() + [
+            (
+                jnp.all(self.plane_inertia > 0),
+                "`Lambda` must satisfy Λᵢ + Λⱼ > 0 for all i ≠ j (positive-definite inertia "
+                "operator).",
+            )
+        ]
 
     @property
     def plane_inertia(self) -> Float[Array, " d"]:

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Scalar
 
-from .._checks import check_finite, is_concrete
+from .._checks import Conditions, finite_conditions, is_concrete, raise_if_violated
 
 
 class AbstractPotential(eqx.Module):
@@ -34,9 +34,20 @@ class AbstractPotential(eqx.Module):
     is its derivative along the group's tangent directions.
     """
 
+    def __check_init__(self):
+        # After the subclass's own checks (shapes, dtypes): the parameter values, eagerly.
+        raise_if_violated(self.parameter_conditions, self)
+
     @abc.abstractmethod
     def __call__(self, g: Float[Array, "n n"]) -> Scalar:
         """The potential energy at `g`."""
+
+    def parameter_conditions(self) -> Conditions:
+        """The admissible parameters, as conditions (`lievi._checks.Conditions`): here
+        every floating-point array finite; subclasses add theirs (a mass `≥ 0`, …). One
+        definition for both forms: the constructor raises on a concrete violation, and a
+        system's `parameters_valid` includes them traced (`RESULTS.invalid_input`)."""
+        return finite_conditions(self)
 
     def rigid_body_torque(self, g):
         """The body torque `M(g)` of a rigid body in closed form, as 3 arrays from the 9
@@ -125,11 +136,13 @@ class UniformGravity(AbstractPotential):
             )
         for name in ("mass", "center_of_mass", "gravity"):
             value = getattr(self, name)
-            check_finite(name, value)
             if is_concrete(value) and not np.isrealobj(np.asarray(value)):
                 raise ValueError(f"`{name}` must be real, got {np.asarray(value).dtype}.")
-        if is_concrete(self.mass) and not float(self.mass) >= 0:
-            raise ValueError(f"`mass` must be ≥ 0, got {float(self.mass)}.")
+
+    def parameter_conditions(self):
+        return super().parameter_conditions() + [
+            (jnp.asarray(self.mass) >= 0, "`mass` must be ≥ 0.")
+        ]
 
     def __call__(self, g):
         rho = jnp.asarray(self.center_of_mass)

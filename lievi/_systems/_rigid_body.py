@@ -11,7 +11,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
-from .._checks import check_spd
+from .._checks import check_real_dtype, spd_conditions
 from .._groups._base import MatrixLieGroup
 from .._groups._so3 import SO3
 from ._base import AbstractLieSystem
@@ -51,17 +51,11 @@ class RigidBody(AbstractLieSystem):
                 f"`inertia` must be principal moments of shape (3,) or a tensor of shape "
                 f"(3, 3), got shape {shape}."
             )
-        check_spd("inertia", self.inertia_tensor)
+        check_real_dtype("inertia", self.inertia)
 
-    def parameters_valid(self):
-        """Finite, symmetric and positive definite inertia (traceable; see `check_spd`)."""
-        tensor = self.inertia_tensor
-        finite = jnp.all(jnp.isfinite(tensor))
-        tensor = jnp.where(finite, tensor, jnp.eye(3, dtype=tensor.dtype))
-        scale = jnp.max(jnp.abs(tensor))
-        symmetric = jnp.all(jnp.abs(tensor - tensor.T) <= 1e-10 * scale)
-        positive = jnp.min(jnp.linalg.eigvalsh((tensor + tensor.T) / 2)) > 0
-        return super().parameters_valid() & finite & symmetric & positive
+    def parameter_conditions(self):
+        """Finite, symmetric and positive definite inertia (`spd_conditions`)."""
+        return super().parameter_conditions() + spd_conditions("inertia", self.inertia_tensor)
 
     @property
     def inertia_tensor(self) -> Float[Array, "3 3"]:

@@ -24,10 +24,9 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float, Scalar
 
-from .._checks import check_finite, check_spd, is_concrete
+from .._checks import check_finite, check_spd, is_concrete, spd_conditions
 from .._groups._base import MatrixLieGroup
 from .._groups._se3 import SE3
 from ._base import AbstractLieSystem
@@ -136,17 +135,10 @@ class RigidBodySE3(AbstractLieSystem):
                 f"`tensor` must be a (6, 6) kinetic tensor in the twist order (ω, v), got "
                 f"shape {shape}."
             )
-        if is_concrete(self.tensor):
-            M = np.asarray(self.tensor, dtype=float)
-            check_finite("tensor", M)
-            if not np.allclose(M, M.T, rtol=1e-10, atol=1e-12 * np.abs(M).max()):
-                raise ValueError("`tensor` must be symmetric; symmetrise it as (M + Mᵀ)/2.")
-            eigenvalues = np.linalg.eigvalsh(M)
-            if np.any(eigenvalues <= 0):
-                raise ValueError(
-                    "`tensor` must be positive definite (a kinetic energy ½ ξᵀMξ > 0 for every "
-                    f"velocity); got eigenvalues {eigenvalues}."
-                )
+
+    def parameter_conditions(self):
+        """A finite, symmetric, positive definite tensor (`spd_conditions`)."""
+        return super().parameter_conditions() + spd_conditions("tensor", self.tensor)
 
     def kinetic_tensor(self) -> Float[Array, "6 6"]:
         return self.tensor

@@ -20,10 +20,8 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
-from .._checks import check_finite, is_concrete
 from ._potential import AbstractPotential
 from ._se3_body import RigidBodySE3
 
@@ -58,10 +56,11 @@ class UniformGravitySE3(AbstractPotential):
             raise ValueError(
                 f"`center_of_mass` must have shape (3,) (body frame), got {jnp.shape(self.center_of_mass)}."
             )
-        for name in ("mass", "gravity", "center_of_mass"):
-            check_finite(name, getattr(self, name))
-        if is_concrete(self.mass) and not float(self.mass) >= 0:
-            raise ValueError(f"`mass` must be ≥ 0, got {float(self.mass)}.")
+
+    def parameter_conditions(self):
+        return super().parameter_conditions() + [
+            (jnp.asarray(self.mass) >= 0, "`mass` must be ≥ 0.")
+        ]
 
     def __call__(self, g):
         height = jnp.dot(g[2, :3], self.center_of_mass) + g[2, 3]  # e₃·(Rρ + p)
@@ -97,12 +96,12 @@ class CentralGravity(AbstractPotential):
                 f"`masses` must have shape (k,) and `points` shape (k, 3), got {k} and "
                 f"{jnp.shape(self.points)}."
             )
-        for name in ("mu", "masses", "points"):
-            check_finite(name, getattr(self, name))
-        if is_concrete(self.mu) and not float(self.mu) > 0:
-            raise ValueError(f"`mu` must be > 0, got {float(self.mu)}.")
-        if is_concrete(self.masses) and not np.all(np.asarray(self.masses) > 0):
-            raise ValueError("`masses` must all be > 0.")
+
+    def parameter_conditions(self):
+        return super().parameter_conditions() + [
+            (jnp.asarray(self.mu) > 0, "`mu` must be > 0."),
+            (jnp.all(jnp.asarray(self.masses) > 0), "`masses` must all be > 0."),
+        ]
 
     def __call__(self, g):
         positions = jnp.asarray(self.points) @ g[:3, :3].T + g[:3, 3]  # p + R ρ_i
