@@ -14,7 +14,7 @@ import pytest
 import lievi
 from helpers import ROUNDOFF, ROUNDOFF_F32, random_rotation
 from lievi._groups._charts import as_chart
-from lievi._kernels import _explicit_adjoints, _explicit_primal, _so3, _soa
+from lievi._kernels import _explicit_adjoints, _explicit_primal, _so3_equations, _soa
 
 CHARTS = ("exp", "cayley")
 # Every integrator with a fast path.
@@ -106,9 +106,9 @@ def test_closed_form_jacobian(chart, scale):
         return dinv(x).T @ body.legendre(x / h) - Pi
 
     equation = (
-        _so3.MoserVeselovEquation()
+        _so3_equations.MoserVeselovEquation()
         if chart == "moser-veselov"
-        else _so3.DEPEquation(as_chart(chart))
+        else _so3_equations.DEPEquation(as_chart(chart))
     )
     r, J = equation.residual(tuple(xi), tuple(Pi), tuple(inertia / h), True)
     scale_r = 1 + np.abs(residual(xi)).max()
@@ -211,8 +211,8 @@ def test_moser_veselov_scalar_solve_at_large_steps():
     h = jnp.asarray(rng.uniform(0.2, 0.6, 64))
     A = tuple(bodies.inertia[:, i] / h for i in range(3))
     Pi = tuple(m0[:, i] for i in range(3))
-    x = _so3._moser_veselov_by_scalar_newton(Pi, A, 4)
-    residual = _soa.max_abs(_so3._residual_moser_veselov(x, Pi, A, False)[0])
+    x = _so3_equations._moser_veselov_by_scalar_newton(Pi, A, 4)
+    residual = _soa.max_abs(_so3_equations._residual_moser_veselov(x, Pi, A, False)[0])
     assert np.sum(~(residual <= 64 * np.finfo(np.float64).eps * (1 + _soa.max_abs(Pi)))) >= 5
 
     kwargs = dict(h=h, n_steps=10, save_every=10, system_axis=0, throw=False)

@@ -26,7 +26,7 @@ from scipy.spatial.transform import Rotation
 
 import lievi
 from helpers import ROUNDOFF, ROUNDOFF_F32
-from lievi._groups._so3 import _small_threshold
+from lievi._groups._series import small_threshold as _small_threshold
 
 SO3 = lievi.SO3
 # See test_son: level 0 halves compile time and keeps floating-point semantics.

@@ -18,7 +18,7 @@ import test_son
 import lievi
 from helpers import ROUNDOFF, ROUNDOFF_F32, random_rotation
 from lievi._groups._base import MatrixLieGroup
-from lievi._groups._so3 import _small_threshold
+from lievi._groups._series import small_threshold as _small_threshold
 
 SE3 = lievi.SE3
 FAST_COMPILE = test_son.FAST_COMPILE

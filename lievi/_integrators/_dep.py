@@ -55,7 +55,8 @@ from jaxtyping import Array, Float, Scalar
 from .._checks import as_int
 from .._groups._charts import AbstractChart, as_chart
 from .._kernels._se3 import SE3NewtonKernel
-from .._kernels._so3 import DEPEquation, NewtonKernel
+from .._kernels._so3 import NewtonKernel
+from .._kernels._so3_equations import DEPEquation
 from .._newton import check_newton_options, newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem

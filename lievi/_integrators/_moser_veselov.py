@@ -46,7 +46,8 @@ import numpy as np
 from jaxtyping import Array, Float, Scalar
 
 from .._checks import as_int, check_shape, is_concrete
-from .._kernels._so3 import MoserVeselovEquation, NewtonKernel
+from .._kernels._so3 import NewtonKernel
+from .._kernels._so3_equations import MoserVeselovEquation
 from .._newton import check_newton_options, newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
