@@ -10,6 +10,7 @@ import abc
 import math
 
 import equinox as eqx
+import jax.numpy as jnp
 
 from .._groups._charts import AbstractChart
 from ._soa import C_SERIES, P_SERIES, S_SERIES, cross, dot, horner, horner_with_derivative, solve3
@@ -144,9 +145,12 @@ def moser_veselov_on_branch(x, Pi, A):
     """`MoserVeselov.on_branch` in closed form: the symmetric part of the Jacobian,
     `B = A − ¼(x·Π)1 − ⅛(xΠᵀ + Πxᵀ)`, is positive definite (Sylvester's criterion)."""
     s = dot(x, Pi)
-    b = [[-(x[i] * Pi[j] + Pi[i] * x[j]) / 8 for j in range(3)] for i in range(3)]
+    # Times sign(h) (the sign of `A = I/h`): a negative step, e.g. an inner stage of
+    # `Composition`, has `J ≈ A` negative definite on its branch.
+    sign = jnp.sign(A[0])
+    b = [[-sign * (x[i] * Pi[j] + Pi[i] * x[j]) / 8 for j in range(3)] for i in range(3)]
     for i in range(3):
-        b[i][i] = b[i][i] + A[i] - s / 4
+        b[i][i] = b[i][i] + sign * (A[i] - s / 4)
     minor2 = b[0][0] * b[1][1] - b[0][1] * b[1][0]
     det = (
         b[0][0] * (b[1][1] * b[2][2] - b[1][2] * b[2][1])
