@@ -4,24 +4,56 @@ Every integrator lievi has for the free rigid body (DEP exp and Cayley charts, a
 present Moser–Veselov, Lie–Poisson splitting and RK4), run through
 `lievi.simulate_batch` (its structure-of-arrays fast path where there is one), against,
 in the same run and on the same rigid-body ODE (Euler's equations plus `ġ = gΩ̂`),
-diffrax `Tsit5` with a constant step, vmapped — and the naive `jax.vmap(simulate)` DEP
+diffrax `Tsit5` with a constant step — and the naive `jax.vmap(simulate)` DEP
 for reference. Random bodies (inertia and momentum per body), `--steps` steps of size
 0.1, only the final state kept. Compile time is reported separately (first call minus
 the best of the timed calls). The device is the one JAX picks; on a GPU the default
 dtype is float32 only.
+
+The diffrax baseline ("diffrax Tsit5", every ratio is taken against it) is the fastest
+formulation of the same solver, the same ODE and the same step that we found:
+
+- the whole batch as ONE diffrax state, a (12, B) array whose rows are Π₁ Π₂ Π₃ g₁₁ … g₃₃,
+  in ONE `diffeqsolve` (with a constant step nothing adapts per body, so this takes
+  exactly the steps of each body's own solve; the final states agree with the per-body
+  solve to ≈ 1e-14);
+- the vector field written out as 12 row expressions (row i of `gΩ̂` is `gᵢ × Ω`; no
+  3×3 matrices built), the inverse inertia passed in;
+- `ConstantStepSize()`, `SaveAt(t1=True)`, `max_steps = steps`, and for this forward-only
+  run `throw=False`, `adjoint=ForwardMode()` (the step loop a plain `while_loop`, not the
+  checkpointed one of the default `RecursiveCheckpointAdjoint`) and
+  `Tsit5(scan_kind="lax")` (the stage loop a plain `lax` loop).
+
+What was tried (`--diffrax-variants` times every one in interleaved rounds, checked
+against the weak formulation's final state; figures in docs/benchmarks.md): the pytree
+`(Π, g)` with `g @ SO3.hat(Ω)` one solve per body under `jax.vmap` (the former baseline,
+kept as the row "diffrax Tsit5, (Π, g) pytree — weak formulation", no ratio is published
+against it); a flat 12-vector per body with `R @ hat(Ω)` or with the 12 scalar
+expressions, vmapped, with diffrax's defaults or the options above; the batch as one
+(B, 12) state (columns) or one (12, B) state (rows) in one solve, each option alone and
+all together; `Dopri5` in place of `Tsit5` (same cost per step: 6 evaluations, FSAL).
+Batching inside one solve on rows is the large gain (no `vmap` of diffrax's step loop,
+which turns every `while_loop` iteration into selects over the whole state; contiguous
+rows); `ForwardMode` and `throw=False` help a little; Dopri5 is within the noise of
+Tsit5, and the baseline stays Tsit5. `--acceptance` also times "diffrax Tsit5, independent
+flat runner" (`_independent_flat_diffrax`, shares no code with the baseline: a flat
+12-vector per body, `R @ hat(Ω)`, vmapped, as a diffrax user would write it) and checks
+that the baseline is within 10 % of it or faster.
 
     python benchmarks/throughput.py [--quick] [--batches 1 100 10000] [--steps 100]
                                     [--dtypes float64 float32] [--out throughput]
                                     [--cpu-devices N]
     python benchmarks/throughput.py --acceptance [--cpu-devices 2]
     python benchmarks/throughput.py --heavy-top [--methods "DEP exp" splitting]
+    python benchmarks/throughput.py --diffrax-variants [--batches 10000] [--rounds 3]
 
 Writes `benchmarks/results/<out>.json` and `<out>.png`.
 
 `--acceptance` is the CPU acceptance configuration of the design targets alone (a few minutes): batch
-1e5, 100 steps, float64, final state only, every lievi method and diffrax Tsit5, checked
-against the targets (DEP exp ≥ 1e7, Moser–Veselov and splitting ≥ 3e7 body-steps/s, every
-method ≥ 10× diffrax, `jax.vmap(simulate)` included), into `throughput_cpu_acceptance.json`,
+1e5, 100 steps, float64, final state only, every lievi method and the three diffrax rows,
+checked against the targets (DEP exp ≥ 1e7, Moser–Veselov and splitting ≥ 3e7
+body-steps/s, every method ≥ 10× the diffrax baseline, `jax.vmap(simulate)` included),
+into `throughput_cpu_acceptance.json`,
 with each method's operation count per body-step (XLA's `cost_analysis`, as written and as
 executed after fusion) and the achieved fraction of the flop limit (`PEAK_FLOPS_PER_CORE`
 times the cores this process may run on: with one XLA device, XLA's CPU runtime still runs
@@ -34,7 +66,9 @@ sharded inputs).
 `--heavy-top` times the heavy top (`lievi.heavy_top`: asymmetric bodies, off-axis centres
 of mass, `γ = 1`; batch 1e5, 100 steps, float64, final state only) through the fast path
 on the reduced state `(Π, Γ)` (`g` not saved: the paper's §7) and on `(Π, g)`, against
-diffrax `Tsit5` on the heavy top's equations `Π̇ = Π × Ω + mγ Γ × ρ`, `Γ̇ = Γ × Ω` and
+diffrax `Tsit5` on the heavy top's equations `Π̇ = Π × Ω + mγ Γ × ρ`, `Γ̇ = Γ × Ω`
+(formulated as the free body's baseline: the batch as one (6, B) state, the field
+written out on rows; the pytree formulation vmapped is timed too, as the weak row) and
 against the free body's fast path (same method), in one run, into
 `throughput_heavy_top.json`; the design bars are ≥ 10× diffrax and within 2× of the
 free body.
