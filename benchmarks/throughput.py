@@ -13,10 +13,10 @@ dtype is float32 only.
 The diffrax baseline ("diffrax Tsit5", every ratio is taken against it) is the fastest
 formulation of the same solver, the same ODE and the same step that we found:
 
-- the whole batch as ONE diffrax state, a (12, B) array whose rows are Π₁ Π₂ Π₃ g₁₁ … g₃₃,
-  in ONE `diffeqsolve` (with a constant step nothing adapts per body, so this takes
-  exactly the steps of each body's own solve; the final states agree with the per-body
-  solve to ≈ 1e-14);
+- the batch as rows: a (12, B) array Π₁ Π₂ Π₃ g₁₁ … g₃₃ is the diffrax state, solved in
+  blocks of 5000 bodies one after another (`lax.map`), each block one `diffeqsolve` (with
+  a constant step nothing adapts per body, so each body takes exactly the steps of its own
+  solve; the final states agree with the per-body solve to ≈ 1e-14);
 - the vector field written out as 12 row expressions (row i of `gΩ̂` is `gᵢ × Ω`; no
   3×3 matrices built), the inverse inertia passed in;
 - `ConstantStepSize()`, `SaveAt(t1=True)`, `max_steps = steps`, and for this forward-only
@@ -24,21 +24,23 @@ formulation of the same solver, the same ODE and the same step that we found:
   checkpointed one of the default `RecursiveCheckpointAdjoint`) and
   `Tsit5(scan_kind="lax")` (the stage loop a plain `lax` loop).
 
-What was tried (`--diffrax-variants` times every one in interleaved rounds, checked
-against the weak formulation's final state; figures in docs/benchmarks.md): the pytree
-`(Π, g)` with `g @ SO3.hat(Ω)` one solve per body under `jax.vmap` (the former baseline,
-kept as the row "diffrax Tsit5, (Π, g) pytree — weak formulation", no ratio is published
-against it); a flat 12-vector per body with `R @ hat(Ω)` or with the 12 scalar
-expressions, vmapped, with diffrax's defaults or the options above; the batch as one
-(B, 12) state (columns) or one (12, B) state (rows) in one solve, each option alone and
-all together; `Dopri5` in place of `Tsit5` (same cost per step: 6 evaluations, FSAL).
-Batching inside one solve on rows is the large gain (no `vmap` of diffrax's step loop,
-which turns every `while_loop` iteration into selects over the whole state; contiguous
-rows); `ForwardMode` and `throw=False` help a little; Dopri5 is within the noise of
-Tsit5, and the baseline stays Tsit5. `--acceptance` also times "diffrax Tsit5, independent
-flat runner" (`_independent_flat_diffrax`, shares no code with the baseline: a flat
-12-vector per body, `R @ hat(Ω)`, vmapped, as a diffrax user would write it) and checks
-that the baseline is within 10 % of it or faster.
+What was tried (`--diffrax-variants` times every formulation in `DIFFRAX_VARIANTS` in
+interleaved rounds, each checked against the weak formulation's final state; the figures,
+with the load they were taken at, are in docs/benchmarks.md): the pytree `(Π, g)` with
+`g @ SO3.hat(Ω)`, one solve per body under `jax.vmap` (the former baseline, kept as the
+row "diffrax Tsit5, (Π, g) pytree — weak formulation"; no ratio is published against
+it); a flat 12-vector per body with `R @ hat(Ω)` or with the 12 scalar expressions,
+vmapped, with diffrax's defaults or the options above; the batch as one (B, 12) state
+(columns) or (12, B) state (rows) in one solve, each option alone and all together; the
+rows in blocks of 1000, 5000 and 20000 bodies; `Dopri5` in place of `Tsit5` (the same
+cost per step: 6 evaluations, FSAL). What paid: the batch inside the solve on rows (no
+`vmap` of diffrax's loops, which turns every loop iteration into selects over the whole
+state), `ForwardMode` with the `lax` stage loop, and cache-sized blocks at batch 1e5;
+`throw=False` and `DirectAdjoint` alone did not; Dopri5 was no faster, and the baseline
+stays Tsit5. `--acceptance` also times "diffrax Tsit5, independent flat runner"
+(`_independent_flat_diffrax`, no code shared with the baseline: a flat 12-vector per
+body, `R @ hat(Ω)`, vmapped, as a diffrax user would write it for speed) and checks that
+the baseline is within 10 % of it or faster.
 
     python benchmarks/throughput.py [--quick] [--batches 1 100 10000] [--steps 100]
                                     [--dtypes float64 float32] [--out throughput]
@@ -67,8 +69,8 @@ sharded inputs).
 of mass, `γ = 1`; batch 1e5, 100 steps, float64, final state only) through the fast path
 on the reduced state `(Π, Γ)` (`g` not saved: the paper's §7) and on `(Π, g)`, against
 diffrax `Tsit5` on the heavy top's equations `Π̇ = Π × Ω + mγ Γ × ρ`, `Γ̇ = Γ × Ω`
-(formulated as the free body's baseline: the batch as one (6, B) state, the field
-written out on rows; the pytree formulation vmapped is timed too, as the weak row) and
+(formulated as the free body's baseline: the batch as (6, B) rows in blocks of 5000, the
+field written out on rows; the pytree formulation vmapped is timed too, as the weak row) and
 against the free body's fast path (same method), in one run, into
 `throughput_heavy_top.json`; the design bars are ≥ 10× diffrax and within 2× of the
 free body.
