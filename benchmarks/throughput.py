@@ -35,9 +35,10 @@ vmapped, with diffrax's defaults or the options above; the batch as one (B, 12) 
 rows in blocks of 1000, 5000 and 20000 bodies; `Dopri5` in place of `Tsit5` (the same
 cost per step: 6 evaluations, FSAL). What paid: the batch inside the solve on rows (no
 `vmap` of diffrax's loops, which turns every loop iteration into selects over the whole
-state), `ForwardMode` with the `lax` stage loop, and cache-sized blocks at batch 1e5;
-`throw=False` and `DirectAdjoint` alone did not; Dopri5 was no faster, and the baseline
-stays Tsit5. `--acceptance` also times "diffrax Tsit5, independent flat runner"
+state) and, at batch 1e5, blocks of a few thousand bodies (2.8× over one solve; 20000
+already too many); each diffrax option alone gave 3–26 % and all three 29 %, within the
+scatter of a loaded machine; Dopri5 ran 1.13× the Tsit5 baseline in one run (within the
+scatter), and the baseline stays Tsit5, the method the ratios name. `--acceptance` also times "diffrax Tsit5, independent flat runner"
 (`_independent_flat_diffrax`, no code shared with the baseline: a flat 12-vector per
 body, `R @ hat(Ω)`, vmapped, as a diffrax user would write it for speed) and checks that
 the baseline is within 10 % of it or faster.
