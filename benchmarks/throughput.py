@@ -26,23 +26,25 @@ formulation of the same solver, the same ODE and the same step that we found:
   `Tsit5(scan_kind="lax")` (the stage loop a plain `lax` loop).
 
 What was tried (`--diffrax-variants` times every formulation in `DIFFRAX_VARIANTS` in
-interleaved rounds, each checked against the weak formulation's final state; the figures,
-with the load they were taken at, are in docs/benchmarks.md): the pytree `(Π, g)` with
-`g @ SO3.hat(Ω)`, one solve per body under `jax.vmap` (the former baseline, kept as the
-row "diffrax Tsit5, (Π, g) pytree — weak formulation"; no ratio is published against
-it); a flat 12-vector per body with `R @ hat(Ω)` or with the 12 scalar expressions,
-vmapped, with diffrax's defaults or the options above; the batch as one (B, 12) state
-(columns) or (12, B) state (rows) in one solve, each option alone and all together; the
-rows in blocks of 1000, 5000 and 20000 bodies; `Dopri5` in place of `Tsit5` (the same
-cost per step: 6 evaluations, FSAL). What paid: the batch inside the solve on rows (no
-`vmap` of diffrax's loops, which turns every loop iteration into selects over the whole
-state) and, at batch 1e5, blocks of a few thousand bodies (2.8× over one solve; 20000
-already too many); each diffrax option alone gave 3–26 % and all three 29 %, within the
-scatter of a loaded machine; Dopri5 ran 1.13× the Tsit5 baseline in one run (within the
-scatter), and the baseline stays Tsit5, the method the ratios name. `--acceptance` also times "diffrax Tsit5, independent flat runner"
-(`_independent_flat_diffrax`, no code shared with the baseline: a flat 12-vector per
-body, `R @ hat(Ω)`, vmapped, as a diffrax user would write it for speed) and checks that
-the baseline is within 10 % of it or faster.
+interleaved rounds, each checked against the weak formulation's final state; the
+figures, with the load they were taken at, are in docs/benchmarks.md): the pytree `(Π,
+g)` with `g @ SO3.hat(Ω)`, one solve per body under `jax.vmap` (the former baseline,
+kept as the row "diffrax Tsit5, (Π, g) pytree — weak formulation"; no ratio is published
+against it); a flat 12-vector per body with `R @ hat(Ω)` or with the 12 scalar
+expressions, vmapped, with diffrax's defaults or the options above; the batch as one (B,
+12) state (columns) or (12, B) state (rows) in one solve, each option alone and all
+together; the rows in blocks of 1000, 5000 and 20000 bodies; `Dopri5` in place of
+`Tsit5` (the same cost per step: 6 evaluations, FSAL). What paid: the batch inside the
+solve on rows (no `vmap` of diffrax's loops, which turns every loop iteration into
+selects over the whole state) and, at batch 1e5, blocks of a few thousand bodies (2.8×
+over one solve; 20000 already too many; at 1e4 one solve was faster); `throw=False`,
+`ForwardMode` and the `lax` stage loop together +29 % (1e5) and +54 % (1e4) on one
+solve, each alone within the scatter of a loaded machine, `DirectAdjoint` slower; Dopri5
+ran 1.13× the Tsit5 baseline in one run (within the scatter), and the baseline stays
+Tsit5, the method the ratios name. `--acceptance` also times "diffrax Tsit5, independent
+flat runner" (`_independent_flat_diffrax`, no code shared with the baseline: a flat
+12-vector per body, `R @ hat(Ω)`, vmapped, as a diffrax user would write it for speed)
+and checks that the baseline is within 10 % of it or faster.
 
     python benchmarks/throughput.py [--quick] [--batches 1 100 10000] [--steps 100]
                                     [--dtypes float64 float32] [--out throughput]
