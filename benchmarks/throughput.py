@@ -4,24 +4,62 @@ Every integrator lievi has for the free rigid body (DEP exp and Cayley charts, a
 present Moser–Veselov, Lie–Poisson splitting and RK4), run through
 `lievi.simulate_batch` (its structure-of-arrays fast path where there is one), against,
 in the same run and on the same rigid-body ODE (Euler's equations plus `ġ = gΩ̂`),
-diffrax `Tsit5` with a constant step, vmapped — and the naive `jax.vmap(simulate)` DEP
+diffrax `Tsit5` with a constant step — and the naive `jax.vmap(simulate)` DEP
 for reference. Random bodies (inertia and momentum per body), `--steps` steps of size
 0.1, only the final state kept. Compile time is reported separately (first call minus
 the best of the timed calls). The device is the one JAX picks; on a GPU the default
 dtype is float32 only.
+
+The diffrax baseline ("diffrax Tsit5", every ratio is taken against it) is the fastest
+formulation of the same solver, the same ODE and the same step that we found:
+
+- the batch as rows: a (12, B) array Π₁ Π₂ Π₃ g₁₁ … g₃₃ is the diffrax state, solved in
+  blocks of 5000 bodies one after another (`lax.map`) above 1e4 bodies, in one solve up to
+  1e4, each block one `diffeqsolve` (with
+  a constant step nothing adapts per body, so each body takes exactly the steps of its own
+  solve; the final states agree with the per-body solve to ≈ 1e-14);
+- the vector field written out as 12 row expressions (row i of `gΩ̂` is `gᵢ × Ω`; no
+  3×3 matrices built), the inverse inertia passed in;
+- `ConstantStepSize()`, `SaveAt(t1=True)`, `max_steps = steps`, and for this forward-only
+  run `throw=False`, `adjoint=ForwardMode()` (the step loop a plain `while_loop`, not the
+  checkpointed one of the default `RecursiveCheckpointAdjoint`) and
+  `Tsit5(scan_kind="lax")` (the stage loop a plain `lax` loop).
+
+What was tried (`--diffrax-variants` times every formulation in `DIFFRAX_VARIANTS` in
+interleaved rounds, each checked against the weak formulation's final state; the
+figures, with the load they were taken at, are in docs/benchmarks.md): the pytree `(Π,
+g)` with `g @ SO3.hat(Ω)`, one solve per body under `jax.vmap` (the former baseline,
+kept as the row "diffrax Tsit5, (Π, g) pytree — weak formulation"; no ratio is published
+against it); a flat 12-vector per body with `R @ hat(Ω)` or with the 12 scalar
+expressions, vmapped, with diffrax's defaults or the options above; the batch as one (B,
+12) state (columns) or (12, B) state (rows) in one solve, each option alone and all
+together; the rows in blocks of 1000, 5000 and 20000 bodies; `Dopri5` in place of
+`Tsit5` (the same cost per step: 6 evaluations, FSAL). What paid: the batch inside the
+solve on rows (no `vmap` of diffrax's loops, which turns every loop iteration into
+selects over the whole state) and, at batch 1e5, blocks of a few thousand bodies (2.8×
+over one solve; 20000 already too many; at 1e4 one solve was faster); `throw=False`,
+`ForwardMode` and the `lax` stage loop together +29 % (1e5) and +54 % (1e4) on one
+solve, each alone within the scatter of a loaded machine, `DirectAdjoint` slower; Dopri5
+ran 1.13× the Tsit5 baseline in one run (within the scatter), and the baseline stays
+Tsit5, the method the ratios name. `--acceptance` also times "diffrax Tsit5, independent
+flat runner" (`_independent_flat_diffrax`, no code shared with the baseline: a flat
+12-vector per body, `R @ hat(Ω)`, vmapped, as a diffrax user would write it for speed)
+and checks that the baseline is within 10 % of it or faster.
 
     python benchmarks/throughput.py [--quick] [--batches 1 100 10000] [--steps 100]
                                     [--dtypes float64 float32] [--out throughput]
                                     [--cpu-devices N]
     python benchmarks/throughput.py --acceptance [--cpu-devices 2]
     python benchmarks/throughput.py --heavy-top [--methods "DEP exp" splitting]
+    python benchmarks/throughput.py --diffrax-variants [--batches 10000] [--rounds 3]
 
 Writes `benchmarks/results/<out>.json` and `<out>.png`.
 
 `--acceptance` is the CPU acceptance configuration of the design targets alone (a few minutes): batch
-1e5, 100 steps, float64, final state only, every lievi method and diffrax Tsit5, checked
-against the targets (DEP exp ≥ 1e7, Moser–Veselov and splitting ≥ 3e7 body-steps/s, every
-method ≥ 10× diffrax, `jax.vmap(simulate)` included), into `throughput_cpu_acceptance.json`,
+1e5, 100 steps, float64, final state only, every lievi method and the three diffrax rows,
+checked against the targets (DEP exp ≥ 1e7, Moser–Veselov and splitting ≥ 3e7
+body-steps/s, every method ≥ 10× the diffrax baseline, `jax.vmap(simulate)` included),
+into `throughput_cpu_acceptance.json`,
 with each method's operation count per body-step (XLA's `cost_analysis`, as written and as
 executed after fusion) and the achieved fraction of the flop limit (`PEAK_FLOPS_PER_CORE`
 times the cores this process may run on: with one XLA device, XLA's CPU runtime still runs
@@ -34,7 +72,9 @@ sharded inputs).
 `--heavy-top` times the heavy top (`lievi.heavy_top`: asymmetric bodies, off-axis centres
 of mass, `γ = 1`; batch 1e5, 100 steps, float64, final state only) through the fast path
 on the reduced state `(Π, Γ)` (`g` not saved: the paper's §7) and on `(Π, g)`, against
-diffrax `Tsit5` on the heavy top's equations `Π̇ = Π × Ω + mγ Γ × ρ`, `Γ̇ = Γ × Ω` and
+diffrax `Tsit5` on the heavy top's equations `Π̇ = Π × Ω + mγ Γ × ρ`, `Γ̇ = Γ × Ω`
+(formulated as the free body's baseline: the batch as (6, B) rows in blocks of 5000, the
+field written out on rows; the pytree formulation vmapped is timed too, as the weak row) and
 against the free body's fast path (same method), in one run, into
 `throughput_heavy_top.json`; the design bars are ≥ 10× diffrax and within 2× of the
 free body.
@@ -72,6 +112,9 @@ import numpy as np  # noqa: E402
 import lievi  # noqa: E402
 
 H = 0.1
+# Row labels of the two extra diffrax rows (no ratio is published against either).
+WEAK = "diffrax Tsit5, (Π, g) pytree — weak formulation"
+INDEPENDENT = "diffrax Tsit5, independent flat runner"
 
 
 @functools.lru_cache(maxsize=4)
@@ -107,30 +150,253 @@ def lievi_runner(integrator, steps: int, fast: bool = True, **options):
     return jax.jit(run)
 
 
-def diffrax_runner(steps: int):
+# --- diffrax baselines -------------------------------------------------------------------
+#
+# The baseline every published ratio is taken against ("diffrax Tsit5") is the fastest
+# formulation of the same solver on the same ODE and step that we found (see the module
+# docstring and `--diffrax-variants`): the whole batch as ONE diffrax state, a (12, B)
+# array of rows Π₁ Π₂ Π₃ g₁₁ … g₃₃, in ONE `diffeqsolve`; the vector field written out as
+# 12 scalar-row expressions (row i of g Ω̂ is gᵢ × Ω, no matrices built); the inverse
+# inertia passed in; `ConstantStepSize`, `SaveAt(t1=True)`, `max_steps = steps`,
+# `throw=False`, `adjoint=ForwardMode()` (a plain `while_loop`: nothing is saved for a
+# backward pass) and the Runge–Kutta stages as a plain `lax` loop (`scan_kind="lax"`). With a
+# constant step no error estimate steers anything, so one solve over the batch takes
+# exactly the steps each body's own solve takes (checked against the per-body solve).
+
+
+def _rigid_body_rows(y, inv_inertia):
+    """Euler's equations and `ġ = gΩ̂` on rows: `y = (Π₁, Π₂, Π₃, g₁₁, g₁₂, …, g₃₃)`,
+    `inv_inertia = (1/I₁, 1/I₂, 1/I₃)`, each entry an array of any shape (one per body).
+    Row i of `gΩ̂` is `gᵢ × Ω`."""
+    p1, p2, p3, a, b, c, d, e, f, g, h, k = y
+    w1, w2, w3 = p1 * inv_inertia[0], p2 * inv_inertia[1], p3 * inv_inertia[2]
+    return (
+        p2 * w3 - p3 * w2,
+        p3 * w1 - p1 * w3,
+        p1 * w2 - p2 * w1,
+        b * w3 - c * w2,
+        c * w1 - a * w3,
+        a * w2 - b * w1,
+        e * w3 - f * w2,
+        f * w1 - d * w3,
+        d * w2 - e * w1,
+        h * w3 - k * w2,
+        k * w1 - g * w3,
+        g * w2 - h * w1,
+    )
+
+
+def _pytree_field(t, y, inertia):
+    """The weak formulation's field: the pytree `(Π, g)`, `g @ SO3.hat(Ω)`."""
+    Pi, g = y
+    omega = Pi / inertia
+    return jnp.cross(Pi, omega), g @ lievi.SO3.hat(omega)
+
+
+def _flat_matrix_field(t, y, inertia):
+    """One body, one flat 12-vector `(Π, vec g)`, `R @ hat(Ω)` on its reshaped last nine."""
+    Pi, R = y[:3], y[3:].reshape(3, 3)
+    omega = Pi / inertia
+    return jnp.concatenate([jnp.cross(Pi, omega), (R @ lievi.SO3.hat(omega)).reshape(9)])
+
+
+def _flat_scalar_field(t, y, inv_inertia):
+    """One body, one flat 12-vector, 12 scalar expressions."""
+    return jnp.stack(_rigid_body_rows(y, inv_inertia))
+
+
+def _rows_field(t, y, inv_inertia):
+    """The whole batch: `y` (12, B), `inv_inertia` (3, B)."""
+    return jnp.stack(_rigid_body_rows(y, inv_inertia))
+
+
+def _columns_field(t, y, inv_inertia):
+    """The whole batch: `y` (B, 12), `inv_inertia` (B, 3)."""
+    return jnp.stack(_rigid_body_rows(y.T, inv_inertia.T), axis=-1)
+
+
+# The diffrax options of the strong baseline (forward only: nothing is differentiated), and
+# the bodies per solve: the batch is cut into blocks of `chunk` bodies, solved one after
+# another (`lax.map`), so that a block's stage arrays stay in cache.
+STRONG_DIFFRAX = {"scan_kind": "lax", "adjoint": "forward", "throw": False, "chunk": 5000}
+
+
+def _in_chunks(solve_rows, y0, args, chunk: int | None):
+    """`solve_rows(y0, args)` on (n, B) rows, in blocks of `chunk` bodies one after another
+    (`lax.map`; the last block padded with copies of the last body) when `B > 2 chunk`, in
+    one solve otherwise (at batch 1e4 one solve was 1.3× two blocks of 5000, at 1e5 blocks
+    of 5000 2.8× one solve: `--diffrax-variants`). Returns the final rows (n, B) and the
+    worst result code."""
+    batch = y0.shape[1]
+    if chunk is None or batch <= 2 * chunk:
+        return solve_rows(y0, args)
+    blocks = -(-batch // chunk)
+    pad = blocks * chunk - batch
+
+    def split(x):
+        x = jnp.pad(x, ((0, 0), (0, pad)), mode="edge")
+        return x.reshape(x.shape[0], blocks, chunk).transpose(1, 0, 2)
+
+    ys, results = jax.lax.map(lambda a: solve_rows(*a), (split(y0), split(args)))
+    return ys.transpose(1, 0, 2).reshape(y0.shape[0], -1)[:, :batch], jnp.max(results)
+
+
+def diffrax_rigid_body(
+    steps: int,
+    layout: str = "rows",
+    solver: str = "Tsit5",
+    scan_kind: str | None = STRONG_DIFFRAX["scan_kind"],
+    adjoint: str | None = STRONG_DIFFRAX["adjoint"],
+    throw: bool = STRONG_DIFFRAX["throw"],
+    chunk: int | None = STRONG_DIFFRAX["chunk"],
+):
+    """diffrax on the free rigid body, final `(g, Π, result)` of a batch, jitted.
+
+    `layout`: `"rows"` — the batch as one (12, B) state, one solve (the strong baseline);
+    `"columns"` — one (B, 12) state, one solve; `"flat-scalar"`, `"flat-matrix"`, `"pytree"`
+    — one solve per body (a 12-vector with scalar expressions, a 12-vector with
+    `R @ hat(Ω)`, the pytree `(Π, g)` with `g @ SO3.hat(Ω)`), `jax.vmap`ped over the batch.
+    `solver`: `"Tsit5"` or `"Dopri5"`; `scan_kind`: the Runge–Kutta stage loop
+    (diffrax's default `None` is a checkpointed loop); `adjoint`: `None` (diffrax's
+    default, `RecursiveCheckpointAdjoint`), `"direct"` or `"forward"`; `chunk`: with
+    `"rows"`, bodies per solve (`None`: the whole batch in one solve)."""
     import diffrax
 
-    def field(t, y, inertia):
-        Pi, g = y
-        omega = Pi / inertia
-        return jnp.cross(Pi, omega), g @ lievi.SO3.hat(omega)
+    method = getattr(diffrax, solver)(scan_kind=scan_kind)
+    options = {
+        "stepsize_controller": diffrax.ConstantStepSize(),
+        "saveat": diffrax.SaveAt(t1=True),
+        "max_steps": steps,
+        "throw": throw,
+    }
+    if adjoint is not None:
+        options["adjoint"] = {"direct": diffrax.DirectAdjoint, "forward": diffrax.ForwardMode}[
+            adjoint
+        ]()
+
+    def solve(field, y0, args):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(field),
+            method,
+            t0=0.0,
+            t1=steps * H,
+            dt0=H,
+            y0=y0,
+            args=args,
+            **options,
+        )
+        return sol.ys, sol.result._value
+
+    if layout == "rows":
+
+        def solve_rows(y0, inv_inertia):
+            ys, result = solve(_rows_field, y0, inv_inertia)
+            return ys[-1], result
+
+        def run(inertia, g0, m0):
+            y0 = jnp.concatenate([m0.T, g0.reshape(-1, 9).T])
+            y, result = _in_chunks(solve_rows, y0, 1 / inertia.T, chunk)
+            return y[3:].T.reshape(-1, 3, 3), y[:3].T, result
+
+        return jax.jit(run)
+    if layout == "columns":
+
+        def run(inertia, g0, m0):
+            y0 = jnp.concatenate([m0, g0.reshape(-1, 9)], axis=1)
+            ys, result = solve(_columns_field, y0, 1 / inertia)
+            return ys[-1, :, 3:].reshape(-1, 3, 3), ys[-1, :, :3], result
+
+        return jax.jit(run)
+    if layout == "pytree":
+
+        def one(inertia, g0, m0):
+            ys, result = solve(_pytree_field, (m0, g0), inertia)
+            return ys[1][-1], ys[0][-1], result
+
+        return jax.jit(jax.vmap(one))
+    field, scale = {
+        "flat-scalar": (_flat_scalar_field, lambda i: 1 / i),
+        "flat-matrix": (_flat_matrix_field, lambda i: i),
+    }[layout]
+
+    def one(inertia, g0, m0):
+        ys, result = solve(field, jnp.concatenate([m0, g0.reshape(9)]), scale(inertia))
+        return ys[-1, 3:].reshape(3, 3), ys[-1, :3], result
+
+    return jax.jit(jax.vmap(one))
+
+
+def diffrax_runner(steps: int):
+    """The strong baseline: diffrax Tsit5, the batch as one (12, B) state in one solve."""
+    return diffrax_rigid_body(steps)
+
+
+def diffrax_weak_runner(steps: int):
+    """The weak formulation, kept for comparison only (no ratio is taken against it): one
+    solve per body on the pytree `(Π, g)` with `g @ SO3.hat(Ω)`, vmapped, diffrax's
+    default options (the baseline of this script before the strong one)."""
+    return diffrax_rigid_body(steps, *DIFFRAX_VARIANTS[DIFFRAX_WEAK_LABEL])
+
+
+def _independent_flat_diffrax(steps: int):
+    """A second diffrax runner that shares no code with `diffrax_rigid_body`, written as a
+    diffrax user would for speed: one flat array of 12 numbers per body (`R` in the first
+    nine, `Π` in the last three), `R @ hat(Ω)` on the reshaped first nine,
+    `SaveAt(t1=True)`, `ConstantStepSize`, `max_steps = steps`, vmapped over the bodies.
+    The strong baseline must be within 10 % of it or faster (`--acceptance` checks)."""
+    import diffrax
+
+    def vector_field(t, y, inertia):
+        R, Pi = y[:9].reshape(3, 3), y[9:]
+        w = Pi / inertia
+        w_hat = jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+        return jnp.concatenate([(R @ w_hat).ravel(), jnp.cross(Pi, w)])
 
     def one(inertia, g0, m0):
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(field),
+            diffrax.ODETerm(vector_field),
             diffrax.Tsit5(),
             t0=0.0,
             t1=steps * H,
             dt0=H,
-            y0=(m0, g0),
+            y0=jnp.concatenate([g0.ravel(), m0]),
             args=inertia,
             stepsize_controller=diffrax.ConstantStepSize(),
             saveat=diffrax.SaveAt(t1=True),
             max_steps=steps,
         )
-        return sol.ys[1][-1], sol.ys[0][-1], sol.result._value
+        y = sol.ys[0]
+        return y[:9].reshape(3, 3), y[9:], sol.result._value
 
     return jax.jit(jax.vmap(one))
+
+
+DIFFRAX_WEAK_LABEL = "pytree (Π, g), vmap, defaults (weak)"
+DIFFRAX_STRONG_LABEL = "rows (12, B), blocks of 5000, lax+forward+no throw (strong)"
+_ALL = ("lax", "forward", False)  # scan_kind, adjoint, throw of the strong baseline
+_DEFAULTS = (None, None, True)
+# `--diffrax-variants`: every formulation tried for the baseline,
+# `(layout, solver, scan_kind, adjoint, throw, chunk)` (see `diffrax_rigid_body`).
+DIFFRAX_VARIANTS = {
+    DIFFRAX_WEAK_LABEL: ("pytree", "Tsit5", *_DEFAULTS, None),
+    "flat 12, R @ hat, vmap, defaults": ("flat-matrix", "Tsit5", *_DEFAULTS, None),
+    "flat 12, scalar field, vmap, defaults": ("flat-scalar", "Tsit5", *_DEFAULTS, None),
+    "flat 12, scalar field, vmap, lax+forward+no throw": ("flat-scalar", "Tsit5", *_ALL, None),
+    "columns (B, 12), one solve, defaults": ("columns", "Tsit5", *_DEFAULTS, None),
+    "columns (B, 12), one solve, lax+forward+no throw": ("columns", "Tsit5", *_ALL, None),
+    "rows (12, B), one solve, defaults": ("rows", "Tsit5", *_DEFAULTS, None),
+    "rows (12, B), one solve, throw=False": ("rows", "Tsit5", None, None, False, None),
+    "rows (12, B), one solve, DirectAdjoint": ("rows", "Tsit5", None, "direct", True, None),
+    "rows (12, B), one solve, ForwardMode": ("rows", "Tsit5", None, "forward", True, None),
+    "rows (12, B), one solve, scan_kind=lax": ("rows", "Tsit5", "lax", None, True, None),
+    "rows (12, B), one solve, lax+forward+no throw": ("rows", "Tsit5", *_ALL, None),
+    "rows (12, B), blocks of 1000, lax+forward+no throw": ("rows", "Tsit5", *_ALL, 1000),
+    DIFFRAX_STRONG_LABEL: ("rows", "Tsit5", *_ALL, 5000),
+    "rows (12, B), blocks of 20000, lax+forward+no throw": ("rows", "Tsit5", *_ALL, 20000),
+    "rows (12, B), blocks of 5000, defaults": ("rows", "Tsit5", *_DEFAULTS, 5000),
+    "rows (12, B), one solve, Dopri5, defaults": ("rows", "Dopri5", *_DEFAULTS, None),
+    "rows (12, B), blocks of 5000, Dopri5, lax+forward+no throw": ("rows", "Dopri5", *_ALL, 5000),
+}
 
 
 def methods(steps: int):
@@ -152,14 +418,21 @@ def methods(steps: int):
         if hasattr(lievi, cls):
             rows[name] = lievi_runner(getattr(lievi, cls)(), steps)
     rows["diffrax Tsit5"] = diffrax_runner(steps)
+    rows[WEAK] = diffrax_weak_runner(steps)
+    rows[INDEPENDENT] = _independent_flat_diffrax(steps)
     rows["DEP exp, vmap(simulate)"] = lievi_runner(lievi.DEP(chart="exp"), steps, fast=False)
     return rows
 
 
 def check_against_generic(name, fn, dtype, steps: int):
-    """Max |difference| of the final state from the `vmap(simulate)` path (64 bodies)."""
-    if "vmap" in name or "diffrax" in name:
+    """Max |difference| of the final state from the `vmap(simulate)` path (64 bodies); for
+    a diffrax row, from the weak formulation's (the same solver on the same ODE)."""
+    if "vmap" in name or name == WEAK:
         return None
+    inputs = rigid_body_inputs(64, dtype, seed=1)
+    if "diffrax" in name:
+        a, b = fn(*inputs), diffrax_weak_runner(steps)(*inputs)
+        return float(max(jnp.max(jnp.abs(a[0] - b[0])), jnp.max(jnp.abs(a[1] - b[1]))))
     integrator = {"DEP cayley": lievi.DEP(chart="cayley")}.get(name, lievi.DEP(chart="exp"))
     for label, cls in (
         ("Moser-Veselov", "MoserVeselov"),
@@ -168,7 +441,6 @@ def check_against_generic(name, fn, dtype, steps: int):
     ):
         if name == label:
             integrator = getattr(lievi, cls)()
-    inputs = rigid_body_inputs(64, dtype, seed=1)
     fast = fn(*inputs)
     generic = lievi_runner(integrator, steps, fast=False)(*inputs)
     return float(
@@ -185,6 +457,8 @@ ACCEPTANCE_METHODS = (
     "splitting",
     "RK4",
     "diffrax Tsit5",
+    WEAK,
+    INDEPENDENT,
     "DEP exp, vmap(simulate)",
 )
 # The flop limit one core can reach in float64: 2.5 GHz × 16 flops per cycle (two 4-wide
@@ -211,13 +485,41 @@ def flops_per_body_step(fn, dtype, batch: int = 1000):
     return count(lowered.cost_analysis()), count(lowered.compile().cost_analysis())
 
 
+def baseline_summary(rates):
+    """The diffrax rows: the strong baseline, the weak formulation and the independent
+    flat runner, and the check that the strong one is within 10 % of the independent one
+    or faster. Returns the record for the JSON."""
+    strong, weak, independent = (rates.get(k) for k in ("diffrax Tsit5", WEAK, INDEPENDENT))
+    print("baselines (diffrax, same run):")
+    print(f"{'diffrax Tsit5 (strong: the baseline)':<48}{strong:>12.3g}")
+    line = {"diffrax_tsit5_strong": strong}
+    if weak:
+        print(f"{WEAK:<48}{weak:>12.3g}  (strong / weak: {strong / weak:.1f}×)")
+        line.update({"diffrax_tsit5_weak": weak, "strong_over_weak": strong / weak})
+    if independent:
+        ok = strong >= 0.9 * independent
+        print(
+            f"{INDEPENDENT:<48}{independent:>12.3g}  (strong / independent: "
+            f"{strong / independent:.2f}×: {'ok, ≥ 0.9' if ok else 'FAILED, below 0.9'})"
+        )
+        line.update(
+            {
+                "diffrax_tsit5_independent_flat": independent,
+                "strong_over_independent": strong / independent,
+                "strong_within_10_percent_of_independent": ok,
+            }
+        )
+    return line
+
+
 def acceptance_summary(records):
-    """Each method against its target and against diffrax Tsit5 (≥ 10×), in this run."""
+    """Each method against its target and against the strong diffrax Tsit5 (≥ 10×), in
+    this run; the diffrax rows apart (no ratio is taken against the weak formulation)."""
     rates = {r["method"]: r["body_steps_per_s"] for r in records}
     base = rates.get("diffrax Tsit5")
     lines = []
     for name, rate in rates.items():
-        if name == "diffrax Tsit5":
+        if "diffrax" in name:
             continue
         ratio = rate / base if base else float("nan")
         target = TARGETS.get(name)
@@ -251,8 +553,11 @@ def acceptance_summary(records):
         )
         print(
             f"{name:<26}{rate:>12.3g}  target {target or '-':>8}{verdict:<14}"
-            f"{ratio:>8.1f}× diffrax Tsit5{'' if ratio >= 10 else ' (below 10×)'}{flops}"
+            f"{ratio:>8.1f}× diffrax Tsit5 (strong){'' if ratio >= 10 else ' (below 10×)'}{flops}"
         )
+    if base:
+        print()
+        lines.append(baseline_summary(rates))
     return lines
 
 
@@ -318,7 +623,57 @@ def heavy_top_field(t, y, args):
     return jnp.cross(Pi, omega) + GRAVITY * jnp.cross(Gamma, m_rho), jnp.cross(Gamma, omega)
 
 
+def _heavy_top_rows(y, args):
+    """`heavy_top_field` on rows, written out: `y = (Π₁, Π₂, Π₃, Γ₁, Γ₂, Γ₃)`, `args =
+    (1/I₁, 1/I₂, 1/I₃, γmρ₁, γmρ₂, γmρ₃)`, each an array with one entry per body."""
+    p1, p2, p3, c1, c2, c3 = y
+    j1, j2, j3, r1, r2, r3 = args
+    w1, w2, w3 = p1 * j1, p2 * j2, p3 * j3
+    return (
+        p2 * w3 - p3 * w2 + c2 * r3 - c3 * r2,
+        p3 * w1 - p1 * w3 + c3 * r1 - c1 * r3,
+        p1 * w2 - p2 * w1 + c1 * r2 - c2 * r1,
+        c2 * w3 - c3 * w2,
+        c3 * w1 - c1 * w3,
+        c1 * w2 - c2 * w1,
+    )
+
+
 def diffrax_heavy_top_runner(steps: int):
+    """The strong baseline on the heavy top, as `diffrax_runner` on the free body: the
+    batch as (6, B) rows `(Π, Γ)` solved in blocks of `STRONG_DIFFRAX["chunk"]` bodies, the
+    field written out on rows, `throw=False`, `ForwardMode`, `scan_kind="lax"`."""
+    import diffrax
+
+    def solve_rows(y0, args):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(lambda t, y, args: jnp.stack(_heavy_top_rows(y, args))),
+            diffrax.Tsit5(scan_kind="lax"),
+            t0=0.0,
+            t1=steps * H,
+            dt0=H,
+            y0=y0,
+            args=args,
+            stepsize_controller=diffrax.ConstantStepSize(),
+            saveat=diffrax.SaveAt(t1=True),
+            max_steps=steps,
+            throw=False,
+            adjoint=diffrax.ForwardMode(),
+        )
+        return sol.ys[-1], sol.result._value
+
+    def run(inertia, mass, com, g0, m0):
+        y0 = jnp.concatenate([m0.T, g0[:, 2].T])  # Γ = gᵀe₃, the last row of g
+        args = jnp.concatenate([1 / inertia.T, GRAVITY * (mass[:, None] * com).T])
+        y, result = _in_chunks(solve_rows, y0, args, STRONG_DIFFRAX["chunk"])
+        return y[3:].T, y[:3].T, result
+
+    return jax.jit(run)
+
+
+def diffrax_heavy_top_weak_runner(steps: int):
+    """The weak formulation on the heavy top, for comparison only: one solve per body on
+    the pytree `(Π, Γ)`, vmapped, diffrax's default options."""
     import diffrax
 
     def one(inertia, mass, com, g0, m0):
@@ -339,6 +694,10 @@ def diffrax_heavy_top_runner(steps: int):
     return jax.jit(jax.vmap(one))
 
 
+HEAVY_TOP_STRONG = "heavy top: diffrax Tsit5 (Π, Γ)"
+HEAVY_TOP_WEAK = "heavy top: diffrax Tsit5 (Π, Γ) pytree — weak formulation"
+
+
 def heavy_top_rows(steps: int, names):
     """`(label, kind, runner)`: the free body's fast path, the heavy top's fast path on
     `(Π, Γ)` and on `(Π, g)`, for each method in `names`, and diffrax Tsit5 on `(Π, Γ)`."""
@@ -352,7 +711,8 @@ def heavy_top_rows(steps: int, names):
         rows.append(
             (f"heavy top: {name} (Π, g)", "heavy", heavy_top_runner(make(), steps, reduced=False))
         )
-    rows.append(("heavy top: diffrax Tsit5 (Π, Γ)", "heavy", diffrax_heavy_top_runner(steps)))
+    rows.append((HEAVY_TOP_STRONG, "heavy", diffrax_heavy_top_runner(steps)))
+    rows.append((HEAVY_TOP_WEAK, "heavy", diffrax_heavy_top_weak_runner(steps)))
     return rows
 
 
@@ -375,6 +735,11 @@ def heavy_top_checks(names, dtype, steps: int):
     checks["diffrax torque vs system.force"] = float(
         jnp.max(jnp.abs(Pi_dot - jnp.cross(m0, m0 / inertia) - top.force(g0)))
     )
+    strong = diffrax_heavy_top_runner(steps)(*inputs)
+    weak = diffrax_heavy_top_weak_runner(steps)(*inputs)
+    checks["diffrax strong vs weak formulation"] = float(
+        max(jnp.max(jnp.abs(a - b)) for a, b in zip(strong[:2], weak[:2]))
+    )
     return checks
 
 
@@ -388,7 +753,13 @@ def heavy_top_main(args, meta, out):
     meta.update({"steps": steps, "gravity": GRAVITY, "batch": batch, "dtype": dtype_name})
     checks = heavy_top_checks(names, dtype, steps)
     for label, value in checks.items():
-        against = "autodiff force" if "torque" in label else "vmap(simulate), 64 bodies"
+        against = (
+            "autodiff force"
+            if "torque" in label
+            else "64 bodies"
+            if "weak" in label
+            else "vmap(simulate), 64 bodies"
+        )
         print(f"{label:<34} max |difference| vs {against}: {value:.2g}")
     meta["max_abs_difference_vs_vmap_simulate"] = checks
     print(
@@ -411,9 +782,18 @@ def heavy_top_main(args, meta, out):
             json.dumps({"meta": meta, "results": records}, indent=2)
         )
     rates = {r["method"]: r["body_steps_per_s"] for r in records}
-    base = rates["heavy top: diffrax Tsit5 (Π, Γ)"]
+    base = rates[HEAVY_TOP_STRONG]
     summary = []
-    print("\nheavy top against diffrax Tsit5 (Π, Γ) and the free body (same method, same run):")
+    weak = rates[HEAVY_TOP_WEAK]
+    print(
+        f"\nbaselines: {HEAVY_TOP_STRONG} (strong) {base:.3g}, {HEAVY_TOP_WEAK} {weak:.3g} "
+        f"(strong / weak {base / weak:.1f}×)"
+    )
+    meta["diffrax_strong_over_weak"] = base / weak
+    print(
+        "heavy top against the strong diffrax Tsit5 (Π, Γ) and the free body (same method, "
+        "same run):"
+    )
     for name in names:
         free = rates[f"free body: {name}"]
         for state in ("(Π, Γ)", "(Π, g)"):
@@ -433,6 +813,66 @@ def heavy_top_main(args, meta, out):
             )
     meta["acceptance"] = summary
     save_results(records, meta, out / args.out, plot_heavy_top)
+
+
+def _once(fn, args):
+    """Seconds of one call of `fn(*args)` (the first includes compiling)."""
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    return time.perf_counter() - start
+
+
+def diffrax_variants_main(args, meta, out):
+    """`--diffrax-variants`: every formulation in `DIFFRAX_VARIANTS` and the independent flat
+    runner, same inputs, timed in interleaved rounds (best of each); each checked against
+    the weak formulation's final state (64 bodies)."""
+    batch = (args.batches or [100_000])[-1]
+    steps = args.steps or 100
+    dtype = jnp.float64
+    # (`--methods`: a subset; the strong baseline is always timed, the ratios are to it)
+    names = [
+        n
+        for n in DIFFRAX_VARIANTS
+        if not args.methods or n in args.methods or n == DIFFRAX_STRONG_LABEL
+    ]
+    runners = {n: diffrax_rigid_body(steps, *DIFFRAX_VARIANTS[n]) for n in names}
+    if not args.methods or INDEPENDENT in args.methods:
+        runners[INDEPENDENT] = _independent_flat_diffrax(steps)
+    small = rigid_body_inputs(64, dtype, seed=1)
+    reference = diffrax_weak_runner(steps)(*small)
+    inputs = rigid_body_inputs(batch, dtype)
+    meta.update({"batch": batch, "steps": steps, "dtype": "float64", "rounds": args.rounds})
+    records = {}
+    for name, fn in runners.items():
+        got = fn(*small)
+        difference = float(max(jnp.max(jnp.abs(a - b)) for a, b in zip(got[:2], reference[:2])))
+        compile_s, run_s = _once(fn, inputs), _once(fn, inputs)
+        records[name] = {
+            "method": name,
+            "max_abs_difference_vs_weak": difference,
+            "first_call_s": compile_s,
+            "run_s": [run_s],
+        }
+        print(f"{name:<58} compiled, first rate {batch * steps / run_s:10.3g}", flush=True)
+    for _ in range(args.rounds - 1):
+        for name, fn in runners.items():
+            records[name]["run_s"].append(_once(fn, inputs))
+    meta["load_average_at_end"] = os.getloadavg()
+    strong = batch * steps / min(records[DIFFRAX_STRONG_LABEL]["run_s"])
+    print(f"\nfloat64, batch {batch}, {steps} steps, best of {args.rounds} interleaved rounds")
+    print(f"{'formulation':<58}{'body-steps/s':>13}{'vs strong':>11}{'vs weak':>10}")
+    weak = records.get(DIFFRAX_WEAK_LABEL)
+    weak = batch * steps / min(weak["run_s"]) if weak else float("nan")
+    for record in records.values():
+        rate = batch * steps / min(record["run_s"])
+        record.update({"body_steps_per_s": rate, "vs_strong": rate / strong})
+        print(f"{record['method']:<58}{rate:>13.3g}{rate / strong:>10.2f}×{rate / weak:>9.1f}×")
+    print(f"load average at the end {meta['load_average_at_end']}")
+    base = out / args.out
+    base.with_suffix(".json").write_text(
+        json.dumps({"meta": meta, "results": list(records.values())}, indent=2)
+    )
+    print(f"\nwrote {base.with_suffix('.json')}")
 
 
 def save_results(records, meta, base, plot_fn):
@@ -535,6 +975,13 @@ def main():
         help="the heavy top (batch 1e5, 100 steps, float64) against diffrax Tsit5 on its "
         "equations and against the free body, in one run",
     )
+    parser.add_argument(
+        "--diffrax-variants",
+        action="store_true",
+        help="time every diffrax formulation tried for the baseline (float64, batch 1e5 "
+        "unless --batches, 100 steps), interleaved in rounds (--rounds), in one run",
+    )
+    parser.add_argument("--rounds", type=int, default=2, help="rounds of --diffrax-variants")
     parser.add_argument("--out", default=None, help="basename of the JSON and PNG")
     parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
     args = parser.parse_args()
@@ -549,6 +996,8 @@ def main():
         args.out = args.out or "throughput_cpu_acceptance"
     if args.heavy_top:
         args.out = args.out or "throughput_heavy_top"
+    if args.diffrax_variants:
+        args.out = args.out or "throughput_diffrax_variants"
     args.out = args.out or "throughput"
     batches = args.batches or (
         [1, 100] if args.quick else [1, 10, 100, 1_000, 10_000, 100_000, 1_000_000]
@@ -579,6 +1028,8 @@ def main():
     }
     if args.heavy_top:
         return heavy_top_main(args, meta, out)
+    if args.diffrax_variants:
+        return diffrax_variants_main(args, meta, out)
     records = []
     for dtype_name in dtypes:
         dtype = jnp.dtype(dtype_name)
@@ -586,13 +1037,15 @@ def main():
         if args.methods:
             runners = {k: v for k, v in runners.items() if k in args.methods}
         print(
-            f"\n{dtype_name}\n{'method':<26}{'batch':>9}{'compile [s]':>13}{'run [s]':>11}{'body-steps/s':>15}"
+            f"\n{dtype_name}\n{'method':<48}{'batch':>9}{'compile [s]':>13}{'run [s]':>11}{'body-steps/s':>15}"
         )
         for name, fn in runners.items():
             difference = check_against_generic(name, fn, dtype, steps)
             if difference is not None:
                 print(
-                    f"{name:<26}final state vs vmap(simulate), 64 bodies: max |difference| {difference:.2g}"
+                    f"{name:<48}final state vs "
+                    f"{'the weak formulation' if 'diffrax' in name else 'vmap(simulate)'}, "
+                    f"64 bodies: max |difference| {difference:.2g}"
                 )
             for batch in sorted(batches):
                 inputs = rigid_body_inputs(batch, dtype)
@@ -607,11 +1060,11 @@ def main():
                     record[k] for k in ("compile_s", "run_s", "body_steps_per_s")
                 )
                 print(
-                    f"{name:<26}{batch:>9}{compile_s:>13.2f}{run_s:>11.4f}{rate:>15.3g}", flush=True
+                    f"{name:<48}{batch:>9}{compile_s:>13.2f}{run_s:>11.4f}{rate:>15.3g}", flush=True
                 )
                 if run_s > args.budget / 10:  # the next batch (×10) would exceed the budget
                     print(
-                        f"{'':<26}(larger batches skipped: over the --budget of {args.budget:g} s)"
+                        f"{'':<48}(larger batches skipped: over the --budget of {args.budget:g} s)"
                     )
                     break
             # Saved after every method, so an interrupted run keeps what it measured.
