@@ -31,7 +31,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import lievi  # noqa: E402
-import lievi._identification as identification  # noqa: E402
+import lievi._identification._schedule as schedule  # noqa: E402
 from lievi import SO3  # noqa: E402
 
 H, N_STEPS, EVERY, NOISE = 0.05, 400, 10, 0.01
@@ -100,25 +100,25 @@ def main():
     # Time the parts of the fit: the optimiser's rounds (each with its compilation when a
     # new batch size first appears) and the rest (start, final report).
     rounds = []
-    run = identification._run
+    run = schedule.run
 
-    def timed_run(config, n_evals, carry, *rest):
+    def timed_run(problem, n_evals, carry, *rest):
         t = time.perf_counter()
-        out = run(config, n_evals, carry, *rest)
+        out = run(problem, n_evals, carry, *rest)
         jax.block_until_ready(out.it)
         rounds.append(
             dict(size=int(carry.it.shape[0]), seconds=time.perf_counter() - t, ticks=n_evals)
         )
         return out
 
-    identification._run = timed_run
+    schedule.run = timed_run
     t = time.perf_counter()
     fit = lievi.fit_inertia(
         observed, h=H, sample_every=EVERY, inertia=GUESS, orientation_weight=weights
     )
     jax.block_until_ready(fit.loss)
     total = time.perf_counter() - t
-    identification._run = run
+    schedule.run = run
 
     normalised = lambda x: np.asarray(x) / np.asarray(x).sum(-1, keepdims=True)
     err = np.abs(normalised(fit.inertia) / normalised(inertias) - 1).max(-1)

@@ -20,7 +20,7 @@ import pytest
 import lievi
 from helpers import hlw_problem
 from lievi import SO3
-from lievi._identification import _from_inertia, _to_inertia
+from lievi._identification._parametrisation import inertia_parametrisation
 
 H, T, EVERY = 0.05, 20.0, 10
 N_STEPS = int(round(T / H))
@@ -130,19 +130,27 @@ def test_random_bodies_noise_free(batch_fit):
 @pytest.mark.parametrize("tensor", [False, True])
 @pytest.mark.parametrize("realisable", [False, True])
 def test_parametrisation(tensor, realisable):
-    """SPD (and realisable) for every θ, and `_from_inertia` inverts `_to_inertia`."""
+    """SPD (and realisable) for every θ, and `from_value` inverts `to_value` (up to the
+    sign of θ where the realisable parametrisations square it)."""
     rng = np.random.default_rng(1)
     size = 6 if tensor else 3
+    parametrisation = inertia_parametrisation(0, (3, 3) if tensor else (3,), realisable)
     for _ in range(20):
         theta = jnp.asarray(rng.normal(size=size))
-        inertia = np.asarray(_to_inertia(theta, tensor, realisable))
+        if realisable:  # θ and −θ (moments; a column of L for tensors) give one inertia
+            theta = (
+                jnp.abs(theta)
+                if not tensor
+                else theta.at[jnp.array([0, 2, 5])].set(jnp.abs(theta[jnp.array([0, 2, 5])]))
+            )
+        inertia = np.asarray(parametrisation.to_value(theta))
         matrix = inertia if tensor else np.diag(inertia)
         eig = np.linalg.eigvalsh(matrix)
         assert np.all(eig > 0) and np.allclose(matrix, matrix.T)
         if realisable:  # triangle inequalities of the principal moments
             assert eig[2] < eig[0] + eig[1]
         np.testing.assert_allclose(
-            _from_inertia(inertia, tensor, realisable), theta, rtol=1e-10, atol=1e-10
+            parametrisation.from_value(inertia), theta, rtol=1e-10, atol=1e-10
         )
 
 
