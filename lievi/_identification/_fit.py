@@ -8,7 +8,7 @@ residuals
 
     r_k = ( √w_R (g_k − R_k),  √w_Ω (Ω_k − Ω̂_k) ),     Ω_k = velocity(m_k),
 
-minimised by L-BFGS with a backtracking line search (`_fit_optimizer.py`), or by any optax
+minimised by L-BFGS with a backtracking line search (`_optimizer.py`), or by any optax
 transformation such as Adam, over any subset of the
 system's parameters (chosen by a `where` function, as in `eqx.tree_at`) together with the
 initial state when it is unknown. The fitted leaves are optimised in unconstrained
@@ -25,6 +25,12 @@ unknown and the inertia is fitted (with the potential's scale, e.g. `m ρ` of gr
 fitted too or no potential at all) only the ratios are observable, and the fit fixes the
 gauge explicitly: the trace of the inertia is held at `trace`. With Π₀ known, or a fixed
 potential, the scale is fitted too.
+
+**Goodness of fit.** A fit whose residuals at the optimum are systematic — lag-one
+autocorrelation of the weighted residual sequence above 0.5, where noise gives ≈ 0 — and
+whose loss exceeds 1e-6 of the observed motion's weighted size is reported `misfit` (the
+data are not this model's motion), or `boundary` when a realisable inertia ends on the
+realisability boundary (a local minimum of the constrained problem).
 
 **Identifiability.** At the solution the Jacobian `J` of the residuals with respect to the
 fitted physical parameters (restricted to the gauge) is computed by forward-mode autodiff.
@@ -43,7 +49,7 @@ whose gradient is zero; the count of failed samples is reported at every iterati
 **Batches.** Leading batch axes on the observations fit many bodies in one call. Every
 loss evaluation is one `simulate_batch` call for all bodies (the structure-of-arrays fast
 path and its reverse mode, where the system and integrator have one), and the optimiser is
-a per-body state machine that needs exactly one evaluation per tick (`_fit_optimizer.py`):
+a per-body state machine that needs exactly one evaluation per tick (`_optimizer.py`):
 a body in its line search and a body starting a new iteration share each evaluation, and
 none waits for the longest line search of the batch. Large batches run in rounds of
 `check_every` ticks: after each round the bodies that have finished leave the batch and the
@@ -139,8 +145,12 @@ def fit_system(
       or the approximate Wolfe conditions), `"adam"` (`optax.adam` at `learning_rate`), or
       any `optax.GradientTransformation` (used as `update(g, s, p)`, one loss evaluation per
       iteration).
-    - `max_iters`, `gtol`: stop when `‖∇loss‖_∞ ≤ gtol` (gradient in the unconstrained
-      parameters; default 1e-11 in float64, 1e-4 in float32 — where round-off in a
+    - `max_iters`, `gtol`: stop when `‖∇loss‖_∞ ≤ gtol`, the gradient of the loss
+      normalised by the weighted size of the observations (`mean_k w_R,k`, plus
+      `mean_k w_Ω,k ‖Ω̂_k‖²` for velocities), in the unconstrained parameters, with Π₀ in
+      units of its initial guess's norm: relative, so unchanged when the weights are
+      scaled (`1/σ²` or 1) or the velocities expressed in other units (the reported losses
+      are not normalised); default 1e-11 in float64, 1e-4 in float32 — where round-off in a
       400-step simulation already puts the gradient at the optimum near 2e-5) or after
       `max_iters`.
     - `horizons`: continuation in the observed horizon. Over many periods the loss is far
@@ -159,6 +169,9 @@ def fit_system(
       per iteration), after each of
       which finished bodies leave the batch (default 20 for 64 bodies or more; otherwise
       one round). Results do not depend on it.
+    - `quaternion`: `None` (orientations are rotation matrices), or `"wxyz"` (scalar
+      first) / `"xyzw"` (scalar last, scipy's order): the orientations are quaternions
+      `(*batch, S, 4)` in that order. Quaternions without it are refused with a hint.
 
     **Returns:** a `SystemFit`.
     """

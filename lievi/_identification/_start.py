@@ -28,7 +28,7 @@ import numpy as np
 
 from .._groups._so3 import SO3
 
-GAP = 10.0  # the smallest singular value must be below 1/GAP of the next
+GAP = 1.5  # the smallest singular value must be below 1/GAP of the next
 FLOOR = 0.02  # moments (second moments, if realisable) at least this fraction of their sum
 
 
