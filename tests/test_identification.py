@@ -620,6 +620,42 @@ def test_default_inertia_estimate():
     )
 
 
+@pytest.mark.slow
+def test_default_start_sparse_noisy():
+    """64 torque-free bodies, 41 attitude samples Δt = 0.25 apart with σ = 0.01 rad of
+    noise per axis, fitted from the default start (h = 0.05, `sample_every=5`, unit
+    weights): at least 62 converge. The start predicts the whole record, so the fit skips
+    the short horizon stages (where 4 noisy samples do not determine the inertia and 35 of
+    the 64 fits wandered off towards a degenerate inertia and ran to `max_iters`).
+
+    Accuracy, judged on the bodies not spinning within 8° of a principal axis: 90 % within
+    2e-2 (the 1 %-noise bound; measured: median 3.8e-3, 90 % 1.2e-2). The worst (3 of 63,
+    4–8e-2) are the noise's, not the optimiser's: every converged fit ends at or below the
+    loss of the true parameters on the same data, so no better fit of these data exists
+    nearer the truth."""
+    rng = np.random.default_rng(0)
+    inertias, momenta = _random_bodies(rng, 64)
+    clean = lievi.simulate_batch(
+        jax.vmap(lievi.RigidBody)(inertias),
+        lievi.DEP(),
+        jnp.broadcast_to(jnp.eye(3), (64, 3, 3)),
+        momenta,
+        h=H,
+        n_steps=200,
+        save_every=5,
+        system_axis=0,
+    ).g
+    observed = clean @ SO3.exp(jnp.asarray(NOISE * rng.normal(size=clean.shape[:-1])))
+    truth_loss = np.mean(np.sum((np.asarray(clean) - np.asarray(observed)) ** 2, (-2, -1)), -1)
+    fit = lievi.fit_inertia(observed, h=H, sample_every=5)
+    converged = np.asarray(fit.converged)
+    assert converged.sum() >= 62, np.bincount(np.asarray(fit.reason))
+    err = np.abs(_normalised(fit.inertia) / _normalised(inertias) - 1).max(-1)
+    excited = np.max(np.abs(np.asarray(momenta)), axis=-1) < 0.99
+    assert np.quantile(err[converged & excited], 0.9) <= NOISY_RTOL, np.sort(err)[-5:]
+    assert np.all(np.asarray(fit.loss)[converged] <= truth_loss[converged] * (1 + 1e-6))
+
+
 # ---- quaternions straight in ----------------------------------------------------------
 
 

@@ -283,7 +283,7 @@ def fit_system(
         m0_guess = initial_momenta(problem, theta0, dynamic, data, h)
         size = jnp.linalg.norm(m0_guess, axis=-1)
         data["momentum_scale"] = jnp.where(size > 0, size, 1.0)[:, None]
-    carry = start(problem, theta0, m0_guess, data, h)
+    carry = start(problem, theta0, m0_guess, dynamic, data, h)
     if check_every is None and n_bodies >= 64:
         check_every = 20
     carry = iterate(problem, check_every, carry, dynamic, data, h)

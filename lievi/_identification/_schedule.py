@@ -44,15 +44,20 @@ def initial_momenta(problem, theta0, dynamic, data, h):
 
 
 @eqx.filter_jit
-def start(problem, theta0, m0_guess, data, h):
+def start(problem, theta0, m0_guess, dynamic, data, h):
     params = jax.vmap(initial_params)(theta0, m0_guess, data)
     n_bodies = jax.tree.leaves(params)[0].shape[0]
     dtype = h.dtype
+    # The first stage: the longest horizon the initial guess already predicts.
+    predicted = jnp.cumprod(problem.predicted(params, dynamic, data, h), axis=1)
+    n_predicted = jnp.sum(predicted, axis=1)
+    horizons = jnp.asarray(problem.horizons)
+    stage = jnp.maximum(jnp.sum(horizons[None, :] <= n_predicted[:, None], axis=1) - 1, 0)
     return Carry(
         params=params,
         opt=jax.vmap(problem.machine().init)(jax.vmap(_flat)(params)),
         failed=jnp.zeros(n_bodies, jnp.int32),
-        stage=jnp.zeros(n_bodies, jnp.int32),
+        stage=stage.astype(jnp.int32),
         it=jnp.zeros(n_bodies, jnp.int32),
         history=jnp.full((n_bodies, problem.max_iters + 1), jnp.nan, dtype),
         failed_history=jnp.full((n_bodies, problem.max_iters + 1), -1, jnp.int32),
