@@ -133,8 +133,11 @@ def fit_system(
       `lambda s: s.inertia` (default), `lambda s: (s.inertia, s.potential.center_of_mass)`,
       … A rigid body's `inertia` stays positive definite (principal moments `(3,)` or a
       tensor `(3, 3)`, by its shape); other leaves are unconstrained.
-    - `m0`: the known initial momentum, or `None` to fit it (initial guess from the first
-      two samples). Then, if the inertia is fitted, the gauge is fixed by its trace.
+    - `m0`: the known initial momentum, or `None` to fit it (initial guess: for a free
+      rigid body observed through orientations, `R₀ᵀ` times the mean over the record of
+      the conserved spatial momentum `R_{k+½} I ω_{k+½}` of each interval between
+      samples; otherwise from the first two samples). Then, if the inertia is fitted, the
+      gauge is fixed by its trace.
     - `g0`: the known initial orientation, or `None` to fit it (initial guess `R_0`).
     - `system_axis`: `None` (one initial guess for every body) or `0` (every array leaf of
       `system` carries the batch axes first, e.g. `jax.vmap(lievi.RigidBody)(guesses)`).
@@ -157,8 +160,12 @@ def fit_system(
       from convex in the parameters (a wrong inertia puts the trajectory out of phase), so
       the fit first uses only the first `horizons[0]` samples, then the first
       `horizons[1]`, …, each stage started from the previous one's solution and run until
-      `‖∇loss‖_∞ ≤ √gtol` (the last stage: `gtol`). Default: 4, 8, 16, … up to `S`. One
-      compilation for all stages (the stage only changes a mask).
+      `‖∇loss‖_∞ ≤ √gtol` (the last stage: `gtol`). Default: 4, 8, 16, … up to `S`. Each
+      body starts at the longest stage over whose samples its initial guess already
+      reproduces every observation (`‖g_k − R_k‖_F ≤ 0.5`; velocities within half their
+      rms): a start in phase with the whole record skips the short stages, where a few
+      noisy samples do not determine the parameters. One compilation for all stages (the
+      stage only changes a mask).
     - `orientation_weight`, `velocity_weight`: `w_R`, `w_Ω` of the loss: scalars, or one
       weight per sample, shape `(S,)` or `(*batch, S)`. With Gaussian noise of known size
       `σ_k` on sample `k`, `w_k = 1/σ_k²` makes the fit the maximum-likelihood estimate.
