@@ -349,6 +349,9 @@ def fit_inertia(
     realisable = bool(options.get("realisable", False))
     if inertia is None:
         inertia = _default_inertia(orientations, angular_velocities, batch_shape, tensor, options)
+        observed = orientations if orientations is not None else angular_velocities
+        if jnp.issubdtype(jnp.result_type(observed), jnp.floating):
+            inertia = np.asarray(inertia, jnp.result_type(observed))  # float32 data: float32
     inertia = batched("inertia", inertia, batch_shape, core)
     if not is_concrete(inertia):
         raise ValueError("`inertia` (the initial guess) must be a concrete array, not traced.")
@@ -357,7 +360,7 @@ def fit_inertia(
     for x in np.asarray(inertia, float).reshape((-1,) + core):
         parametrisation.from_value(x)  # the guess's own error message first
     if jnp.shape(inertia) == core:
-        system, axis = RigidBody(jnp.asarray(np.asarray(inertia, float))), None
+        system, axis = RigidBody(jnp.asarray(inertia)), None  # the guess's own dtype
     else:
         make = RigidBody
         for _ in batch_shape:
