@@ -32,11 +32,11 @@ from ._groups._se3 import SE3Group as SE3Group
 from ._groups._so3 import SO3 as SO3
 from ._groups._so3 import SO3Group as SO3Group
 from ._groups._son import SOn as SOn
-from ._identification import FIT_REASONS as FIT_REASONS
-from ._identification import InertiaFit as InertiaFit
-from ._identification import SystemFit as SystemFit
-from ._identification import fit_inertia as fit_inertia
-from ._identification import fit_system as fit_system
+from ._identification._fit import fit_inertia as fit_inertia
+from ._identification._fit import fit_system as fit_system
+from ._identification._result import FIT_REASONS as FIT_REASONS
+from ._identification._result import InertiaFit as InertiaFit
+from ._identification._result import SystemFit as SystemFit
 from ._integrators._base import AbstractIntegrator as AbstractIntegrator
 from ._integrators._base import AbstractKickIntegrator as AbstractKickIntegrator
 from ._integrators._base import AbstractVariationalIntegrator as AbstractVariationalIntegrator

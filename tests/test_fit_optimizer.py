@@ -1,4 +1,4 @@
-"""The batched optimiser of `fit_system` (`lievi._fit_optimizer`): one evaluation per body
+"""The batched optimiser of `fit_system` (`lievi._identification._optimizer`): one evaluation per body
 per tick.
 
 Checks (float64): L-BFGS reaches ‖∇f‖_∞ ≤ 1e-10 on the Rosenbrock function from several
@@ -16,7 +16,7 @@ import numpy as np
 import optax
 import pytest
 
-from lievi._fit_optimizer import LBFGS, OptaxMachine
+from lievi._identification._optimizer import LBFGS, OptaxMachine
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 3, 4))
