@@ -217,7 +217,10 @@ def matrix_to_euler(g: Float[Array, "*batch 3 3"], seq: str) -> Float[Array, "*b
     third angle in `(−π, π]`; the middle one in `[−π/2, π/2]` (Tait–Bryan) or `[0, π]`
     (proper Euler). At gimbal lock (middle angle at an end of its range) only the sum or
     difference of the other two is defined; the last angle of `seq` is then set to 0, as
-    scipy does (without its warning).
+    scipy does (without its warning). Lock is detected within round-off only (middle angle
+    within about 2·eps of the end; scipy uses 1e-7), so the angles reproduce the matrix to
+    round-off at every distance from lock, in float32 too. Values and gradients are finite
+    everywhere, at lock included (e.g. at the identity for a proper Euler sequence).
 
     **Arguments:**
 
