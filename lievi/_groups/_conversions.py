@@ -220,7 +220,7 @@ def matrix_to_euler(g: Float[Array, "*batch 3 3"], seq: str) -> Float[Array, "*b
     scipy does (without its warning). Lock is detected within round-off only (middle angle
     within about 2·eps of the end; scipy uses 1e-7), so the angles reproduce the matrix to
     round-off at every distance from lock, in float32 too. Values and gradients are finite
-    everywhere, at lock included (e.g. at the identity for a proper Euler sequence).
+    at lock too (e.g. at the identity for a proper Euler sequence).
 
     **Arguments:**
 
