@@ -128,9 +128,17 @@ class Control(AbstractForcing):
       through the Newton solves, no unrolled iterations).
 
     The discrete forces are `f_k⁻ = f_k⁺ = (h/2) u[k]`.
+
+    `u` may be any array-like (a JAX or NumPy array, nested lists or tuples of numbers);
+    it is converted with `jnp.asarray`, integers to the default float dtype. For
+    `lievi.simulate_batch` it may also have shape `(batch, n_steps, d)`, one sequence per
+    body.
     """
 
     u: Float[Array, "n_steps d"]
+
+    def __init__(self, u):
+        self.u = _as_control(u)
 
     def per_step(self):
         return self.u
@@ -140,7 +148,8 @@ class Control(AbstractForcing):
 
     def batch_axes(self):
         # In `simulate_batch`, `u` of shape (batch, n_steps, d) is one sequence per body.
-        return Control(0) if jnp.ndim(self.u) == 3 else None
+        # The in-axes pytree is built by `tree.map`, which bypasses `__init__`.
+        return jax.tree.map(lambda _: 0, self) if jnp.ndim(self.u) == 3 else None
 
     def check(self, system, n_steps, dtype, args):
         d = system.group.algebra_dim
@@ -157,6 +166,32 @@ class Control(AbstractForcing):
                 f"`forcing`: the control `u` contains NaN or inf (first at step {bad}); pass "
                 "finite controls."
             )
+
+
+def _as_control(u) -> Array:
+    """`u` as a real array of shape `(n_steps, d)` (or `(batch, n_steps, d)`), else a
+    `ValueError` naming the argument and the fix."""
+    fix = (
+        "pass a real array of shape (n_steps, d), one generalised force of dimension d per "
+        "step (for the rigid body, d = 3: e.g. jnp.zeros((n_steps, 3))), or (batch, "
+        "n_steps, d) for lievi.simulate_batch"
+    )
+    if u is None or isinstance(u, (str, bytes)):
+        raise ValueError(f"`u` of lievi.Control: {fix}; got {u!r}.")
+    try:
+        array = jnp.asarray(u)
+    except (TypeError, ValueError) as error:  # ragged nested lists, non-numeric objects
+        raise ValueError(
+            f"`u` of lievi.Control could not be converted to an array ({error}); {fix}."
+        ) from error
+    dtype = array.dtype
+    if jnp.issubdtype(dtype, jnp.integer):
+        array = jnp.asarray(array, dtype=float)
+    elif not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(f"`u` of lievi.Control must hold real numbers, got dtype {dtype}; {fix}.")
+    if array.ndim not in (2, 3) or 0 in array.shape[-1:]:
+        raise ValueError(f"`u` of lievi.Control has shape {array.shape}; {fix}.")
+    return array
 
 
 class ForceLaw(AbstractForcing):

@@ -6,6 +6,8 @@ on batched inputs; the matrices agree with scipy's, which fixes the convention (
 world, Hamilton quaternions) independently of lievi's own formulas.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -209,3 +211,131 @@ def test_bad_input_names_the_argument():
         lievi.euler_to_matrix(jnp.zeros(3), "xxy")
     with pytest.raises(ValueError, match="`seq`"):
         lievi.matrix_to_euler(jnp.eye(3), "xYz")
+
+
+_AXIS = {"x": 0, "y": 1, "z": 2}
+# Every proper Euler sequence, extrinsic and intrinsic, and some Tait–Bryan ones.
+PROPER = [a + b + a for a in "xyz" for b in "xyz" if a != b]
+PROPER += [s.upper() for s in PROPER]
+LOCK_SEQUENCES = (*PROPER, "xyz", "ZYX", "yxz", "XZY")
+# Angles about one axis: the identity, tiny, generic, up to the half-turn.
+ALONG = [0.0, 1e-3, 0.7, np.pi / 2, np.pi - 1e-3, np.pi]
+WEIGHTS = [1.0, 2.0, 3.0]
+
+
+def lock_points():
+    """Rotation vectors: `t·e_a` for every axis `a` and `t` in `ALONG` (gimbal lock of a
+    proper sequence whose first axis is `a`; middle angle 0, or π for `t = π` about its
+    middle axis), ±π/2 about every axis (Tait–Bryan lock), and for every sequence a lock
+    with both outer angles nonzero."""
+    about_axes = [t * e for e in np.eye(3) for t in ALONG]
+    minus = [-np.pi / 2 * e for e in np.eye(3)]
+    generic = []
+    for seq in LOCK_SEQUENCES:
+        proper = seq[0].lower() == seq[2].lower()
+        for middle in [0.0, np.pi] if proper else [np.pi / 2, -np.pi / 2]:
+            generic.append(Rotation.from_euler(seq, [0.4, middle, -1.3]).as_rotvec())
+    return np.asarray(about_axes + minus + generic)
+
+
+@functools.partial(jax.jit, static_argnums=(1,))
+def angles_and_gradients(r, sequences):
+    """Per sequence: the angles of `exp(r)` and the gradient of a weighted sum of them
+    with respect to `r` (one compilation for all sequences)."""
+    out = {}
+    for seq in sequences:
+
+        def loss(r, seq=seq):
+            angles = lievi.matrix_to_euler(lievi.SO3.exp(r), seq)
+            return jnp.sum(jnp.asarray(WEIGHTS, r.dtype) * angles), angles
+
+        grads, angles = jax.vmap(jax.grad(loss, has_aux=True))(r)
+        out[seq] = angles, grads
+    return out
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_euler_gradients_finite_at_gimbal_lock(dtype):
+    """At the identity (the usual initial attitude) and at every rotation about the first
+    axis (half-turns included) a proper Euler sequence is at gimbal lock (middle angle 0);
+    π about the middle axis is the other lock (middle π), ±π/2 about the middle axis the
+    Tait–Bryan lock. Values reproduce the matrix (10·TOL); gradients of a loss on the
+    angles through `g = SO3.exp(r)` are finite, and along the lock (rotations by `t` about
+    the first axis, angles exactly `(t, 0, 0)`) they are the derivative along that curve:
+    the first angle's weight (to 10·eps)."""
+    r = jnp.asarray(lock_points(), dtype)
+    g = L.rotation_vector_to_matrix(r)
+    eps = float(jnp.finfo(dtype).eps)
+    for seq, (angles, grads) in angles_and_gradients(r, LOCK_SEQUENCES).items():
+        assert bool(jnp.all(jnp.isfinite(angles))), seq
+        back = Rotation.from_euler(seq, np.asarray(angles, np.float64)).as_matrix()
+        np.testing.assert_allclose(back, g, atol=10 * TOL[dtype], err_msg=seq)
+        assert bool(jnp.all(jnp.isfinite(grads))), (seq, grads)
+        if seq[0].lower() == seq[2].lower():
+            first = _AXIS[seq[0].lower()]
+            rows = slice(len(ALONG) * first, len(ALONG) * (first + 1))
+            np.testing.assert_array_equal(angles[rows, 1:], 0, err_msg=seq)
+            np.testing.assert_allclose(np.abs(angles[rows, 0]), ALONG, atol=10 * eps)
+            np.testing.assert_allclose(grads[rows, first], WEIGHTS[0], atol=10 * eps)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_quaternions_of_any_norm(dtype):
+    """Any non-zero quaternion is normalised, however small or large: in float32 |q|²
+    underflows for |q| ≲ 1e-19 and overflows for |q| ≳ 1e19, so the scaled quaternion is
+    squared instead. Scales down to just above the smallest normal number; the matrix
+    equals the unit quaternion's to TOL (1e-6 in float32) and is a rotation (gᵀg = I to
+    TOL)."""
+    q = jnp.asarray(np.random.default_rng(3).normal(size=(8, 4)), dtype)
+    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    exponent = np.log10(float(jnp.finfo(dtype).max))
+    scales = 10.0 ** np.concatenate(
+        [np.linspace(-exponent + 3, exponent - 1, 9), [-20, -19, -18, 18, 19, 20]]
+    )
+    g = L.quaternion_wxyz_to_matrix(q)
+    eye = np.eye(3)
+    for scale in np.asarray(scales, dtype):
+        for to_matrix, scaled in [
+            (L.quaternion_wxyz_to_matrix, scale * q),
+            (L.quaternion_xyzw_to_matrix, scale * L.wxyz_to_xyzw(q)),
+        ]:
+            normal = jnp.isfinite(scaled) & (jnp.abs(scaled) >= jnp.finfo(dtype).tiny)
+            assert bool(jnp.all(normal)), scale
+            ours = to_matrix(scaled)
+            np.testing.assert_allclose(ours, g, atol=TOL[dtype], err_msg=f"scale {scale}")
+            gram = jnp.swapaxes(ours, -1, -2) @ ours
+            np.testing.assert_allclose(gram, np.broadcast_to(eye, gram.shape), atol=TOL[dtype])
+
+
+def near_lock_angles(seq, offsets, rng, per_offset=4):
+    """Angles whose middle is `offset` from each gimbal lock of `seq`, inside the middle
+    angle's range, outer angles uniform in (−π, π)."""
+    proper = seq[0].lower() == seq[2].lower()
+    locks = [0.0, np.pi] if proper else [np.pi / 2, -np.pi / 2]
+    low, high = (0, np.pi) if proper else (-np.pi / 2, np.pi / 2)
+    middles = [
+        lock + side * offset
+        for lock in locks
+        for offset in offsets
+        for side in (1, -1)
+        if low <= lock + side * offset <= high
+    ]
+    middles = np.repeat(middles, per_offset)
+    outer = rng.uniform(-np.pi, np.pi, size=(len(middles), 2))
+    return np.stack([outer[:, 0], middles, outer[:, 1]], axis=-1)
+
+
+# Near gimbal lock only the matrix is well conditioned: the outer angles individually
+# are not (their error grows like eps / offset), so the round trip compares matrices.
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+@pytest.mark.parametrize("seq", ["xyz", "ZYX", "zxz", "XYX"])
+def test_euler_round_trip_near_gimbal_lock(seq, dtype):
+    """Middle angles 1e-7 … 1e-3 rad from lock (through the lock threshold, which is
+    about 2·eps): `euler_to_matrix(matrix_to_euler(g))` reproduces `g` to TOL (1e-12 in
+    float64, 1e-6 in float32 — the accuracy the docs promise), and the middle angle is
+    recovered to TOL (it is well conditioned)."""
+    angles = near_lock_angles(seq, np.geomspace(1e-7, 1e-3, 13), np.random.default_rng(4))
+    g = L.euler_to_matrix(jnp.asarray(angles), seq).astype(dtype)
+    back = L.matrix_to_euler(g, seq)
+    np.testing.assert_allclose(L.euler_to_matrix(back, seq), g, atol=TOL[dtype])
+    np.testing.assert_allclose(back[:, 1], angles[:, 1], atol=TOL[dtype])

@@ -495,3 +495,50 @@ def test_float32_forced_run():
         args=0.2,
     )
     assert sol.m.dtype == jnp.float32 and int(sol.result) == int(lievi.RESULTS.successful)
+
+
+def test_control_accepts_array_likes():
+    """`Control` converts its argument with `jnp.asarray`: nested lists and tuples, NumPy
+    arrays and integers give the same run as the JAX float array, bit for bit."""
+    body, n = lievi.RigidBody(INERTIA), 6
+    u = np.random.default_rng(7).normal(size=(n, 3))
+    run = lambda control: lievi.simulate(
+        body, lievi.DEP(), jnp.eye(3), M0, h=0.1, n_steps=n, forcing=control
+    )
+    expected = run(lievi.Control(jnp.asarray(u)))
+    for like in [u.tolist(), tuple(map(tuple, u.tolist())), u]:
+        control = lievi.Control(like)
+        assert isinstance(control.u, jax.Array) and control.u.shape == (n, 3)
+        sol = run(control)
+        np.testing.assert_array_equal(sol.m, expected.m)
+        np.testing.assert_array_equal(sol.g, expected.g)
+    # The case that used to fail deep inside the scan: a nested list of zeros.
+    zeros = run(lievi.Control([[0.0, 0.0, 0.0]] * n))
+    np.testing.assert_array_equal(zeros.m, run(lievi.Control(jnp.zeros((n, 3)))).m)
+    integers = lievi.Control([[1, 0, 0]] * n)
+    assert jnp.issubdtype(integers.u.dtype, jnp.floating)
+    np.testing.assert_array_equal(
+        run(integers).m, run(lievi.Control(jnp.tile(jnp.array([1.0, 0.0, 0.0]), (n, 1)))).m
+    )
+
+
+@pytest.mark.parametrize(
+    "u",
+    [
+        pytest.param(jnp.zeros(3), id="one-step"),
+        pytest.param(0.0, id="scalar"),
+        pytest.param(jnp.zeros((2, 3, 4, 5)), id="4d"),
+        pytest.param(jnp.zeros((4, 0)), id="d=0"),
+        pytest.param([[0.0, 0.0, 0.0], [0.0, 0.0]], id="ragged"),
+        pytest.param(jnp.zeros((4, 3), jnp.complex64), id="complex"),
+        pytest.param(np.zeros((4, 3), bool), id="bool"),
+        pytest.param("0, 0, 0", id="string"),
+        pytest.param(None, id="none"),
+        pytest.param([[object()] * 3] * 4, id="objects"),
+    ],
+)
+def test_control_rejects_non_arrays(u):
+    """Anything but a real array of shape (n_steps, d) (or (batch, n_steps, d)) is a
+    `ValueError` at construction, naming the argument and the fix."""
+    with pytest.raises(ValueError, match=r"`u` of lievi.Control.*shape \(n_steps, d\)"):
+        lievi.Control(u)

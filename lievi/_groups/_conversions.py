@@ -37,12 +37,18 @@ def quaternion_wxyz_to_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*bat
     **Arguments:**
 
     - `q`: quaternions, shape `(..., 4)`, scalar first. Normalised here, so any non-zero
-      quaternion is accepted; `q` and `−q` give the same matrix.
+      quaternion with finite components is accepted, however small or large its norm (it
+      is scaled by its largest component before squaring); `q` and `−q` give the same
+      matrix. The zero quaternion gives NaN.
 
     **Returns:** rotation matrices `g` (body to world), shape `(..., 3, 3)`.
     """
     _check_last("q", q, (4,), "a quaternion (w, x, y, z)")
     q = jnp.asarray(q)
+    # Divide by the largest |component| before squaring: |q|² itself under- or overflows
+    # in float32 for |q| ≲ 1e-19 or ≳ 1e19, the scaled one lies in [1, 4].
+    scale = jnp.max(jnp.abs(q), axis=-1, keepdims=True)
+    q = q / jnp.where(scale == 0, 1, scale)
     w, v = q[..., 0], q[..., 1:]
     s = 2 / jnp.sum(q * q, axis=-1)[..., None, None]
     V = SO3.hat(v)
@@ -211,7 +217,10 @@ def matrix_to_euler(g: Float[Array, "*batch 3 3"], seq: str) -> Float[Array, "*b
     third angle in `(−π, π]`; the middle one in `[−π/2, π/2]` (Tait–Bryan) or `[0, π]`
     (proper Euler). At gimbal lock (middle angle at an end of its range) only the sum or
     difference of the other two is defined; the last angle of `seq` is then set to 0, as
-    scipy does (without its warning).
+    scipy does (without its warning). Lock is detected within round-off only (middle angle
+    within about 2·eps of the end; scipy uses 1e-7), so the angles reproduce the matrix to
+    round-off at every distance from lock, in float32 too. Values and gradients are finite
+    at lock too (e.g. at the identity for a proper Euler sequence).
 
     **Arguments:**
 
@@ -235,15 +244,27 @@ def matrix_to_euler(g: Float[Array, "*batch 3 3"], seq: str) -> Float[Array, "*b
         a, b, c, d = w, qi, qj, qk
     else:
         a, b, c, d = w - qj, qi + qk, qj + w, qk - qi
-    middle = 2 * jnp.arctan2(jnp.hypot(c, d), jnp.hypot(a, b))
-    half_sum = jnp.arctan2(b, a)
-    half_difference = jnp.arctan2(d, c)
-    eps = 1e3 * jnp.finfo(q.dtype).eps
-    lock_zero = jnp.abs(middle) <= eps
-    lock_pi = jnp.abs(middle - jnp.pi) <= eps
+    # (a, b) and (c, d) in polar form: radii cos(β/2), sin(β/2) (times √2 for Tait–Bryan),
+    # angles the half sum and half difference of the outer angles. Each is converted to
+    # relative accuracy, so the angles reproduce the matrix to round-off however close to
+    # gimbal lock it is (an ill-conditioned outer angle is compensated by a small radius).
+    r, s = _hypot(a, b), _hypot(c, d)
+    middle = 2 * jnp.arctan2(s, r)
+    # Gimbal lock: a radius below round-off of the other. Then the half difference
+    # (middle 0) or half sum (middle π) is undefined and the last angle of `seq` is set to
+    # 0. Setting it changes the matrix by about 4·eps, so the threshold is eps itself: a
+    # larger one (as scipy's 1e-7) would not reproduce float32 matrices near lock.
+    eps = jnp.finfo(q.dtype).eps
+    lock_zero = s <= eps * r
+    lock_pi = ~lock_zero & (r <= eps * s)
+    lock = lock_zero | lock_pi
+    # Both branches of a `where` are differentiated: the undefined angle is computed from a
+    # safe input where it is not used, so gradients stay finite at lock (e.g. the identity
+    # for a proper Euler sequence).
+    half_sum = _atan2_unless(b, a, lock_pi)
+    half_difference = _atan2_unless(d, c, lock_zero)
     # At lock only first + third (middle 0) or third − first (middle π) is defined; the
     # angle that comes last in `seq` is set to 0.
-    lock = lock_zero | lock_pi
     locked = jnp.where(lock_zero, 2 * half_sum, 2 * half_difference)
     if intrinsic:  # `seq`'s last angle is the extrinsic first one
         first = jnp.where(lock, 0.0, half_sum - half_difference)
@@ -257,6 +278,17 @@ def matrix_to_euler(g: Float[Array, "*batch 3 3"], seq: str) -> Float[Array, "*b
     first, third = _wrap(first), _wrap(third)
     angles = jnp.stack([first, middle, third], axis=-1)
     return angles[..., ::-1] if intrinsic else angles
+
+
+def _hypot(x, y):
+    """`hypot(x, y)` with gradient 0 (not NaN) at `x = y = 0`."""
+    zero = (x == 0) & (y == 0)
+    return jnp.where(zero, 0, jnp.hypot(jnp.where(zero, 1, x), y))
+
+
+def _atan2_unless(y, x, undefined):
+    """`atan2(y, x)`, with a safe input (value 0, finite gradient) where `undefined`."""
+    return jnp.arctan2(jnp.where(undefined, 0, y), jnp.where(undefined, 1, x))
 
 
 def _wrap(angle):
