@@ -250,3 +250,10 @@ def test_vmapped_system_of_another_batch_size_says_what_to_pass():
     g0, m0 = jnp.broadcast_to(jnp.eye(3), (5, 3, 3)), jnp.ones((5, 3))
     with pytest.raises(ValueError, match="system_axis"):
         lievi.simulate_batch(bodies, lievi.DEP(), g0, m0, h=0.05, n_steps=2)
+
+
+def test_integer_potential_is_a_clear_error():
+    """A potential returning an integer fails at construction with lievi's own message, not
+    inside JAX's gradient."""
+    with pytest.raises(ValueError, match="real floating-point"):
+        lievi.RigidBody(jnp.array([2.0, 1.0, 2 / 3]), potential=lambda g: 0)

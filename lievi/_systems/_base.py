@@ -65,6 +65,13 @@ class AbstractLieSystem(eqx.Module):
                 f"`potential` must return a scalar V(g) for an {n}×{n} `g`, got "
                 f"{getattr(out, 'shape', type(out).__name__)}."
             )
+        if not jnp.issubdtype(out.dtype, jnp.floating):
+            # Its torque is a gradient: JAX differentiates real floating-point values only.
+            raise ValueError(
+                f"`potential` must return a real floating-point V(g), got dtype {out.dtype} "
+                "(e.g. `lambda g: 0` returns an integer: write `0.0`, or convert with "
+                "`jnp.asarray(value, float)`)."
+            )
 
     @abc.abstractmethod
     def lagrangian(self, xi: Float[Array, " d"]) -> Scalar:
