@@ -50,7 +50,11 @@ def _continued_root(integrator, inertia, m, h):
 
 @pytest.mark.parametrize(
     "integrator",
-    [lievi.DEP(), lievi.DEP(chart="cayley"), lievi.MoserVeselov()],
+    [
+        lievi.DEP(),
+        pytest.param(lievi.DEP(chart="cayley"), marks=pytest.mark.slow),
+        lievi.MoserVeselov(),
+    ],
     ids=["dep-exp", "dep-cayley", "moser-veselov"],
 )
 def test_successful_steps_are_on_the_continued_branch(integrator):

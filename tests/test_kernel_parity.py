@@ -57,6 +57,24 @@ REGISTRY = [
     ("rk4", lievi.RK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RK4Kernel"),
     ("dep-exp-heavy-top", lievi.DEP(), _heavy_top, INERTIA, jnp.eye(3), M0, "KickKernel"),
     (
+        "dep-cayley-heavy-top",
+        lievi.DEP(chart="cayley"),
+        _heavy_top,
+        INERTIA,
+        jnp.eye(3),
+        M0,
+        "KickKernel",
+    ),
+    (
+        "moser-veselov-heavy-top",
+        lievi.MoserVeselov(),
+        _heavy_top,
+        INERTIA,
+        jnp.eye(3),
+        M0,
+        "KickKernel",
+    ),
+    (
         "splitting-heavy-top",
         lievi.LiePoissonSplitting(),
         _heavy_top,
@@ -77,19 +95,25 @@ REGISTRY = [
     ),
 ]
 IDS = [entry[0] for entry in REGISTRY]
+# The batched comparison of every entry runs with `-m slow`; the default suite batches one
+# entry per kernel class (each kernel's batched loop, reduced state included).
+BATCH_DEFAULT = ("dep-exp", "moser-veselov", "splitting", "rk4", "dep-exp-heavy-top", "dep-exp-se3")
+BATCHED = [
+    entry if entry[0] in BATCH_DEFAULT else pytest.param(entry, marks=pytest.mark.slow)
+    for entry in REGISTRY
+]
 
 
-def _final_state(integrator, build, param, g0, m0):
-    sol = lievi.simulate(build(param), integrator, g0, m0, h=H, n_steps=STEPS)
-    return sol
+def _run(integrator, build, g0):
+    """The trajectory and the gradients of a loss of its final state with respect to the
+    system's parameter and `m0`, in one compiled program."""
 
-
-def _loss(integrator, build, g0):
     def loss(param, m0):
-        sol = lievi.simulate(build(param), integrator, g0, m0, h=H, n_steps=STEPS, save_every=STEPS)
-        return jnp.sum(sol.m[-1] ** 2) + jnp.sum(sol.g[-1] * jnp.arange(sol.g.shape[-1]))
+        sol = lievi.simulate(build(param), integrator, g0, m0, h=H, n_steps=STEPS)
+        value = jnp.sum(sol.m[-1] ** 2) + jnp.sum(sol.g[-1] * jnp.arange(sol.g.shape[-1]))
+        return value, sol
 
-    return jax.grad(loss, argnums=(0, 1))
+    return jax.jit(jax.value_and_grad(loss, argnums=(0, 1), has_aux=True))
 
 
 @pytest.mark.parametrize("entry", REGISTRY, ids=IDS)
@@ -105,11 +129,9 @@ def test_kernel_runs(entry):
 @pytest.mark.parametrize("entry", REGISTRY, ids=IDS)
 def test_iterates_and_gradients_equal_reference(entry):
     _, integrator, build, param, g0, m0, _ = entry
-    fast = _final_state(integrator, build, param, g0, m0)
-    fast_grads = _loss(integrator, build, g0)(param, m0)
+    (_, fast), fast_grads = _run(integrator, build, g0)(param, m0)
     with reference_path():
-        reference = _final_state(integrator, build, param, g0, m0)
-        reference_grads = _loss(integrator, build, g0)(param, m0)
+        (_, reference), reference_grads = _run(integrator, build, g0)(param, m0)
     np.testing.assert_array_equal(fast.result, 0)
     np.testing.assert_array_equal(reference.result, 0)
     scale = float(jnp.max(jnp.abs(reference.m)))
@@ -121,7 +143,7 @@ def test_iterates_and_gradients_equal_reference(entry):
         )
 
 
-@pytest.mark.parametrize("entry", REGISTRY, ids=IDS)
+@pytest.mark.parametrize("entry", BATCHED, ids=IDS)
 def test_batch_equals_reference(entry):
     """`simulate_batch`'s kernel (three bodies, one per-body parameter each) against the
     generic batched path; saving only `m` takes the reduced `(Π, Γ)` kernel where one exists."""

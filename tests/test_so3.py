@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 import lievi
 from helpers import ROUNDOFF, ROUNDOFF_F32, random_rotation
-from lievi._groups._so3 import _small_threshold
+from lievi._groups._series import small_threshold as _small_threshold
 
 SO3 = lievi.SO3
 # float32 against float64: the spec asks for 1e-5 (~100 ulps at magnitude 1); the
