@@ -319,14 +319,10 @@ def test_sharded_equals_unsharded():
     assert "SHARDED OK" in done.stdout, done.stdout + done.stderr
 
 
-@pytest.mark.parametrize(
-    "name",
-    ["dep-exp"]
-    + [
-        pytest.param(n, marks=pytest.mark.slow)
-        for n in ("dep-cayley", "moser-veselov", "splitting", "rk4")
-    ],
-)
+# Every kernel's gradients against the generic path run by default in
+# tests/test_kernel_parity.py; these longer runs are under -m slow.
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["dep-exp", "dep-cayley", "moser-veselov", "splitting", "rk4"])
 def test_fast_path_gradient_equals_generic(name):
     """Reverse mode through the fast path (implicit function theorem at every root, with
     the closed-form Jacobian; hand-written tangents of the explicit steps; per-step

@@ -64,7 +64,14 @@ def start(system):
     return g0, 0.1 * jnp.arange(1.0, d + 1.0)
 
 
-@pytest.mark.parametrize("name", list(CASES))
+# One case per class in the default suite (the others under -m slow: each compiles a run).
+DEFAULT_CASES = ("se3-indefinite", "uniform-gravity-negative-mass", "central-gravity-negative-mu")
+
+
+@pytest.mark.parametrize(
+    "name",
+    [n if n in DEFAULT_CASES else pytest.param(n, marks=pytest.mark.slow) for n in CASES],
+)
 def test_parameter_check_eager_and_traced(name):
     """A bad parameter raises eagerly and gives `invalid_input` under `vmap`/`jit`."""
     make, good, bad = CASES[name]

@@ -126,7 +126,13 @@ def test_kernel_runs(entry):
         assert integrator.batch_kernel(build(param)) is None
 
 
-@pytest.mark.parametrize("entry", REGISTRY, ids=IDS)
+ONE_BODY = [
+    pytest.param(entry, marks=pytest.mark.slow) if entry[0] == "dep-cayley-se3" else entry
+    for entry in REGISTRY
+]
+
+
+@pytest.mark.parametrize("entry", ONE_BODY, ids=IDS)
 def test_iterates_and_gradients_equal_reference(entry):
     _, integrator, build, param, g0, m0, _ = entry
     (_, fast), fast_grads = _run(integrator, build, g0)(param, m0)

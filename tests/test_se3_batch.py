@@ -193,7 +193,10 @@ def test_reduced_jacobian(chart):
         assert float(jnp.max(error)) <= ROUNDOFF
 
 
-@pytest.mark.parametrize("chart", ["exp", pytest.param("cayley", marks=pytest.mark.slow)])
+# The SE(3) kernel's gradients against the generic path run by default in
+# tests/test_kernel_parity.py; these longer runs are under -m slow.
+@pytest.mark.slow
+@pytest.mark.parametrize("chart", ["exp", "cayley"])
 def test_gradient_equals_generic(chart):
     """Reverse mode through the fast path (implicit function theorem at each root, with the
     closed-form 6×6 Jacobian) equals reverse mode through the generic path to ≤ 1e-10
