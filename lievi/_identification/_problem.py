@@ -138,8 +138,16 @@ class Problem(eqx.Module):
         **Returns:** `(Σ normalised losses, (normalised losses, losses, failed, result,
         residuals))`: the bodies are independent, so the gradient of the sum is every
         body's own gradient."""
-        dtype = h.dtype
-        params = jax.tree.map(lambda x: x.astype(dtype), params)
+        systems, sol = self.rollout(params, dynamic, data, h)
+        r, penalty, failed = jax.vmap(self.residual_terms)(systems, sol.g, sol.m, data, horizon)
+        losses = jnp.sum(r**2, axis=(-2, -1)) + penalty
+        normalised = losses / data["loss_scale"]
+        return jnp.sum(normalised), (normalised, losses, failed, sol.result, r)
+
+    def rollout(self, params, dynamic, data, h):
+        """`(systems, solution)`: every body's system at `params` and its trajectory, sampled
+        at the observations (`simulate_batch`, its fast path where there is one)."""
+        params = jax.tree.map(lambda x: x.astype(h.dtype), params)
         values, m0, g0 = jax.vmap(self.unpack)(params, dynamic, data)
         systems = jax.vmap(self.system_of)(values, dynamic)
         sol = simulate_batch(
@@ -154,32 +162,14 @@ class Problem(eqx.Module):
             system_axis=0,
             throw=False,
         )
-        r, penalty, failed = jax.vmap(self.residual_terms)(systems, sol.g, sol.m, data, horizon)
-        losses = jnp.sum(r**2, axis=(-2, -1)) + penalty
-        normalised = losses / data["loss_scale"]
-        return jnp.sum(normalised), (normalised, losses, failed, sol.result, r)
+        return systems, sol
 
     def predicted(self, params, dynamic, data, h):
         """Per body and sample, whether the model at `params` reproduces the observation
         to within `PREDICTED` (orientations: `‖g_k − R_k‖_F`; velocities: `‖Ω_k − Ω̂_k‖`
         relative to the rms observed velocity; samples of weight 0 count as reproduced),
         `(bodies, S)`."""
-        dtype = h.dtype
-        params = jax.tree.map(lambda x: x.astype(dtype), params)
-        values, m0, g0 = jax.vmap(self.unpack)(params, dynamic, data)
-        systems = jax.vmap(self.system_of)(values, dynamic)
-        sol = simulate_batch(
-            systems,
-            self.integrator,
-            g0,
-            m0,
-            h=h,
-            n_steps=self.n_steps,
-            save_every=self.sample_every,
-            save=("g", "m"),
-            system_axis=0,
-            throw=False,
-        )
+        _, sol = self.rollout(params, dynamic, data, h)
         ok = jnp.ones(sol.m.shape[:2], bool)
         if data["orientations"] is not None:
             error = jnp.sqrt(jnp.sum((sol.g - data["orientations"]) ** 2, axis=(-2, -1)))
