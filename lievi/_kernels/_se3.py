@@ -248,13 +248,54 @@ def _full_residual(chart, w, m, A, C):
     return x, _max_abs(residual(chart, x, m, A, False)[0])
 
 
+def _full_newton_step(chart, x, m, A):
+    """A Newton step on the six-component residual with its closed-form 6×6 Jacobian
+    (`residual`, a block solve): the generic path's iteration. Returns `(ξ, ‖r(ξ)‖_∞)`."""
+    r, J = residual(chart, x, m, A, True)
+    delta = solve6(factor(J), r)
+    x = tuple(x[i] - delta[i] for i in range(6))
+    return x, _max_abs(residual(chart, x, m, A, False)[0])
+
+
+def _off_branch(chart, x, m, C):
+    """`DEP.on_branch`'s rule, negated: `det J` not of the sign of `det A > 0` (the root was
+    reached across a fold of the branch continued from `h → 0`), or the chart's own rule
+    (exp: a rotation angle of π or more).
+
+    `det J = det(∂r_v/∂v) det(∂ρ/∂ω)` (the Schur complement, `_reduced_residual`), and
+    `∂r_v/∂v = K′(ω)A₂₂` has a positive determinant (`A₂₂` is positive definite, and
+    `det K′ > 0` on the chart's branch), so the sign is that of the 3×3 `det(∂ρ/∂ω)`.
+    """
+    w = x[:3]
+    _, J, _ = _reduced_residual(chart, w, m, C, True)
+    (a, b, c), (d, e, f), (g, h, i) = J
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    return ~(det > 0) | chart.beyond_branch(dot(w, w), math.pi)
+
+
 def _newton_tail(chart, max_steps, state, args):
-    """Newton steps on the bodies of `state = (ξ, ‖r‖_∞, iterations)` still above tolerance,
-    a `while_loop` up to `max_steps`; `args = (m, A, C, tolerance, alive)`."""
-    m, A, C, tolerance, alive = args
+    """The generic path's Newton, for the bodies of `state = (ξ, ‖r‖_∞, iterations,
+    off_branch)` not yet on a root of the branch: each restarts from the explicit-Euler
+    guess and takes up to `max_steps` steps on the full 6×6 system (`_full_newton_step`);
+    `args = (m, A, C, guess, tolerance, alive)`.
+
+    Why not more reduced steps: eliminating `v` makes `ρ(ω)` far more nonlinear than the
+    six-component residual when the translation per step is large (`v(ω)` carries
+    `K′(ω)⁻¹P`), and it rounds to about the tensor's condition number times the
+    tolerance when `M` is ill-conditioned; there the reduced iteration diverges, stalls
+    or lands on a root across a fold, where Newton on the full system converges in a few
+    steps. Restarting from the guess with the generic path's iteration and budget, a body
+    converges here whenever it converges there, to the same root.
+    """
+    m, A, C, guess, tolerance, alive = args
+    x, norm, fixed, off_branch = state
+    restart = alive & (~(norm <= tolerance) | off_branch)
+    guess_norm = _max_abs(residual(chart, guess, m, A, False)[0])
+    x = tuple(jnp.where(restart, x0, y) for x0, y in zip(guess, x))
+    norm = jnp.where(restart, guess_norm, norm)
 
     def active(norm, iterations):
-        return alive & (norm > tolerance) & jnp.isfinite(norm) & (iterations < max_steps)
+        return restart & (norm > tolerance) & jnp.isfinite(norm) & (iterations < max_steps)
 
     def cond(carry):
         _, norm, iterations = carry
@@ -263,35 +304,39 @@ def _newton_tail(chart, max_steps, state, args):
     def body(carry):
         x, norm, iterations = carry
         on = active(norm, iterations)
-        stepped, stepped_norm = _full_residual(chart, _newton_step(chart, x[:3], m, C), m, A, C)
+        stepped, stepped_norm = _full_newton_step(chart, x, m, A)
         x = tuple(jnp.where(on, s, y) for s, y in zip(stepped, x))
         norm = jnp.where(on, stepped_norm, norm)
         return x, norm, iterations + on.astype(jnp.int32)
 
-    return jax.lax.while_loop(cond, body, state)
+    x, norm, iterations = jax.lax.while_loop(cond, body, (x, norm, jnp.zeros_like(fixed)))
+    off_branch = jnp.where(restart, _off_branch(chart, x, m, C), off_branch)
+    return x, norm, fixed + iterations, off_branch
 
 
 def solve_increment(chart, m, A, C, guess, tolerance, fixed: int, max_steps: int, alive=True):
     """Newton for the DEP equation on a batch, on `ω` with `v` eliminated
     (`_reduced_residual`): `fixed` iterations from the rotation part of `guess`, one check
-    of the full residual `r(ω, v(ω))`, then (only if some body needs it) a `while_loop`
-    on the bodies above `tolerance` up to `max_steps`. Returns `(ξ, iterations, residual
-    ∞-norm, converged)` per body. The first of the fixed iterations is a chord step
-    (`_chord_step`). Not differentiable (see `_at_root`)."""
+    of the full residual `r(ω, v(ω))` and of the branch rule (`_off_branch`), then (only
+    if some body needs it) the generic path's Newton from the guess for the bodies above
+    `tolerance` or off the branch (`_newton_tail`). Returns `(ξ, iterations, residual
+    ∞-norm, converged, off_branch)` per body. The first of the fixed iterations is a
+    chord step (`_chord_step`). Not differentiable (see `_at_root`)."""
     fixed = min(fixed, max_steps)
     w = guess[:3]
     for k in range(fixed):
         w = _chord_step(chart, w, m, C) if k == 0 else _newton_step(chart, w, m, C)
     x, norm = _full_residual(chart, w, m, A, C)
+    off_branch = _off_branch(chart, x, m, C)
     iterations = jnp.full(norm.shape, fixed, jnp.int32)
     if max_steps > fixed:
-        x, norm, iterations = compacted_tail(
-            alive & ~(norm <= tolerance),
+        x, norm, iterations, off_branch = compacted_tail(
+            alive & (~(norm <= tolerance) | off_branch),
             functools.partial(_newton_tail, chart, max_steps),
-            (x, norm, iterations),
-            (m, A, C, tolerance, alive),
+            (x, norm, iterations, off_branch),
+            (m, A, C, guess, tolerance, alive),
         )
-    return x, iterations, norm, norm <= tolerance
+    return x, iterations, norm, norm <= tolerance, off_branch
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -325,7 +370,7 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
     sm, sA, sAinv, sC, stol = stopped
     # The explicit-Euler guess `h M⁻¹ m` (`DEP.solve_increment`'s).
     guess = tuple(sum(sAinv[i][j] * sm[j] for j in range(6)) for i in range(6))
-    x, iterations, norm, converged = solve_increment(
+    x, iterations, norm, converged, off_branch = solve_increment(
         chart, sm, sA, sC, guess, stol, fixed, max_steps, alive
     )
     # A diverged solve continues from the finite guess: a masked failed step then
@@ -390,8 +435,7 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
     g_next = tuple(e for i in range(3) for e in (Rn[i][0], Rn[i][1], Rn[i][2], Rt[i] + p[i]))
 
     result = jnp.where(converged, RESULTS.successful, RESULTS.newton_not_converged)
-    # The chart's branch rule (exp: a rotation angle of π or more is on another branch).
-    result = jnp.where(chart.beyond_branch(t, math.pi), RESULTS.step_too_large, result)
+    result = jnp.where(off_branch, RESULTS.step_too_large, result)
     ok = jnp.isfinite(norm)
     for y in m_next:
         ok = ok & jnp.isfinite(y)
