@@ -46,3 +46,34 @@ class RESULTS:
     def first_failure(current, new):
         """Keep the first non-success code."""
         return jnp.where(current == RESULTS.successful, new, current)
+
+    # The failure policy of every step loop (`simulate`'s and the kernels' in
+    # `simulate_batch`), each rule once.
+
+    @staticmethod
+    def initial(valid):
+        """`(result, failed_step)` before the first step: `invalid_input` at step 0 where
+        the input checks failed (`valid` false), else success and no failed step (−1)."""
+        result = jnp.where(valid, RESULTS.successful, RESULTS.invalid_input)
+        return result.astype(jnp.int32), jnp.where(valid, -1, 0).astype(jnp.int32)
+
+    @staticmethod
+    def checked(step_result, finite, too_large):
+        """A step's own code completed by the checks every method gets: a non-finite new
+        state is `nonfinite` (not only the momentum: a NaN attitude too), and a step
+        beyond the method's bound (`integrator.step_bound()`) is `step_too_large`,
+        whatever the solve said."""
+        ok = step_result == RESULTS.successful
+        step_result = jnp.where(ok & ~finite, RESULTS.nonfinite, step_result)
+        return jnp.where(too_large, RESULTS.step_too_large, step_result).astype(jnp.int32)
+
+    @staticmethod
+    def record(result, failed_step, k, step_result):
+        """Fold step `k`'s code into the run's: the first failure is kept, with the index
+        of its step. Returns `(result, failed_step, ok)`, `ok` where the run is still
+        successful (after a failure the loop carries the last good state on, so later
+        steps run on finite numbers and a masked failure cannot make a gradient NaN)."""
+        newly_failed = (result == RESULTS.successful) & (step_result != RESULTS.successful)
+        failed_step = jnp.where(newly_failed, k, failed_step)
+        result = RESULTS.first_failure(result, step_result)
+        return result, failed_step, result == RESULTS.successful

@@ -271,9 +271,7 @@ def checked_step_result(integrator, system, m, h, g_next, m_next, result):
     or `m` is `nonfinite` (not only the momentum: a NaN attitude is caught too), and a
     step beyond `integrator.step_bound()` is `step_too_large`, whatever the solve said."""
     finite = jnp.all(jnp.isfinite(g_next)) & jnp.all(jnp.isfinite(m_next))
-    result = jnp.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
-    too_large = integrator.step_too_large(system, m, h)
-    return jnp.where(too_large, RESULTS.step_too_large, result).astype(jnp.int32)
+    return RESULTS.checked(result, finite, integrator.step_too_large(system, m, h))
 
 
 @eqx.filter_jit
@@ -303,13 +301,9 @@ def _simulate(
             force = forcing.at_step(data, args)
             g_next, m_next, info = integrator.step(system, g, m, h, force, t0 + k * h)
         step_result = checked_step_result(integrator, system, m, h, g_next, m_next, info.result)
-        newly_failed = (result == RESULTS.successful) & (step_result != RESULTS.successful)
-        failed_step = jnp.where(newly_failed, k, failed_step)
-        result = RESULTS.first_failure(result, step_result)
-        ok = result == RESULTS.successful
-        # After a failure the carried state stays at the last good one: later steps then
-        # run on finite numbers, so their (unused) derivatives are finite and a failure
-        # cannot turn the gradient of a masked loss into NaN. The saved state is NaN.
+        result, failed_step, ok = RESULTS.record(result, failed_step, k, step_result)
+        # After a failure the last good state is carried on (`RESULTS.record`); the saved
+        # state is NaN.
         g_next = jnp.where(ok, g_next, g)
         m_next = jnp.where(ok, m_next, m)
         progress.report(k + 1, n_steps)
@@ -331,9 +325,7 @@ def _simulate(
         g, m = jnp.where(ok, g, nan), jnp.where(ok, m, nan)
         return carry, (g, m, jnp.max(iterations), jnp.sum(iterations), jnp.max(residuals))
 
-    int32 = jnp.int32
-    result0 = jnp.where(valid, RESULTS.successful, RESULTS.invalid_input).astype(int32)
-    init = (g0, m0, result0, jnp.where(valid, -1, 0).astype(int32), jnp.asarray(0, int32))
+    init = (g0, m0, *RESULTS.initial(valid), jnp.asarray(0, jnp.int32))
     n_saves = n_steps // save_every
     # Per-step forcing data (a control sequence), scanned over, not indexed: reverse mode
     # then accumulates one row of the cotangent per step.

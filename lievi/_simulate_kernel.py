@@ -56,16 +56,13 @@ def simulate_kernel(
     turn_rates = kernel.turn_rates(constants, h)
 
     def _checked_step_result(g_next, Pi_next, Pi, step_result):
-        """As `lievi._simulate.checked_step_result`: a non-finite `g` or `Π` is `nonfinite`,
-        a step beyond `integrator.step_bound()` (`h·|I⁻¹Π|`) is `step_too_large`."""
+        """`lievi._simulate.checked_step_result` on structure of arrays."""
         finite = jnp.isfinite(g_next[0])
         for x in (*g_next[1:], *Pi_next):
             finite = finite & jnp.isfinite(x)
-        ok = step_result == RESULTS.successful
-        step_result = jnp.where(ok & ~finite, RESULTS.nonfinite, step_result)
         # (h|ω|)² > bound², as h|ω| > bound but for rounding at the bound.
         too_large = kernel.turn_squared(turn_rates, Pi) > step_bound * step_bound
-        return jnp.where(too_large, RESULTS.step_too_large, step_result).astype(int32)
+        return RESULTS.checked(step_result, finite, too_large)
 
     # Reverse mode keeps each step's input state and root (the solve is not repeated);
     # everything else in the step is recomputed from them in the backward pass.
@@ -79,16 +76,13 @@ def simulate_kernel(
         alive = result == RESULTS.successful
         g_next, Pi_next, step_result, iterations, residual = kernel.step(params, g, Pi, alive)
         step_result = _checked_step_result(g_next, Pi_next, Pi, step_result)
-        newly_failed = alive & (step_result != RESULTS.successful)
-        failed_step = jnp.where(newly_failed, k, failed_step)
-        result = RESULTS.first_failure(result, step_result)
+        result, failed_step, ok = RESULTS.record(result, failed_step, k, step_result)
         # Saved for the backward pass (one byte a body-step): the mask is all the backward
         # needs of the step's checks, which would otherwise re-evaluate the whole step
         # (`g_next`, the Newton residual) just to know which bodies survived it.
-        ok = checkpoint_name(result == RESULTS.successful, ROOT_NAME)
-        # As in `simulate`: after a failure the carried state stays at the last good one
-        # (later steps run on finite numbers, so a masked failure cannot turn a gradient
-        # into NaN; the kernel spends no extra iterations on it); the saved state is NaN.
+        ok = checkpoint_name(ok, ROOT_NAME)
+        # After a failure the last good state is carried on (`RESULTS.record`; the kernel
+        # spends no extra iterations on it); the saved state is NaN.
         g_next = tuple(jnp.where(ok, x, y) for x, y in zip(g_next, g))
         Pi_next = tuple(jnp.where(ok, x, y) for x, y in zip(Pi_next, Pi))
         # Statistics are reduced in the carry, not stacked per step: a (steps, B) output
@@ -128,15 +122,8 @@ def simulate_kernel(
             out["residual"] = worst
         return state, out
 
-    init = (
-        g,
-        Pi,
-        jnp.broadcast_to(
-            jnp.where(valid, RESULTS.successful, RESULTS.invalid_input), (batch,)
-        ).astype(int32),
-        jnp.broadcast_to(jnp.where(valid, -1, 0), (batch,)).astype(int32),
-        jnp.asarray(0, int32),
-    )
+    result0, failed_step0 = (jnp.broadcast_to(x, (batch,)) for x in RESULTS.initial(valid))
+    init = (g, Pi, result0, failed_step0, jnp.asarray(0, int32))
     final, out = scan_in_segments(one_save, init, n_steps // save_every, outer)
     _, _, result, failed_step, _ = final
     n_saves = n_steps // save_every

@@ -97,7 +97,8 @@ def add_noise(R, rng, noise=NOISE):
 
 def noise_weights(R):
     # 1/σ_k² of the noise above (σ_k ∝ |r_k|, floored: the sample at t = 0 is exact):
-    # with these weights the least-squares fit is the maximum-likelihood estimate.
+    # with these weights the least-squares fit is the maximum-likelihood estimate. (Their
+    # scale does not matter: the stopping test is relative to the loss; mean 1 for display.)
     r = np.asarray(SO3.log(R))
     w = 1 / (np.sum(r**2, axis=-1) + 0.1**2)
     return jnp.asarray(w / w.mean(axis=-1, keepdims=True))
@@ -114,7 +115,9 @@ print("observations:", clean.shape, "| times", t_obs[0], "...", t_obs[-1])
 # ## The fit
 #
 # Nothing but the orientations is given: $\Pi_0$ and $g_0$ are fitted along with $I$ (the
-# initial guess of $\Pi_0$ comes from the first two samples, that of $g_0$ is $R_0$). The
+# initial guess of $\Pi_0$ is $R_0^\top$ times the mean over the record of the spatial
+# angular momentum $R_{k+1/2}\,I\,\omega_{k+1/2}$ of each interval between samples, which a
+# free body conserves; that of $g_0$ is $R_0$). The
 # initial guess of the inertia, $(1.5, 1.2, 1.0)$, is far from the truth. Over several
 # periods the loss is far from convex in $I$ (a wrong inertia puts the trajectory out of
 # phase), so `fit_inertia` continues in the horizon: it fits the first 4 samples, then 8,

@@ -334,7 +334,11 @@ def _gauge_free_errors(fit):
 def test_heavy_top_inertia_and_center_of_mass_noise_free():
     """Inertia and centre of mass (mass known) of an asymmetric heavy top, Π₀ and g₀ unknown."""
     observed = _observe_top(120, every=6)  # T = 6, 21 samples
-    fit = lievi.fit_system(TOP_GUESS, observed, h=H, sample_every=6, params=TOP_PARAMS)
+    # About 500 L-BFGS iterations: along the gauge (I, Π₀, mρ) ↦ c(I, Π₀, mρ) the loss is
+    # flat, and the default budget (500) ends a few iterations short of the test.
+    fit = lievi.fit_system(
+        TOP_GUESS, observed, h=H, sample_every=6, params=TOP_PARAMS, max_iters=1000
+    )
     assert bool(fit.converged), fit.messages()
     assert isinstance(fit.system, lievi.RigidBody) and isinstance(
         fit.system.potential, lievi.UniformGravity

@@ -9,7 +9,7 @@ import pytest
 
 import lievi
 from helpers import ROUNDOFF, ROUNDOFF_F32
-from lievi._kernels import _se3, _se3_residual
+from lievi._kernels import _se3, _se3_reduced, _se3_residual
 from lievi._kernels._base import compacted_tail, reference_path
 
 SE3 = lievi.SE3
@@ -175,9 +175,9 @@ def test_reduced_jacobian(chart):
         m = tuple(m)
 
         def rho(w):
-            return jnp.stack(_se3._reduced_residual(chart, tuple(w), m, C, False)[0])
+            return jnp.stack(_se3_reduced.reduced_residual(chart, tuple(w), m, C, False)[0])
 
-        r, J, (_, v) = _se3._reduced_residual(chart, tuple(w), m, C, True)
+        r, J, (_, v) = _se3_reduced.reduced_residual(chart, tuple(w), m, C, True)
         full, _ = _se3_residual.residual(chart, tuple(w) + tuple(v), m, A, False)
         J = jnp.stack([jnp.stack(row) for row in J])
         return (

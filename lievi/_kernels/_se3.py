@@ -12,7 +12,7 @@ and no potential, written for throughput over many bodies:
   `r_ω = K a + L b − Π`, `r_v = K′b − P` with `(a, b) = Mξ/h` (derivation below), and `r_v`
   is linear in `b`: for a given `ω`, `b = K′(ω)⁻¹P` in closed form and
   `v = A₂₂⁻¹(b − A₂₁ω)` (`A = M/h`). Newton runs on `ρ(ω) = r_ω(ω, v(ω))` with its 3×3
-  Jacobian — the Schur complement of the 6×6 one (`_reduced_residual`), solved by
+  Jacobian — the Schur complement of the 6×6 one (`reduced_residual`), solved by
   Cramer's rule — instead of on the 6×6 system: a 3×3 solve and fewer operations per
   iteration, and the root is the same (the generic path's, from the same explicit-Euler
   guess `h M⁻¹m`). The convergence check is on the full six-component residual, so a
@@ -23,12 +23,13 @@ and no potential, written for throughput over many bodies:
   `while_loop` only for the bodies still above tolerance, up to `max_steps`, run on those
   bodies gathered into a small batch when they are few (`compacted_tail`); a body that
   does not converge gets `RESULTS.newton_not_converged`;
-- **implicit differentiation**: the converged root `ξ` passes through `_at_root`, whose
-  derivative is the implicit function theorem's `dξ = −J⁻¹(∂r/∂m dm + ∂r/∂A dA)` with the
+- **implicit differentiation**: the converged root `ξ` passes through
+  `_implicit.differentiable_root`, whose derivative is the implicit function theorem's `dξ = −J⁻¹(∂r/∂m dm + ∂r/∂A dA)` with the
   closed-form 6×6 Jacobian (`residual`) and a block solve with 3×3 Cramer inverses; the
   Newton iterations are not differentiated.
 
-The derivation of the residual and its Jacobian is in `_se3_residual.py`.
+The derivation of the residual and its Jacobian is in `_se3_residual.py`; the reduced
+residual (`v` eliminated) is `_se3_reduced.py`.
 
 The same kernel runs `simulate`'s step for one body (`AbstractBatchKernel.one_body_step`), every
 component a scalar; there the values stored once (`materialise`) are stacked into one
@@ -52,13 +53,22 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.ad_checkpoint import checkpoint_name
 
 from .._groups._se3 import SE3
 from .._newton import newton_tolerance
 from .._results import RESULTS
-from ._base import ROOT_NAME, AbstractBatchKernel, compacted_tail, materialise
-from ._se3_residual import SINC3, e_blocks, exp_series, factor, mv, ones, operator, residual, solve6
+from ._base import AbstractBatchKernel, compacted_tail, materialise
+from ._implicit import differentiable_root
+from ._se3_reduced import reduced_residual, velocity_part
+from ._se3_residual import (
+    SINC3,
+    SE3Equation,
+    factor,
+    mv,
+    ones,
+    residual,
+    solve6,
+)
 from ._soa import (
     C_SERIES,
     S_SERIES,
@@ -70,157 +80,10 @@ from ._soa import (
     horner,
     inverse3,
     matmul,
+    max_abs,
     nested,
     solve3,
 )
-
-
-def _max_abs(r):
-    norm = jnp.abs(r[0])
-    for x in r[1:]:
-        norm = jnp.maximum(norm, jnp.abs(x))
-    return norm
-
-
-def _velocity_part(chart, w, m, C, series=None):
-    """`(q, v)` with `r_v(ω, v) = 0`: `q = b = K′(ω)⁻¹P`, `v = A₂₂⁻¹(q − A₂₁ω) = A₂₂⁻¹q − Tω`.
-
-    `K′⁻¹`: Cayley `(1 + ω̂/2)⁻¹ y = (y − ω×y/2 + ω(ω·y)/4)/(1 + t/4)`; exp
-    `(1 + ω̂/2 + c ω̂²)⁻¹ = 1 − β ω̂ + γ ω̂²`, `β = (1 − cos θ)/θ²`, `γ = (θ − sin θ)/θ³`
-    (the inverse of the SO(3) `dexpinv`, i.e. `dexp(−ω)`).
-    """
-    _, _, A22inv, T, _ = C
-    P = m[3:]
-    t = dot(w, w)
-    wP, oP = cross(w, P), dot(w, P)
-    if chart == "cayley":
-        scale = 1 / (1 + t / 4)
-        q = tuple((P[i] - wP[i] / 2 + w[i] * oP / 4) * scale for i in range(3))
-    else:
-        beta, gamma = (exp_series(t) if series is None else series)[3:]
-        q = tuple(P[i] - beta * wP[i] + gamma * (w[i] * oP - t * P[i]) for i in range(3))
-    A22q, Tw = mv(A22inv, q), mv(T, w)
-    v = tuple(A22q[i] - Tw[i] for i in range(3))
-    return q, v
-
-
-def _reduced_residual(chart, w, m, C, with_jacobian: bool):
-    """The DEP equation with `v` eliminated: `ρ(ω) = r_ω(ω, v(ω))` where `v(ω)` solves
-    `r_v = K′(ω)(A₂₁ω + A₂₂v) − P = 0` exactly (`_velocity_part`), and, if asked, its 3×3
-    Jacobian, the Schur complement `J₁₁ − J₁₂J₂₂⁻¹J₂₁` of the 6×6 one (`residual`):
-
-        dρ/dω = K(S + ZQ) + E_ωv V + E_ωω + L Q,   Q = dq/dω = −K′⁻¹E_vω,
-        V = dv/dω = A₂₂⁻¹Q − T,
-
-    with the blocks `E` of `∂(dφ⁻¹(ξ)ᵀμ)/∂ξ` at fixed `μ = (a, q)` (`residual`) and the
-    per-run constants `S = A₁₁ − A₁₂A₂₂⁻¹A₂₁`, `Z = A₁₂A₂₂⁻¹`, `T = A₂₂⁻¹A₂₁` (`C`), so
-    that `K A₁₁ + K A₁₂V = K(S + ZQ)` and `a = A₁₁ω + A₁₂v = Sω + Zq`. Newton on `ρ` is
-    Newton on the 6×6 system with `v` re-solved after each step: the same root (the one
-    the generic path converges to from the explicit-Euler guess), a 3×3 solve.
-    Returns `(ρ, J, (q, v))`.
-    """
-    S, Z, A22inv, T, _ = C
-    one = ones(w[0])
-    series = None
-    if chart == "exp":
-        series = exp_series(dot(w, w))
-        if with_jacobian:
-            # Not stacked for one body: stacked, this group made the exp step under
-            # `jax.vmap(simulate)` 30× slower (XLA's fusion of the stacked Horner chains;
-            # measured 6.5 against 0.22 µs a body-step), for 5 % on one body.
-            series = materialise(series, one, stack=False)
-    q, v = _velocity_part(chart, w, m, C, series)
-    if with_jacobian:
-        q, v = materialise(q, one), materialise(v, one)
-    # a = A₁₁ω + A₁₂v = Sω + Zq.
-    Sw, Zq = mv(S, w), mv(Z, q)
-    a = tuple(Sw[i] + Zq[i] for i in range(3))
-    if chart == "cayley":
-        return _reduced_cayley(w, m, C, q, v, a, with_jacobian, one)
-    K, L, Kp, coefficients = operator(chart, w, v, None if series is None else series[:3])
-    Ka, Lq = mv(K, a), mv(L, q)
-    rho = tuple(Ka[i] + Lq[i] - m[i] for i in range(3))
-    if not with_jacobian:
-        return rho, None, (q, v)
-    E_ww, E_wv, E_vw = e_blocks(chart, w, v, a, q, m[3:], coefficients)
-    # Q = −K′⁻¹ E_vω, column by column (K′⁻¹ as `_velocity_part`).
-    t = dot(w, w)
-    columns = []
-    for j in range(3):
-        y = tuple(-E_vw[i][j] for i in range(3))
-        wy, oy = cross(w, y), dot(w, y)
-        if chart == "cayley":
-            scale = 1 / (1 + t / 4)
-            columns.append(tuple((y[i] - wy[i] / 2 + w[i] * oy / 4) * scale for i in range(3)))
-        else:
-            beta, gamma = series[3:]
-            columns.append(
-                tuple(y[i] - beta * wy[i] + gamma * (w[i] * oy - t * y[i]) for i in range(3))
-            )
-    Q = tuple(tuple(columns[j][i] for j in range(3)) for i in range(3))
-    # K A₁₁ + K A₁₂V = K(S + ZQ), V = A₂₂⁻¹Q − T.
-    ZQ, A22Q = matmul(Z, Q), matmul(A22inv, Q)
-    U = tuple(tuple(S[i][j] + ZQ[i][j] for j in range(3)) for i in range(3))
-    V = tuple(tuple(A22Q[i][j] - T[i][j] for j in range(3)) for i in range(3))
-    KU, EV, LQ = matmul(K, U), matmul(E_wv, V), matmul(L, Q)
-    J = tuple(
-        tuple(KU[i][j] + EV[i][j] + E_ww[i][j] + LQ[i][j] for j in range(3)) for i in range(3)
-    )
-    return rho, J, (q, v)
-
-
-def _reduced_cayley(w, m, C, q, v, a, with_jacobian, one):
-    """`_reduced_residual` for the Cayley chart, where `L q = v × K′q/2 = v × P/2`:
-
-        ρ = K a + v × P/2 − Π,
-        dρ/dω = −â/2 + (ω·a)/4 + ωaᵀ/4 + K(S + ZQ) − P̂V/2,
-        V = dv/dω = A₂₂⁻¹Q − T,   Q = dq/dω = K′⁻¹ q̂/2
-
-    (`K′q = P` ⇒ `dK′ q + K′ dq = 0`, `dK′ q = dω × q/2`).
-    """
-    S, Z, A22inv, T, _ = C
-    Pi, P = m[:3], m[3:]
-    wa, oa = cross(w, a), dot(w, a)
-    vP = cross(v, P)
-    rho = tuple(a[i] + wa[i] / 2 + w[i] * oa / 4 + vP[i] / 2 - Pi[i] for i in range(3))
-    if not with_jacobian:
-        return rho, None, (q, v)
-    t = dot(w, w)
-    scale = 1 / (1 + t / 4)
-    W = ((0, -w[2], w[1]), (w[2], 0, -w[0]), (-w[1], w[0], 0))
-    Kpi = tuple(
-        tuple((((1 if i == j else 0) - W[i][j] / 2 + w[i] * w[j] / 4) * scale) for j in range(3))
-        for i in range(3)
-    )
-    qh = ((0, -q[2], q[1]), (q[2], 0, -q[0]), (-q[1], q[0], 0))
-    # Q = K′⁻¹ q̂/2 (q̂ has a zero diagonal).
-    Q = tuple(
-        tuple(sum(Kpi[i][k] * qh[k][j] for k in range(3) if k != j) / 2 for j in range(3))
-        for i in range(3)
-    )
-    # K A₁₁ + K A₁₂V = K(S + ZQ); −P̂V/2 with V = A₂₂⁻¹Q − T.
-    ZQ, A22Q = matmul(Z, Q), matmul(A22inv, Q)
-    U = tuple(tuple(S[i][j] + ZQ[i][j] for j in range(3)) for i in range(3))
-    V = tuple(tuple(A22Q[i][j] - T[i][j] for j in range(3)) for i in range(3))
-    K = tuple(
-        tuple((1 if i == j else 0) + W[i][j] / 2 + w[i] * w[j] / 4 for j in range(3))
-        for i in range(3)
-    )
-    KU = matmul(K, U)
-    Ph = ((0, -P[2], P[1]), (P[2], 0, -P[0]), (-P[1], P[0], 0))
-    Ah = ((0, -a[2], a[1]), (a[2], 0, -a[0]), (-a[1], a[0], 0))
-    J = tuple(
-        tuple(
-            KU[i][j]
-            - sum(Ph[i][k] * V[k][j] for k in range(3) if k != i) / 2
-            - Ah[i][j] / 2
-            + w[i] * a[j] / 4
-            + (oa / 4 if i == j else 0)
-            for j in range(3)
-        )
-        for i in range(3)
-    )
-    return rho, J, (q, v)
 
 
 def _chord_step(chart, w, m, C):
@@ -230,22 +93,22 @@ def _chord_step(chart, w, m, C):
     cost of a residual, about half a Newton step's: two Newton steps then reach the
     tolerance where three were needed (`DEFAULT_FIXED_ITERATIONS`)."""
     *_, S_inv = C
-    rho, _, _ = _reduced_residual(chart, w, m, C, False)
+    rho, _, _ = reduced_residual(chart, w, m, C, False)
     delta = mv(S_inv, rho)
     return tuple(w[i] - delta[i] for i in range(3))
 
 
 def _newton_step(chart, w, m, C):
-    rho, J, _ = _reduced_residual(chart, w, m, C, True)
+    rho, J, _ = reduced_residual(chart, w, m, C, True)
     delta = solve3(J, rho, divide_each=True)
     return tuple(w[i] - delta[i] for i in range(3))
 
 
 def _full_residual(chart, w, m, A, C):
-    """`(ξ, ‖r(ξ)‖_∞)` with `ξ = (ω, v(ω))` (`_velocity_part`): the six-component check."""
-    _, v = _velocity_part(chart, w, m, C)
+    """`(ξ, ‖r(ξ)‖_∞)` with `ξ = (ω, v(ω))` (`velocity_part`): the six-component check."""
+    _, v = velocity_part(chart, w, m, C)
     x = tuple(w) + tuple(v)
-    return x, _max_abs(residual(chart, x, m, A, False)[0])
+    return x, max_abs(residual(chart, x, m, A, False)[0])
 
 
 def _full_newton_step(chart, x, m, A):
@@ -254,7 +117,7 @@ def _full_newton_step(chart, x, m, A):
     r, J = residual(chart, x, m, A, True)
     delta = solve6(factor(J), r)
     x = tuple(x[i] - delta[i] for i in range(6))
-    return x, _max_abs(residual(chart, x, m, A, False)[0])
+    return x, max_abs(residual(chart, x, m, A, False)[0])
 
 
 def _off_branch(chart, x, m, C):
@@ -262,12 +125,12 @@ def _off_branch(chart, x, m, C):
     reached across a fold of the branch continued from `h → 0`), or the chart's own rule
     (exp: a rotation angle of π or more).
 
-    `det J = det(∂r_v/∂v) det(∂ρ/∂ω)` (the Schur complement, `_reduced_residual`), and
+    `det J = det(∂r_v/∂v) det(∂ρ/∂ω)` (the Schur complement, `reduced_residual`), and
     `∂r_v/∂v = K′(ω)A₂₂` has a positive determinant (`A₂₂` is positive definite, and
     `det K′ > 0` on the chart's branch), so the sign is that of the 3×3 `det(∂ρ/∂ω)`.
     """
     w = x[:3]
-    _, J, _ = _reduced_residual(chart, w, m, C, True)
+    _, J, _ = reduced_residual(chart, w, m, C, True)
     (a, b, c), (d, e, f), (g, h, i) = J
     det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
     return ~(det > 0) | chart.beyond_branch(dot(w, w), math.pi)
@@ -290,7 +153,7 @@ def _newton_tail(chart, max_steps, state, args):
     m, A, C, guess, tolerance, alive = args
     x, norm, fixed, off_branch = state
     restart = alive & (~(norm <= tolerance) | off_branch)
-    guess_norm = _max_abs(residual(chart, guess, m, A, False)[0])
+    guess_norm = max_abs(residual(chart, guess, m, A, False)[0])
     x = tuple(jnp.where(restart, x0, y) for x0, y in zip(guess, x))
     norm = jnp.where(restart, guess_norm, norm)
 
@@ -316,12 +179,12 @@ def _newton_tail(chart, max_steps, state, args):
 
 def solve_increment(chart, m, A, C, guess, tolerance, fixed: int, max_steps: int, alive=True):
     """Newton for the DEP equation on a batch, on `ω` with `v` eliminated
-    (`_reduced_residual`): `fixed` iterations from the rotation part of `guess`, one check
+    (`reduced_residual`): `fixed` iterations from the rotation part of `guess`, one check
     of the full residual `r(ω, v(ω))` and of the branch rule (`_off_branch`), then (only
     if some body needs it) the generic path's Newton from the guess for the bodies above
     `tolerance` or off the branch (`_newton_tail`). Returns `(ξ, iterations, residual
     ∞-norm, converged, off_branch)` per body. The first of the fixed iterations is a
-    chord step (`_chord_step`). Not differentiable (see `_at_root`)."""
+    chord step (`_chord_step`). Not differentiable (see `_implicit.differentiable_root`)."""
     fixed = min(fixed, max_steps)
     w = guess[:3]
     for k in range(fixed):
@@ -339,26 +202,6 @@ def solve_increment(chart, m, A, C, guess, tolerance, fixed: int, max_steps: int
     return x, iterations, norm, norm <= tolerance, off_branch
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _at_root(chart, x, m, A):
-    """`x`, a root of `r(·; m, A)`, with the derivative of the root as a function of `(m, A)`."""
-    return x
-
-
-@_at_root.defjvp
-def _at_root_jvp(chart, primals, tangents):
-    # Implicit function theorem: J dx = −(∂r/∂m dm + ∂r/∂A dA), linear in the tangents, so
-    # JAX transposes it for reverse mode.
-    x, m, A = primals
-    _, dm, dA = tangents
-    _, dr = jax.jvp(lambda mm, AA: residual(chart, x, mm, AA, False)[0], (m, A), (dm, dA))
-    _, J = residual(chart, x, m, A, True)
-    # In reverse mode this is the transposed solve's result, read by every cotangent.
-    dr = materialise(dr, ones(x[0]))
-    delta = solve6(factor(J), dr)
-    return x, tuple(-d for d in delta)
-
-
 def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, alive=True):
     """One DEP + DLP + reconstruction step on structure-of-arrays state.
 
@@ -373,15 +216,7 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
     x, iterations, norm, converged, off_branch = solve_increment(
         chart, sm, sA, sC, guess, stol, fixed, max_steps, alive
     )
-    # A diverged solve continues from the finite guess: a masked failed step then
-    # contributes 0, not NaN, to a gradient.
-    finite = jnp.isfinite(x[0])
-    for y in x[1:]:
-        finite = finite & jnp.isfinite(y)
-    x = tuple(jnp.where(finite, y, y0) for y, y0 in zip(x, guess))
-    # Tagged before `_at_root`, whose derivative rule evaluates `J` at this input.
-    x = checkpoint_name(jax.lax.stop_gradient(x), ROOT_NAME)
-    x = _at_root(chart, x, m, A)
+    x = differentiable_root(SE3Equation(chart), x, guess, m, A)
     one = ones(m[0])
     # Stored once each (`materialise`): read by every entry of `F`, `m_{k+1}`, `g_{k+1}`.
     x = materialise(x, one)
@@ -483,10 +318,10 @@ class SE3NewtonKernel(AbstractBatchKernel):
     def prepare(self, constants, h):
         M, Minv = constants
         A = tuple(tuple(e / h for e in row) for row in M)
-        # What the reduced Newton iteration reads (`_reduced_residual`): the Schur
+        # What the reduced Newton iteration reads (`reduced_residual`): the Schur
         # complement S = A₁₁ − A₁₂A₂₂⁻¹A₂₁, Z = A₁₂A₂₂⁻¹, A₂₂⁻¹ (Cramer), T = A₂₂⁻¹A₂₁,
         # and S⁻¹ (the chord step's matrix, `_chord_step`).
-        # Not differentiated (Newton only; the root's derivative is `_at_root`'s).
+        # Not differentiated (Newton only; the root's derivative is `_implicit.differentiable_root`'s).
         blocks = jax.lax.stop_gradient(A)
         A11, A12, A21 = block(blocks, 0, 0), block(blocks, 0, 1), block(blocks, 1, 0)
         A22inv = inverse3(block(blocks, 1, 1))
@@ -500,7 +335,7 @@ class SE3NewtonKernel(AbstractBatchKernel):
         A, Ainv, C = params
         fixed = self.fixed_iterations
         fixed = DEFAULT_FIXED_ITERATIONS[self.chart] if fixed is None else fixed
-        tolerance = newton_tolerance(_max_abs(m), m[0].dtype, self.rtol, self.atol)
+        tolerance = newton_tolerance(max_abs(m), m[0].dtype, self.rtol, self.atol)
         return dep_step(self.chart, g, m, A, Ainv, C, tolerance, fixed, self.max_steps, alive)
 
     def with_fixed_iterations(self, fixed_iterations: int):

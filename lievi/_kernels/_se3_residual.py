@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 
+import equinox as eqx
 import jax.numpy as jnp
 
 from ._base import materialise
@@ -268,3 +269,16 @@ def solve6(factors, r):
     x2 = mv(schur_inv, tuple(r[3 + i] - Ry1[i] for i in range(3)))
     Qx2 = mv(PinvQ, x2)
     return tuple(y1[i] - Qx2[i] for i in range(3)) + x2
+
+
+class SE3Equation(eqx.Module):
+    """The SE(3) DEP equation in the chart `chart`, as `_implicit.differentiable_root`
+    reads it: `residual` and the block solve `solve6`."""
+
+    chart: object = eqx.field(static=True)
+
+    def residual(self, x, m, A, with_jacobian: bool):
+        return residual(self.chart, x, m, A, with_jacobian)
+
+    def solve(self, J, r):
+        return solve6(factor(J), r)

@@ -17,8 +17,8 @@ principal moments `I` (diagonal inertia), written for throughput over many bodie
   `S(u) = sin φ/φ`, `C(u) = cos φ`, `P(u) = (S − C)/u`, hence
   `sin θ/θ = S C`, `(1 − cos θ)/θ² = S²/2` and the `dexpinv` coefficient
   `(1 − (θ/2)cot(θ/2))/θ² = P/(4S)` (docs/theory/closed-forms.md);
-- **implicit differentiation**: the converged root is passed through `_at_root`, whose
-  derivative is the implicit function theorem's `dξ = −J⁻¹ (∂r/∂Π dΠ + ∂r/∂A dA)` with
+- **implicit differentiation**: the converged root is passed through
+  `_implicit.differentiable_root`, whose derivative is the implicit function theorem's `dξ = −J⁻¹ (∂r/∂Π dΠ + ∂r/∂A dA)` with
   the closed-form `J` (Cramer's rule again, so the transposed solve of reverse mode costs
   what a forward Newton iteration does); the Newton iterations themselves, and their
   `while_loop`, run on `stop_gradient`-ed inputs and are never differentiated;
@@ -44,16 +44,15 @@ then `F = φ(ξ) = 1 + a ξ̂ + b ξ̂²` (exp: `a = S C`, `b = S²/2`; Cayley: 
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.ad_checkpoint import checkpoint_name
 
 from .._newton import newton_tolerance
 from .._results import RESULTS
-from ._base import ROOT_NAME, AbstractBatchKernel, materialise
+from ._base import AbstractBatchKernel
+from ._implicit import differentiable_root
 from ._so3_equations import AbstractSO3Equation, explicit_euler_guess, moser_veselov_on_branch
 from ._soa import (
     cross,
@@ -129,31 +128,6 @@ def solve_increment(equation, Pi, A, tolerance, fixed_iterations: int, max_steps
     return xi, iterations, norm, norm <= tolerance
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _at_root(equation, xi, Pi, A):
-    """`ξ`, a root of `r(·; Π, A)`, with the derivative of the root as a function of `(Π, A)`."""
-    return xi
-
-
-@_at_root.defjvp
-def _at_root_jvp(equation, primals, tangents):
-    # Implicit function theorem: r(ξ(Π, A); Π, A) = 0 ⇒ J dξ = −(∂r/∂Π dΠ + ∂r/∂A dA).
-    # Linear in the tangents with coefficients from the primal point, so JAX transposes it
-    # for reverse mode; the transposed Cramer solve costs what the forward one does.
-    xi, Pi, A = primals
-    _, dPi, dA = tangents
-    _, dr = jax.jvp(lambda P, B: equation.residual(xi, P, B, False)[0], (Pi, A), (dPi, dA))
-    _, J = equation.residual(xi, Pi, A, True)
-    # Materialised: in reverse mode this is the transposed solve's result `λ = J⁻ᵀ ξ̄`,
-    # which every cotangent of `Π` and `A` needs; stored once, rather than the solve
-    # (with `J`) re-evaluated inside each of their six fused loops (measured: the
-    # gradient of a batch of 1e5 exp-chart bodies 16 % faster; materialising `ξ̄` too
-    # was slower).
-    dr = materialise(dr, Pi[0] * 0 + 1)
-    delta = solve3(J, dr)
-    return xi, tuple(-d for d in delta)
-
-
 def differentiable_increment(
     equation, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True
 ):
@@ -166,17 +140,8 @@ def differentiable_increment(
     xi, iterations, norm, converged = solve_increment(
         equation, *stopped, fixed_iterations, max_steps, alive
     )
-    # A diverged solve (reported through the residual) continues from the finite
-    # explicit-Euler guess: the implicit derivative is then evaluated at a finite point,
-    # so a failed step whose output is masked contributes 0, not NaN, to a gradient.
-    finite = jnp.isfinite(xi[0]) & jnp.isfinite(xi[1]) & jnp.isfinite(xi[2])
     guess = explicit_euler_guess(*stopped[:2])
-    xi = tuple(jnp.where(finite, x, x0) for x, x0 in zip(xi, guess))
-    # Tagged before `_at_root`: its derivative rule evaluates `J` at this input, so the
-    # backward pass must find the input stored (a tag on the output alone is a different
-    # variable, and the backward pass then re-runs the Newton iterations to recompute it).
-    xi = checkpoint_name(jax.lax.stop_gradient(xi), ROOT_NAME)
-    return _at_root(equation, xi, Pi, A), iterations, norm, converged
+    return differentiable_root(equation, xi, guess, Pi, A), iterations, norm, converged
 
 
 def dep_step(equation, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True):

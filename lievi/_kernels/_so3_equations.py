@@ -189,6 +189,10 @@ class AbstractSO3Equation(eqx.Module):
     def residual(self, xi, Pi, A, with_jacobian: bool):
         """`(r, ∂r/∂ξ)` (the Jacobian `None` without `with_jacobian`)."""
 
+    def solve(self, J, r):
+        """`J⁻¹r` by Cramer's rule (the Newton step and the implicit derivative)."""
+        return solve3(J, r)
+
     @abc.abstractmethod
     def start(self, Pi, A, iterations: int):
         """The iterate after `iterations` fixed Newton steps from the start."""
