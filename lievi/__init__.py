@@ -54,6 +54,7 @@ from ._progress import TextProgressMeter as TextProgressMeter
 from ._progress import TqdmProgressMeter as TqdmProgressMeter
 from ._reference import reference_solution as reference_solution
 from ._results import RESULTS as RESULTS
+from ._save import Save as Save
 from ._sharding import shard_batch as shard_batch
 from ._simulate import Solution as Solution
 from ._simulate import simulate as simulate

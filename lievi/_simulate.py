@@ -292,6 +292,8 @@ def _simulate(
 ) -> Solution:
     nan = jnp.asarray(jnp.nan, m0.dtype)
     progress.report(jnp.asarray(0, jnp.int32), n_steps)
+    # Per-run state (e.g. a preprocessed method's modified moments for this `h`), once.
+    integrator = integrator.init(system, m0, h)
 
     def one_step(carry, data):
         g, m, result, failed_step, k = carry

@@ -35,14 +35,13 @@ from ._checks import (
 from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator
 from ._results import RESULTS
+from ._save import Save, as_save
 from ._scan import checkpoint_segment
 from ._simulate import Solution, advected_of, simulate
 from ._simulate_kernel import simulate_kernel
 from ._systems._base import AbstractLieSystem
 
-SAVE_FIELDS = ("g", "m", "stats")
-# Saved only on request: the advected parameter Γ of the potential (`Solution.advected`).
-OPTIONAL_SAVE_FIELDS = ("advected",)
+SAVE_FIELDS = ("g", "m", "stats")  # the default `save`
 
 
 def _fast_kernel(system, integrator, system_axis, fixed_iterations=None, carry_g=True):
@@ -134,7 +133,7 @@ def simulate_batch(
     h,
     n_steps: int,
     save_every: int | None = None,
-    save: Sequence[str] = SAVE_FIELDS,
+    save: Save | Sequence[str] = SAVE_FIELDS,
     system_axis: int | None = None,
     fast: bool = True,
     fixed_iterations: int | None = None,
@@ -157,13 +156,14 @@ def simulate_batch(
     - `n_steps`: number of steps.
     - `save_every`: save every this many steps (must divide `n_steps`). Default: only the
       initial and the final state are kept (`save_every = n_steps`), the cheapest output.
-    - `save`: which per-save fields to store, a subset of `("g", "m", "stats",
-      "advected")` (default `("g", "m", "stats")`); the omitted ones are `None` in the
-      `Solution` (the summary statistics `failed_step`, `total_newton_iterations`,
-      `num_steps` are always kept). Storing nothing but the final state is what makes
-      very large batches fit in memory. For a potential with an advected parameter
-      (e.g. `UniformGravity`: `AbstractPotential.advected_direction`) `Γ_k = g_kᵀa` is
-      `Solution.advected`, `(B, T, 3)`, whenever `"g"` or `"advected"` is saved.
+    - `save`: which per-save fields to store, a `lievi.Save` or a sequence of its field
+      names, a subset of `("g", "m", "stats", "advected")` (default `("g", "m",
+      "stats")`); the omitted ones are `None` in the `Solution` (the summary statistics
+      `failed_step`, `total_newton_iterations`, `num_steps` are always kept). Storing
+      nothing but the final state is what makes very large batches fit in memory. For a
+      potential with an advected parameter (e.g. `UniformGravity`:
+      `AbstractPotential.advected_direction`) `Γ_k = g_kᵀa` is `Solution.advected`,
+      `(B, T, 3)`, whenever `"g"` or `"advected"` is saved.
       **`save` also picks the algorithm of such a system's fast path:** without `"g"`
       it carries the reduced state `(Π, Γ)` instead of `(Π, g)` — the reduced discrete
       Lie–Poisson equations of the paper's §7, `Γ_{k+1} = F_kᵀΓ_k`, half the state —
@@ -224,17 +224,8 @@ def simulate_batch(
     save_every = n_steps if save_every is None else check_integer("save_every", save_every, 1)
     if n_steps % save_every:
         raise ValueError(f"`save_every` ({save_every}) must divide `n_steps` ({n_steps}).")
-    if isinstance(save, str):
-        raise ValueError(
-            f"`save` must be a sequence of field names, e.g. ('g', 'm'), got the string {save!r}."
-        )
-    save = tuple(save)
-    unknown = set(save) - set(SAVE_FIELDS + OPTIONAL_SAVE_FIELDS)
-    if unknown:
-        raise ValueError(
-            f"`save` may only contain {SAVE_FIELDS + OPTIONAL_SAVE_FIELDS}, got {sorted(unknown)}."
-        )
-    if "advected" in save and (
+    save = as_save(save)
+    if save.advected and (
         system.potential is None or system.potential.advected_direction() is None
     ):
         raise ValueError(
@@ -315,7 +306,7 @@ def simulate_batch(
     # Forced runs take the generic path (the kernels integrate unforced bodies).
     use_fast = fast and forcing is None
     fast_kernel = (
-        _fast_kernel(system, integrator, system_axis, fixed_iterations, carry_g="g" in save)
+        _fast_kernel(system, integrator, system_axis, fixed_iterations, carry_g=save.g)
         if use_fast
         else None
     )
@@ -339,7 +330,7 @@ def simulate_batch(
             unroll,
             segment,
             valid,
-            system.group if "g" in save and drifts_off_group(dtype) else None,
+            system.group if save.g and drifts_off_group(dtype) else None,
         )
         if solution.advected is None and solution.g is not None:
             solution = eqx.tree_at(
@@ -389,13 +380,13 @@ def _advected(system, system_axis, g):
 
 def _keep(solution: Solution, save) -> Solution:
     stats = dict(solution.stats)
-    if "stats" not in save:
+    if not save.stats:
         del stats["newton_iterations"], stats["residual"]
-    keep_advected = "g" in save or "advected" in save
+    keep_advected = save.with_advected()
     return Solution(
         ts=solution.ts,
-        g=solution.g if "g" in save else None,
-        m=solution.m if "m" in save else None,
+        g=solution.g if save.g else None,
+        m=solution.m if save.m else None,
         result=solution.result,
         stats=stats,
         advected=solution.advected if keep_advected else None,

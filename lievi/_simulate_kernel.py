@@ -47,7 +47,7 @@ def simulate_kernel(
     # The kernel's carried entries of `g` (on SO(3) all 9, or the advected parameter
     # alone on the reduced path).
     g = kernel.carried(g0)
-    Pi = tuple(m0[:, i] for i in range(m0.shape[1]))
+    m = tuple(m0[:, i] for i in range(m0.shape[1]))
     nan = jnp.asarray(jnp.nan, dtype)
     int32 = jnp.int32
     # Per-run constants of the step-size check, once outside the loop: the per-step check
@@ -55,13 +55,13 @@ def simulate_kernel(
     # product on CPU).
     turn_rates = kernel.turn_rates(constants, h)
 
-    def _checked_step_result(g_next, Pi_next, Pi, step_result):
+    def _checked_step_result(g_next, m_next, m, step_result):
         """`lievi._simulate.checked_step_result` on structure of arrays."""
         finite = jnp.isfinite(g_next[0])
-        for x in (*g_next[1:], *Pi_next):
+        for x in (*g_next[1:], *m_next):
             finite = finite & jnp.isfinite(x)
         # (h|ω|)² > bound², as h|ω| > bound but for rounding at the bound.
-        too_large = kernel.turn_squared(turn_rates, Pi) > step_bound * step_bound
+        too_large = kernel.turn_squared(turn_rates, m) > step_bound * step_bound
         return RESULTS.checked(step_result, finite, too_large)
 
     # Reverse mode keeps each step's input state and root (the solve is not repeated);
@@ -72,10 +72,10 @@ def simulate_kernel(
         policy=jax.checkpoint_policies.save_only_these_names(ROOT_NAME),
     )
     def one_step(carry, _):
-        (g, Pi, result, failed_step, k), (total, most, worst) = carry
+        (g, m, result, failed_step, k), (total, most, worst) = carry
         alive = result == RESULTS.successful
-        g_next, Pi_next, step_result, iterations, residual = kernel.step(params, g, Pi, alive)
-        step_result = _checked_step_result(g_next, Pi_next, Pi, step_result)
+        g_next, m_next, step_result, iterations, residual = kernel.step(params, g, m, alive)
+        step_result = _checked_step_result(g_next, m_next, m, step_result)
         result, failed_step, ok = RESULTS.record(result, failed_step, k, step_result)
         # Saved for the backward pass (one byte a body-step): the mask is all the backward
         # needs of the step's checks, which would otherwise re-evaluate the whole step
@@ -84,13 +84,13 @@ def simulate_kernel(
         # After a failure the last good state is carried on (`RESULTS.record`; the kernel
         # spends no extra iterations on it); the saved state is NaN.
         g_next = tuple(jnp.where(ok, x, y) for x, y in zip(g_next, g))
-        Pi_next = tuple(jnp.where(ok, x, y) for x, y in zip(Pi_next, Pi))
+        m_next = tuple(jnp.where(ok, x, y) for x, y in zip(m_next, m))
         # Statistics are reduced in the carry, not stacked per step: a (steps, B) output
         # would cost more memory traffic than the state itself.
         iterations = jnp.where(alive, iterations, 0)
         residual = jnp.where(alive, residual, -jnp.inf)
         counters = (total + iterations, jnp.maximum(most, iterations), jnp.fmax(worst, residual))
-        return ((g_next, Pi_next, result, failed_step, k + 1), counters), None
+        return ((g_next, m_next, result, failed_step, k + 1), counters), None
 
     zero_counters = (
         jnp.zeros((batch,), int32),
@@ -111,19 +111,19 @@ def simulate_kernel(
             state = (kernel.carried(elements), *state[1:])
         ok = state[2] == RESULTS.successful
         out = {"iterations": total}
-        if "g" in save:
+        if save.g:
             out["g"] = jnp.where(ok, jnp.stack(state[0]), nan)
-        if "m" in save:
+        if save.m:
             out["m"] = jnp.where(ok, jnp.stack(state[1]), nan)
-        if "advected" in save:
+        if save.advected:
             out["advected"] = jnp.where(ok, jnp.stack(kernel.advected(state[0])), nan)
-        if "stats" in save:
+        if save.stats:
             out["max_iterations"] = most
             out["residual"] = worst
         return state, out
 
     result0, failed_step0 = (jnp.broadcast_to(x, (batch,)) for x in RESULTS.initial(valid))
-    init = (g, Pi, result0, failed_step0, jnp.asarray(0, int32))
+    init = (g, m, result0, failed_step0, jnp.asarray(0, int32))
     final, out = scan_in_segments(one_save, init, n_steps // save_every, outer)
     _, _, result, failed_step, _ = final
     n_saves = n_steps // save_every
@@ -135,17 +135,17 @@ def simulate_kernel(
         "total_newton_iterations": jnp.sum(out["iterations"], axis=0),
         "num_steps": jnp.full((batch,), n_steps),
     }
-    if "stats" in save:
+    if save.stats:
         stats["newton_iterations"] = out["max_iterations"].T
         stats["residual"] = out["residual"].T
     gs = ms = None
-    if "g" in save:
+    if save.g:
         # (T−1, k, B) → (B, T, n, n), initial state first.
         gs = jnp.concatenate([g0[:, None], kernel.elements(out["g"])], axis=1)
-    if "m" in save:
+    if save.m:
         ms = jnp.concatenate([m0[:, None], jnp.moveaxis(out["m"], -1, 0)], axis=1)
     advected = None
-    if "advected" in save:
+    if save.advected:
         advected0 = jnp.stack(kernel.advected(g), axis=-1)
         advected = jnp.concatenate(
             [advected0[:, None], jnp.moveaxis(out["advected"], -1, 0)], axis=1

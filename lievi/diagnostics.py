@@ -73,7 +73,7 @@ def orthogonality_defect(system: AbstractLieSystem, g: Float[Array, "*batch n n"
     return system.group.membership_defect(g)
 
 
-def relative_drift(values: Float[Array, T * rest]) -> Scalar:
+def relative_drift(values: Float[Array, "T ..."]) -> Scalar:
     """`max_k |v_k − v_0| / |v_0|` over the first axis (∞-norm over the rest)."""
     v0 = values[0]
     scale = jnp.maximum(jnp.max(jnp.abs(v0)), jnp.finfo(values.dtype).tiny)

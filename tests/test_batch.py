@@ -238,6 +238,14 @@ def test_shared_system_and_save_options(problem):
     np.testing.assert_allclose(final.m[3], single.m, rtol=0, atol=ROUNDOFF)
     assert lievi.has_fast_path(body, dep)
     assert not lievi.has_fast_path(lievi.RigidBody(jnp.diag(jnp.array([2.0, 1.0, 0.5]))), dep)
+    # `lievi.Save` is the option the names stand for: the same fields, the same values.
+    as_object = lievi.simulate_batch(
+        body, dep, g0, m0, h=0.1, n_steps=STEPS, save=lievi.Save(g=False, stats=False)
+    )
+    assert as_object.g is None and "newton_iterations" not in as_object.stats
+    np.testing.assert_array_equal(as_object.m, final.m)
+    with pytest.raises(ValueError, match="`Save.g` must be True or False"):
+        lievi.Save(g="yes")
 
 
 @pytest.mark.slow

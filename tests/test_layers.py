@@ -20,7 +20,7 @@ LAYERS = (
     ("kernels", ("_kernels",)),
     ("integrators", ("_integrators",)),
     ("step loop", ("_scan", "_progress", "_simulate")),
-    ("batches", ("_simulate_kernel", "_simulate_batch", "_sharding")),
+    ("batches", ("_save", "_simulate_kernel", "_simulate_batch", "_sharding")),
     (
         "applications",
         ("_reference", "diagnostics", "_identification", "_fit_optimizer", "_optimal_control"),

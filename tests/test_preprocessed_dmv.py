@@ -317,14 +317,24 @@ def test_bad_input():
         lievi.PreprocessedMoserVeselov(6).prepare(top, Y0, 0.1)
 
 
-def test_prepared_for_another_step_size_is_an_error():
-    # The series of a prepared integrator belong to one h; another h must not run silently.
+def test_prepared_for_another_step_size():
+    """The series of a prepared integrator belong to one h. `simulate` prepares every run
+    for its own h (`init`): a copy prepared for another h runs as one prepared for this h
+    (and as the unprepared integrator, whose run is prepared the same way). Its `step`,
+    called directly with another h, is an error rather than a silent low-order step."""
     body = lievi.RigidBody(BODIES["hv"])
-    prepared = lievi.PreprocessedMoserVeselov(6).prepare(body, Y0, 0.1)
-    solution = lievi.simulate(body, prepared, jnp.eye(3), Y0, h=0.1, n_steps=3)
-    assert int(solution.result) == int(lievi.RESULTS.successful)
+    integrator = lievi.PreprocessedMoserVeselov(6)
+    runs = [
+        lievi.simulate(body, method, jnp.eye(3), Y0, h=0.05, n_steps=3)
+        for method in (integrator.prepare(body, Y0, 0.1), integrator.prepare(body, Y0, 0.05))
+    ]
+    runs.append(lievi.simulate(body, integrator, jnp.eye(3), Y0, h=0.05, n_steps=3))
+    for sol in runs:
+        assert int(sol.result) == int(lievi.RESULTS.successful)
+        np.testing.assert_array_equal(sol.m, runs[1].m)
+    prepared = integrator.prepare(body, Y0, 0.1)
     with pytest.raises(Exception, match="prepared for another step size"):
-        lievi.simulate(body, prepared, jnp.eye(3), Y0, h=0.05, n_steps=3)
+        jax.block_until_ready(prepared.step(body, jnp.eye(3), Y0, jnp.asarray(0.05)))
 
 
 @pytest.mark.slow

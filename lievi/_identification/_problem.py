@@ -169,7 +169,7 @@ class Problem(eqx.Module):
         to within `PREDICTED` (orientations: `‖g_k − R_k‖_F`; velocities: `‖Ω_k − Ω̂_k‖`
         relative to the rms observed velocity; samples of weight 0 count as reproduced),
         `(bodies, S)`."""
-        _, sol = self.rollout(params, dynamic, data, h)
+        systems, sol = self.rollout(params, dynamic, data, h)
         ok = jnp.ones(sol.m.shape[:2], bool)
         if data["orientations"] is not None:
             error = jnp.sqrt(jnp.sum((sol.g - data["orientations"]) ** 2, axis=(-2, -1)))

@@ -43,6 +43,13 @@ class AbstractIntegrator(eqx.Module):
         """Whether `Φ_{−h} = Φ_h⁻¹` (time-reversible); `Composition` needs it."""
         return False
 
+    def init(self, system: AbstractLieSystem, m0: Float[Array, " d"], h: Scalar):
+        """This integrator as it runs one trajectory from `m0` with step `h`: what depends
+        on the run rather than on the step, computed once, outside the step loop
+        (`simulate` calls it at the start of every run, so it is computed for that run's
+        own `h` and `m0`; diffrax's `solver.init` in spirit). Default: itself."""
+        return self
+
     @abc.abstractmethod
     def step(
         self,

@@ -235,13 +235,16 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     - `order`: 4, 6, 8 or 10 (the modified moments are cut after `h^(order − 2)`).
     - `method`: the inner `MoserVeselov` (its Newton tolerances).
 
-    `step` computes `α`, `β` from the current momentum (truncated-series arithmetic, up to
-    ~10⁶ flops at order 10). For long runs call `prepare(system, m0, h)` once: it returns a copy that stores them, and whose
-    step then costs one DMV step. A prepared integrator must be used with that same `h`
-    (an error otherwise, also under `jit`) and on the trajectory of `m0` (or any state with
-    the same energy and Casimir; another momentum is reported as `RESULTS.invalid_input`).
-    `equivalent_moser_veselov(system, m0, h)` returns the
-    modified body itself, for `MoserVeselov` fast paths such as `lievi.simulate_batch`'s.
+    `α`, `β` depend on the step size and on the trajectory's invariants (truncated-series
+    arithmetic, up to ~10⁶ flops at order 10). `lievi.simulate` computes them once per run,
+    for that run's `h` and `m0` (`init`), so every step costs one DMV step, and an
+    integrator prepared for another `h` is prepared anew rather than misused. Called
+    directly, `step` computes them from the current momentum; `prepare(system, m0, h)`
+    returns a copy that stores them, whose `step` then requires that `h` (an error
+    otherwise, also under `jit`) and a state on the trajectory of `m0` (the same energy
+    and Casimir; another momentum is reported as `RESULTS.invalid_input`).
+    `equivalent_moser_veselov(system, m0, h)` returns the modified body itself, for
+    `MoserVeselov` fast paths such as `lievi.simulate_batch`'s.
     """
 
     order_: int = eqx.field(static=True)
@@ -273,6 +276,11 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
         # the sign of h.
         return True
 
+    def init(self, system: AbstractLieSystem, m0: Float[Array, 3], h):
+        # The run's own `h` and `m0` (already checked by `simulate`): see `prepare`.
+        _check_system(system)
+        return self._prepared(system, m0, h)
+
     def prepare(
         self, system: AbstractLieSystem, m0: Float[Array, 3], h
     ) -> PreprocessedMoserVeselov:
@@ -281,7 +289,9 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
         check_scalar("h", h, positive=True)
         system.check_momentum("m0", m0)
         dtype = state_dtype(system, m0, h)
-        m0, h = jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
+        return self._prepared(system, jnp.asarray(m0, dtype), jnp.asarray(h, dtype))
+
+    def _prepared(self, system, m0, h) -> PreprocessedMoserVeselov:
         alpha, beta = preprocessing(system, m0, h, self.order_)
         invariants = jnp.stack([jnp.dot(m0, m0), system.energy(m0)])
         return PreprocessedMoserVeselov(

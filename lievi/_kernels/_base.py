@@ -132,10 +132,10 @@ class AbstractBatchKernel(eqx.Module):
         (an array `(B,)` or a scalar), computed once outside the loop."""
 
     @abc.abstractmethod
-    def step(self, params, g, Pi, alive):
+    def step(self, params, g, m, alive):
         """Advance `(g, m)` by one step.
 
-        `params`: what `prepare` returned; `g`: the carried entries (`carried`); `Pi`: the
+        `params`: what `prepare` returned; `g`: the carried entries (`carried`); `m`: the
         momentum's components (3 on SO(3)); `alive`: a boolean `(B,)` mask of the bodies
         that have not failed (a failed body's step is computed but must not cost extra
         work, e.g. Newton iterations past the fixed ones).

@@ -16,21 +16,21 @@ from . import _explicit_adjoints
 from ._base import AbstractBatchKernel
 
 
-def _finite_result(Pi, g):
-    finite = jnp.isfinite(Pi[0])
-    for x in (*Pi[1:], *g):
+def _finite_result(m, g):
+    finite = jnp.isfinite(m[0])
+    for x in (*m[1:], *g):
         finite = finite & jnp.isfinite(x)
     return jnp.where(finite, RESULTS.successful, RESULTS.nonfinite).astype(jnp.int32)
 
 
-def splitting_step(g, Pi, rate):
+def splitting_step(g, m, rate):
     """One `LiePoissonSplitting` step: axes 0, 1 (h/2), 2 (h), 1, 0 (h/2), as `_splitting.py`.
 
     Sub-flow about axis `p` for a fraction `f` of the step: `F_j = exp(α ê_p)` with
     `α = f Π_p h/I_p`, `Π ← F_jᵀ Π` (`Π_p` does not change). The five rotations are
     composed as unit quaternions `(cos α/2, sin α/2 e_p)` into `F = F_1⋯F_5`, and
     `g ← g F` once (equal to rotating `g` five times, to round-off). `g`: 9 arrays
-    (row-major), or only some of its rows (as `dep_step`), `Pi`: 3 arrays, `rate`: `h/I_p`,
+    (row-major), or only some of its rows (as `dep_step`), `m`: 3 arrays, `rate`: `h/I_p`,
     3 arrays or scalars. Returns `(g_next, Pi_next, result)`. Differentiable by the
     hand-written tangent of `_explicit_adjoints.splitting_flow`.
 
@@ -42,11 +42,11 @@ def splitting_step(g, Pi, rate):
     quaternion, and each angle (a division by `I/h`), was measured 1.2–1.4× slower at
     batch 1e5 (same run).
     """
-    g, Pi = _explicit_adjoints.splitting_flow(tuple(g), tuple(Pi), tuple(rate))
-    return g, Pi, _finite_result(Pi, g)
+    g, m = _explicit_adjoints.splitting_flow(tuple(g), tuple(m), tuple(rate))
+    return g, m, _finite_result(m, g)
 
 
-def rk4_step(g, Pi, rate):
+def rk4_step(g, m, rate):
     """One `RK4` step on `ṁ = Π × Ω`, `ġ = g Ω̂`, `Ω = I⁻¹Π` (`_rk4.py`), component-wise.
 
     `rate`: `h/I_p`, 3 arrays or scalars. The step and the moments enter only through
@@ -55,13 +55,13 @@ def rk4_step(g, Pi, rate):
     carries three cotangents of the parameters, not four. Differentiable by the
     hand-written tangent of `_explicit_adjoints.rk4_flow`.
     """
-    g_next, Pi_next = _explicit_adjoints.rk4_flow(tuple(g), tuple(Pi), tuple(rate))
-    return g_next, Pi_next, _finite_result(Pi_next, g_next)
+    g_next, m_next = _explicit_adjoints.rk4_flow(tuple(g), tuple(m), tuple(rate))
+    return g_next, m_next, _finite_result(m_next, g_next)
 
 
-def _explicit_info(Pi):
+def _explicit_info(m):
     # Explicit: no Newton iterations, zero residual (as the per-body `StepInfo`).
-    return jnp.zeros(jnp.shape(Pi[0]), jnp.int32), jnp.zeros(jnp.shape(Pi[0]), Pi[0].dtype)
+    return jnp.zeros(jnp.shape(m[0]), jnp.int32), jnp.zeros(jnp.shape(m[0]), m[0].dtype)
 
 
 class SplittingKernel(AbstractBatchKernel):
@@ -70,9 +70,9 @@ class SplittingKernel(AbstractBatchKernel):
     def prepare(self, inertia, h):
         return tuple(h / moment for moment in inertia)
 
-    def step(self, params, g, Pi, alive):
-        g_next, Pi_next, result = splitting_step(g, Pi, params)
-        return (g_next, Pi_next, result, *_explicit_info(Pi))
+    def step(self, params, g, m, alive):
+        g_next, m_next, result = splitting_step(g, m, params)
+        return (g_next, m_next, result, *_explicit_info(m))
 
 
 class RK4Kernel(AbstractBatchKernel):
@@ -81,6 +81,6 @@ class RK4Kernel(AbstractBatchKernel):
     def prepare(self, inertia, h):
         return tuple(h / moment for moment in inertia)
 
-    def step(self, params, g, Pi, alive):
-        g_next, Pi_next, result = rk4_step(g, Pi, params)
-        return (g_next, Pi_next, result, *_explicit_info(Pi))
+    def step(self, params, g, m, alive):
+        g_next, m_next, result = rk4_step(g, m, params)
+        return (g_next, m_next, result, *_explicit_info(m))

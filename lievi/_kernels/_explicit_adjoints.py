@@ -42,26 +42,26 @@ from . import _explicit_primal
 
 
 @jax.custom_jvp
-def splitting_flow(g, Pi, rate):
+def splitting_flow(g, m, rate):
     """`(g_next, Π_next)` of one splitting step, as `_explicit.splitting_step`."""
-    g_next, Pi_next, *_ = _explicit_primal.splitting_primal(g, Pi, rate)
-    return g_next, Pi_next
+    g_next, m_next, *_ = _explicit_primal.splitting_primal(g, m, rate)
+    return g_next, m_next
 
 
 @splitting_flow.defjvp
 def _splitting_flow_jvp(primals, tangents):
-    g, Pi, R = primals
-    dg, dPi, dR = tangents
-    g_next, Pi_next, rotations, momenta, F = _explicit_primal.splitting_primal(g, Pi, R)
+    g, m, R = primals
+    dg, dm, dR = tangents
+    g_next, m_next, rotations, momenta, F = _explicit_primal.splitting_primal(g, m, R)
     subflows = _explicit_primal.SUBFLOWS
-    dPi = list(dPi)
+    dm = list(dm)
     dalpha = []
     for (p, fraction), (c, s), before, after in zip(subflows, rotations, momenta, momenta[1:]):
         q, r = (p + 1) % 3, (p + 2) % 3
-        da = fraction * (dPi[p] * R[p] + before[p] * dR[p])
-        dPi[q], dPi[r] = (
-            c * dPi[q] + s * dPi[r] + after[r] * da,
-            c * dPi[r] - s * dPi[q] - after[q] * da,
+        da = fraction * (dm[p] * R[p] + before[p] * dR[p])
+        dm[q], dm[r] = (
+            c * dm[q] + s * dm[r] + after[r] * da,
+            c * dm[r] - s * dm[q] - after[q] * da,
         )
         dalpha.append(da)
     # w = Σ_j dα_j F_1⋯F_{j−1} e_{p_j}, inside out: u ← F_j u + dα_j e_{p_j}.
@@ -76,7 +76,7 @@ def _splitting_flow_jvp(primals, tangents):
     for i in range(len(g) // 3):
         gw = cross(g[3 * i : 3 * i + 3], w)
         rows += [dg[3 * i + k] + gw[k] for k in range(3)]
-    return (g_next, Pi_next), (_explicit_primal.matmul3(tuple(rows), F), tuple(dPi))
+    return (g_next, m_next), (_explicit_primal.matmul3(tuple(rows), F), tuple(dm))
 
 
 def _rotate(p, c, s, v):
@@ -98,25 +98,25 @@ def cross(x, y):
 
 
 @jax.custom_jvp
-def rk4_flow(g, Pi, rate):
+def rk4_flow(g, m, rate):
     """`(g_next, Π_next)` of one RK4 step, as `_explicit.rk4_step`."""
-    g_next, Pi_next, _ = _explicit_primal.rk4_primal(g, Pi, rate)
-    return g_next, Pi_next
+    g_next, m_next, _ = _explicit_primal.rk4_primal(g, m, rate)
+    return g_next, m_next
 
 
 @rk4_flow.defjvp
 def _rk4_flow_jvp(primals, tangents):
-    g, Pi, rate = primals
-    dg, dPi, drate = tangents
-    g_next, Pi_next, stages = _explicit_primal.rk4_primal(g, Pi, rate)
+    g, m, rate = primals
+    dg, dm, drate = tangents
+    g_next, m_next, stages = _explicit_primal.rk4_primal(g, m, rate)
     slopes = []
     for c, ((gi, Pii), _, w) in zip((None, 0.5, 0.5, 1.0), stages):
         if c is None:
-            dgi, dPii = dg, dPi
+            dgi, dPii = dg, dm
         else:
             dkg, dkP = slopes[-1]
             dgi = tuple(d + c * dk for d, dk in zip(dg, dkg))
-            dPii = tuple(d + c * dk for d, dk in zip(dPi, dkP))
+            dPii = tuple(d + c * dk for d, dk in zip(dm, dkP))
         dw = tuple(dPii[i] * rate[i] + Pii[i] * drate[i] for i in range(3))
         dkP = tuple(a + b for a, b in zip(cross(dPii, w), cross(Pii, dw)))
         dkg = []
@@ -132,4 +132,4 @@ def _rk4_flow_jvp(primals, tangents):
             for d, t in zip(dx, zip(*(dk[part] for dk in slopes)))
         )
 
-    return (g_next, Pi_next), (combine(dg, 0), combine(dPi, 1))
+    return (g_next, m_next), (combine(dg, 0), combine(dm, 1))

@@ -166,24 +166,24 @@ def matmul3(X, Y):
 SUBFLOWS = ((0, 0.5), (1, 0.5), (2, 1.0), (1, 0.5), (0, 0.5))
 
 
-def splitting_primal(g, Pi, rate):
+def splitting_primal(g, m, rate):
     """`splitting_step`'s arithmetic: `(g_next, Π_next, [(cos α_j, sin α_j)], [Π^{(j)}], F)`,
     the rotations, the momenta before and after each sub-flow (`j = 0…5`, sequentially
     rotated) and the composed increment `F = F_1⋯F_5` (9 arrays); `g_next = g F`,
     `Π_next = Fᵀ Π`."""
-    one = Pi[0] * 0 + 1
-    factors, rotations, momenta = [], [], [tuple(Pi)]
+    one = m[0] * 0 + 1
+    factors, rotations, momenta = [], [], [tuple(m)]
     for p, fraction in SUBFLOWS:
         # The half angle α/2 = (f/2)·Π_p·(h/I_p): a product. As a quotient by I_p/h it
         # was a division a sub-flow, which XLA evaluates once and stores (see
         # `materialise`): one more array written and read back per angle.
-        sin_half, cos_half = materialise(sincos((0.5 * fraction) * Pi[p] * rate[p]), one)
+        sin_half, cos_half = materialise(sincos((0.5 * fraction) * m[p] * rate[p]), one)
         c, s = 1 - 2 * sin_half * sin_half, 2 * sin_half * cos_half
         q, r = (p + 1) % 3, (p + 2) % 3
-        Pi = list(Pi)
-        Pi[q], Pi[r] = c * Pi[q] + s * Pi[r], c * Pi[r] - s * Pi[q]
+        m = list(m)
+        m[q], m[r] = c * m[q] + s * m[r], c * m[r] - s * m[q]
         rotations.append((c, s))
-        momenta.append(tuple(Pi))
+        momenta.append(tuple(m))
         factors.append((cos_half, *(sin_half if i == p else 0.0 for i in range(3))))
     # (q1 q2) q3 (q4 q5): the two sparse pairs first, 4 products each.
     q12, q45 = _quaternion_product(*factors[:2]), _quaternion_product(*factors[3:])
@@ -197,25 +197,25 @@ def splitting_primal(g, Pi, rate):
     return matmul3(g, F), matmul3(momenta[0], F), rotations, momenta, F
 
 
-def rk4_field(g, Pi, w):
+def rk4_field(g, m, w):
     """`(g ŵ, Π × w)`, component-wise; `g` 9 arrays (or some rows), `w` 3 arrays."""
-    dPi = (
-        Pi[1] * w[2] - Pi[2] * w[1],
-        Pi[2] * w[0] - Pi[0] * w[2],
-        Pi[0] * w[1] - Pi[1] * w[0],
+    dm = (
+        m[1] * w[2] - m[2] * w[1],
+        m[2] * w[0] - m[0] * w[2],
+        m[0] * w[1] - m[1] * w[0],
     )
     # (g ŵ)_{ij} = Σ_k g_ik ŵ_kj, ŵ = [[0, −w2, w1], [w2, 0, −w0], [−w1, w0, 0]].
     dg = []
     for i in range(len(g) // 3):
         g0, g1, g2 = g[3 * i], g[3 * i + 1], g[3 * i + 2]
         dg += [g1 * w[2] - g2 * w[1], g2 * w[0] - g0 * w[2], g0 * w[1] - g1 * w[0]]
-    return tuple(dg), dPi
+    return tuple(dg), dm
 
 
-def rk4_primal(g, Pi, rate):
+def rk4_primal(g, m, rate):
     """`rk4_step`'s arithmetic: `(g_next, Π_next, stages)`, `stages` the four
     `(stage input, increment, w)` triples `((g_i, Π_i), (k_g, k_Π), w_i)`, `w_i = hΩ_i`."""
-    y = (tuple(g), tuple(Pi))
+    y = (tuple(g), tuple(m))
     stages = []
     for c in (None, 0.5, 0.5, 1.0):
         yi = y if c is None else tuple(_axpy(c, k, x) for k, x in zip(stages[-1][1], y))
@@ -229,8 +229,8 @@ def rk4_primal(g, Pi, rate):
         )
 
     g_next = combine(y[0], k1[0], k2[0], k3[0], k4[0])
-    Pi_next = combine(y[1], k1[1], k2[1], k3[1], k4[1])
-    return g_next, Pi_next, stages
+    m_next = combine(y[1], k1[1], k2[1], k3[1], k4[1])
+    return g_next, m_next, stages
 
 
 def _axpy(a, k, y):

@@ -1,7 +1,8 @@
 """The kick – free step – kick kernel: a free kernel between two half kicks of a potential.
 
 The structure-of-arrays form of `AbstractKickIntegrator`'s step (paper §7), for
-potentials with a closed-form rigid-body torque.
+potentials linear in `g`, `V = aᵀ g b` (`AbstractPotential.linear_coupling`), whose
+rigid-body torque is `M = Γ × b` with `Γ = gᵀa`.
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ from ._base import AbstractBatchKernel
 class KickKernel(AbstractBatchKernel):
     """A free kernel between two half kicks of a potential's torque (paper §7): the step of
     `AbstractKickIntegrator` (`Π⁺ = Π + (h/2)M(g_k)`, free step, `Π_{k+1} = Π⁻ + (h/2)M(g_{k+1})`)
-    for a potential with a closed-form `rigid_body_torque` (e.g. `UniformGravity`).
+    for a potential linear in `g`, `V = aᵀ g b` (`AbstractPotential.linear_coupling`, e.g.
+    `UniformGravity`): the torque is `M = Γ × b` with `Γ = gᵀa`.
 
     With `reduced_state` (see `reduced`) the configuration carried is the advected
     parameter `Γ = gᵀa` alone, and the kicks are `M(Γ)`: the free kernel maps `Γᵀ`, one
@@ -34,11 +36,12 @@ class KickKernel(AbstractBatchKernel):
 
     @staticmethod
     def applies_to(potential) -> bool:
-        """Whether `potential` has a closed-form rigid-body torque."""
-        return potential.rigid_body_torque(tuple(jnp.zeros(()) for _ in range(9))) is not None
+        """Whether `potential` is linear in a rigid body's attitude (`linear_coupling`)."""
+        coupling = potential.linear_coupling()
+        return coupling is not None and all(jnp.shape(v)[-1:] == (3,) for v in coupling)
 
     def physics(self, system, batched: bool = False):
-        # The torques are those of a rigid body on SO(3) (9 entries of `g`).
+        # The torques are those of a rigid body on SO(3).
         if system.group != SO3 or not self.applies_to(self.potential):
             return None
         return self.free.physics(system, batched)
@@ -56,19 +59,12 @@ class KickKernel(AbstractBatchKernel):
         return dataclasses.replace(self, free=self.free.with_fixed_iterations(fixed_iterations))
 
     def reduced(self):
-        if self.reduced_state:
-            return self
-        zeros = tuple(jnp.zeros(()) for _ in range(3))
-        if (
-            self.potential.advected_direction() is None
-            or self.potential.rigid_body_advected_torque(zeros) is None
-        ):
-            return None
-        return dataclasses.replace(self, reduced_state=True)
+        # `V = aᵀ g b` depends on `g` through `Γ = gᵀa` alone.
+        return self if self.reduced_state else dataclasses.replace(self, reduced_state=True)
 
     def _advected_of_rows(self, g):
         # Γ_j = Σ_i a_i g_ij (a may carry a batch axis first, like the potential's leaves).
-        a = jnp.asarray(self.potential.advected_direction(), g[0].dtype)
+        a = jnp.asarray(self.potential.linear_coupling()[0], g[0].dtype)
         return tuple(sum(a[..., i] * g[3 * i + j] for i in range(3)) for j in range(3))
 
     def carried(self, g0):
@@ -76,28 +72,30 @@ class KickKernel(AbstractBatchKernel):
         return self._advected_of_rows(g) if self.reduced_state else g
 
     def advected(self, state):
-        if self.reduced_state:
-            return state
-        if self.potential.advected_direction() is None:
-            return None
-        return self._advected_of_rows(state)
+        return state if self.reduced_state else self._advected_of_rows(state)
 
     def _torque(self, state):
-        if self.reduced_state:
-            return self.potential.rigid_body_advected_torque(state)
-        return self.potential.rigid_body_torque(state)
+        """`M = Γ × b` from the carried state (`Γ` itself, or the 9 entries of `g`)."""
+        Gamma = state if self.reduced_state else self._advected_of_rows(state)
+        b = self.potential.linear_coupling()[1]
+        b = tuple(b[..., i] for i in range(3))
+        return (
+            Gamma[1] * b[2] - Gamma[2] * b[1],
+            Gamma[2] * b[0] - Gamma[0] * b[2],
+            Gamma[0] * b[1] - Gamma[1] * b[0],
+        )
 
     def prepare(self, inertia, h):
         return self.free.prepare(inertia, h), h / 2
 
-    def step(self, params, g, Pi, alive):
+    def step(self, params, g, m, alive):
         free_params, half = params
         torque = self._torque(g)
-        Pi = tuple(p + half * t for p, t in zip(Pi, torque))
-        g_next, Pi_next, result, iterations, residual = self.free.step(free_params, g, Pi, alive)
+        m = tuple(p + half * t for p, t in zip(m, torque))
+        g_next, m_next, result, iterations, residual = self.free.step(free_params, g, m, alive)
         torque = self._torque(g_next)
-        Pi_next = tuple(p + half * t for p, t in zip(Pi_next, torque))
+        m_next = tuple(p + half * t for p, t in zip(m_next, torque))
         # A non-finite torque shows up only after the free step's own checks.
-        finite = jnp.isfinite(Pi_next[0]) & jnp.isfinite(Pi_next[1]) & jnp.isfinite(Pi_next[2])
+        finite = jnp.isfinite(m_next[0]) & jnp.isfinite(m_next[1]) & jnp.isfinite(m_next[2])
         result = jnp.where((result == RESULTS.successful) & ~finite, RESULTS.nonfinite, result)
-        return g_next, Pi_next, result, iterations, residual
+        return g_next, m_next, result, iterations, residual

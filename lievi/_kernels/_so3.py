@@ -62,7 +62,7 @@ from ._soa import (
 )
 
 
-def solve_increment(equation, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True):
+def solve_increment(equation, m, A, tolerance, fixed_iterations: int, max_steps: int, alive=True):
     """Newton for the DEP equation on a batch: `fixed_iterations`, then a check.
 
     Returns `(ξ, iterations, residual ∞-norm, converged)`, all per body. For Moser–Veselov
@@ -73,13 +73,13 @@ def solve_increment(equation, Pi, A, tolerance, fixed_iterations: int, max_steps
     """
     fixed = min(fixed_iterations, max_steps)
     restartable = equation.restartable()
-    xi = equation.start(Pi, A, fixed)
-    r, _ = equation.residual(xi, Pi, A, False)
+    xi = equation.start(m, A, fixed)
+    r, _ = equation.residual(xi, m, A, False)
     norm = max_abs(r)
     if restartable:
         # A root of the quartic off the branch rule (`moser_veselov_on_branch`) is not
         # the generic path's root: such a body restarts from the explicit-Euler guess.
-        norm = jnp.where(moser_veselov_on_branch(xi, Pi, A), norm, jnp.inf)
+        norm = jnp.where(moser_veselov_on_branch(xi, m, A), norm, jnp.inf)
     iterations = jnp.full(norm.shape, fixed, jnp.int32)
 
     def active(norm, iterations):
@@ -93,10 +93,10 @@ def solve_increment(equation, Pi, A, tolerance, fixed_iterations: int, max_steps
     def body(carry):
         xi, norm, iterations = carry
         on = active(norm, iterations)
-        r, J = equation.residual(xi, Pi, A, True)
+        r, J = equation.residual(xi, m, A, True)
         delta = solve3(J, r)
         xi = tuple(jnp.where(on, xi[i] - delta[i], xi[i]) for i in range(3))
-        r, _ = equation.residual(xi, Pi, A, False)
+        r, _ = equation.residual(xi, m, A, False)
         norm = jnp.where(on, max_abs(r), norm)
         return xi, norm, iterations + on.astype(jnp.int32)
 
@@ -106,8 +106,8 @@ def solve_increment(equation, Pi, A, tolerance, fixed_iterations: int, max_steps
         # non-finite) continues from that guess, as the three-dimensional Newton of
         # `MoserVeselov` would have started. Once, on entering the tail.
         xi, norm, iterations = carry
-        guess = explicit_euler_guess(Pi, A)
-        guess_norm = max_abs(equation.residual(guess, Pi, A, False)[0])
+        guess = explicit_euler_guess(m, A)
+        guess_norm = max_abs(equation.residual(guess, m, A, False)[0])
         back = ~(norm <= tolerance) & ~(norm <= guess_norm)
         xi = tuple(jnp.where(back, guess[i], xi[i]) for i in range(3))
         # A restarted body gets the generic path's full budget of `max_steps` Newton
@@ -129,37 +129,37 @@ def solve_increment(equation, Pi, A, tolerance, fixed_iterations: int, max_steps
 
 
 def differentiable_increment(
-    equation, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True
+    equation, m, A, tolerance, fixed_iterations: int, max_steps: int, alive=True
 ):
     """`solve_increment` whose `ξ` differentiates by the implicit function theorem at the root.
 
     The Newton iterations run on `stop_gradient`-ed inputs (so no `while_loop` is
     differentiated); the root is tagged `ROOT_NAME` for `jax.checkpoint` policies.
     """
-    stopped = jax.lax.stop_gradient((Pi, A, tolerance))
+    stopped = jax.lax.stop_gradient((m, A, tolerance))
     xi, iterations, norm, converged = solve_increment(
         equation, *stopped, fixed_iterations, max_steps, alive
     )
     guess = explicit_euler_guess(*stopped[:2])
-    return differentiable_root(equation, xi, guess, Pi, A), iterations, norm, converged
+    return differentiable_root(equation, xi, guess, m, A), iterations, norm, converged
 
 
-def dep_step(equation, g, Pi, A, tolerance, fixed_iterations: int, max_steps: int, alive=True):
+def dep_step(equation, g, m, A, tolerance, fixed_iterations: int, max_steps: int, alive=True):
     """One DEP + DLP + reconstruction step on structure-of-arrays state.
 
     `equation`: `DEPEquation(chart)` (`DEP`) or `MoserVeselovEquation()` (`MoserVeselov`:
     the Cayley chart with the Moser–Veselov residual).
     `g`: 9 arrays (row-major), or the rows of `g` that are carried (3 arrays a row: each
-    row `r` becomes `r F`, so the reduced state's `Γᵀ = aᵀg` is one row), `Pi`: 3 arrays,
+    row `r` becomes `r F`, so the reduced state's `Γᵀ = aᵀg` is one row), `m`: 3 arrays,
     `A = I/h`: 3 arrays (or scalars).
     Returns `(g_next, Pi_next, result, iterations, residual)`; reverse-mode differentiable.
     """
     xi, iterations, norm, converged = differentiable_increment(
-        equation, Pi, A, tolerance, fixed_iterations, max_steps, alive
+        equation, m, A, tolerance, fixed_iterations, max_steps, alive
     )
     t = dot(xi, xi)
     a, b = equation.increment_coefficients(t)
-    off_branch = equation.off_branch(jax.lax.stop_gradient(xi), Pi, A, t, converged)
+    off_branch = equation.off_branch(jax.lax.stop_gradient(xi), m, A, t, converged)
     # F = 1 + a ξ̂ + b (ξξᵀ − t 1).
     X = (0, -xi[2], xi[1], xi[2], 0, -xi[0], -xi[1], xi[0], 0)
     F = [a * X[3 * i + j] + b * xi[i] * xi[j] for i in range(3) for j in range(3)]
@@ -171,17 +171,17 @@ def dep_step(equation, g, Pi, A, tolerance, fixed_iterations: int, max_steps: in
         for i in range(len(g) // 3)
         for j in range(3)
     )
-    xp = cross(xi, Pi)
-    dp = dot(xi, Pi)
-    Pi_next = tuple(Pi[i] - a * xp[i] + b * (xi[i] * dp - t * Pi[i]) for i in range(3))
+    xp = cross(xi, m)
+    dp = dot(xi, m)
+    m_next = tuple(m[i] - a * xp[i] + b * (xi[i] * dp - t * m[i]) for i in range(3))
 
     result = jnp.where(converged, RESULTS.successful, RESULTS.newton_not_converged)
     result = jnp.where(off_branch, RESULTS.step_too_large, result)
     finite = jnp.isfinite(norm)
-    for p in Pi_next:
+    for p in m_next:
         finite = finite & jnp.isfinite(p)
     result = jnp.where(finite, result, RESULTS.nonfinite)
-    return g_next, Pi_next, result.astype(jnp.int32), iterations, norm
+    return g_next, m_next, result.astype(jnp.int32), iterations, norm
 
 
 class NewtonKernel(AbstractBatchKernel):
@@ -200,12 +200,12 @@ class NewtonKernel(AbstractBatchKernel):
     def prepare(self, inertia, h):
         return tuple(moment / h for moment in inertia)
 
-    def step(self, params, g, Pi, alive):
+    def step(self, params, g, m, alive):
         fixed = self.fixed_iterations
         fixed = self.equation.fixed_iterations() if fixed is None else fixed
         # The tolerance policy of every implicit step (`simulate`'s too): relative by default.
-        tolerance = newton_tolerance(max_abs(Pi), Pi[0].dtype, self.rtol, self.atol)
-        return dep_step(self.equation, g, Pi, params, tolerance, fixed, self.max_steps, alive)
+        tolerance = newton_tolerance(max_abs(m), m[0].dtype, self.rtol, self.atol)
+        return dep_step(self.equation, g, m, params, tolerance, fixed, self.max_steps, alive)
 
     def with_fixed_iterations(self, fixed_iterations: int):
         return dataclasses.replace(self, fixed_iterations=fixed_iterations)

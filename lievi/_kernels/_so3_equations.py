@@ -16,23 +16,23 @@ from .._groups._charts import AbstractChart
 from ._soa import C_SERIES, P_SERIES, S_SERIES, cross, dot, horner, horner_with_derivative, solve3
 
 
-def _residual_moser_veselov(x, Pi, A, with_jacobian: bool):
+def _residual_moser_veselov(x, m, A, with_jacobian: bool):
     """`r = I x/h − Π − ½ Π×x − ¼ (x·Π) x` and its Jacobian `A − ½Π̂ − ¼((x·Π)1 + xΠᵀ)`.
 
     `MoserVeselov`'s residual `J(X)/h − vee((1 − X/2) Π̂ (1 + X/2))` on SO(3) written out
     (`vee([Π̂, X̂]) = Π×x`, `vee(X̂Π̂X̂) = −(x·Π)x`); `F = cay(x)`.
     """
-    px = cross(Pi, x)
-    d = dot(x, Pi)
-    r = tuple(A[i] * x[i] - Pi[i] - px[i] / 2 - d * x[i] / 4 for i in range(3))
+    px = cross(m, x)
+    d = dot(x, m)
+    r = tuple(A[i] * x[i] - m[i] - px[i] / 2 - d * x[i] / 4 for i in range(3))
     if not with_jacobian:
         return r, None
-    P = (0, -Pi[2], Pi[1], Pi[2], 0, -Pi[0], -Pi[1], Pi[0], 0)
+    P = (0, -m[2], m[1], m[2], 0, -m[0], -m[1], m[0], 0)
     rows = []
     for i in range(3):
         row = []
         for j in range(3):
-            entry = -P[3 * i + j] / 2 - x[i] * Pi[j] / 4
+            entry = -P[3 * i + j] / 2 - x[i] * m[j] / 4
             if i == j:
                 entry = entry + A[i] - d / 4
             row.append(entry)
@@ -40,7 +40,7 @@ def _residual_moser_veselov(x, Pi, A, with_jacobian: bool):
     return r, tuple(rows)
 
 
-def _dep_residual(chart, xi, Pi, A, with_jacobian: bool):
+def _dep_residual(chart, xi, m, A, with_jacobian: bool):
     """`r = dφ⁻¹(ξ)ᵀ Aξ − Π` and its Jacobian, for the exp or Cayley chart (derivation above)."""
     w = tuple(A[i] * xi[i] for i in range(3))
     d = dot(xi, w)
@@ -56,9 +56,9 @@ def _dep_residual(chart, xi, Pi, A, with_jacobian: bool):
             S, P = horner(S_SERIES, u), horner(P_SERIES, u)
         c = P / (4 * S)
         v = tuple(xi[i] * d - t * w[i] for i in range(3))
-        r = tuple(w[i] + xw[i] / 2 + c * v[i] - Pi[i] for i in range(3))
+        r = tuple(w[i] + xw[i] / 2 + c * v[i] - m[i] for i in range(3))
     else:
-        r = tuple(w[i] + xw[i] / 2 + xi[i] * d / 4 - Pi[i] for i in range(3))
+        r = tuple(w[i] + xw[i] / 2 + xi[i] * d / 4 - m[i] for i in range(3))
     if not with_jacobian:
         return r, None
 
@@ -87,12 +87,12 @@ def _dep_residual(chart, xi, Pi, A, with_jacobian: bool):
     return r, tuple(rows)
 
 
-def explicit_euler_guess(Pi, A):
+def explicit_euler_guess(m, A):
     """The Newton start `h·I⁻¹Π = Π/A`, as `DEP.solve_increment` and `MoserVeselov`'s."""
-    return tuple(Pi[i] / A[i] for i in range(3))
+    return tuple(m[i] / A[i] for i in range(3))
 
 
-def _moser_veselov_by_scalar_newton(Pi, A, iterations: int):
+def _moser_veselov_by_scalar_newton(m, A, iterations: int):
     """The Moser–Veselov increment `x` from a scalar Newton iteration (a quartic in `s`).
 
     With `s = x·Π` fixed, the residual `A x − Π − ½ Π×x − ¼ s x` is *linear* in `x`:
@@ -111,7 +111,7 @@ def _moser_veselov_by_scalar_newton(Pi, A, iterations: int):
     checks the residual of the original equation, so a body for which this lands on
     another root or does not converge is caught there and continues in `x`.
     """
-    p2 = tuple(p * p for p in Pi)
+    p2 = tuple(p * p for p in m)
     norm2 = p2[0] + p2[1] + p2[2]
     quarter = norm2 / 4
     s = p2[0] / A[0] + p2[1] / A[1] + p2[2] / A[2]
@@ -119,36 +119,36 @@ def _moser_veselov_by_scalar_newton(Pi, A, iterations: int):
     def minors(s):
         """`(d, (d₂d₃, d₃d₁, d₁d₂), det M(s))`."""
         d = tuple(a - s / 4 for a in A)
-        m = (d[1] * d[2], d[2] * d[0], d[0] * d[1])
-        return d, m, d[0] * m[0] + (d[0] * p2[0] + d[1] * p2[1] + d[2] * p2[2]) / 4
+        dd = (d[1] * d[2], d[2] * d[0], d[0] * d[1])
+        return d, dd, d[0] * dd[0] + (d[0] * p2[0] + d[1] * p2[1] + d[2] * p2[2]) / 4
 
     for _ in range(iterations):
-        d, m, det = minors(s)
-        quadratic = m[0] * p2[0] + m[1] * p2[1] + m[2] * p2[2] + quarter * norm2
-        d_det = -(m[0] + m[1] + m[2]) / 4 - norm2 / 16
+        d, dd, det = minors(s)
+        quadratic = dd[0] * p2[0] + dd[1] * p2[1] + dd[2] * p2[2] + quarter * norm2
+        d_det = -(dd[0] + dd[1] + dd[2]) / 4 - norm2 / 16
         d_quadratic = -((d[1] + d[2]) * p2[0] + (d[2] + d[0]) * p2[1] + (d[0] + d[1]) * p2[2]) / 4
         f = s * det - quadratic
         s = s - f / (det + s * d_det - d_quadratic)
-    _, m, det = minors(s)
+    _, dd, det = minors(s)
     inverse_det = 1 / det
     return tuple(
         (
-            Pi[i] * (m[i] + quarter)
-            + Pi[(i + 1) % 3] * Pi[(i + 2) % 3] * (A[(i + 1) % 3] - A[(i + 2) % 3]) / 2
+            m[i] * (dd[i] + quarter)
+            + m[(i + 1) % 3] * m[(i + 2) % 3] * (A[(i + 1) % 3] - A[(i + 2) % 3]) / 2
         )
         * inverse_det
         for i in range(3)
     )
 
 
-def moser_veselov_on_branch(x, Pi, A):
+def moser_veselov_on_branch(x, m, A):
     """`MoserVeselov.on_branch` in closed form: the symmetric part of the Jacobian,
     `B = A − ¼(x·Π)1 − ⅛(xΠᵀ + Πxᵀ)`, is positive definite (Sylvester's criterion)."""
-    s = dot(x, Pi)
+    s = dot(x, m)
     # Times sign(h) (the sign of `A = I/h`): a negative step, e.g. an inner stage of
     # `Composition`, has `J ≈ A` negative definite on its branch.
     sign = jnp.sign(A[0])
-    b = [[-sign * (x[i] * Pi[j] + Pi[i] * x[j]) / 8 for j in range(3)] for i in range(3)]
+    b = [[-sign * (x[i] * m[j] + m[i] * x[j]) / 8 for j in range(3)] for i in range(3)]
     for i in range(3):
         b[i][i] = b[i][i] + sign * (A[i] - s / 4)
     minor2 = b[0][0] * b[1][1] - b[0][1] * b[1][0]
@@ -186,7 +186,7 @@ class AbstractSO3Equation(eqx.Module):
         return False
 
     @abc.abstractmethod
-    def residual(self, xi, Pi, A, with_jacobian: bool):
+    def residual(self, xi, m, A, with_jacobian: bool):
         """`(r, ∂r/∂ξ)` (the Jacobian `None` without `with_jacobian`)."""
 
     def solve(self, J, r):
@@ -194,7 +194,7 @@ class AbstractSO3Equation(eqx.Module):
         return solve3(J, r)
 
     @abc.abstractmethod
-    def start(self, Pi, A, iterations: int):
+    def start(self, m, A, iterations: int):
         """The iterate after `iterations` fixed Newton steps from the start."""
 
     @abc.abstractmethod
@@ -202,7 +202,7 @@ class AbstractSO3Equation(eqx.Module):
         """`(a, b)` of `F = 1 + a ξ̂ + b ξ̂²` at `t = |ξ|²`."""
 
     @abc.abstractmethod
-    def off_branch(self, xi, Pi, A, t, converged):
+    def off_branch(self, xi, m, A, t, converged):
         """Whether the iterate `ξ` is not on the branch continued from `h → 0` (reported
         `step_too_large`); the same rule as the integrator's generic step."""
 
@@ -215,13 +215,13 @@ class DEPEquation(AbstractSO3Equation):
     def fixed_iterations(self) -> int:
         return _DEP_FIXED_ITERATIONS[self.chart.name]
 
-    def residual(self, xi, Pi, A, with_jacobian: bool):
-        return _dep_residual(self.chart, xi, Pi, A, with_jacobian)
+    def residual(self, xi, m, A, with_jacobian: bool):
+        return _dep_residual(self.chart, xi, m, A, with_jacobian)
 
-    def start(self, Pi, A, iterations: int):
-        xi = explicit_euler_guess(Pi, A)
+    def start(self, m, A, iterations: int):
+        xi = explicit_euler_guess(m, A)
         for _ in range(iterations):
-            r, J = self.residual(xi, Pi, A, True)
+            r, J = self.residual(xi, m, A, True)
             delta = solve3(J, r)
             xi = tuple(xi[i] - delta[i] for i in range(3))
         return xi
@@ -234,10 +234,10 @@ class DEPEquation(AbstractSO3Equation):
         a = 4 / (4 + t)
         return a, a / 2
 
-    def off_branch(self, xi, Pi, A, t, converged):
+    def off_branch(self, xi, m, A, t, converged):
         # `DEP.on_branch`: `det J` of the sign of `det A` (the branch continued from h → 0
         # has not crossed a fold), and the chart's own rule.
-        _, J = self.residual(xi, Pi, A, True)
+        _, J = self.residual(xi, m, A, True)
         (a, b, c), (d, e, f), (g, h, i) = J
         det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
         folded = ~(det * (A[0] * A[1] * A[2]) > 0)
@@ -253,18 +253,18 @@ class MoserVeselovEquation(AbstractSO3Equation):
     def restartable(self) -> bool:
         return True
 
-    def residual(self, xi, Pi, A, with_jacobian: bool):
-        return _residual_moser_veselov(xi, Pi, A, with_jacobian)
+    def residual(self, xi, m, A, with_jacobian: bool):
+        return _residual_moser_veselov(xi, m, A, with_jacobian)
 
-    def start(self, Pi, A, iterations: int):
-        return _moser_veselov_by_scalar_newton(Pi, A, iterations)
+    def start(self, m, A, iterations: int):
+        return _moser_veselov_by_scalar_newton(m, A, iterations)
 
     def increment_coefficients(self, t):
         a = 4 / (4 + t)
         return a, a / 2
 
-    def off_branch(self, xi, Pi, A, t, converged):
-        return converged & ~moser_veselov_on_branch(xi, Pi, A)
+    def off_branch(self, xi, m, A, t, converged):
+        return converged & ~moser_veselov_on_branch(xi, m, A)
 
 
 _DEP_FIXED_ITERATIONS = {"exp": 3, "cayley": 4}

@@ -49,12 +49,6 @@ class AbstractPotential(eqx.Module):
         system's `parameters_valid` includes them traced (`RESULTS.invalid_input`)."""
         return finite_conditions(self)
 
-    def rigid_body_torque(self, g):
-        """The body torque `M(g)` of a rigid body in closed form, as 3 arrays from the 9
-        entries of `g` (row-major, structure of arrays: the batched fast path), or `None`
-        where there is no closed form (the fast path then does not apply)."""
-        return None
-
     def advected_direction(self) -> Float[Array, " n"] | None:
         """The fixed spatial vector `a` if `V` depends on `g` only through the advected
         parameter `Γ = gᵀa` (the paper's §7: the symmetry is broken to the subgroup
@@ -75,10 +69,16 @@ class AbstractPotential(eqx.Module):
             return None
         return jnp.einsum("i,...ij->...j", jnp.asarray(a, jnp.result_type(g, float)), g)
 
-    def rigid_body_advected_torque(self, Gamma):
-        """The body torque `M` of a rigid body as a function of the advected parameter
-        alone, 3 arrays from the 3 components of `Γ` (structure of arrays: the reduced
-        batched fast path), or `None` where there is no closed form."""
+    def linear_coupling(self) -> tuple[Float[Array, " n"], Float[Array, " n"]] | None:
+        """`(a, b)` if the potential is linear in `g`, `V(g) = aᵀ g b` (a fixed spatial
+        vector `a`, a body vector `b`), else `None` (the default).
+
+        Such a potential depends on `g` only through the advected parameter `Γ = gᵀa`
+        (`advected_direction` is `a`), and on a rigid body its torque has the closed form
+        `M = Γ × b` (`V(g exp(εξ)) = aᵀg(1 + εξ̂)b`, so `dV·ξ = Γ·(ξ × b)`): the fast
+        batched steps of the methods with a kick use it. Uniform gravity is the example:
+        `a = e_z`, `b = m γ ρ`.
+        """
         return None
 
 
@@ -148,28 +148,15 @@ class UniformGravity(AbstractPotential):
         rho = jnp.asarray(self.center_of_mass)
         return self.mass * self.gravity * jnp.dot(g[-1], rho)  # e_z·(g ρ) = (gᵀ e_z)·ρ
 
-    def rigid_body_torque(self, g):
-        # Γ = gᵀe₃ is the last row of g.
-        if len(g) != 9:
-            return None
-        return self.rigid_body_advected_torque(g[6:9])
-
     def advected_direction(self):
         # V = mγ ρ·(gᵀe_z): the world's vertical e_z is advected.
         n = jnp.shape(self.center_of_mass)[-1]
         return jnp.zeros(n).at[-1].set(1.0)
 
-    def rigid_body_advected_torque(self, Gamma):
-        # V = mγ ρ·Γ: M = mγ Γ × ρ (the heavy top's torque).
-        if len(Gamma) != 3:
-            return None
-        k = self.mass * self.gravity
-        rho = tuple(k * self.center_of_mass[..., i] for i in range(3))
-        return (
-            Gamma[1] * rho[2] - Gamma[2] * rho[1],
-            Gamma[2] * rho[0] - Gamma[0] * rho[2],
-            Gamma[0] * rho[1] - Gamma[1] * rho[0],
-        )
+    def linear_coupling(self):
+        # V = e_zᵀ g (mγρ); the torque is M = Γ × mγρ (the heavy top's).
+        mass, gravity = jnp.asarray(self.mass), jnp.asarray(self.gravity)
+        return self.advected_direction(), (mass * gravity)[..., None] * self.center_of_mass
 
     def vertical(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch n"]:
         """The advected parameter `Γ = gᵀ e_z`: the world's vertical in body coordinates."""
