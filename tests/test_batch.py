@@ -455,7 +455,9 @@ def test_fast_path_gradient_finite_when_a_body_fails():
 
 @pytest.mark.parametrize(
     "name",
-    ["dep-exp"] + [pytest.param(n, marks=pytest.mark.slow) for n in ("splitting", "moser-veselov")],
+    # All under -m slow: the kernel parity test covers the heavy top's kick kernel against
+    # the reference path in the default suite (values and gradients, one body and a batch).
+    [pytest.param(n, marks=pytest.mark.slow) for n in ("dep-exp", "splitting", "moser-veselov")],
 )
 def test_heavy_top_fast_path(name):
     """Rigid bodies in uniform gravity (heavy tops, a batch of masses and centres of mass):

@@ -39,6 +39,10 @@ def random_batch(rng, batch, kind="kirchhoff"):
     return bodies, g0, m0, h
 
 
+# Under -m slow: the kernel parity test covers the kernel against the reference path in the
+# default suite (both charts, one body and a batch); these add per-body step sizes, vacuum
+# tensors and 20 steps.
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["kirchhoff", "vacuum"])
 @pytest.mark.parametrize("chart", CHARTS)
 def test_fast_equals_generic(chart, kind):
@@ -84,6 +88,7 @@ def test_float32():
     np.testing.assert_allclose(fast.g, exact.g, rtol=0, atol=ROUNDOFF_F32)
 
 
+@pytest.mark.slow  # the tail runs in the default suite: stragglers and the Newton sweep
 def test_shared_system_one_fixed_iteration_then_tail():
     """One system for all bodies, one fixed iteration (the chord step): the `while_loop`
     tail finishes every body, with the same iterates as the generic path."""
@@ -99,7 +104,7 @@ def test_shared_system_one_fixed_iteration_then_tail():
     assert np.all(one.stats["newton_iterations"] >= 2)  # the tail ran
 
 
-@pytest.mark.parametrize("chart", CHARTS)
+@pytest.mark.parametrize("chart", ["exp", pytest.param("cayley", marks=pytest.mark.slow)])
 def test_stragglers_take_the_gathered_tail(chart):
     """A few bodies with large steps among many small ones: only they continue after the
     fixed iterations (gathered into a small batch, `compacted_tail`), and every body ends
