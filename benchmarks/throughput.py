@@ -414,6 +414,7 @@ def methods(steps: int):
         ("Moser-Veselov", "MoserVeselov"),
         ("splitting", "LiePoissonSplitting"),
         ("RK4", "RK4"),
+        ("RKMK4", "RKMK4"),
     ):
         if hasattr(lievi, cls):
             rows[name] = lievi_runner(getattr(lievi, cls)(), steps)
@@ -438,6 +439,7 @@ def check_against_generic(name, fn, dtype, steps: int):
         ("Moser-Veselov", "MoserVeselov"),
         ("splitting", "LiePoissonSplitting"),
         ("RK4", "RK4"),
+        ("RKMK4", "RKMK4"),
     ):
         if name == label:
             integrator = getattr(lievi, cls)()
@@ -456,6 +458,7 @@ ACCEPTANCE_METHODS = (
     "Moser-Veselov",
     "splitting",
     "RK4",
+    "RKMK4",
     "diffrax Tsit5",
     WEAK,
     INDEPENDENT,

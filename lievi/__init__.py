@@ -46,6 +46,7 @@ from ._integrators._dep import DEP as DEP
 from ._integrators._moser_veselov import MoserVeselov as MoserVeselov
 from ._integrators._preprocessed_dmv import PreprocessedMoserVeselov as PreprocessedMoserVeselov
 from ._integrators._rk4 import RK4 as RK4
+from ._integrators._rkmk import RKMK4 as RKMK4
 from ._integrators._splitting import LiePoissonSplitting as LiePoissonSplitting
 from ._optimal_control import OptimalControlSolution as OptimalControlSolution
 from ._optimal_control import solve_optimal_control as solve_optimal_control

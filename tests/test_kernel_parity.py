@@ -55,6 +55,7 @@ REGISTRY = [
         "SplittingKernel",
     ),
     ("rk4", lievi.RK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RK4Kernel"),
+    ("rkmk4", lievi.RKMK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RKMK4Kernel"),
     ("dep-exp-heavy-top", lievi.DEP(), _heavy_top, INERTIA, jnp.eye(3), M0, "KickKernel"),
     (
         "dep-cayley-heavy-top",
@@ -183,6 +184,7 @@ def test_every_kernel_is_registered():
         lievi.MoserVeselov(),
         lievi.LiePoissonSplitting(),
         lievi.RK4(),
+        lievi.RKMK4(),
         lievi.Composition(lievi.DEP(), order=4),
         lievi.PreprocessedMoserVeselov(),
     ]

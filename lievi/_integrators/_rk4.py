@@ -31,20 +31,25 @@ from .._systems._base import AbstractLieSystem
 from ._base import AbstractIntegrator, StepInfo
 
 
+def momentum_rate(system: AbstractLieSystem, g, m, xi, force=None, t=0.0):
+    """`ṁ = ± ad_ξᵀ m + M(g) (+ force(t, g, m))`: the Euler–Poincaré equation (2.4)/(2.5)
+    with the potential's generalised force and an external one (`None`: none)."""
+    m_dot = system.side.coadjoint_sign() * system.group.ad(xi).T @ m
+    if system.potential is not None:
+        m_dot = m_dot + system.force(g)
+    if force is not None:
+        m_dot = m_dot + jnp.asarray(force(t, g, m), m_dot.dtype)
+    return m_dot
+
+
 def euler_poincare_vector_field(system: AbstractLieSystem, g, m, force=None, t=0.0):
     """`(ġ, ṁ)` of the Euler–Poincaré equations with reconstruction.
 
     `force`: an external generalised force `force(t, g, m)` added to `ṁ` (or `None`).
     """
-    group = system.group
     xi = system.velocity(m)
-    g_dot = system.side.tangent(group, g, xi)
-    m_dot = system.side.coadjoint_sign() * group.ad(xi).T @ m
-    if system.potential is not None:
-        m_dot = m_dot + system.force(g)
-    if force is not None:
-        m_dot = m_dot + jnp.asarray(force(t, g, m), m_dot.dtype)
-    return g_dot, m_dot
+    g_dot = system.side.tangent(system.group, g, xi)
+    return g_dot, momentum_rate(system, g, m, xi, force, t)
 
 
 class RK4(AbstractIntegrator):

@@ -16,7 +16,7 @@ from . import _explicit_adjoints
 from ._base import AbstractBatchKernel
 
 
-def _finite_result(m, g):
+def finite_result(m, g):
     finite = jnp.isfinite(m[0])
     for x in (*m[1:], *g):
         finite = finite & jnp.isfinite(x)
@@ -43,7 +43,7 @@ def splitting_step(g, m, rate):
     batch 1e5 (same run).
     """
     g, m = _explicit_adjoints.splitting_flow(tuple(g), tuple(m), tuple(rate))
-    return g, m, _finite_result(m, g)
+    return g, m, finite_result(m, g)
 
 
 def rk4_step(g, m, rate):
@@ -56,10 +56,10 @@ def rk4_step(g, m, rate):
     hand-written tangent of `_explicit_adjoints.rk4_flow`.
     """
     g_next, m_next = _explicit_adjoints.rk4_flow(tuple(g), tuple(m), tuple(rate))
-    return g_next, m_next, _finite_result(m_next, g_next)
+    return g_next, m_next, finite_result(m_next, g_next)
 
 
-def _explicit_info(m):
+def explicit_info(m):
     # Explicit: no Newton iterations, zero residual (as the per-body `StepInfo`).
     return jnp.zeros(jnp.shape(m[0]), jnp.int32), jnp.zeros(jnp.shape(m[0]), m[0].dtype)
 
@@ -72,7 +72,7 @@ class SplittingKernel(AbstractBatchKernel):
 
     def step(self, params, g, m, alive):
         g_next, m_next, result = splitting_step(g, m, params)
-        return (g_next, m_next, result, *_explicit_info(m))
+        return (g_next, m_next, result, *explicit_info(m))
 
 
 class RK4Kernel(AbstractBatchKernel):
@@ -83,4 +83,4 @@ class RK4Kernel(AbstractBatchKernel):
 
     def step(self, params, g, m, alive):
         g_next, m_next, result = rk4_step(g, m, params)
-        return (g_next, m_next, result, *_explicit_info(m))
+        return (g_next, m_next, result, *explicit_info(m))
