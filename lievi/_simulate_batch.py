@@ -151,7 +151,8 @@ def simulate_batch(
       systems whose array leaves carry the batch as their leading axis (`system_axis=0`),
       e.g. `jax.vmap(lievi.RigidBody)(inertias)` for `inertias` of shape `(B, 3)`.
     - `integrator`: e.g. `lievi.DEP(chart="exp")`.
-    - `g0`: initial group elements, `(B, n, n)`; `m0`: initial momenta, `(B, d)`.
+    - `g0`: initial group elements, `(B, n, n)`, or one `(n, n)` for every body; `m0`:
+      initial momenta, `(B, d)`.
     - `h`: one step size, or one per body, shape `(B,)`.
     - `n_steps`: number of steps.
     - `save_every`: save every this many steps (must divide `n_steps`). Default: only the
@@ -244,6 +245,9 @@ def simulate_batch(
             raise ValueError(f"`{name}` must hold real numbers, got {x!r}.")
         check_real_dtype(name, x)
     g0, m0 = jnp.asarray(g0), jnp.asarray(m0)
+    if jnp.shape(g0) == (n, n) and jnp.ndim(m0) == 2:
+        # One initial element for every body (e.g. all starting at the identity).
+        g0 = jnp.broadcast_to(g0, (jnp.shape(m0)[0], n, n))
     _check_batch("g0", g0, (n, n), "one group element per body")
     _check_batch("m0", m0, (d,), "one momentum per body")
     batch = jnp.shape(g0)[0]

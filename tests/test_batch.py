@@ -238,6 +238,11 @@ def test_shared_system_and_save_options(problem):
     np.testing.assert_allclose(final.m[3], single.m, rtol=0, atol=ROUNDOFF)
     assert lievi.has_fast_path(body, dep)
     assert not lievi.has_fast_path(lievi.RigidBody(jnp.diag(jnp.array([2.0, 1.0, 0.5]))), dep)
+    # One initial element for every body broadcasts.
+    shared = lievi.simulate_batch(body, dep, jnp.eye(3), m0, h=0.1, n_steps=STEPS, save=("m",))
+    broadcast = jnp.broadcast_to(jnp.eye(3), (BATCH, 3, 3))
+    full = lievi.simulate_batch(body, dep, broadcast, m0, h=0.1, n_steps=STEPS, save=("m",))
+    np.testing.assert_array_equal(shared.m, full.m)
     # `lievi.Save` is the option the names stand for: the same fields, the same values.
     as_object = lievi.simulate_batch(
         body, dep, g0, m0, h=0.1, n_steps=STEPS, save=lievi.Save(g=False, stats=False)

@@ -314,3 +314,27 @@ def test_potential_parameters_under_vmap():
     for k in range(4):
         single = run(rhos[k])
         assert jnp.max(jnp.abs(batched.m[k] - single.m)) <= ROUNDOFF
+
+
+def test_heavy_top_inertia_about_the_center_of_mass():
+    """`inertia_about="center_of_mass"` applies the parallel-axis theorem,
+    `I_O = I_C + m(|ρ|²1 − ρρᵀ)`: principal moments stay moments for `ρ` on a principal
+    axis (the fast path still applies), a full tensor otherwise; the same top either way."""
+    moments_c, mass = jnp.array([0.3, 0.4, 0.5]), 2.0
+    on_axis = jnp.array([0.0, 0.0, 0.6])
+    top = lievi.heavy_top(moments_c, mass, on_axis, gravity=1.0, inertia_about="center_of_mass")
+    np.testing.assert_allclose(top.inertia, moments_c + mass * jnp.array([0.36, 0.36, 0.0]))
+    assert lievi.has_fast_path(top, lievi.DEP())
+    off_axis = jnp.array([0.1, -0.2, 0.6])
+    top = lievi.heavy_top(moments_c, mass, off_axis, gravity=1.0, inertia_about="center_of_mass")
+    expected = jnp.diag(moments_c) + mass * (
+        jnp.dot(off_axis, off_axis) * jnp.eye(3) - jnp.outer(off_axis, off_axis)
+    )
+    np.testing.assert_allclose(top.inertia, expected, rtol=0, atol=ROUNDOFF)
+    same = lievi.heavy_top(expected, mass, off_axis, gravity=1.0)
+    kwargs = dict(h=0.05, n_steps=20)
+    a = lievi.simulate(top, lievi.DEP(), jnp.eye(3), jnp.array([0.2, 0.1, 0.5]), **kwargs)
+    b = lievi.simulate(same, lievi.DEP(), jnp.eye(3), jnp.array([0.2, 0.1, 0.5]), **kwargs)
+    np.testing.assert_array_equal(a.m, b.m)
+    with pytest.raises(ValueError, match="`inertia_about` must be"):
+        lievi.heavy_top(moments_c, mass, on_axis, inertia_about="com")

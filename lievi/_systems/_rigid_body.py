@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Scalar
 
-from .._checks import check_real_dtype, spd_conditions
+from .._checks import check_real_dtype, is_concrete, spd_conditions
 from .._groups._base import MatrixLieGroup
 from .._groups._so3 import SO3
 from ._base import AbstractLieSystem
@@ -81,12 +82,39 @@ class RigidBody(AbstractLieSystem):
         return jnp.dot(m, self.velocity(m)) / 2
 
 
-def heavy_top(inertia, mass, center_of_mass, gravity=9.81) -> RigidBody:
+def heavy_top(
+    inertia, mass, center_of_mass, gravity=9.81, *, inertia_about: str = "fixed_point"
+) -> RigidBody:
     """A heavy top: a rigid body with a fixed point in uniform gravity (paper §7).
 
     `RigidBody(inertia, potential=UniformGravity(mass, center_of_mass, gravity))`, with
-    `inertia` about the fixed point and `center_of_mass` measured from it in the body
-    frame. A Lagrange top has `I₁ = I₂` and the centre of mass on the third axis; a long
-    arm (`|ρ|` large against the radius of gyration) makes it a 3-D pendulum.
+    `center_of_mass` `ρ` measured from the fixed point in the body frame. A Lagrange top
+    has `I₁ = I₂` and the centre of mass on the third axis; a long arm (`|ρ|` large against
+    the radius of gyration) makes it a 3-D pendulum.
+
+    `inertia_about`: `"fixed_point"` (the default: `inertia` is about the fixed point, the
+    tensor the equations use) or `"center_of_mass"` (as MuJoCo and most CAD tools give it:
+    the parallel-axis theorem moves it to the fixed point, `I_O = I_C + m(|ρ|²1 − ρρᵀ)`; the
+    result is a full tensor unless `ρ` lies on a principal axis, and principal moments
+    stay principal moments then).
     """
+    if inertia_about not in ("fixed_point", "center_of_mass"):
+        raise ValueError(
+            f"`inertia_about` must be 'fixed_point' or 'center_of_mass', got {inertia_about!r}."
+        )
+    if inertia_about == "center_of_mass":
+        inertia = _parallel_axis(inertia, mass, center_of_mass)
     return RigidBody(inertia, potential=UniformGravity(mass, center_of_mass, gravity))
+
+
+def _parallel_axis(inertia, mass, rho):
+    """`I_C + m(|ρ|²1 − ρρᵀ)`: moments `(3,)` stay moments where `ρ` is (concretely) on a
+    principal axis (the shift is then diagonal), else a `(3, 3)` tensor."""
+    inertia, rho = jnp.asarray(inertia), jnp.asarray(rho)
+    shift = mass * (jnp.dot(rho, rho) * jnp.eye(3) - jnp.outer(rho, rho))
+    if jnp.ndim(inertia) == 1:
+        on_axis = is_concrete(rho) and int(np.count_nonzero(np.asarray(rho))) <= 1
+        if on_axis:
+            return inertia + jnp.diagonal(shift)
+        inertia = jnp.diag(inertia)
+    return inertia + shift
