@@ -224,13 +224,20 @@ def test_moser_veselov_branch_rule_same_on_both_paths():
 
 
 def test_prepared_preprocessed_rejects_another_trajectory_and_bad_h():
+    """`simulate` prepares each run for its own trajectory (`init`): a copy prepared for
+    another one runs as the unprepared method. Its `step` on a state of another
+    trajectory (other energy and Casimir) is `invalid_input`, not a silent low-order step."""
     body, g0, m0 = hlw_problem()
     method = lievi.PreprocessedMoserVeselov(order=4)
     prepared = method.prepare(body, m0, 0.1)
-    ok = lievi.simulate(body, prepared, g0, m0, h=0.1, n_steps=2, throw=False)
     other = lievi.simulate(body, prepared, g0, 1.5 * m0, h=0.1, n_steps=2, throw=False)
-    assert int(ok.result) == 0
-    assert int(other.result) == lievi.RESULTS.invalid_input
+    fresh = lievi.simulate(body, method, g0, 1.5 * m0, h=0.1, n_steps=2, throw=False)
+    assert int(other.result) == 0
+    np.testing.assert_array_equal(other.m, fresh.m)
+    _, _, info = prepared.step(body, g0, m0, jnp.asarray(0.1))
+    assert int(info.result) == 0
+    _, _, info = prepared.step(body, g0, 1.5 * m0, jnp.asarray(0.1))
+    assert int(info.result) == lievi.RESULTS.invalid_input
     for h in (0.0, -0.1, float("nan")):
         with pytest.raises(ValueError, match="`h`"):
             method.prepare(body, m0, h)

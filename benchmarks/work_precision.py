@@ -1,0 +1,394 @@
+"""Work–precision: the cost of reaching a final attitude error, lievi against MuJoCo and diffrax.
+
+Two problems, T = 20, float64, every body the same system with its own initial momentum
+(the base momentum times `1 + 0.05·noise` per component):
+
+- **free body**: principal moments `(0.6, 0.8, 1.0)`, `Π₀ = (1.8, 0.4, −0.9)`, `g₀ = 1`;
+- **heavy top**: the same moments about the centre of mass (`heavy_top(...,
+  inertia_about="center_of_mass")`), mass 1, `ρ = (0.1, −0.1, 0.5)`, gravity 1,
+  `Π₀ = (0.5, 0.3, 1.2)`, `g₀ = exp(0.3, −0.2, 0.1)`.
+
+(MuJoCo requires a physical body — its principal moments satisfy the triangle inequality —
+so the Hairer–Lubich–Wanner body `(2, 1, 2/3)` of the other benchmarks is not used here.)
+
+For each method and step size (each tolerance, for adaptive diffrax), one batched run is
+timed (after compilation, best of two), and the error is the largest over the first
+`--reference` bodies of `‖g(T) − g_ref(T)‖_F`, `g_ref` from DOP853 at 1e-13
+(`lievi.reference_solution`). The cost is seconds per million bodies for the whole
+horizon. Methods:
+
+- lievi: `DEP(exp)`, `MoserVeselov`, `LiePoissonSplitting` (structure-of-arrays fast
+  paths, with gravity too), `RK4` (embedded), `RKMK4` (Lie-group RK4; fast path for the free
+  body), `Composition(LiePoissonSplitting, 4 | 6)` (`jax.vmap(simulate)`), all through
+  `lievi.simulate_batch`;
+- diffrax: `Tsit5` with constant steps and `Dopri8` with a PID controller at tolerances
+  1e-4 … 1e-12, the state one flat array of 12 numbers (`R` row-major and `Π`), the field
+  `Ṙ = R Ω̂`, `Π̇ = Π × Ω + mγ Γ × ρ` (`Γ` the last row of `R`), vmapped over the batch;
+- MuJoCo (`mujoco.rollout`, the C engine, on every core): `Euler`, `implicitfast`, `RK4`,
+  a free joint (free body, gravity off) or a ball joint at the fixed point (heavy top), the
+  MJCF written here. MuJoCo runs its general articulated-body pipeline every step (mass
+  matrix, bias forces, collision detection with nothing to collide, constraint solver
+  with no constraints), which lievi's closed-form steps do not: this is the comparison a
+  user choosing a tool makes, not one of equal arithmetic. Timed on `--mujoco-batch`
+  bodies (its cost per body does not depend on the batch).
+
+The table printed (and written to `benchmarks/results/work_precision.json`, with a PNG of
+error against cost per problem) also gives, for every target error 1e-2 … 1e-10, the
+cheapest run of each family that reaches it.
+
+    python benchmarks/work_precision.py [--batch 4096] [--quick]
+
+`mujoco` and `diffrax` are optional (`pip install -e .[bench]` brings both); a family whose
+package is missing is skipped and said so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+jax.config.update("jax_enable_x64", True)
+
+import lievi  # noqa: E402
+
+T = 20.0
+MOMENTS = np.array([0.6, 0.8, 1.0])
+MASS, GRAVITY = 1.0, 1.0
+RHO = np.array([0.1, -0.1, 0.5])
+PROBLEMS = {
+    "free body": dict(m0=np.array([1.8, 0.4, -0.9]), tilt=np.zeros(3), gravity=False),
+    "heavy top": dict(m0=np.array([0.5, 0.3, 1.2]), tilt=np.array([0.3, -0.2, 0.1]), gravity=True),
+}
+TARGETS = [10.0**-k for k in range(2, 11)]
+
+
+def lievi_system(problem):
+    if PROBLEMS[problem]["gravity"]:
+        return lievi.heavy_top(
+            jnp.asarray(MOMENTS), MASS, jnp.asarray(RHO), GRAVITY, inertia_about="center_of_mass"
+        )
+    return lievi.RigidBody(jnp.asarray(MOMENTS))
+
+
+def initial_states(problem, batch, seed=0):
+    spec = PROBLEMS[problem]
+    rng = np.random.default_rng(seed)
+    m0 = spec["m0"] * (1 + 0.05 * rng.normal(size=(batch, 3)))
+    g0 = np.asarray(lievi.SO3.exp(jnp.asarray(spec["tilt"])))
+    return g0, m0
+
+
+def reference(problem, count):
+    system = lievi_system(problem)
+    g0, m0 = initial_states(problem, count)
+    finals = []
+    for k in range(count):
+        g_ref, _ = lievi.reference_solution(system, jnp.asarray(g0), jnp.asarray(m0[k]), [0.0, T])
+        finals.append(np.asarray(g_ref[-1]))
+    return np.array(finals)
+
+
+def attitude_error(g_final, g_ref):
+    count = g_ref.shape[0]
+    return float(np.max(np.linalg.norm(np.asarray(g_final[:count]) - g_ref, axis=(-2, -1))))
+
+
+def timed(fn, *args):
+    """`(result, seconds)`: compiled and run once, then the best of two runs."""
+    out = jax.block_until_ready(fn(*args))
+    best = np.inf
+    for _ in range(2):
+        start = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - start)
+    return out, best
+
+
+# ---- lievi --------------------------------------------------------------------------------
+
+
+LIEVI_METHODS = {
+    "lievi DEP exp": (lambda: lievi.DEP(), 2),
+    "lievi Moser-Veselov": (lambda: lievi.MoserVeselov(), 2),
+    "lievi splitting": (lambda: lievi.LiePoissonSplitting(), 2),
+    "lievi RK4 (embedded)": (lambda: lievi.RK4(), 4),
+    "lievi RKMK4": (lambda: lievi.RKMK4(), 4),
+    "lievi splitting ∘ 4": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=4), 4),
+    "lievi splitting ∘ 6": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=6), 6),
+}
+
+
+def lievi_run(problem, method, h, batch):
+    system = lievi_system(problem)
+    g0, m0 = initial_states(problem, batch)
+    n = int(round(T / h))
+    integrator = LIEVI_METHODS[method][0]()
+    save = lievi.Save(g=True, m=False, stats=False)
+
+    @jax.jit
+    def run(m0):
+        sol = lievi.simulate_batch(
+            system, integrator, jnp.asarray(g0), m0, h=h, n_steps=n, save=save, throw=False
+        )
+        return sol.g[:, -1], sol.result
+
+    (g_final, result), seconds = timed(run, jnp.asarray(m0))
+    ok = bool(np.all(np.asarray(result) == 0))
+    return np.asarray(g_final), seconds, ok
+
+
+# ---- diffrax ------------------------------------------------------------------------------
+
+
+def diffrax_field(gravity):
+    inverse = jnp.asarray(1 / MOMENTS)
+    rho = jnp.asarray(MASS * GRAVITY * RHO)
+
+    def field(t, y, args):
+        R, P = y[:9].reshape(3, 3), y[9:]
+        w = P * inverse
+        W = jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+        P_dot = jnp.cross(P, w)
+        if gravity:
+            P_dot = P_dot + jnp.cross(R[2], rho)
+        return jnp.concatenate([(R @ W).reshape(9), P_dot])
+
+    return field
+
+
+def diffrax_run(problem, solver_name, h_or_tol, batch):
+    import diffrax
+
+    gravity = PROBLEMS[problem]["gravity"]
+    g0, m0 = initial_states(problem, batch)
+    y0 = np.concatenate([np.broadcast_to(g0.reshape(9), (batch, 9)), m0], axis=1)
+    term = diffrax.ODETerm(diffrax_field(gravity))
+    if solver_name == "Tsit5":
+        n = int(round(T / h_or_tol))
+        kwargs = dict(
+            solver=diffrax.Tsit5(),
+            dt0=h_or_tol,
+            stepsize_controller=diffrax.ConstantStepSize(),
+            max_steps=n,
+        )
+    else:
+        kwargs = dict(
+            solver=diffrax.Dopri8(),
+            dt0=None,
+            stepsize_controller=diffrax.PIDController(rtol=h_or_tol, atol=h_or_tol),
+            max_steps=1_000_000,
+        )
+
+    @jax.jit
+    def run(y0):
+        def one(y):
+            sol = diffrax.diffeqsolve(
+                term, t0=0.0, t1=T, y0=y, saveat=diffrax.SaveAt(t1=True), throw=False, **kwargs
+            )
+            return sol.ys[-1], sol.result == diffrax.RESULTS.successful
+
+        return jax.vmap(one)(y0)
+
+    (y, ok), seconds = timed(run, jnp.asarray(y0))
+    return np.asarray(y[:, :9]).reshape(-1, 3, 3), seconds, bool(np.all(np.asarray(ok)))
+
+
+# ---- MuJoCo -------------------------------------------------------------------------------
+
+
+def mjcf(problem, h, integrator):
+    if PROBLEMS[problem]["gravity"]:
+        joint, gravity, pos = '<joint type="ball"/>', f"0 0 -{GRAVITY}", " ".join(map(str, RHO))
+    else:
+        joint, gravity, pos = "<freejoint/>", "0 0 0", "0 0 0"
+    inertia = " ".join(map(str, MOMENTS))
+    return f"""
+<mujoco>
+  <option timestep="{h}" integrator="{integrator}" gravity="{gravity}"/>
+  <worldbody>
+    <body name="body">
+      {joint}
+      <inertial pos="{pos}" mass="{MASS}" diaginertia="{inertia}"/>
+    </body>
+  </worldbody>
+</mujoco>"""
+
+
+def mujoco_run(problem, integrator, h, batch, chunk=200):
+    import mujoco
+    from mujoco import rollout
+
+    model = mujoco.MjModel.from_xml_string(mjcf(problem, h, integrator))
+    threads = os.cpu_count() or 1
+    datas = [mujoco.MjData(model) for _ in range(threads)]
+    g0, m0 = initial_states(problem, batch)
+    data = datas[0]
+    q0 = np.asarray(lievi.matrix_to_quaternion_wxyz(jnp.asarray(g0)))
+    free = not PROBLEMS[problem]["gravity"]
+    # Angular velocity in the body frame (MuJoCo's free and ball joints use the local frame).
+    omega = m0 / MOMENTS
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    states = []
+    for k in range(batch):
+        mujoco.mj_resetData(model, data)
+        if free:
+            data.qpos[3:7] = q0
+            data.qvel[3:6] = omega[k]
+        else:
+            data.qpos[:4] = q0
+            data.qvel[:3] = omega[k]
+        state = np.empty(mujoco.mj_stateSize(model, spec))
+        mujoco.mj_getState(model, data, state, spec)
+        states.append(state)
+    initial = np.array(states)
+    n = int(round(T / h))
+    start = time.perf_counter()
+    state = initial
+    done = 0
+    while done < n:
+        steps = min(chunk, n - done)
+        out, _ = rollout.rollout(model, datas, state, nstep=steps)
+        state = out[:, -1, :]
+        done += steps
+    seconds = time.perf_counter() - start
+    # FULLPHYSICS state: time, qpos, qvel, …
+    quaternion = state[:, 1 + 3 : 1 + 7] if free else state[:, 1 : 1 + 4]
+    g = np.asarray(lievi.quaternion_wxyz_to_matrix(jnp.asarray(quaternion)))
+    return g, seconds, bool(np.all(np.isfinite(state)))
+
+
+# ---- the sweep ----------------------------------------------------------------------------
+
+
+def sweep(problem, batch, mujoco_batch, quick, g_ref):
+    steps = [0.2, 0.1, 0.05, 0.025, 0.0125] if not quick else [0.1, 0.05]
+    rows = []
+
+    def record(family, method, knob, g_final, seconds, ok, bodies):
+        error = attitude_error(g_final, g_ref) if ok else float("nan")
+        cost = seconds / bodies * 1e6
+        rows.append(dict(family=family, method=method, knob=knob, error=error, cost=cost, ok=ok))
+        print(f"  {method:<28} {knob:>9.3g}  error {error:9.2e}  {cost:9.3g} s per 1e6 bodies")
+
+    for method in LIEVI_METHODS:
+        for h in steps:
+            g_final, seconds, ok = lievi_run(problem, method, h, batch)
+            record("lievi", method, h, g_final, seconds, ok, batch)
+    try:
+        import diffrax  # noqa: F401
+
+        for h in steps:
+            record("diffrax", "diffrax Tsit5", h, *diffrax_run(problem, "Tsit5", h, batch), batch)
+        tolerances = [1e-4, 1e-6, 1e-8, 1e-10, 1e-12] if not quick else [1e-6]
+        for tol in tolerances:
+            record(
+                "diffrax", "diffrax Dopri8 (adaptive)", tol,
+                *diffrax_run(problem, "Dopri8", tol, batch), batch,
+            )  # fmt: skip
+    except ImportError:
+        print("  diffrax not installed: skipped")
+    try:
+        import mujoco  # noqa: F401
+
+        for integrator in ("Euler", "implicitfast", "RK4"):
+            for h in [x / 4 for x in steps]:
+                g_final, seconds, ok = mujoco_run(problem, integrator, h, mujoco_batch)
+                record("MuJoCo", f"MuJoCo {integrator}", h, g_final, seconds, ok, mujoco_batch)
+    except ImportError:
+        print("  mujoco not installed: skipped")
+    return rows
+
+
+def cheapest(rows):
+    """Per target error and family, the cheapest run that reaches it."""
+    table = {}
+    for target in TARGETS:
+        entry = {}
+        for family in ("lievi", "diffrax", "MuJoCo"):
+            hits = [r for r in rows if r["family"] == family and r["ok"] and r["error"] <= target]
+            if hits:
+                best = min(hits, key=lambda r: r["cost"])
+                entry[family] = {k: best[k] for k in ("method", "knob", "cost", "error")}
+        table[f"{target:.0e}"] = entry
+    return table
+
+
+def plot(results, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 4.5), squeeze=False)
+    for ax, (problem, data) in zip(axes[0], results.items()):
+        methods = sorted({r["method"] for r in data["rows"]})
+        for method in methods:
+            rows = [r for r in data["rows"] if r["method"] == method and np.isfinite(r["error"])]
+            if not rows:
+                continue
+            style = "-o" if method.startswith("lievi") else ("--s" if "diffrax" in method else ":^")
+            ax.loglog(
+                [r["cost"] for r in rows], [r["error"] for r in rows], style, label=method, ms=4
+            )
+        ax.set_xlabel("seconds per million bodies (T = 20)")
+        ax.set_ylabel("final attitude error ‖g − g_ref‖_F")
+        ax.set_title(problem)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][-1].legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--batch", type=int, default=4096)
+    parser.add_argument("--mujoco-batch", type=int, default=512)
+    parser.add_argument("--reference", type=int, default=8, help="bodies checked against DOP853")
+    parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=list(PROBLEMS))
+    parser.add_argument("--quick", action="store_true", help="two step sizes, small batches")
+    parser.add_argument("--out", default="work_precision")
+    parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
+    args = parser.parse_args()
+    if args.quick:
+        args.batch, args.mujoco_batch = min(args.batch, 256), min(args.mujoco_batch, 64)
+    load = os.getloadavg()[0]
+    results = {}
+    for problem in args.problems:
+        print(f"{problem} (T = {T}, batch {args.batch}, MuJoCo batch {args.mujoco_batch}):")
+        g_ref = reference(problem, args.reference)
+        rows = sweep(problem, args.batch, args.mujoco_batch, args.quick, g_ref)
+        results[problem] = {"rows": rows, "cheapest": cheapest(rows)}
+        print(f"  {'target':>8}  cheapest lievi / diffrax / MuJoCo [s per 1e6 bodies]")
+        for target, entry in results[problem]["cheapest"].items():
+            cells = [
+                f"{entry[f]['cost']:.3g} ({entry[f]['method']}, {entry[f]['knob']:g})"
+                if f in entry
+                else "—"
+                for f in ("lievi", "diffrax", "MuJoCo")
+            ]
+            print(f"  {target:>8}  " + " / ".join(cells))
+    outdir = pathlib.Path(args.outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "machine": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "load_average_at_start": load,
+        "T": T,
+        "batch": args.batch,
+        "mujoco_batch": args.mujoco_batch,
+    }
+    (outdir / f"{args.out}.json").write_text(json.dumps({"meta": meta, **results}, indent=1))
+    plot(results, outdir / f"{args.out}.png")
+    print(f"wrote {outdir / (args.out + '.json')} and .png (load average at start {load:.1f})")
+
+
+if __name__ == "__main__":
+    main()
