@@ -56,6 +56,7 @@ REGISTRY = [
     ),
     ("rk4", lievi.RK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RK4Kernel"),
     ("rkmk4", lievi.RKMK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RKMK4Kernel"),
+    ("rkmk4-heavy-top", lievi.RKMK4(), _heavy_top, INERTIA, jnp.eye(3), M0, "RKMK4Kernel"),
     ("dep-exp-heavy-top", lievi.DEP(), _heavy_top, INERTIA, jnp.eye(3), M0, "KickKernel"),
     (
         "dep-cayley-heavy-top",

@@ -34,6 +34,7 @@ import jax.numpy as jnp
 from jaxtyping import Scalar
 
 from .._checks import check_shape
+from .._kernels._base import kernels_enabled
 from .._kernels._rkmk import RKMK4Kernel
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
@@ -60,16 +61,25 @@ class RKMK4(AbstractIntegrator):
         # Closed forms for the free rigid body with principal moments (`_kernels/_rkmk.py`).
         return (RKMK4Kernel(),)
 
+    def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
+        # With a potential linear in `g` (gravity) the same kernel takes its torque per stage.
+        if system.potential is None:
+            return self.free_kernel(system, batched)
+        kernel = RKMK4Kernel(system.potential)
+        if not kernels_enabled() or kernel.physics(system, batched) is None:
+            return None
+        return kernel
+
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
         group, side = system.group, system.side
         n, d = group.matrix_dim, group.algebra_dim
         check_shape("g", g, (n, n), f"a {n}×{n} group element")
         check_shape("m", m, (d,), f"momentum coordinates of dimension {d}")
-        # The kernel integrates the free, unforced body: otherwise the generic field.
-        if force is None and system.potential is None:
-            fast = self.kernel_step(system, g, m, h)
-            if fast is not None:
-                return fast
+        # The kernel integrates the unforced body (free or in gravity): otherwise the field.
+        kernel = None if force is not None else self.batch_kernel(system)
+        if kernel is not None:
+            g_next, m_next, result, iterations, residual = kernel.one_body_step(system, g, m, h)
+            return g_next, m_next, StepInfo(result, iterations, residual)
 
         def f(s, u, mm):
             # The chart about g_k: g = g_k exp(u) (left) or exp(u) g_k (right).

@@ -17,6 +17,29 @@ from .._results import RESULTS
 from ._base import AbstractBatchKernel
 
 
+def rigid_body_coupling(potential) -> bool:
+    """Whether `potential` is linear in a rigid body's attitude, `V = aᵀ g b` with `a`, `b`
+    3-vectors (`AbstractPotential.linear_coupling`): its torque is then `Γ × b`."""
+    coupling = potential.linear_coupling()
+    return coupling is not None and all(jnp.shape(v)[-1:] == (3,) for v in coupling)
+
+
+def advected_rows(a, g):
+    """`Γ = gᵀa` from the 9 entries of `g` (row-major); `a` may carry a batch axis first."""
+    a = jnp.asarray(a, g[0].dtype)
+    return tuple(sum(a[..., i] * g[3 * i + j] for i in range(3)) for j in range(3))
+
+
+def coupling_torque(b, Gamma):
+    """`Γ × b`, the body torque of `V = aᵀ g b` (`Γ = gᵀa`), as 3 arrays."""
+    b = tuple(b[..., i] for i in range(3))
+    return (
+        Gamma[1] * b[2] - Gamma[2] * b[1],
+        Gamma[2] * b[0] - Gamma[0] * b[2],
+        Gamma[0] * b[1] - Gamma[1] * b[0],
+    )
+
+
 class KickKernel(AbstractBatchKernel):
     """A free kernel between two half kicks of a potential's torque (paper §7): the step of
     `AbstractKickIntegrator` (`Π⁺ = Π + (h/2)M(g_k)`, free step, `Π_{k+1} = Π⁻ + (h/2)M(g_{k+1})`)
@@ -37,8 +60,7 @@ class KickKernel(AbstractBatchKernel):
     @staticmethod
     def applies_to(potential) -> bool:
         """Whether `potential` is linear in a rigid body's attitude (`linear_coupling`)."""
-        coupling = potential.linear_coupling()
-        return coupling is not None and all(jnp.shape(v)[-1:] == (3,) for v in coupling)
+        return rigid_body_coupling(potential)
 
     def physics(self, system, batched: bool = False):
         # The torques are those of a rigid body on SO(3).
@@ -63,9 +85,7 @@ class KickKernel(AbstractBatchKernel):
         return self if self.reduced_state else dataclasses.replace(self, reduced_state=True)
 
     def _advected_of_rows(self, g):
-        # Γ_j = Σ_i a_i g_ij (a may carry a batch axis first, like the potential's leaves).
-        a = jnp.asarray(self.potential.linear_coupling()[0], g[0].dtype)
-        return tuple(sum(a[..., i] * g[3 * i + j] for i in range(3)) for j in range(3))
+        return advected_rows(self.potential.linear_coupling()[0], g)
 
     def carried(self, g0):
         g = super().carried(g0)
@@ -77,13 +97,7 @@ class KickKernel(AbstractBatchKernel):
     def _torque(self, state):
         """`M = Γ × b` from the carried state (`Γ` itself, or the 9 entries of `g`)."""
         Gamma = state if self.reduced_state else self._advected_of_rows(state)
-        b = self.potential.linear_coupling()[1]
-        b = tuple(b[..., i] for i in range(3))
-        return (
-            Gamma[1] * b[2] - Gamma[2] * b[1],
-            Gamma[2] * b[0] - Gamma[0] * b[2],
-            Gamma[0] * b[1] - Gamma[1] * b[0],
-        )
+        return coupling_torque(self.potential.linear_coupling()[1], Gamma)
 
     def prepare(self, inertia, h):
         return self.free.prepare(inertia, h), h / 2

@@ -1,4 +1,5 @@
-"""The fast batched step of `RKMK4` for the free rigid body with principal moments.
+"""The fast batched step of `RKMK4` for the rigid body with principal moments, free or with
+a potential linear in `g` (`V = aᵀ g b`, e.g. uniform gravity: the heavy top).
 
 The structure-of-arrays counterpart of `lievi/_integrators/_rkmk.py` (classical RK4 on
 `(u, Π)` with `g = g_k exp(u)`), as `_explicit.py` is for `RK4`: every component its own
@@ -12,20 +13,42 @@ With `w = (h/I)·Π` (the angle turned per step at momentum `Π`) the stage incr
 `c = (1 − (θ/2)cot(θ/2))/θ²` (`θ = |u|`, the SO(3) `dexpinv` coefficient, a power series
 in `θ²/4` accurate to round-off on the method's whole step range), and the increment
 `F = exp(u)` is Rodrigues' `1 + a û + b û²`, `a = sin θ/θ`, `b = (1 − cos θ)/θ²`, from the
-same series.
+same series. With a potential `V = aᵀ g b` the torque `Γ × b` at a stage is that of
+`Γ = (g_k exp(u))ᵀa = exp(u)ᵀ Γ_k = Γ_k − α u×Γ_k + β u×(u×Γ_k)` (`α`, `β` as `a`, `b`).
 """
 
 from __future__ import annotations
 
+import equinox as eqx
+import jax.numpy as jnp
+
 from ._base import AbstractBatchKernel
 from ._explicit import explicit_info, finite_result
+from ._kick import advected_rows, coupling_torque, rigid_body_coupling
 from ._soa import C_SERIES, P_SERIES, S_SERIES, cross, dot, horner
 
 
-def _stage(u, m, rate):
-    """`(h u̇, h Π̇)` at the stage `(u, Π)` (`u = None`: the stage at `u = 0`)."""
+def _rotation_coefficients(t):
+    """`(sin θ/θ, (1 − cos θ)/θ²)` at `t = θ²`."""
+    S, C = horner(S_SERIES, t / 4), horner(C_SERIES, t / 4)
+    return S * C, S * S / 2
+
+
+def _stage(u, m, rate, coupling):
+    """`(h u̇, h Π̇)` at the stage `(u, Π)` (`u = None`: the stage at `u = 0`).
+    `coupling`: `None`, or `(Γ_k, h b)` of a potential `V = aᵀ g b`."""
     w = tuple(rate[i] * m[i] for i in range(3))
     dm = cross(m, w)
+    if coupling is not None:
+        Gamma, hb = coupling
+        if u is not None:
+            # Γ at the stage: exp(u)ᵀΓ_k.
+            alpha, beta = _rotation_coefficients(dot(u, u))
+            uG = cross(u, Gamma)
+            uuG = cross(u, uG)
+            Gamma = tuple(Gamma[i] - alpha * uG[i] + beta * uuG[i] for i in range(3))
+        torque = coupling_torque(hb, Gamma)
+        dm = tuple(dm[i] + torque[i] for i in range(3))
     if u is None:
         return w, dm
     q = dot(u, u) / 4
@@ -35,23 +58,25 @@ def _stage(u, m, rate):
     return tuple(w[i] + uw[i] / 2 + c * uuw[i] for i in range(3)), dm
 
 
-def rkmk4_step(g, m, rate):
+def rkmk4_step(g, m, rate, coupling=None):
     """One `RKMK4` step: `g`: 9 arrays (row-major), `m`: 3 arrays, `rate`: `h/I_p`, 3
-    arrays or scalars. Returns `(g_next, m_next, result)`."""
+    arrays or scalars; `coupling`: `None` (free) or `(a, h b)` of `V = aᵀ g b`. Returns
+    `(g_next, m_next, result)`."""
+    if coupling is not None:
+        coupling = (advected_rows(coupling[0], g), coupling[1])
 
     def axpy(a, x, y):
         return tuple(y[i] + a * x[i] for i in range(3))
 
-    du1, dm1 = _stage(None, m, rate)
-    du2, dm2 = _stage(tuple(x / 2 for x in du1), axpy(0.5, dm1, m), rate)
-    du3, dm3 = _stage(tuple(x / 2 for x in du2), axpy(0.5, dm2, m), rate)
-    du4, dm4 = _stage(du3, axpy(1.0, dm3, m), rate)
+    du1, dm1 = _stage(None, m, rate, coupling)
+    du2, dm2 = _stage(tuple(x / 2 for x in du1), axpy(0.5, dm1, m), rate, coupling)
+    du3, dm3 = _stage(tuple(x / 2 for x in du2), axpy(0.5, dm2, m), rate, coupling)
+    du4, dm4 = _stage(du3, axpy(1.0, dm3, m), rate, coupling)
     u = tuple((du1[i] + 2 * du2[i] + 2 * du3[i] + du4[i]) / 6 for i in range(3))
     m_next = tuple(m[i] + (dm1[i] + 2 * dm2[i] + 2 * dm3[i] + dm4[i]) / 6 for i in range(3))
     # F = exp(u) = 1 + a û + b (uuᵀ − t 1), then g F row by row.
     t = dot(u, u)
-    S, C = horner(S_SERIES, t / 4), horner(C_SERIES, t / 4)
-    a, b = S * C, S * S / 2
+    a, b = _rotation_coefficients(t)
     X = (0, -u[2], u[1], u[2], 0, -u[0], -u[1], u[0], 0)
     F = [a * X[3 * i + j] + b * u[i] * u[j] for i in range(3) for j in range(3)]
     for i in range(3):
@@ -65,11 +90,26 @@ def rkmk4_step(g, m, rate):
 
 
 class RKMK4Kernel(AbstractBatchKernel):
-    """`rkmk4_step` for `RKMK4` (the free rigid body with principal moments)."""
+    """`rkmk4_step` for `RKMK4`: the rigid body with principal moments, free (`potential`
+    `None`) or in a potential linear in `g` (`AbstractPotential.linear_coupling`)."""
+
+    potential: eqx.Module | None = None
+
+    def physics(self, system, batched: bool = False):
+        if (system.potential is None) != (self.potential is None):
+            return None
+        if self.potential is not None and not rigid_body_coupling(self.potential):
+            return None
+        return super().physics(system, batched)
 
     def prepare(self, inertia, h):
-        return tuple(h / moment for moment in inertia)
+        return tuple(h / moment for moment in inertia), h
 
     def step(self, params, g, m, alive):
-        g_next, m_next, result = rkmk4_step(g, m, params)
+        rate, h = params
+        coupling = None
+        if self.potential is not None:
+            a, b = self.potential.linear_coupling()
+            coupling = (a, h[..., None] * b if jnp.ndim(h) else h * b)
+        g_next, m_next, result = rkmk4_step(g, m, rate, coupling)
         return (g_next, m_next, result, *explicit_info(m))
