@@ -267,7 +267,7 @@ def test_full_tensor_uses_generic_path(problem):
 @pytest.mark.parametrize(
     "change, match",
     [
-        (dict(g0=jnp.eye(3)), "`g0` must have shape"),
+        (dict(g0=jnp.ones((4, 3))), "`g0` must have shape"),
         (dict(m0=jnp.zeros((5, 3))), "same batch size"),
         (dict(h=jnp.ones(5)), "`h` must be a scalar or have shape"),
         (dict(h=-0.1), "`h` must be > 0"),
