@@ -57,6 +57,33 @@ REGISTRY = [
     ("rk4", lievi.RK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RK4Kernel"),
     ("rkmk4", lievi.RKMK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RKMK4Kernel"),
     ("rkmk4-heavy-top", lievi.RKMK4(), _heavy_top, INERTIA, jnp.eye(3), M0, "RKMK4Kernel"),
+    (
+        "composition-splitting-6",
+        lievi.Composition(lievi.LiePoissonSplitting(), order=6),
+        _rigid_body,
+        INERTIA,
+        jnp.eye(3),
+        M0,
+        "CompositionKernel",
+    ),
+    (
+        "composition-dep-4-heavy-top",
+        lievi.Composition(lievi.DEP(), order=4),
+        _heavy_top,
+        INERTIA,
+        jnp.eye(3),
+        M0,
+        "CompositionKernel",
+    ),
+    (
+        "composition-dep-4-se3",
+        lievi.Composition(lievi.DEP(), order=4),
+        _se3,
+        SE3_TENSOR,
+        jnp.eye(4),
+        SE3_M0,
+        "CompositionKernel",
+    ),
     ("dep-exp-heavy-top", lievi.DEP(), _heavy_top, INERTIA, jnp.eye(3), M0, "KickKernel"),
     (
         "dep-cayley-heavy-top",
@@ -99,7 +126,15 @@ REGISTRY = [
 IDS = [entry[0] for entry in REGISTRY]
 # The batched comparison of every entry runs with `-m slow`; the default suite batches one
 # entry per kernel class (each kernel's batched loop, reduced state included).
-BATCH_DEFAULT = ("dep-exp", "moser-veselov", "splitting", "rk4", "dep-exp-heavy-top", "dep-exp-se3")
+BATCH_DEFAULT = (
+    "dep-exp",
+    "moser-veselov",
+    "splitting",
+    "rk4",
+    "dep-exp-heavy-top",
+    "dep-exp-se3",
+    "composition-splitting-6",
+)
 BATCHED = [
     entry if entry[0] in BATCH_DEFAULT else pytest.param(entry, marks=pytest.mark.slow)
     for entry in REGISTRY
@@ -130,9 +165,10 @@ def test_kernel_runs(entry):
 
 ONE_BODY = [
     # The slowest compilations under -m slow (RKMK4 in gravity is also checked against
-    # DOP853 by its order test, through the kernel, in the default suite).
+    # DOP853 by its order test, through the kernel, in the default suite; the SE(3)
+    # composition stays: its negative stage exercises the SE(3) kernel at h < 0).
     pytest.param(entry, marks=pytest.mark.slow)
-    if entry[0] in ("dep-cayley-se3", "rkmk4-heavy-top")
+    if entry[0] in ("dep-cayley-se3", "rkmk4-heavy-top", "composition-dep-4-heavy-top")
     else entry
     for entry in REGISTRY
 ]

@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Scalar
 
+from .._kernels._composition import CompositionKernel
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from ._base import AbstractIntegrator, StepInfo
@@ -147,6 +148,15 @@ class Composition(AbstractIntegrator):
     def step_bound(self) -> float:
         # The longest stage is max|γ_i|·h; each stage must obey the inner method's bound.
         return self.method.step_bound() / max(abs(c) for c in self.coefficients)
+
+    def kernels(self):
+        # The inner method's kernels, each run at every stage (`_kernels/_composition.py`).
+        return tuple(CompositionKernel(k, self.coefficients) for k in self.method.kernels())
+
+    def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
+        # The inner method decides (its potential's kicks included); the stages wrap it.
+        inner = self.method.batch_kernel(system, batched)
+        return None if inner is None else CompositionKernel(inner, self.coefficients)
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
         gammas = jnp.asarray(self.coefficients, dtype=m.dtype)

@@ -126,14 +126,18 @@ def _off_branch(chart, x, m, C):
     (exp: a rotation angle of π or more).
 
     `det J = det(∂r_v/∂v) det(∂ρ/∂ω)` (the Schur complement, `reduced_residual`), and
-    `∂r_v/∂v = K′(ω)A₂₂` has a positive determinant (`A₂₂` is positive definite, and
-    `det K′ > 0` on the chart's branch), so the sign is that of the 3×3 `det(∂ρ/∂ω)`.
+    `∂r_v/∂v = K′(ω)A₂₂` has the determinant sign of `h³` (`A₂₂ = M₂₂/h` with `M₂₂`
+    positive definite, and `det K′ > 0` on the chart's branch), while `det A > 0` for
+    either sign of `h` (6 dimensions): so the rule is `sign(h)·det(∂ρ/∂ω) > 0`, with
+    `sign(h)` that of the Schur complement's `S₁₁` (`S = (M/M₂₂)/h`, `M/M₂₂` positive
+    definite). Negative steps occur inside compositions (`lievi.Composition`).
     """
     w = x[:3]
     _, J, _ = reduced_residual(chart, w, m, C, True)
     (a, b, c), (d, e, f), (g, h, i) = J
     det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
-    return ~(det > 0) | chart.beyond_branch(dot(w, w), math.pi)
+    S = C[0]
+    return ~(det * S[0][0] > 0) | chart.beyond_branch(dot(w, w), math.pi)
 
 
 def _newton_tail(chart, max_steps, state, args):
