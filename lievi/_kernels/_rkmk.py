@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from ._base import AbstractBatchKernel
 from ._explicit import explicit_info, finite_result
 from ._kick import advected_rows, coupling_torque, rigid_body_coupling
-from ._soa import C_SERIES, P_SERIES, S_SERIES, cross, dot, horner
+from ._soa import C_SERIES, P_SERIES, S_SERIES, cross, dot, horner, rotate_rows
 
 
 def _rotation_coefficients(t):
@@ -74,18 +74,8 @@ def rkmk4_step(g, m, rate, coupling=None):
     du4, dm4 = _stage(du3, axpy(1.0, dm3, m), rate, coupling)
     u = tuple((du1[i] + 2 * du2[i] + 2 * du3[i] + du4[i]) / 6 for i in range(3))
     m_next = tuple(m[i] + (dm1[i] + 2 * dm2[i] + 2 * dm3[i] + dm4[i]) / 6 for i in range(3))
-    # F = exp(u) = 1 + a û + b (uuᵀ − t 1), then g F row by row.
-    t = dot(u, u)
-    a, b = _rotation_coefficients(t)
-    X = (0, -u[2], u[1], u[2], 0, -u[0], -u[1], u[0], 0)
-    F = [a * X[3 * i + j] + b * u[i] * u[j] for i in range(3) for j in range(3)]
-    for i in range(3):
-        F[4 * i] = F[4 * i] + (1 - b * t)
-    g_next = tuple(
-        g[3 * i] * F[j] + g[3 * i + 1] * F[3 + j] + g[3 * i + 2] * F[6 + j]
-        for i in range(3)
-        for j in range(3)
-    )
+    # g exp(u), Rodrigues' coefficients.
+    g_next = rotate_rows(g, u, *_rotation_coefficients(dot(u, u)))
     return g_next, m_next, finite_result(m_next, g_next)
 
 

@@ -58,6 +58,7 @@ from ._soa import (
     cross,
     dot,
     max_abs,
+    rotate_rows,
     solve3,
 )
 
@@ -160,17 +161,7 @@ def dep_step(equation, g, m, A, tolerance, fixed_iterations: int, max_steps: int
     t = dot(xi, xi)
     a, b = equation.increment_coefficients(t)
     off_branch = equation.off_branch(jax.lax.stop_gradient(xi), m, A, t, converged)
-    # F = 1 + a ξ̂ + b (ξξᵀ − t 1).
-    X = (0, -xi[2], xi[1], xi[2], 0, -xi[0], -xi[1], xi[0], 0)
-    F = [a * X[3 * i + j] + b * xi[i] * xi[j] for i in range(3) for j in range(3)]
-    for i in range(3):
-        F[4 * i] = F[4 * i] + (1 - b * t)
-    # Row by row (`g` may be only some rows, e.g. the advected `Γᵀ = e₃ᵀg`).
-    g_next = tuple(
-        g[3 * i] * F[j] + g[3 * i + 1] * F[3 + j] + g[3 * i + 2] * F[6 + j]
-        for i in range(len(g) // 3)
-        for j in range(3)
-    )
+    g_next = rotate_rows(g, xi, a, b)
     xp = cross(xi, m)
     dp = dot(xi, m)
     m_next = tuple(m[i] - a * xp[i] + b * (xi[i] * dp - t * m[i]) for i in range(3))

@@ -108,3 +108,19 @@ def block(A, i, j):
 def entries(X):
     """A `(…, 6, 6)` array as a 6×6 nested tuple of `(…)` arrays (`(B,)` or scalars)."""
     return tuple(tuple(X[..., i, j] for j in range(6)) for i in range(6))
+
+
+def rotate_rows(g, x, a, b):
+    """`g F` row by row, `F = 1 + a x̂ + b (xxᵀ − t 1)` (`t = |x|²`; the SO(3) increment of
+    a step, `a`, `b` its chart's coefficients); `g` is 9 entries (row-major) or only some
+    of its rows (3 a row, e.g. the advected `Γᵀ = e₃ᵀg`)."""
+    t = dot(x, x)
+    X = (0, -x[2], x[1], x[2], 0, -x[0], -x[1], x[0], 0)
+    F = [a * X[3 * i + j] + b * x[i] * x[j] for i in range(3) for j in range(3)]
+    for i in range(3):
+        F[4 * i] = F[4 * i] + (1 - b * t)
+    return tuple(
+        g[3 * i] * F[j] + g[3 * i + 1] * F[3 + j] + g[3 * i + 2] * F[6 + j]
+        for i in range(len(g) // 3)
+        for j in range(3)
+    )
