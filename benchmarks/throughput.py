@@ -14,7 +14,7 @@ The diffrax baseline ("diffrax Tsit5", every ratio is taken against it) is the f
 formulation of the same solver, the same ODE and the same step that we found:
 
 - the batch as rows: a (12, B) array Π₁ Π₂ Π₃ g₁₁ … g₃₃ is the diffrax state, solved in
-  blocks of 5000 bodies one after another (`lax.map`) above 1e4 bodies, in one solve up to
+  blocks of 5000 bodies one after another (`lax.map`) above 1e4 bodies on a CPU, in one solve up to
   1e4, each block one `diffeqsolve` (with
   a constant step nothing adapts per body, so each body takes exactly the steps of its own
   solve; the final states agree with the per-body solve to ≈ 1e-14);
@@ -216,9 +216,11 @@ def _columns_field(t, y, inv_inertia):
 
 
 # The diffrax options of the strong baseline (forward only: nothing is differentiated), and
-# the bodies per solve: the batch is cut into blocks of `chunk` bodies, solved one after
-# another (`lax.map`), so that a block's stage arrays stay in cache.
-STRONG_DIFFRAX = {"scan_kind": "lax", "adjoint": "forward", "throw": False, "chunk": 5000}
+# the bodies per solve: on a CPU the batch is cut into blocks of `chunk` bodies, solved one
+# after another (`lax.map`), so that a block's stage arrays stay in cache; on a GPU one
+# solve over the whole batch ("auto": blocks one after another would leave the GPU idle).
+STRONG_DIFFRAX = {"scan_kind": "lax", "adjoint": "forward", "throw": False, "chunk": "auto"}
+CPU_CHUNK = 5000
 
 
 def _in_chunks(solve_rows, y0, args, chunk: int | None):
@@ -226,8 +228,10 @@ def _in_chunks(solve_rows, y0, args, chunk: int | None):
     (`lax.map`; the last block padded with copies of the last body) when `B > 2 chunk`, in
     one solve otherwise (at batch 1e4 one solve was 1.3× two blocks of 5000, at 1e5 blocks
     of 5000 2.8× one solve: `--diffrax-variants`). Returns the final rows (n, B) and the
-    worst result code."""
+    worst result code. `chunk="auto"`: `CPU_CHUNK` on a CPU, one solve on a GPU."""
     batch = y0.shape[1]
+    if chunk == "auto":
+        chunk = CPU_CHUNK if jax.default_backend() == "cpu" else None
     if chunk is None or batch <= 2 * chunk:
         return solve_rows(y0, args)
     blocks = -(-batch // chunk)
@@ -248,7 +252,7 @@ def diffrax_rigid_body(
     scan_kind: str | None = STRONG_DIFFRAX["scan_kind"],
     adjoint: str | None = STRONG_DIFFRAX["adjoint"],
     throw: bool = STRONG_DIFFRAX["throw"],
-    chunk: int | None = STRONG_DIFFRAX["chunk"],
+    chunk: int | str | None = STRONG_DIFFRAX["chunk"],
 ):
     """diffrax on the free rigid body, final `(g, Π, result)` of a batch, jitted.
 
@@ -259,7 +263,8 @@ def diffrax_rigid_body(
     `solver`: `"Tsit5"` or `"Dopri5"`; `scan_kind`: the Runge–Kutta stage loop
     (diffrax's default `None` is a checkpointed loop); `adjoint`: `None` (diffrax's
     default, `RecursiveCheckpointAdjoint`), `"direct"` or `"forward"`; `chunk`: with
-    `"rows"`, bodies per solve (`None`: the whole batch in one solve)."""
+    `"rows"`, bodies per solve (`None`: the whole batch in one solve; `"auto"`: see
+    `_in_chunks`)."""
     import diffrax
 
     method = getattr(diffrax, solver)(scan_kind=scan_kind)
@@ -535,7 +540,8 @@ def acceptance_summary(records):
             "meets_target": None if target is None else rate >= target,
             "meets_10x_diffrax": ratio >= 10,
         }
-        one_step = methods(1).get(name)
+        # The flop limit is the CPU's (`PEAK_FLOPS_PER_CORE`); a GPU's cost analysis is None.
+        one_step = methods(1).get(name) if jax.default_backend() == "cpu" else None
         if one_step is not None:
             traced, executed = flops_per_body_step(one_step, jnp.float64)
             peak = PEAK_FLOPS_PER_CORE * cpu_cores()
@@ -644,7 +650,7 @@ def _heavy_top_rows(y, args):
 
 def diffrax_heavy_top_runner(steps: int):
     """The strong baseline on the heavy top, as `diffrax_runner` on the free body: the
-    batch as (6, B) rows `(Π, Γ)` solved in blocks of `STRONG_DIFFRAX["chunk"]` bodies, the
+    batch as (6, B) rows `(Π, Γ)` solved as the free body's (`STRONG_DIFFRAX["chunk"]`), the
     field written out on rows, `throw=False`, `ForwardMode`, `scan_kind="lax"`."""
     import diffrax
 

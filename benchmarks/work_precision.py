@@ -21,7 +21,7 @@ horizon. Methods:
 
 - lievi: `DEP(exp)`, `MoserVeselov`, `LiePoissonSplitting`, `RKMK4` (Lie-group RK4)
   (structure-of-arrays fast paths, with gravity too), `RK4` (embedded; fast path for the
-  free body), `Composition(LiePoissonSplitting, 4 | 6)` (the fused composition kernel), all through
+  free body), `Composition(LiePoissonSplitting, 4 | 6 | 8)` (the fused composition kernel), all through
   `lievi.simulate_batch`;
 - diffrax: `Tsit5` with constant steps and `Dopri8` with a PID controller at tolerances
   1e-4 … 1e-12, the state one flat array of 12 numbers (`R` row-major and `Π`), the field
@@ -131,6 +131,7 @@ LIEVI_METHODS = {
     "lievi RKMK4": (lambda: lievi.RKMK4(), 4),
     "lievi splitting ∘ 4": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=4), 4),
     "lievi splitting ∘ 6": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=6), 6),
+    "lievi splitting ∘ 8": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=8), 8),
 }
 
 

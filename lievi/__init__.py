@@ -57,10 +57,10 @@ from ._reference import reference_solution as reference_solution
 from ._results import RESULTS as RESULTS
 from ._save import Save as Save
 from ._sharding import shard_batch as shard_batch
-from ._simulate import Solution as Solution
 from ._simulate import simulate as simulate
 from ._simulate_batch import has_fast_path as has_fast_path
 from ._simulate_batch import simulate_batch as simulate_batch
+from ._solution import Solution as Solution
 from ._systems._base import AbstractLieSystem as AbstractLieSystem
 from ._systems._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
 from ._systems._lie_lagrangian import LieLagrangian as LieLagrangian

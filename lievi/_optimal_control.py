@@ -20,7 +20,8 @@ import optax.tree_utils as otu
 from jaxtyping import Array, Float
 
 from ._forcing import Control
-from ._simulate import Solution, simulate
+from ._simulate import simulate
+from ._solution import Solution
 
 
 class OptimalControlSolution(eqx.Module):

@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Float
 
 from ._checks import (
     check_integer,
@@ -21,84 +21,11 @@ from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator, AbstractVariationalIntegrator
 from ._progress import AbstractProgressMeter, NoProgressMeter, as_progress_meter
 from ._results import RESULTS
+from ._save import Save
 from ._scan import checkpoint_segment, scan_in_segments
+from ._simulate_kernel import simulate_kernel
+from ._solution import Solution
 from ._systems._base import AbstractLieSystem
-
-
-class Solution(eqx.Module):
-    """A computed trajectory.
-
-    **Attributes:**
-
-    - `ts`: saved times, shape `(T,)`, `T = n_steps // save_every + 1` (initial state included).
-    - `g`: group elements, shape `(T, n, n)`.
-    - `m`: momenta in algebra coordinates (body momentum `Π` for left-invariant systems,
-      spatial `μ` for right-invariant ones), shape `(T, d)`.
-    - `result`: a `RESULTS` code for the whole run (the first failure, if any). After a
-      failed step the state is NaN, so no number past a failure can be mistaken for a result.
-    - `stats`: `newton_iterations` and `residual`, shape `(T − 1,)`, the maximum over the
-      steps between consecutive saves; `failed_step`, the index of the first failed step
-      (−1 if none); `total_newton_iterations`; `num_steps`.
-    - `advected`: the advected parameter `Γ = gᵀa` of the system's potential (the body
-      frame's view of gravity's vertical for `UniformGravity`; paper §7), shape `(T, n)`,
-      for a potential that has one (`AbstractPotential.advected_direction`) whenever `g`
-      is saved (read off it) or it was asked for (`simulate_batch(save=(..., "advected"))`),
-      else `None`. A batched run that saves `Γ` but not `g` carries `(Π, Γ)` alone on the
-      fast path (`simulate_batch`).
-    """
-
-    ts: Float[Array, " T"]
-    g: Float[Array, "T n n"] | None
-    m: Float[Array, "T d"] | None
-    result: Int[Array, ""]
-    stats: dict[str, Array]
-    advected: Float[Array, "T n"] | None = None
-
-    def angular_velocity(
-        self, system: AbstractLieSystem, frame: str = "body"
-    ) -> Float[Array, "T d"]:
-        """Angular velocity along the trajectory (frames: docs/theory/conventions.md).
-
-        **Arguments:**
-
-        - `system`: the system that was simulated (its inverse Legendre map turns momentum
-          into velocity; for the rigid body `Ω = I⁻¹Π`).
-        - `frame`: `"body"` for `Ω = g⁻¹ġ` (body coordinates), `"spatial"` for
-          `ω = ġg⁻¹` (world coordinates; `ω = gΩ` on SO(3)).
-
-        **Returns:** algebra coordinates, shape `(T, d)` (any leading batch axes of a batched
-        `Solution` kept).
-        """
-        if frame not in ("body", "spatial"):
-            raise ValueError(f"`frame` must be 'body' or 'spatial', got {frame!r}.")
-        xi = _over_leading_axes(system.velocity, 1, self.m)
-        # Left-invariant systems carry the body velocity, right-invariant the spatial one.
-        if frame != system.side.carried_frame():
-            xi = system.side.other_frame(system.group, self.g, xi)
-        return xi
-
-    def spatial_momentum(self, system: AbstractLieSystem) -> Float[Array, "T d"]:
-        """The momentum conserved by the symmetry, along the trajectory: `gΠ` on SO(3).
-
-        Left-invariant systems: the spatial momentum `Ad*_{g⁻¹}Π = Ad_{g⁻¹}ᵀΠ` (`gΠ̂gᵀ` on
-        SO(n)). Right-invariant systems: the body momentum `Ad_gᵀμ`. Conserved by the free
-        flow and kept to round-off by the geometric integrators; the same quantity as
-        `lievi.diagnostics.spatial_momentum`.
-
-        **Arguments:**
-
-        - `system`: the system that was simulated.
-
-        **Returns:** shape `(T, d)` (leading batch axes kept).
-        """
-        return system.side.noether_momentum(system.group, self.g, self.m)
-
-
-def _over_leading_axes(fn, core_ndim: int, x):
-    """Apply `fn` (written for one state with `core_ndim` axes) over all leading axes."""
-    for _ in range(x.ndim - core_ndim):
-        fn = jax.vmap(fn)
-    return fn(x)
 
 
 def _check_step_size(h) -> None:
@@ -290,10 +217,15 @@ def _simulate(
     forcing=None,
     args=None,
 ) -> Solution:
-    nan = jnp.asarray(jnp.nan, m0.dtype)
-    progress.report(jnp.asarray(0, jnp.int32), n_steps)
     # Per-run state (e.g. a preprocessed method's modified moments for this `h`), once.
     integrator = integrator.init(system, m0, h)
+    kernel = None if forcing is not None else integrator.batch_kernel(system)
+    if kernel is not None:
+        return _simulate_on_kernel(
+            kernel, system, integrator, g0, m0, h, t0, n_steps, save_every, segment, valid, progress
+        )
+    nan = jnp.asarray(jnp.nan, m0.dtype)
+    progress.report(jnp.asarray(0, jnp.int32), n_steps)
 
     def one_step(carry, data):
         g, m, result, failed_step, k = carry
@@ -356,6 +288,45 @@ def _simulate(
         result=result,
         stats=stats,
         advected=advected_of(system, gs),
+    )
+
+
+def _simulate_on_kernel(
+    kernel, system, integrator, g0, m0, h, t0, n_steps, save_every, segment, valid, progress
+) -> Solution:
+    """The run on the integrator's structure-of-arrays kernel (`batch_kernel`), as a batch
+    of one in `simulate_batch`'s loop: the same iterates as the generic step to round-off
+    (`tests/test_kernel_parity.py`), and under `jax.vmap` each component of the state is
+    one array over the bodies — `simulate_batch`'s layout, not `(B, n, n)` matrices sliced
+    into components at every step."""
+    group = system.group if drifts_off_group(m0.dtype) else None
+    one = simulate_kernel(
+        kernel,
+        kernel.physics(system),
+        integrator.step_bound(),
+        g0[None],
+        m0[None],
+        h,
+        n_steps,
+        save_every,
+        Save(g=True, m=True, stats=True),
+        1,
+        segment,
+        valid,
+        group,
+        t0,
+        progress,
+    )
+    # The batch of one's leading axis off; `simulate`'s statistics.
+    one = jax.tree.map(lambda x: x[0], one)
+    stats = dict(one.stats, num_steps=jnp.asarray(n_steps))
+    return Solution(
+        ts=one.ts,
+        g=one.g,
+        m=one.m,
+        result=one.result,
+        stats=stats,
+        advected=advected_of(system, one.g),
     )
 
 

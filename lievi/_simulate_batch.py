@@ -37,8 +37,9 @@ from ._integrators._base import AbstractIntegrator
 from ._results import RESULTS
 from ._save import Save, as_save
 from ._scan import checkpoint_segment
-from ._simulate import Solution, advected_of, simulate
+from ._simulate import advected_of, simulate
 from ._simulate_kernel import simulate_kernel
+from ._solution import Solution
 from ._systems._base import AbstractLieSystem
 
 SAVE_FIELDS = ("g", "m", "stats")  # the default `save`

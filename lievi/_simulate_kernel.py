@@ -16,9 +16,10 @@ import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
 from ._kernels._base import ROOT_NAME
+from ._progress import NoProgressMeter
 from ._results import RESULTS
 from ._scan import scan_in_segments
-from ._simulate import Solution
+from ._solution import Solution
 
 
 @eqx.filter_jit
@@ -36,9 +37,15 @@ def simulate_kernel(
     segment,
     valid=True,
     group=None,
+    t0=0.0,
+    progress=NoProgressMeter(),
 ):
     """`group`: where given, the carried elements are put back on it (`project`) at each
-    save, as `simulate` does in low precision (`lievi._checks.drifts_off_group`)."""
+    save, as `simulate` does in low precision (`lievi._checks.drifts_off_group`). `t0`:
+    the time of the first saved state; `progress`: a progress meter (`lievi._progress`).
+
+    `simulate` runs one body here too, as a batch of one: under `jax.vmap` each component
+    is then one `(B, 1)` array, the layout `simulate_batch` runs in."""
     batch, dtype = g0.shape[0], m0.dtype
     constants = jax.tree.map(lambda x: jnp.asarray(x, dtype), constants)
     # Structure of arrays: component-major, batch minor; the kernel owns the layout.
@@ -54,6 +61,7 @@ def simulate_kernel(
     # then needs no division and no square root (both run at a fraction of the rate of a
     # product on CPU).
     turn_rates = kernel.turn_rates(constants, h)
+    progress.report(jnp.asarray(0, jnp.int32), n_steps)
 
     def _checked_step_result(g_next, m_next, m, step_result):
         """`lievi._simulate.checked_step_result` on structure of arrays."""
@@ -90,6 +98,7 @@ def simulate_kernel(
         iterations = jnp.where(alive, iterations, 0)
         residual = jnp.where(alive, residual, -jnp.inf)
         counters = (total + iterations, jnp.maximum(most, iterations), jnp.fmax(worst, residual))
+        progress.report(k + 1, n_steps)
         return ((g_next, m_next, result, failed_step, k + 1), counters), None
 
     zero_counters = (
@@ -127,8 +136,8 @@ def simulate_kernel(
     final, out = scan_in_segments(one_save, init, n_steps // save_every, outer)
     _, _, result, failed_step, _ = final
     n_saves = n_steps // save_every
-    # As `simulate`: t0 + h·save_every·k with t0 = 0.
-    ts = (h[:, None] if h.ndim else h) * save_every * jnp.arange(n_saves + 1, dtype=dtype)
+    # As `simulate`: t0 + h·save_every·k.
+    ts = t0 + (h[:, None] if h.ndim else h) * save_every * jnp.arange(n_saves + 1, dtype=dtype)
     ts = jnp.broadcast_to(ts, (batch, n_saves + 1))
     stats = {
         "failed_step": failed_step,

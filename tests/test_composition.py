@@ -1,4 +1,4 @@
-"""`Composition`: orders 4 and 6 by regression, symmetry, structure, StepInfo, bad input.
+"""`Composition`: orders 4, 6 and 8 by regression, symmetry, structure, StepInfo, bad input.
 
 Orders are fitted by regression of log error on log h against the DOP853 reference
 (rtol = atol = 1e-13) on the HLW body to T = 2, with step sizes chosen so that the errors
@@ -18,8 +18,9 @@ from lievi import diagnostics as dg
 
 ORDER_TOLERANCE = 0.2
 T = 2.0
-# Errors from ~1e-4 down to ~1e-10 (order 4) and ~1e-7 down to ~1e-11 (order 6).
-STEPS = {4: (10, 20, 40, 80), 6: (5, 7, 10, 14, 20)}
+# Errors from ~1e-4 down to ~1e-10 (order 4), ~1e-7 down to ~1e-11 (order 6), ~1e-7
+# (splitting) or ~1e-9 (DEP) down to ~1e-10 / ~1e-11 (order 8).
+STEPS = {4: (10, 20, 40, 80), 6: (5, 7, 10, 14, 20), 8: (3, 4, 5, 6)}
 
 
 @eqx.filter_jit
@@ -66,14 +67,24 @@ CASES = [
     (lievi.MoserVeselov(), 6, None),
     (lievi.LiePoissonSplitting(), 4, None),
     (lievi.LiePoissonSplitting(), 6, None),
+    (lievi.LiePoissonSplitting(), 8, None),
+    (lievi.DEP(), 8, None),
 ]
-CASE_IDS = ["dep-4", "dep-6", "mv-4", "mv-6", "splitting-4", "splitting-6"]
+CASE_IDS = ["dep-4", "dep-6", "mv-4", "mv-6", "splitting-4", "splitting-6", "splitting-8", "dep-8"]
 SLOW_CASES = [
     (lievi.DEP(chart="cayley"), 4, "suzuki"),
     (lievi.DEP(chart="cayley"), 6, "yoshida"),
     (lievi.MoserVeselov(), 6, "triple-jump"),
+    (lievi.LiePoissonSplitting(), 8, "yoshida"),
+    (lievi.DEP(), 8, "triple-jump"),
 ]
-SLOW_IDS = ["dep-cayley-4-suzuki", "dep-cayley-6-yoshida", "mv-6-triple-jump"]
+SLOW_IDS = [
+    "dep-cayley-4-suzuki",
+    "dep-cayley-6-yoshida",
+    "mv-6-triple-jump",
+    "splitting-8-yoshida",
+    "dep-8-triple-jump",
+]
 
 
 @pytest.mark.parametrize("method, order, scheme", CASES, ids=CASE_IDS)
@@ -198,15 +209,15 @@ def test_bad_input():
 
     with pytest.raises(ValueError, match="symmetric"):
         lievi.Composition(NotSymmetric(), 4)
-    with pytest.raises(ValueError, match="`order` must be 4 or 6"):
+    with pytest.raises(ValueError, match="`order` must be 4, 6 or 8"):
         lievi.Composition(lievi.DEP(), 3)
-    with pytest.raises(ValueError, match="`order` must be 4 or 6"):
+    with pytest.raises(ValueError, match="`order` must be 4, 6 or 8"):
         lievi.Composition(lievi.DEP(), True)
     with pytest.raises(ValueError, match="`scheme`"):
         lievi.Composition(lievi.DEP(), 4, "kahan-li")
     with pytest.raises(ValueError, match="lievi integrator"):
         lievi.Composition(lambda g, m, h: (g, m), 4)
-    # A composition is of order 4 or 6, not 2: composing it again is refused.
+    # A composition is of order 4, 6 or 8, not 2: composing it again is refused.
     with pytest.raises(ValueError, match="order 2"):
         lievi.Composition(lievi.Composition(lievi.DEP(), 4), 6)
     # RK4 is neither symmetric nor of order 2.

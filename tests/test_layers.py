@@ -19,8 +19,8 @@ LAYERS = (
     ("physics", ("_systems", "_forcing")),
     ("kernels", ("_kernels",)),
     ("integrators", ("_integrators",)),
-    ("step loop", ("_scan", "_progress", "_simulate")),
-    ("batches", ("_save", "_simulate_kernel", "_simulate_batch", "_sharding")),
+    ("step loop", ("_scan", "_progress", "_save", "_solution", "_simulate_kernel", "_simulate")),
+    ("batches", ("_simulate_batch", "_sharding")),
     (
         "applications",
         ("_reference", "diagnostics", "_identification", "_fit_optimizer", "_optimal_control"),

@@ -296,3 +296,28 @@ def test_so3_dexpinv_singular_at_two_pi_is_not_finite():
     x = jnp.array([2 * np.pi, 0.0, 0.0])
     assert not np.all(np.isfinite(np.asarray(lievi.SO3.dexpinv(x))))
     assert np.all(np.isfinite(np.asarray(lievi.SO3.dexpinv(jnp.array([3.0, 0.0, 0.0])))))
+
+
+def test_overridden_step_is_run_on_every_path():
+    """A subclass that overrides `step` runs its own step, not its parent's kernel: one
+    body, `jax.vmap(simulate)` and `simulate_batch` (the fast path used to run the parent's
+    kernel and silently return the parent's iterates)."""
+
+    class Damped(lievi.DEP):
+        def step(self, system, g, m, h):
+            g1, m1, info = super().step(system, g, m, h)
+            return g1, 0.5 * m1, info
+
+    body, g0, m0 = hlw_problem()
+    one = lievi.simulate(body, Damped(), g0, m0, h=0.1, n_steps=3)
+    # DEP's momentum update is a rotation (|Π| kept to round-off): each step halves |Π|.
+    norms = jnp.linalg.norm(one.m, axis=-1)
+    np.testing.assert_allclose(norms, jnp.linalg.norm(m0) * 0.5 ** jnp.arange(4), rtol=1e-12)
+    batch = lievi.simulate_batch(
+        body, Damped(), jnp.stack([g0, g0]), jnp.stack([m0, m0]), h=0.1, n_steps=3, save_every=1
+    )
+    vmapped = jax.vmap(lambda g, m: lievi.simulate(body, Damped(), g, m, h=0.1, n_steps=3).m)(
+        jnp.stack([g0, g0]), jnp.stack([m0, m0])
+    )
+    for m in (batch.m[0], vmapped[0]):
+        np.testing.assert_allclose(m, one.m, rtol=1e-12, atol=1e-14)

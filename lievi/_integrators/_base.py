@@ -95,12 +95,22 @@ class AbstractIntegrator(eqx.Module):
         `None`: then the generic step runs. `batched`: `system` is a batch built with
         `jax.vmap`. The one place that decides (`kernels_enabled` turns every kernel off,
         for the reference path the kernels are tested against)."""
-        if not kernels_enabled():
+        if not kernels_enabled() or not self._kernels_compute_step():
             return None
         for kernel in self.kernels():
             if kernel.physics(system, batched) is not None:
                 return kernel
         return None
+
+    def _kernels_compute_step(self) -> bool:
+        """Whether `kernels()` compute this object's `step`: false for a subclass that
+        overrides `step` or `free_step` below the class that defined its kernels (e.g. a
+        test's deliberately broken method, a user's modified step), which then runs its
+        own step everywhere — `simulate`, `simulate_batch`, under `jax.vmap` — rather than
+        its parent's kernel."""
+        mro = type(self).__mro__
+        owner = next(i for i, cls in enumerate(mro) if "kernels" in vars(cls))
+        return not any("step" in vars(cls) or "free_step" in vars(cls) for cls in mro[:owner])
 
     def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
         """The kernel `simulate_batch` runs for `system` (its potential included), or

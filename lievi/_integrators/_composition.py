@@ -31,6 +31,10 @@ order, not the digits):
 - order 6, `"yoshida"`: Yoshida's 7-stage "solution A" (1990).
 - order 6, `"triple-jump"`: the triple jump applied to the order-4 triple jump (9
   stages), `γ = 1/(2 − 2^{1/5})`; simplest, largest error constant.
+- order 8, `"kahan-li"` (default): the 17-stage scheme `s17odr8a` of Kahan & Li (1997),
+  as listed in Hairer–Lubich–Wanner §V.3.2.
+- order 8, `"yoshida"`: Yoshida's 15-stage "solution A" (1990).
+- order 8, `"triple-jump"`: the triple jump applied three times (27 stages).
 """
 
 from __future__ import annotations
@@ -76,14 +80,44 @@ _KAHAN_LI_6 = _palindrome(
 _YOSHIDA_W = (0.784513610477560, 0.235573213359357, -1.17767998417887)
 _YOSHIDA_6 = _palindrome(_YOSHIDA_W + (1.0 - 2.0 * sum(_YOSHIDA_W),))
 
+# Kahan & Li (1997), s17odr8a (HLW §V.3.2): γ_1 … γ_9, then mirrored.
+_KAHAN_LI_8 = _palindrome(
+    (
+        0.13020248308889008087881763,
+        0.56116298177510838456196441,
+        -0.38947496264484728640807860,
+        0.15884190655515560089621075,
+        -0.39590389413323757733623154,
+        0.18453964097831570709183254,
+        0.25837438768632204729397911,
+        0.29501172360931029887096624,
+        -0.60550853383003451169892108,
+    )
+)
+
+# Yoshida (1990), order 8, solution A: w_7 … w_1, then w_0 = 1 − 2(w_1 + … + w_7).
+_YOSHIDA_W8 = (
+    0.104242620869991e1,
+    0.182020630970714e1,
+    0.157739928123617e0,
+    0.244002732616735e1,
+    -0.716989419708120e-2,
+    -0.244699182370524e1,
+    -0.161582374150097e1,
+)
+_YOSHIDA_8 = _palindrome(_YOSHIDA_W8 + (1.0 - 2.0 * sum(_YOSHIDA_W8),))
+
 SCHEMES: dict[tuple[int, str], tuple[float, ...]] = {
     (4, "triple-jump"): _triple_jump((1.0,), 2),
     (4, "suzuki"): (_SUZUKI_4, _SUZUKI_4, 1.0 - 4.0 * _SUZUKI_4, _SUZUKI_4, _SUZUKI_4),
     (6, "kahan-li"): _KAHAN_LI_6,
     (6, "yoshida"): _YOSHIDA_6,
     (6, "triple-jump"): _triple_jump(_triple_jump((1.0,), 2), 4),
+    (8, "kahan-li"): _KAHAN_LI_8,
+    (8, "yoshida"): _YOSHIDA_8,
+    (8, "triple-jump"): _triple_jump(_triple_jump(_triple_jump((1.0,), 2), 4), 6),
 }
-DEFAULT_SCHEME = {4: "triple-jump", 6: "kahan-li"}
+DEFAULT_SCHEME = {4: "triple-jump", 6: "kahan-li", 8: "kahan-li"}
 
 
 def _is_symmetric(method: AbstractIntegrator) -> bool:
@@ -99,10 +133,11 @@ class Composition(AbstractIntegrator):
     - `method`: a symmetric integrator of order 2 (`method.is_symmetric()` is true and
       `method.order() == 2`): `DEP(...)`, `MoserVeselov()`, `LiePoissonSplitting()`, or a
       `Composition`-free method of your own that says so.
-    - `order`: 4 or 6.
+    - `order`: 4, 6 or 8.
     - `scheme`: which coefficients (see the module docstring). Order 4: `"triple-jump"`
       (default, 3 stages) or `"suzuki"` (5 stages); order 6: `"kahan-li"` (default, 9
-      stages), `"yoshida"` (7) or `"triple-jump"` (9).
+      stages), `"yoshida"` (7) or `"triple-jump"` (9); order 8: `"kahan-li"` (default,
+      17 stages), `"yoshida"` (15) or `"triple-jump"` (27).
 
     One step costs `len(coefficients)` steps of `method`. Its `StepInfo` reports the first
     failing stage's code, the Newton iterations summed over the stages and the largest
@@ -117,8 +152,8 @@ class Composition(AbstractIntegrator):
     def __init__(self, method: AbstractIntegrator, order: int = 4, scheme: str | None = None):
         if not isinstance(method, AbstractIntegrator):
             raise ValueError(f"`method` must be a lievi integrator, got {type(method).__name__}.")
-        if isinstance(order, bool) or order not in (4, 6):
-            raise ValueError(f"`order` must be 4 or 6, got {order!r}.")
+        if isinstance(order, bool) or order not in (4, 6, 8):
+            raise ValueError(f"`order` must be 4, 6 or 8, got {order!r}.")
         if not _is_symmetric(method):
             raise ValueError(
                 f"`method` must be a symmetric one-step method (Φ_(−h) = Φ_h⁻¹) for a "
