@@ -61,6 +61,8 @@ from ._simulate import simulate as simulate
 from ._simulate_batch import has_fast_path as has_fast_path
 from ._simulate_batch import simulate_batch as simulate_batch
 from ._solution import Solution as Solution
+from ._suggest import Suggestion as Suggestion
+from ._suggest import suggest_integrator as suggest_integrator
 from ._systems._base import AbstractLieSystem as AbstractLieSystem
 from ._systems._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
 from ._systems._lie_lagrangian import LieLagrangian as LieLagrangian

@@ -23,7 +23,14 @@ LAYERS = (
     ("batches", ("_simulate_batch", "_sharding")),
     (
         "applications",
-        ("_reference", "diagnostics", "_identification", "_fit_optimizer", "_optimal_control"),
+        (
+            "_reference",
+            "diagnostics",
+            "_identification",
+            "_fit_optimizer",
+            "_optimal_control",
+            "_suggest",
+        ),
     ),
     ("public API", ("",)),  # `lievi/__init__.py`: the names users import
     ("command line", ("_cli", "_demo", "_demo_control", "__main__")),

@@ -1,0 +1,166 @@
+"""`suggest_integrator`: the method and step that reach a target accuracy most cheaply,
+from a short pilot run (the work–precision diagram, for the user's own problem).
+
+For each candidate of order `p` the pilot integrates the user's initial state over the
+whole horizon at three steps `h₀, h₀/2, h₀/4` and compares the final elements. With
+`d₁ = ‖g_{h₀} − g_{h₀/2}‖`, `d₂ = ‖g_{h₀/2} − g_{h₀/4}‖` (Frobenius norm at the end of the
+horizon), the observed order is `log₂(d₁/d₂)`; the order used, `q`, is the smaller of it
+and `p` (where the pilot is not yet asymptotic this predicts a smaller step, never a
+larger one), and Richardson's estimate of the error at `h₀/4` is `d₂/(2^q − 1)`. The step
+that meets `tolerance` is then `h = (h₀/4)·(tolerance/error)^{1/q}`, capped at `h₀` (no
+extrapolation beyond the pilot), and rounded down to divide the horizon. The cost of a
+candidate is its measured time per body-step on `simulate_batch`'s path (a batch of
+copies of the state, after compilation) times the steps it needs.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._checks import check_integer, check_scalar
+from ._integrators._composition import Composition
+from ._integrators._dep import DEP
+from ._integrators._rkmk import RKMK4
+from ._results import RESULTS
+from ._simulate_batch import simulate_batch
+
+
+def default_candidates():
+    """Methods that apply to every system: DEP and its compositions of order 4, 6 and 8,
+    and the Lie-group Runge–Kutta method RKMK4."""
+    return (
+        DEP(),
+        Composition(DEP(), 4),
+        Composition(DEP(), 6),
+        Composition(DEP(), 8),
+        RKMK4(),
+    )
+
+
+@dataclass(frozen=True)
+class Suggestion:
+    """What `suggest_integrator` found.
+
+    **Attributes:**
+
+    - `integrator`: the cheapest candidate that reaches the tolerance.
+    - `h`, `n_steps`: its step (dividing the horizon) and the number of steps.
+    - `predicted_error`: the pilot's estimate of the final error in `g` at that step.
+    - `seconds_per_body`: the predicted cost of one body's run on this machine
+      (`simulate_batch`'s path, measured on the pilot batch).
+    - `table`: one row per candidate (`name`, `order`, `observed_order`, `h`, `n_steps`,
+      `predicted_error`, `seconds_per_body`, or `failed` with the pilot's message).
+    """
+
+    integrator: object
+    h: float
+    n_steps: int
+    predicted_error: float
+    seconds_per_body: float
+    table: list[dict] = field(default_factory=list)
+
+
+def suggest_integrator(
+    system,
+    g0,
+    m0,
+    *,
+    horizon,
+    tolerance,
+    candidates=None,
+    h0=None,
+    batch: int = 256,
+) -> Suggestion:
+    """The method and step `h` that reach a final error `tolerance` in `g` over `horizon`
+    at the least cost, from a pilot run of each candidate (module docstring).
+
+    **Arguments:**
+
+    - `system`, `g0`, `m0`: one body, as for `lievi.simulate`.
+    - `horizon`: the length of the run `T > 0`.
+    - `tolerance`: the target error in the final element, `‖g_h(T) − g(T)‖_F > 0`.
+    - `candidates`: integrators to compare (default: `DEP()`, its compositions of order
+      4, 6, 8, and `RKMK4()`). Each needs `order()`.
+    - `h0`: the pilot's largest step (default: the step that turns `0.4` rad at the
+      initial angular speed, at most `horizon/8`).
+    - `batch`: the bodies in the pilot's timing run.
+
+    **Returns:** a `Suggestion`. Raises `ValueError` if no candidate's pilot succeeds.
+    """
+    check_scalar("horizon", horizon, positive=True)
+    check_scalar("tolerance", tolerance, positive=True)
+    batch = check_integer("batch", batch, 1)
+    horizon, tolerance = float(horizon), float(tolerance)
+    g0, m0 = jnp.asarray(g0), jnp.asarray(m0)
+    if h0 is None:
+        speed = float(system.group.exp_norm(system.velocity(m0)))
+        h0 = min(horizon / 8, 0.4 / speed) if speed > 0 else horizon / 8
+    check_scalar("h0", h0, positive=True)
+    candidates = default_candidates() if candidates is None else tuple(candidates)
+    rows, best = [], None
+    for integrator in candidates:
+        row = _pilot(system, integrator, g0, m0, horizon, tolerance, float(h0), batch)
+        rows.append(row)
+        if "failed" not in row and (best is None or row["seconds_per_body"] < best[1]):
+            best = (integrator, row["seconds_per_body"], row)
+    if best is None:
+        raise ValueError(
+            "no candidate's pilot run succeeded: "
+            + "; ".join(f"{r['name']}: {r['failed']}" for r in rows)
+            + ". Pass a smaller `h0`."
+        )
+    integrator, seconds, row = best
+    return Suggestion(integrator, row["h"], row["n_steps"], row["predicted_error"], seconds, rows)
+
+
+def _pilot(system, integrator, g0, m0, horizon, tolerance, h0, batch):
+    order = integrator.order()
+    row = {"name": f"{type(integrator).__name__} (order {order})", "order": order}
+    # The pilot's steps: the largest dividing the horizon at most h₀, then its halves.
+    n0 = max(1, math.ceil(horizon / h0))
+    finals = []
+    for level in range(3):
+        solution = _final(
+            system, integrator, g0[None], m0[None], horizon / (n0 * 2**level), n0 * 2**level
+        )
+        code = int(solution.result[0])
+        if code != RESULTS.successful:
+            row["failed"] = RESULTS.messages[code]
+            return row
+        finals.append(np.asarray(solution.g[0, -1]))
+    d1 = float(np.linalg.norm(finals[0] - finals[1]))
+    d2 = float(np.linalg.norm(finals[1] - finals[2]))
+    observed = math.log2(d1 / d2) if d1 > 0 and d2 > 0 else float(order)
+    q = min(max(observed, 1.0), float(order))
+    h_fine, h_cap = horizon / (4 * n0), horizon / n0
+    error = d2 / (2.0**q - 1.0)  # Richardson, at h_fine
+    h = h_fine * (tolerance / error) ** (1.0 / q) if error > 0 else h_cap
+    n_steps = max(1, math.ceil(horizon / min(h, h_cap)))
+    h = horizon / n_steps
+    # The cost: time per body-step of a batch of copies, after compilation.
+    gs, ms = jnp.broadcast_to(g0, (batch, *g0.shape)), jnp.broadcast_to(m0, (batch, *m0.shape))
+    steps = min(4 * n0, 64)
+    jax.block_until_ready(_final(system, integrator, gs, ms, h, steps))
+    start = time.perf_counter()
+    jax.block_until_ready(_final(system, integrator, gs, ms, h, steps))
+    per_body_step = (time.perf_counter() - start) / (batch * steps)
+    row.update(
+        observed_order=observed,
+        h=h,
+        n_steps=n_steps,
+        predicted_error=error * (h / h_fine) ** q,
+        seconds_per_body=per_body_step * n_steps,
+    )
+    return row
+
+
+def _final(system, integrator, g0, m0, h, n_steps):
+    return simulate_batch(
+        system, integrator, g0, m0, h=h, n_steps=n_steps, save=("g",), throw=False
+    )
