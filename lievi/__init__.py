@@ -56,7 +56,10 @@ from ._progress import TqdmProgressMeter as TqdmProgressMeter
 from ._reference import reference_solution as reference_solution
 from ._results import RESULTS as RESULTS
 from ._save import Save as Save
+from ._sharding import gather_batch as gather_batch
+from ._sharding import process_rows as process_rows
 from ._sharding import shard_batch as shard_batch
+from ._sharding import shard_process_batch as shard_process_batch
 from ._simulate import Solution as Solution
 from ._simulate import simulate as simulate
 from ._simulate_batch import has_fast_path as has_fast_path

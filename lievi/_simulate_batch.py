@@ -359,21 +359,32 @@ def simulate_batch(
             args,
         )
     if throw:
-        failed = solution.result != RESULTS.successful
-        first = jnp.max(jnp.where(failed, solution.result, 0))
-        # The check rides on every output (not only `result`): under the caller's `jit`
-        # a check on an unused output would be dead code and dropped silently.
-        solution = eqx.branched_error_if(
-            solution,
-            jnp.any(failed),
-            first,
-            [
-                f"lievi.simulate_batch: a body failed: {msg} (Run with throw=False to get "
-                "the per-body `result` and `stats['failed_step']`.)"
-                for msg in RESULTS.messages
-            ],
-        )
+        solution = _raise_if_failed(solution)
     return solution
+
+
+@eqx.filter_jit
+def _raise_if_failed(solution: Solution) -> Solution:
+    """`solution`, with a runtime error if any body failed (`throw=True`).
+
+    The check is made on a scalar, whose zero is then added to every output: so it rides
+    on every output (under the caller's `jit` a check on an unused output would be dead
+    code and dropped silently) without passing the outputs themselves through the error's
+    callback, whose replicated layout would gather a batch sharded over devices or
+    processes onto every device."""
+    failed = solution.result != RESULTS.successful
+    first = jnp.max(jnp.where(failed, solution.result, 0))
+    zero = eqx.branched_error_if(
+        jnp.zeros((), jnp.int32),
+        jnp.any(failed),
+        first,
+        [
+            f"lievi.simulate_batch: a body failed: {msg} (Run with throw=False to get "
+            "the per-body `result` and `stats['failed_step']`.)"
+            for msg in RESULTS.messages
+        ],
+    )
+    return jax.tree.map(lambda x: x + zero.astype(x.dtype), solution)
 
 
 def _advected(system, system_axis, g):
