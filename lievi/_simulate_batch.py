@@ -34,6 +34,7 @@ from ._checks import (
 )
 from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator
+from ._progress import AbstractProgressMeter, NoProgressMeter, as_progress_meter
 from ._results import RESULTS
 from ._save import Save, as_save
 from ._scan import checkpoint_segment
@@ -142,6 +143,7 @@ def simulate_batch(
     checkpoint: bool | int = False,
     forcing=None,
     args=None,
+    progress_meter: AbstractProgressMeter | bool | str = False,
 ) -> Solution:
     """Integrate a batch of `B` bodies: `jax.vmap(simulate)` with a fast path.
 
@@ -207,6 +209,11 @@ def simulate_batch(
       with `u` of shape `(batch, n_steps, d)` gives each body its own control sequence;
       of shape `(n_steps, d)`, one shared by all. A force law and `args` are shared.
       Forced runs take the generic path.
+    - `progress_meter`: report the steps done while the batch computes, as in
+      `lievi.simulate` (the same meters and shorthands: `"text"`, `"tqdm"`, `True`): one
+      line or bar for the whole batch, updated in place about every 1% of the steps from
+      inside the compiled loop. The default (`False`, `NoProgressMeter`) compiles nothing
+      into the loop; no effect on values.
 
     Both paths apply the same checks as `simulate`, per body: a bad value of a body's
     system, `g0`, `m0` or `h` gives `RESULTS.invalid_input` (also when they are traced,
@@ -239,6 +246,7 @@ def simulate_batch(
     if fixed_iterations is not None:
         fixed_iterations = check_integer("fixed_iterations", fixed_iterations, 1)
     unroll = check_integer("unroll", unroll, 1)
+    progress = as_progress_meter(progress_meter)
     n, d = system.group.matrix_dim, system.group.algebra_dim
     for name, x in (("g0", g0), ("m0", m0), ("h", h)):
         if isinstance(x, (bool, np.bool_)):
@@ -335,6 +343,7 @@ def simulate_batch(
             segment,
             valid,
             system.group if save.g and drifts_off_group(dtype) else None,
+            progress,
         )
         if solution.advected is None and solution.g is not None:
             solution = eqx.tree_at(
@@ -357,6 +366,7 @@ def simulate_batch(
             segment,
             forcing,
             args,
+            progress,
         )
     if throw:
         solution = _raise_if_failed(solution)
@@ -422,6 +432,7 @@ def _simulate_vmap(
     segment,
     forcing=None,
     args=None,
+    progress=NoProgressMeter(),
 ):
     def one(system, g0, m0, h, forcing):
         return simulate(
@@ -436,6 +447,7 @@ def _simulate_vmap(
             checkpoint=False if segment is None else segment,
             forcing=forcing,
             args=args,
+            progress_meter=progress,
         )
 
     h_axis = None if h.ndim == 0 else 0

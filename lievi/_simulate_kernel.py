@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
 from ._kernels._base import ROOT_NAME
+from ._progress import AbstractProgressMeter, NoProgressMeter
 from ._results import RESULTS
 from ._scan import scan_in_segments
 from ._simulate import Solution
@@ -36,9 +37,11 @@ def simulate_kernel(
     segment,
     valid=True,
     group=None,
+    progress: AbstractProgressMeter = NoProgressMeter(),
 ):
     """`group`: where given, the carried elements are put back on it (`project`) at each
-    save, as `simulate` does in low precision (`lievi._checks.drifts_off_group`)."""
+    save, as `simulate` does in low precision (`lievi._checks.drifts_off_group`).
+    `progress`: the meter told the steps done (nothing is compiled for `NoProgressMeter`)."""
     batch, dtype = g0.shape[0], m0.dtype
     constants = jax.tree.map(lambda x: jnp.asarray(x, dtype), constants)
     # Structure of arrays: component-major, batch minor; the kernel owns the layout.
@@ -90,6 +93,7 @@ def simulate_kernel(
         iterations = jnp.where(alive, iterations, 0)
         residual = jnp.where(alive, residual, -jnp.inf)
         counters = (total + iterations, jnp.maximum(most, iterations), jnp.fmax(worst, residual))
+        progress.report(k + 1, n_steps)
         return ((g_next, m_next, result, failed_step, k + 1), counters), None
 
     zero_counters = (
@@ -122,6 +126,7 @@ def simulate_kernel(
             out["residual"] = worst
         return state, out
 
+    progress.report(jnp.asarray(0, int32), n_steps)
     result0, failed_step0 = (jnp.broadcast_to(x, (batch,)) for x in RESULTS.initial(valid))
     init = (g, m, result0, failed_step0, jnp.asarray(0, int32))
     final, out = scan_in_segments(one_save, init, n_steps // save_every, outer)

@@ -308,6 +308,9 @@ for fast in (True,):
     assert len(sharded_args[2].sharding.device_set) == 4
     sharded = run(*sharded_args)
     assert len(sharded.m.sharding.device_set) == 4, sharded.m.sharding
+    # Still split over the devices (not gathered onto each by the failure check).
+    assert not sharded.m.sharding.is_fully_replicated, sharded.m.sharding
+    assert not sharded.g.sharding.is_fully_replicated, sharded.g.sharding
     # Equal to round-off, not bitwise: XLA compiles the per-device shapes (4 bodies) with
     # different vectorisation than the whole batch (16).
     np.testing.assert_allclose(np.asarray(sharded.m), np.asarray(plain.m), rtol=0, atol=1e-14)
