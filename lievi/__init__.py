@@ -64,6 +64,11 @@ from ._simulate import Solution as Solution
 from ._simulate import simulate as simulate
 from ._simulate_batch import has_fast_path as has_fast_path
 from ._simulate_batch import simulate_batch as simulate_batch
+from ._stream import stream_batch as stream_batch
+from ._stream_writer import AbstractStreamWriter as AbstractStreamWriter
+from ._stream_writer import ChunkState as ChunkState
+from ._stream_writer import NpyWriter as NpyWriter
+from ._stream_writer import StreamLayout as StreamLayout
 from ._systems._base import AbstractLieSystem as AbstractLieSystem
 from ._systems._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
 from ._systems._lie_lagrangian import LieLagrangian as LieLagrangian

@@ -20,7 +20,10 @@ LAYERS = (
     ("kernels", ("_kernels",)),
     ("integrators", ("_integrators",)),
     ("step loop", ("_scan", "_progress", "_simulate")),
-    ("batches", ("_save", "_simulate_kernel", "_simulate_batch", "_sharding")),
+    (
+        "batches",
+        ("_save", "_simulate_kernel", "_simulate_batch", "_sharding", "_stream", "_stream_writer"),
+    ),
     (
         "applications",
         ("_reference", "diagnostics", "_identification", "_fit_optimizer", "_optimal_control"),
