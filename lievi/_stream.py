@@ -138,32 +138,37 @@ def stream_batch(
         fields, batch, n_steps, save_every, chunk_size, segment_steps, ((n, n), (d,)), dtype.name
     )
     writer.open(layout)
-    total = float(batch) * n_steps
-    done = 0.0
-    for chunk in range(layout.n_chunks()):
-        rows = slice(chunk * chunk_size, min(batch, (chunk + 1) * chunk_size))
-        state = writer.resume_state(chunk) or _initial_state(g0, m0, rows, n, dtype)
-        done += (rows.stop - rows.start) * state.steps_done
-        progress.show(done / total)
-        while state.steps_done < n_steps:
-            values, state = _segment(
-                system,
-                integrator,
-                system_axis,
-                h,
-                rows,
-                state,
-                segment_steps,
-                save_every,
-                save,
-                options,
-            )
-            first = state.steps_done // save_every - segment_steps // save_every
-            saves = slice(first if first == 0 else first + 1, state.steps_done // save_every + 1)
-            writer.write(chunk, rows, saves, values, state)
-            done += (rows.stop - rows.start) * segment_steps
+    try:
+        total = float(batch) * n_steps
+        done = 0.0
+        for chunk in range(layout.n_chunks()):
+            rows = slice(chunk * chunk_size, min(batch, (chunk + 1) * chunk_size))
+            state = writer.resume_state(chunk) or _initial_state(g0, m0, rows, n, dtype)
+            done += (rows.stop - rows.start) * state.steps_done
             progress.show(done / total)
-    writer.close()
+            while state.steps_done < n_steps:
+                values, state = _segment(
+                    system,
+                    integrator,
+                    system_axis,
+                    h,
+                    rows,
+                    state,
+                    segment_steps,
+                    save_every,
+                    save,
+                    options,
+                )
+                first = state.steps_done // save_every - segment_steps // save_every
+                saves = slice(
+                    first if first == 0 else first + 1, state.steps_done // save_every + 1
+                )
+                writer.write(chunk, rows, saves, values, state)
+                done += (rows.stop - rows.start) * segment_steps
+                progress.show(done / total)
+    finally:
+        # Also when the run stops (an error, an interrupt): what was written is kept.
+        writer.close()
 
 
 def _initial_state(g0, m0, rows, n, dtype) -> ChunkState:

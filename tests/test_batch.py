@@ -198,6 +198,12 @@ def test_failures_are_per_body(chart):
     assert np.all(np.isnan(fast.m[2, k + 1 :])) and np.all(np.isfinite(fast.m[2, : k + 1]))
     with pytest.raises(Exception, match="a body failed"):
         lievi.simulate_batch(bodies, dep, g0, m0, **{**kwargs, "throw": True})
+    # Inside the caller's `jit`, with only `m` used, the check is not dropped either.
+    only_m = jax.jit(
+        lambda m0: lievi.simulate_batch(bodies, dep, g0, m0, **{**kwargs, "throw": True}).m
+    )
+    with pytest.raises(Exception, match="a body failed"):
+        only_m(m0).block_until_ready()
 
 
 def test_moser_veselov_scalar_solve_at_large_steps():
