@@ -1,10 +1,10 @@
 """One process of the two-process test (tests/test_multiprocess.py), and the computations
 it shares with the single-process reference.
 
-Run as `python multiprocess_worker.py PROCESS COUNT PORT OUT [fit]`: joins a
+Run as `python multiprocess_worker.py PROCESS COUNT PORT OUT [gradient] [fit]`: joins a
 `jax.distributed` run of COUNT processes whose coordinator listens on 127.0.0.1:PORT, takes
-its own share of a 64-body batch, runs a forward batch, a gradient (and with `fit`, a short
-fit), and process 0 writes the gathered results to OUT (`.npz`).
+its own share of a 64-body batch, runs a forward batch (and with `gradient`, a gradient;
+with `fit`, a short fit), and process 0 writes the gathered results to OUT (`.npz`).
 """
 
 import sys
@@ -75,7 +75,7 @@ def fit(inertia, m0):
     return result.params, result.loss
 
 
-def main(process: int, count: int, port: int, out: str, with_fit: bool) -> None:
+def main(process: int, count: int, port: int, out: str, extra: list[str]) -> None:
     jax.config.update("jax_enable_x64", True)
     jax.distributed.initialize(f"127.0.0.1:{port}", num_processes=count, process_id=process)
     import lievi
@@ -88,9 +88,10 @@ def main(process: int, count: int, port: int, out: str, with_fit: bool) -> None:
     np.testing.assert_array_equal(
         lievi.process_rows(m), share(lievi.gather_batch(m), process, count)
     )
-    grad = gradient(inertia, m0, h)
-    outputs = dict(g=g, m=m, result=result, grad=grad)
-    if with_fit:
+    outputs = dict(g=g, m=m, result=result)
+    if "gradient" in extra:
+        outputs["grad"] = gradient(inertia, m0, h)
+    if "fit" in extra:
         # The fit runs on each process's own rows; its per-body results are then gathered.
         outputs["fit_params"], outputs["fit_loss"] = lievi.shard_process_batch(
             fit(mine[0], mine[1])
@@ -102,4 +103,4 @@ def main(process: int, count: int, port: int, out: str, with_fit: bool) -> None:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], "fit" in sys.argv[5:])
+    main(int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5:])

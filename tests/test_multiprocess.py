@@ -1,7 +1,8 @@
 """A batch over two processes on this machine (`jax.distributed`, CPU, gloo collectives):
 each process holds its own half of a 64-body batch (`lievi.shard_process_batch`); the
-forward run, a gradient summed over all bodies and a short fit, gathered
-(`lievi.gather_batch`), equal the same computations in one process to round-off.
+forward run (default suite), a gradient summed over all bodies and a short fit (`-m
+slow`), gathered (`lievi.gather_batch`), equal the same computations in one process to
+round-off.
 
 The processes are `tests/multiprocess_worker.py`; its functions also give the reference.
 """
@@ -56,30 +57,32 @@ def _run_two_processes(tmp_path, *extra):
     return dict(np.load(out))
 
 
-def _check_forward_and_gradient(gathered, inertia, m0, h):
+def _check_forward(gathered, inertia, m0, h):
     g, m, result = (np.asarray(x) for x in worker.forward(inertia, m0, h))
     assert gathered["m"].shape == m.shape == (worker.BATCH, worker.N_STEPS // worker.EVERY + 1, 3)
     # Equal to round-off, not bitwise: XLA vectorises the per-process shapes differently.
     np.testing.assert_allclose(gathered["g"], g, rtol=0, atol=1e-14)
     np.testing.assert_allclose(gathered["m"], m, rtol=0, atol=1e-14)
     np.testing.assert_array_equal(gathered["result"], result)
-    grad = np.asarray(worker.gradient(inertia, m0, h))
-    assert np.all(np.abs(grad) > 1e-8)  # every body contributes
-    np.testing.assert_allclose(gathered["grad"], grad, rtol=1e-12, atol=0)
 
 
 def test_two_processes_equal_one(tmp_path):
+    """The forward run (the default suite's check that the multi-process path works)."""
     inertia, m0, h = worker.problem()
-    _check_forward_and_gradient(_run_two_processes(tmp_path), inertia, m0, h)
+    _check_forward(_run_two_processes(tmp_path), inertia, m0, h)
 
 
 @pytest.mark.slow
-def test_two_processes_fit_equals_one(tmp_path):
-    """With the short fit: each process fits its own rows; gathered, they equal one fit of
-    the whole batch."""
+def test_two_processes_gradient_and_fit_equal_one(tmp_path):
+    """With a gradient summed over all bodies (an all-reduce across the processes) and the
+    short fit: each process fits its own rows; gathered, they equal one fit of the whole
+    batch."""
     inertia, m0, h = worker.problem()
-    gathered = _run_two_processes(tmp_path, "fit")
-    _check_forward_and_gradient(gathered, inertia, m0, h)
+    gathered = _run_two_processes(tmp_path, "gradient", "fit")
+    _check_forward(gathered, inertia, m0, h)
+    grad = np.asarray(worker.gradient(inertia, m0, h))
+    assert np.all(np.abs(grad) > 1e-8)  # every body contributes
+    np.testing.assert_allclose(gathered["grad"], grad, rtol=1e-12, atol=0)
     params, loss = (np.asarray(x) for x in worker.fit(inertia, m0))
     assert np.all(np.abs(params - worker.GUESS) > 1e-6)  # the fit moved every body
     np.testing.assert_allclose(gathered["fit_params"], params, rtol=1e-10, atol=0)
