@@ -22,7 +22,13 @@ Conditions = list[tuple[jax.Array, str]]
 
 
 def is_concrete(*xs) -> bool:
-    return not any(isinstance(x, jax.core.Tracer) for x in xs)
+    """Whether every `x` has a value this process can read: not a tracer, and not a global
+    array spread over several processes (`jax.distributed`), whose rows live elsewhere;
+    for both, the same checks run inside the computation."""
+    return not any(
+        isinstance(x, jax.core.Tracer) or (isinstance(x, jax.Array) and not x.is_fully_addressable)
+        for x in xs
+    )
 
 
 def check_shape(name: str, x, shape: tuple[int, ...], what: str = "") -> None:

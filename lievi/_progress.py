@@ -43,6 +43,13 @@ class AbstractProgressMeter(eqx.Module):
 
         jax.lax.cond((k % stride == 0) | (k == n_steps), send, lambda k: None, k)
 
+    def show(self, fraction: float) -> None:
+        """Show `fraction` done, from the host: for a loop run in Python (`stream_batch`'s
+        segments). The same record as `report`'s: a run starts at the first update (or at
+        0) and ends at 1."""
+        if self.reports:
+            _on_host(self, fraction)
+
     @abc.abstractmethod
     def _start(self) -> Any:
         """The state of a new run (on the host)."""

@@ -34,6 +34,7 @@ from ._checks import (
 )
 from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator
+from ._progress import AbstractProgressMeter, NoProgressMeter, as_progress_meter
 from ._results import RESULTS
 from ._save import Save, as_save
 from ._scan import checkpoint_segment
@@ -143,6 +144,7 @@ def simulate_batch(
     checkpoint: bool | int = False,
     forcing=None,
     args=None,
+    progress_meter: AbstractProgressMeter | bool | str = False,
 ) -> Solution:
     """Integrate a batch of `B` bodies: `jax.vmap(simulate)` with a fast path.
 
@@ -208,6 +210,11 @@ def simulate_batch(
       with `u` of shape `(batch, n_steps, d)` gives each body its own control sequence;
       of shape `(n_steps, d)`, one shared by all. A force law and `args` are shared.
       Forced runs take the generic path.
+    - `progress_meter`: report the steps done while the batch computes, as in
+      `lievi.simulate` (the same meters and shorthands: `"text"`, `"tqdm"`, `True`): one
+      line or bar for the whole batch, updated in place about every 1% of the steps from
+      inside the compiled loop. The default (`False`, `NoProgressMeter`) compiles nothing
+      into the loop; no effect on values.
 
     Both paths apply the same checks as `simulate`, per body: a bad value of a body's
     system, `g0`, `m0` or `h` gives `RESULTS.invalid_input` (also when they are traced,
@@ -240,6 +247,7 @@ def simulate_batch(
     if fixed_iterations is not None:
         fixed_iterations = check_integer("fixed_iterations", fixed_iterations, 1)
     unroll = check_integer("unroll", unroll, 1)
+    progress = as_progress_meter(progress_meter)
     n, d = system.group.matrix_dim, system.group.algebra_dim
     for name, x in (("g0", g0), ("m0", m0), ("h", h)):
         if isinstance(x, (bool, np.bool_)):
@@ -336,6 +344,7 @@ def simulate_batch(
             segment,
             valid,
             system.group if save.g and drifts_off_group(dtype) else None,
+            progress,
         )
         if solution.advected is None and solution.g is not None:
             solution = eqx.tree_at(
@@ -358,23 +367,35 @@ def simulate_batch(
             segment,
             forcing,
             args,
+            progress,
         )
     if throw:
-        failed = solution.result != RESULTS.successful
-        first = jnp.max(jnp.where(failed, solution.result, 0))
-        # The check rides on every output (not only `result`): under the caller's `jit`
-        # a check on an unused output would be dead code and dropped silently.
-        solution = eqx.branched_error_if(
-            solution,
-            jnp.any(failed),
-            first,
-            [
-                f"lievi.simulate_batch: a body failed: {msg} (Run with throw=False to get "
-                "the per-body `result` and `stats['failed_step']`.)"
-                for msg in RESULTS.messages
-            ],
-        )
+        solution = _raise_if_failed(solution)
     return solution
+
+
+@eqx.filter_jit
+def _raise_if_failed(solution: Solution) -> Solution:
+    """`solution`, with a runtime error if any body failed (`throw=True`).
+
+    The check is made on a scalar, whose zero is then added to every output: so it rides
+    on every output (under the caller's `jit` a check on an unused output would be dead
+    code and dropped silently) without passing the outputs themselves through the error's
+    callback, whose replicated layout would gather a batch sharded over devices or
+    processes onto every device."""
+    failed = solution.result != RESULTS.successful
+    first = jnp.max(jnp.where(failed, solution.result, 0))
+    zero = eqx.branched_error_if(
+        jnp.zeros((), jnp.int32),
+        jnp.any(failed),
+        first,
+        [
+            f"lievi.simulate_batch: a body failed: {msg} (Run with throw=False to get "
+            "the per-body `result` and `stats['failed_step']`.)"
+            for msg in RESULTS.messages
+        ],
+    )
+    return jax.tree.map(lambda x: x + zero.astype(x.dtype), solution)
 
 
 def _advected(system, system_axis, g):
@@ -412,6 +433,7 @@ def _simulate_vmap(
     segment,
     forcing=None,
     args=None,
+    progress=NoProgressMeter(),
 ):
     def one(system, g0, m0, h, forcing):
         return simulate(
@@ -426,6 +448,7 @@ def _simulate_vmap(
             checkpoint=False if segment is None else segment,
             forcing=forcing,
             args=args,
+            progress_meter=progress,
         )
 
     h_axis = None if h.ndim == 0 else 0

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
 from ._kernels._base import ROOT_NAME
-from ._progress import NoProgressMeter
+from ._progress import AbstractProgressMeter, NoProgressMeter
 from ._results import RESULTS
 from ._scan import scan_in_segments
 from ._solution import Solution
@@ -38,11 +38,12 @@ def simulate_kernel(
     valid=True,
     group=None,
     t0=0.0,
-    progress=NoProgressMeter(),
+    progress: AbstractProgressMeter = NoProgressMeter(),
 ):
     """`group`: where given, the carried elements are put back on it (`project`) at each
     save, as `simulate` does in low precision (`lievi._checks.drifts_off_group`). `t0`:
-    the time of the first saved state; `progress`: a progress meter (`lievi._progress`).
+    the time of the first saved state. `progress`: the meter told the steps done (nothing
+    is compiled for `NoProgressMeter`).
 
     `simulate` runs one body here too, as a batch of one: under `jax.vmap` each component
     is then one `(B, 1)` array, the layout `simulate_batch` runs in."""
@@ -61,7 +62,6 @@ def simulate_kernel(
     # then needs no division and no square root (both run at a fraction of the rate of a
     # product on CPU).
     turn_rates = kernel.turn_rates(constants, h)
-    progress.report(jnp.asarray(0, jnp.int32), n_steps)
 
     def _checked_step_result(g_next, m_next, m, step_result):
         """`lievi._simulate.checked_step_result` on structure of arrays."""
@@ -131,6 +131,7 @@ def simulate_kernel(
             out["residual"] = worst
         return state, out
 
+    progress.report(jnp.asarray(0, int32), n_steps)
     result0, failed_step0 = (jnp.broadcast_to(x, (batch,)) for x in RESULTS.initial(valid))
     init = (g, m, result0, failed_step0, jnp.asarray(0, int32))
     final, out = scan_in_segments(one_save, init, n_steps // save_every, outer)

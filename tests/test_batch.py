@@ -198,6 +198,12 @@ def test_failures_are_per_body(chart):
     assert np.all(np.isnan(fast.m[2, k + 1 :])) and np.all(np.isfinite(fast.m[2, : k + 1]))
     with pytest.raises(Exception, match="a body failed"):
         lievi.simulate_batch(bodies, dep, g0, m0, **{**kwargs, "throw": True})
+    # Inside the caller's `jit`, with only `m` used, the check is not dropped either.
+    only_m = jax.jit(
+        lambda m0: lievi.simulate_batch(bodies, dep, g0, m0, **{**kwargs, "throw": True}).m
+    )
+    with pytest.raises(Exception, match="a body failed"):
+        only_m(m0).block_until_ready()
 
 
 def test_moser_veselov_scalar_solve_at_large_steps():
@@ -308,6 +314,9 @@ for fast in (True,):
     assert len(sharded_args[2].sharding.device_set) == 4
     sharded = run(*sharded_args)
     assert len(sharded.m.sharding.device_set) == 4, sharded.m.sharding
+    # Still split over the devices (not gathered onto each by the failure check).
+    assert not sharded.m.sharding.is_fully_replicated, sharded.m.sharding
+    assert not sharded.g.sharding.is_fully_replicated, sharded.g.sharding
     # Equal to round-off, not bitwise: XLA compiles the per-device shapes (4 bodies) with
     # different vectorisation than the whole batch (16).
     np.testing.assert_allclose(np.asarray(sharded.m), np.asarray(plain.m), rtol=0, atol=1e-14)

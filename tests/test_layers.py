@@ -20,7 +20,7 @@ LAYERS = (
     ("kernels", ("_kernels",)),
     ("integrators", ("_integrators",)),
     ("step loop", ("_scan", "_progress", "_save", "_solution", "_simulate_kernel", "_simulate")),
-    ("batches", ("_simulate_batch", "_sharding")),
+    ("batches", ("_simulate_batch", "_sharding", "_stream", "_stream_writer")),
     (
         "applications",
         (

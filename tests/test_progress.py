@@ -151,3 +151,30 @@ def test_tqdm_meter_with_a_stand_in_tqdm(monkeypatch):
     assert len(bars) == 2
     for bar in bars:
         assert bar.closed and bar.positions == [5.0 * k for k in range(21)], bar.positions
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_batch_meter_updates_one_line(capsys, fast):
+    """`simulate_batch(progress_meter=...)`: one line for the whole batch, on the fast path
+    and the generic one, each percentage once; the values are those of a run without it."""
+    body, g0, m0 = hlw_problem()
+    m0s = jnp.stack([m0, 2 * m0, -m0, 0.5 * m0])
+    kwargs = dict(h=0.1, n_steps=200, save_every=20, fast=fast)
+    plain = lievi.simulate_batch(body, lievi.DEP(), g0, m0s, **kwargs)
+    meter = lievi.TextProgressMeter(delay=0.0, prefix="batch")
+    metered = lievi.simulate_batch(body, lievi.DEP(), g0, m0s, progress_meter=meter, **kwargs)
+    out = printed(capsys)
+    assert out.count("\n") == 1 and out.endswith("\n")
+    values = [float(x) for x in re.findall(r"batch:\s+([\d.]+)%", out)]
+    assert values[0] == 0.0 and values[-1] == 100.0
+    assert np.all(np.diff(values) > 0) and 50 <= len(values) <= 102
+    np.testing.assert_array_equal(metered.m, plain.m)
+    np.testing.assert_array_equal(metered.g, plain.g)
+
+
+def test_batch_bad_progress_meter():
+    body, g0, m0 = hlw_problem()
+    with pytest.raises(ValueError, match="`progress_meter`"):
+        lievi.simulate_batch(
+            body, lievi.DEP(), g0, m0[None], h=0.1, n_steps=2, progress_meter="bar"
+        )

@@ -1,0 +1,134 @@
+"""Forward throughput of `simulate_batch` in memory, this tree against an earlier revision,
+in the same run: does a change slow the in-memory path?
+
+The earlier revision's `lievi/` is exported with `git archive` into a temporary
+directory; each round times both trees, alternately, each in a fresh process (best of
+`--repeats` calls after a warm-up call that compiles). Cases: random free rigid bodies,
+`DEP` (exp chart, the fast path), `h = 0.1`, float64, `throw=True` (the default), keeping
+the final state only, and keeping every 10th step of `(g, m)`.
+
+    python benchmarks/before_after.py --before REV [--batch 100000] [--steps 100]
+                                      [--rounds 3] [--out NAME]
+
+Writes `benchmarks/results/<out>.json` (default `before_after`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import tempfile
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "benchmarks" / "results"
+
+TIMER = r"""
+import json, sys, time
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp, numpy as np
+import lievi
+batch, steps, save_every, repeats = (int(x) for x in sys.argv[1:5])
+rng = np.random.default_rng(0)
+bodies = jax.vmap(lievi.RigidBody)(jnp.asarray(rng.uniform(0.5, 2.0, (batch, 3))))
+m0 = jnp.asarray(rng.normal(size=(batch, 3)))
+g0 = jnp.broadcast_to(jnp.eye(3), (batch, 3, 3))
+save = ("g", "m") if save_every < steps else ("m",)
+def run():
+    sol = lievi.simulate_batch(bodies, lievi.DEP(), g0, m0, h=0.1, n_steps=steps,
+                               save_every=save_every, save=save)
+    jax.block_until_ready(sol)
+run()
+times, cpu = [], []
+for _ in range(repeats):
+    start, start_cpu = time.perf_counter(), time.process_time()
+    run()
+    times.append(time.perf_counter() - start)
+    cpu.append(time.process_time() - start_cpu)
+print(json.dumps({"seconds": min(times), "cpu_seconds": min(cpu), "lievi": lievi.__file__}))
+"""
+
+
+def time_tree(path, batch, steps, save_every, repeats) -> tuple[float, float]:
+    """`(wall, CPU)` seconds of the best call; on a loaded machine the CPU time (all the
+    process's threads) is the steadier measure of the work done."""
+    env = dict(os.environ, PYTHONPATH=str(path), JAX_PLATFORMS="cpu")
+    done = subprocess.run(
+        [sys.executable, "-c", TIMER, str(batch), str(steps), str(save_every), str(repeats)],
+        env=env,
+        cwd=path,  # `python -c` puts the working directory first on the path
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    record = json.loads(done.stdout.strip().splitlines()[-1])
+    assert record["lievi"].startswith(str(path)), record  # the tree meant, not another
+    return record["seconds"], record["cpu_seconds"]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--before", required=True, help="the earlier revision (git)")
+    parser.add_argument("--batch", type=int, default=100_000)
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", default="before_after")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as before:
+        archive = subprocess.run(
+            ["git", "-C", str(ROOT), "archive", args.before, "lievi"],
+            capture_output=True,
+            check=True,
+        ).stdout
+        subprocess.run(["tar", "-x", "-C", before], input=archive, check=True)
+        trees = {"before": pathlib.Path(before), "after": ROOT}
+        cases = {"final state only": args.steps, "every 10th step of (g, m)": 10}
+        times = {case: {tree: [] for tree in trees} for case in cases}
+        cpu = {case: {tree: [] for tree in trees} for case in cases}
+        for _ in range(args.rounds):
+            for case, save_every in cases.items():
+                for tree, path in trees.items():
+                    seconds, cpu_seconds = time_tree(
+                        path, args.batch, args.steps, save_every, args.repeats
+                    )
+                    times[case][tree].append(seconds)
+                    cpu[case][tree].append(cpu_seconds)
+                    print(
+                        f"{case:28s} {tree:6s} {seconds:.4f} s wall, {cpu_seconds:.4f} s CPU",
+                        flush=True,
+                    )
+    load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    report = {
+        "before": args.before,
+        "after": subprocess.run(
+            ["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True
+        ).stdout.strip(),
+        "batch": args.batch,
+        "steps": args.steps,
+        "uptime": load,
+        "cases": {
+            case: {
+                "best_seconds": {tree: min(t) for tree, t in by_tree.items()},
+                "all_seconds": by_tree,
+                "after_over_before": min(by_tree["after"]) / min(by_tree["before"]),
+                "cpu_seconds": cpu[case],
+                "cpu_after_over_before": min(cpu[case]["after"]) / min(cpu[case]["before"]),
+            }
+            for case, by_tree in times.items()
+        },
+    }
+    print(json.dumps(report["cases"], indent=2))
+    print(load)
+    RESULTS.mkdir(exist_ok=True)
+    out = RESULTS / f"{args.out}.json"
+    out.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

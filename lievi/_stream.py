@@ -1,0 +1,241 @@
+"""`stream_batch`: a batch whose saved output does not fit in memory, in chunks of bodies
+and segments of time, each segment's saves handed to a writer as it finishes.
+
+Each piece is one `simulate_batch` call on a chunk of bodies for `segment_steps` steps,
+from the state the previous segment ended in. The step depends on the state and `h` alone
+(an unforced, autonomous run), and a segment boundary is a save, where `simulate_batch`
+does what it does at every save (e.g. puts a float32 element back on the group), so the
+segmented run computes the same iterates as one `simulate_batch` call over the horizon.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from ._checks import check_integer, state_dtype
+from ._progress import AbstractProgressMeter, as_progress_meter
+from ._results import RESULTS
+from ._save import Save, as_save
+from ._simulate_batch import infer_system_axis, simulate_batch
+from ._stream_writer import AbstractStreamWriter, ChunkState, StreamLayout
+
+
+def _check_options(n_steps, save_every, chunk_size, segment_steps, save, batch):
+    n_steps = check_integer("n_steps", n_steps, 1)
+    save_every = check_integer("save_every", save_every, 1)
+    if n_steps % save_every:
+        raise ValueError(f"`save_every` ({save_every}) must divide `n_steps` ({n_steps}).")
+    chunk_size = min(check_integer("chunk_size", chunk_size, 1), batch)
+    segment_steps = n_steps if segment_steps is None else segment_steps
+    segment_steps = check_integer("segment_steps", segment_steps, 1)
+    if segment_steps % save_every or n_steps % segment_steps:
+        raise ValueError(
+            f"`segment_steps` ({segment_steps}) must be a multiple of `save_every` "
+            f"({save_every}) that divides `n_steps` ({n_steps}): a segment ends on a save."
+        )
+    save = as_save(save)
+    if save.stats or save.advected or not (save.g or save.m):
+        raise ValueError(
+            f"`save` of a streamed run is 'g', 'm' or both, got {save.names()}; the summary "
+            "per body (result, failed_step, total_newton_iterations) is always written."
+        )
+    return n_steps, save_every, chunk_size, segment_steps, save
+
+
+def stream_batch(
+    system,
+    integrator,
+    g0,
+    m0,
+    *,
+    h,
+    n_steps: int,
+    save_every: int,
+    writer: AbstractStreamWriter,
+    chunk_size: int = 10_000,
+    segment_steps: int | None = None,
+    save: Save | Sequence[str] = ("g", "m"),
+    system_axis: int | None = None,
+    progress_meter: AbstractProgressMeter | bool | str = False,
+    **options,
+) -> None:
+    """`simulate_batch` for output larger than memory: written chunk by chunk, resumable.
+
+    The batch is cut into chunks of `chunk_size` bodies and the horizon into segments of
+    `segment_steps` steps; each (chunk, segment) is one `simulate_batch` call, started
+    from the state the chunk's previous segment ended in, whose saves go to `writer` as
+    soon as it finishes. Memory is that of one chunk's segment (its saved steps and the
+    compiled loop's buffers), whatever the batch and the horizon. The values written
+    equal those of one `simulate_batch` call on the whole batch and horizon, to round-off.
+
+    A stopped run (killed, out of time) resumes from the last finished segment of each
+    chunk: call `stream_batch` again with the same arguments and writer storage (e.g. the
+    same `lievi.NpyWriter` directory). The state a chunk resumes from is `(g, m)` after
+    its last finished segment, kept by the writer with the steps done and the per-body
+    result so far (`lievi.ChunkState`).
+
+    **Arguments:**
+
+    - `system`, `integrator`, `g0`, `m0`, `h`, `system_axis`: as `simulate_batch`
+      (`g0`, `m0` may be NumPy memory maps: only one chunk's rows are read at a time).
+    - `n_steps`, `save_every`: as `simulate_batch` (`save_every` must divide `n_steps`).
+    - `writer`: where the saves go, e.g. `lievi.NpyWriter("run/")`; any
+      `lievi.AbstractStreamWriter`.
+    - `chunk_size`: bodies per chunk (default 10 000).
+    - `segment_steps`: steps per segment, a multiple of `save_every` dividing `n_steps`
+      (default: the whole horizon). Bounds the memory of a chunk's saves and the work
+      lost when a run stops.
+    - `save`: `"g"`, `"m"` or both (default). The chunk's state `(g, m)` is always
+      carried, so a potential with an advected parameter runs its `(Π, g)` algorithm.
+    - `progress_meter`: as `simulate_batch`'s: the fraction of all body-steps done, shown
+      after each finished segment (the chunks' own runs report nothing).
+    - `**options`: further keywords of `simulate_batch` (`fast`, `fixed_iterations`,
+      `unroll`). Forcing is not streamed.
+
+    Time: the saves of a body are at `t = k·save_every·h`, `k = 0, …, n_steps/save_every`,
+    as in `simulate_batch`. A body that fails keeps its first failure in `result` and
+    `failed_step` (the step counted from the start) and NaN in its later saves.
+    """
+    unknown = set(options) - {"fast", "fixed_iterations", "unroll"}
+    if unknown:
+        raise TypeError(
+            f"stream_batch got unexpected keyword arguments {sorted(unknown)}; it takes those "
+            "of simulate_batch except `save`'s stats, `forcing`, `args`, `throw` and "
+            "`checkpoint`."
+        )
+    if not isinstance(writer, AbstractStreamWriter):
+        raise TypeError(
+            f"`writer` must be a lievi.AbstractStreamWriter (e.g. lievi.NpyWriter(directory)), "
+            f"got {type(writer).__name__}."
+        )
+    n, d = system.group.matrix_dim, system.group.algebra_dim
+    batch = np.shape(m0)[0] if np.ndim(m0) == 2 else 0
+    if batch == 0 or np.shape(m0) != (batch, d):
+        raise ValueError(f"`m0` must have shape (batch, {d}) with batch ≥ 1, got {np.shape(m0)}.")
+    if np.shape(g0) not in ((batch, n, n), (n, n)):
+        raise ValueError(
+            f"`g0` must have shape ({batch}, {n}, {n}) or ({n}, {n}), got {np.shape(g0)}."
+        )
+    if np.ndim(h) not in (0, 1) or (np.ndim(h) == 1 and np.shape(h)[0] != batch):
+        raise ValueError(f"`h` must be a scalar or have shape ({batch},), got {np.shape(h)}.")
+    n_steps, save_every, chunk_size, segment_steps, save = _check_options(
+        n_steps, save_every, chunk_size, segment_steps, save, batch
+    )
+    system_axis = infer_system_axis(system, system_axis, batch)
+    progress = as_progress_meter(progress_meter)
+    dtype = np.dtype(state_dtype(system, np.asarray(g0[:1]), np.asarray(m0[:1]), h))
+    n_saves = n_steps // save_every + 1
+    fields = {}
+    if save.g:
+        fields["g"] = ((batch, n_saves, n, n), dtype.name)
+    if save.m:
+        fields["m"] = ((batch, n_saves, d), dtype.name)
+    layout = StreamLayout(
+        fields, batch, n_steps, save_every, chunk_size, segment_steps, ((n, n), (d,)), dtype.name
+    )
+    writer.open(layout)
+    try:
+        total = float(batch) * n_steps
+        done = 0.0
+        for chunk in range(layout.n_chunks()):
+            rows = slice(chunk * chunk_size, min(batch, (chunk + 1) * chunk_size))
+            state = writer.resume_state(chunk) or _initial_state(g0, m0, rows, n, dtype)
+            done += (rows.stop - rows.start) * state.steps_done
+            progress.show(done / total)
+            while state.steps_done < n_steps:
+                values, state = _segment(
+                    system,
+                    integrator,
+                    system_axis,
+                    h,
+                    rows,
+                    state,
+                    segment_steps,
+                    save_every,
+                    save,
+                    options,
+                )
+                first = state.steps_done // save_every - segment_steps // save_every
+                saves = slice(
+                    first if first == 0 else first + 1, state.steps_done // save_every + 1
+                )
+                writer.write(chunk, rows, saves, values, state)
+                done += (rows.stop - rows.start) * segment_steps
+                progress.show(done / total)
+    finally:
+        # Also when the run stops (an error, an interrupt): what was written is kept.
+        writer.close()
+
+
+def _initial_state(g0, m0, rows, n, dtype) -> ChunkState:
+    b = rows.stop - rows.start
+    g = np.asarray(g0[rows] if np.ndim(g0) == 3 else np.broadcast_to(g0, (b, n, n)))
+    return ChunkState(
+        g=g,
+        m=np.asarray(m0[rows]),
+        result=np.full((b,), int(RESULTS.successful), np.int32),
+        failed_step=np.full((b,), -1, np.int32),
+        total_newton_iterations=np.zeros((b,), np.int64),
+        steps_done=0,
+    )
+
+
+def _rows_of(tree, rows, axis):
+    """The chunk's rows of a batch of systems (`axis=0`), or the shared system (`None`)."""
+    if axis is None:
+        return tree
+    return jax.tree.map(lambda x: x[rows] if eqx.is_array(x) else x, tree)
+
+
+def _segment(system, integrator, system_axis, h, rows, state, steps, save_every, save, options):
+    """Run one chunk for one segment from `state`: the values to write and the new state.
+
+    A body that failed in an earlier segment restarts from a harmless state (the identity,
+    zero momentum) that is masked out: its saves are NaN and its result, failed step and
+    iteration count stay those of its failure."""
+    failed = state.result != int(RESULTS.successful)
+    n = state.g.shape[-1]
+    g = np.where(failed[:, None, None], np.eye(n, dtype=state.g.dtype), state.g)
+    m = np.where(failed[:, None], 0.0, state.m)
+    h_rows = h if np.ndim(h) == 0 else np.asarray(h)[rows]
+    solution = simulate_batch(
+        _rows_of(system, rows, system_axis),
+        integrator,
+        g,
+        m,
+        h=h_rows,
+        n_steps=steps,
+        save_every=save_every,
+        save=Save(g=True, m=True, stats=False),
+        system_axis=system_axis,
+        throw=False,
+        **options,
+    )
+    out_g = np.where(failed[:, None, None, None], np.nan, solution.g)
+    out_m = np.where(failed[:, None, None], np.nan, solution.m)
+    result = np.asarray(solution.result)
+    failed_step = np.asarray(solution.stats["failed_step"])
+    iterations = np.asarray(solution.stats["total_newton_iterations"])
+    new_failure = ~failed & (result != int(RESULTS.successful))
+    state = ChunkState(
+        g=out_g[:, -1],
+        m=out_m[:, -1],
+        result=np.where(failed, state.result, result).astype(np.int32),
+        failed_step=np.where(new_failure, failed_step + state.steps_done, state.failed_step).astype(
+            np.int32
+        ),
+        total_newton_iterations=state.total_newton_iterations + np.where(failed, 0, iterations),
+        steps_done=state.steps_done + steps,
+    )
+    # The first segment writes the initial state too; later ones start at their first save.
+    skip = 0 if state.steps_done == steps else 1
+    values = {}
+    if save.g:
+        values["g"] = out_g[:, skip:]
+    if save.m:
+        values["m"] = out_m[:, skip:]
+    return values, state
