@@ -344,7 +344,7 @@ def simulate_batch(
             segment,
             valid,
             system.group if save.g and drifts_off_group(dtype) else None,
-            progress,
+            progress=progress,
         )
         if solution.advected is None and solution.g is not None:
             solution = eqx.tree_at(
