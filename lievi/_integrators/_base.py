@@ -81,8 +81,9 @@ class AbstractIntegrator(eqx.Module):
         A NaN momentum is not "too large" (it is reported as `nonfinite`)."""
         # The angle the group's exponential turns (`exp_norm`: on SE(3) the rotation part
         # only; a translation per step has no such bound).
+        # `any`: a system of several bodies steps too far if one of them does.
         xi = system.velocity(m)
-        return jnp.abs(h) * system.group.exp_norm(xi) > self.step_bound()
+        return jnp.any(jnp.abs(h) * system.group.exp_norm(xi) > self.step_bound())
 
     def kernels(self) -> tuple[AbstractBatchKernel, ...]:
         """This method's structure-of-arrays steps of the free system, one per kind of
@@ -150,13 +151,15 @@ class AbstractKickIntegrator(AbstractIntegrator):
         return kernel if kernel.physics(system, batched) is not None else None
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
+        # `system.free_flow`: the system decides how this method's free step applies to it
+        # (one body: `free_step` itself; several bodies: each of them).
         if system.potential is None and force is None:
-            return self.free_step(system, g, m, h)
+            return system.free_flow(self, g, m, h)
         m_plus = system.kick(g, m, h / 2)
         if force is not None:
             # The discrete Lagrange–d'Alembert force at g_k: f_k⁻ = (h/2) f(t_k, g_k, m_k).
             m_plus = m_plus + h / 2 * _checked_force(force, t, g, m)
-        g_next, m_next, info = self.free_step(system, g, m_plus, h)
+        g_next, m_next, info = system.free_flow(self, g, m_plus, h)
         m_next = system.kick(g_next, m_next, h / 2)
         iterations, residual, result = info.iterations, info.residual, info.result
         if force is not None:
