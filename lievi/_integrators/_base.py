@@ -22,6 +22,7 @@ from .._kernels._kick import KickKernel
 from .._newton import newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
+from .._systems._se3_body import RigidBodySE3
 
 
 class StepInfo(eqx.Module):
@@ -141,6 +142,13 @@ class AbstractKickIntegrator(AbstractIntegrator):
         self, system: AbstractLieSystem, g: Float[Array, "n n"], m: Float[Array, " d"], h: Scalar
     ) -> tuple[Float[Array, "n n"], Float[Array, " d"], StepInfo]:
         """The step of the system without its potential."""
+
+    def free_body_step(self, inertia, mass, g, m, h: Scalar):
+        """The free step of a rigid body in vacuum, `lievi.RigidBodySE3(inertia, mass)`
+        (origin at its centre of mass): what `lievi.RigidBodies` runs on each of its bodies.
+        By default this method's `free_step` of that body; a method of the rotation alone
+        steps the rotation and translates exactly (`_drift.rotation_and_drift`)."""
+        return self.free_step(RigidBodySE3(inertia, mass), g, m, h)
 
     def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
         free = self.free_kernel(system, batched)

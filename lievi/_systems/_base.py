@@ -161,7 +161,9 @@ class AbstractLieSystem(eqx.Module):
         `element_valid`; for several bodies, every one)."""
         shape = self.element_shape()
         n = self.group.matrix_dim
-        what = f"a {n}×{n} group element" + (f" for each of {shape[0]} bodies" if len(shape) > 2 else "")
+        what = f"a {n}×{n} group element" + (
+            f" for each of {shape[0]} bodies" if len(shape) > 2 else ""
+        )
         check_shape(name, g, shape, what)
         check_finite(name, g)
         if is_concrete(g):

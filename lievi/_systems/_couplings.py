@@ -137,9 +137,7 @@ class SitePotential(AbstractPotential):
         charges = (
             jnp.zeros(types.shape, g.dtype) if self.charges is None else self.charges.reshape(-1)
         )
-        return sum(
-            jnp.sum(e(r, types[i], types[j], charges[i], charges[j])) for e in self.pair
-        )
+        return sum(jnp.sum(e(r, types[i], types[j], charges[i], charges[j])) for e in self.pair)
 
 
 class SiteSprings(AbstractPotential):
@@ -156,8 +154,8 @@ class SiteSprings(AbstractPotential):
 
     sites: Float[Array, "N k 3"]
     pairs: Int[Array, "S 4"]
-    stiffness: Float[Array, "..."]
-    rest_length: Float[Array, "..."]
+    stiffness: Float[Array, ...]
+    rest_length: Float[Array, ...]
 
     def __init__(self, sites, pairs, stiffness, rest_length=0.0):
         self.sites = jnp.asarray(sites, float)

@@ -28,7 +28,7 @@ class AbstractPairEnergy(eqx.Module):
     """The energy of a pair of sites on different bodies as a function of their distance."""
 
     @abc.abstractmethod
-    def __call__(self, r, type_i, type_j, charge_i, charge_j) -> Float[Array, "..."]:
+    def __call__(self, r, type_i, type_j, charge_i, charge_j) -> Float[Array, ...]:
         """`e(r)` for arrays of pairs (their distances, types and charges)."""
 
     def tables(self) -> dict[str, Array]:
@@ -66,8 +66,8 @@ class LennardJones(AbstractPairEnergy):
     """`e(r) = 4ε((σ/r)¹² − (σ/r)⁶)`; `epsilon` (`ε ≥ 0`), `sigma` (`σ > 0`): scalars or
     `(T, T)` tables over the site types."""
 
-    epsilon: Float[Array, "..."]
-    sigma: Float[Array, "..."]
+    epsilon: Float[Array, ...]
+    sigma: Float[Array, ...]
 
     def __init__(self, epsilon=1.0, sigma=1.0):
         self.epsilon = jnp.asarray(epsilon, float)
@@ -99,7 +99,9 @@ class Coulomb(AbstractPairEnergy):
     def __check_init__(self):
         for name in ("k", "softening"):
             if jnp.ndim(getattr(self, name)) != 0:
-                raise ValueError(f"`{name}` must be a scalar, got {jnp.shape(getattr(self, name))}.")
+                raise ValueError(
+                    f"`{name}` must be a scalar, got {jnp.shape(getattr(self, name))}."
+                )
 
     def needs_charges(self):
         return True
@@ -108,9 +110,7 @@ class Coulomb(AbstractPairEnergy):
         return self.k * charge_i * charge_j / jnp.sqrt(r * r + self.softening**2)
 
     def parameter_conditions(self):
-        return super().parameter_conditions() + [
-            (self.softening >= 0, "`softening` must be ≥ 0.")
-        ]
+        return super().parameter_conditions() + [(self.softening >= 0, "`softening` must be ≥ 0.")]
 
 
 class Morse(AbstractPairEnergy):
@@ -118,9 +118,9 @@ class Morse(AbstractPairEnergy):
     (`D ≥ 0`), stiffness `width` (`a > 0`), equilibrium distance `r0`; scalars or `(T, T)`
     tables over the site types."""
 
-    depth: Float[Array, "..."]
-    width: Float[Array, "..."]
-    r0: Float[Array, "..."]
+    depth: Float[Array, ...]
+    width: Float[Array, ...]
+    r0: Float[Array, ...]
 
     def __init__(self, depth=1.0, width=1.0, r0=1.0):
         self.depth = jnp.asarray(depth, float)

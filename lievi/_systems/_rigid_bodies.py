@@ -39,19 +39,17 @@ from .._groups._se3 import SE3
 from .._results import RESULTS
 from ._base import AbstractLieSystem
 from ._potential import AbstractPotential, as_potential
-from ._se3_body import RigidBodySE3, _spd_solve, rigid_body_tensor
+from ._se3_body import rigid_body_tensor, spd_solve
 from ._side import Side
 
 
-def _inertia_tensors(inertia) -> Float[Array, "N 3 3"]:
-    inertia = jnp.asarray(inertia)
-    if inertia.ndim == 2 and inertia.shape[-1] == 3:
-        return jax.vmap(jnp.diag)(inertia)
-    if inertia.ndim == 3 and inertia.shape[-2:] == (3, 3):
-        return inertia
+def _check_inertia(inertia) -> None:
+    shape = jnp.shape(inertia)
+    if (len(shape) == 2 and shape[-1] == 3) or (len(shape) == 3 and shape[-2:] == (3, 3)):
+        return
     raise ValueError(
         "`inertia` must be principal moments of shape (N, 3) or tensors of shape (N, 3, 3), "
-        f"one per body, got shape {inertia.shape}."
+        f"one per body, got shape {shape}."
     )
 
 
@@ -75,7 +73,7 @@ class RigidBodies(AbstractLieSystem):
     runs equal those of `RigidBodySE3(inertia[0], mass[0], potential=…)`.
     """
 
-    inertia: Float[Array, "N 3 3"]
+    inertia: Float[Array, "N 3"] | Float[Array, "N 3 3"]
     mass: Float[Array, " N"]
     potential: AbstractPotential | None
     group: MatrixLieGroup = eqx.field(static=True)
@@ -84,7 +82,8 @@ class RigidBodies(AbstractLieSystem):
     def __init__(self, inertia, mass, potential=None):
         check_real_dtype("inertia", inertia)
         check_real_dtype("mass", mass)
-        inertia = _inertia_tensors(inertia)
+        inertia = jnp.asarray(inertia)
+        _check_inertia(inertia)
         mass = jnp.asarray(mass)
         if mass.shape != inertia.shape[:1]:
             raise ValueError(
@@ -113,7 +112,7 @@ class RigidBodies(AbstractLieSystem):
         """Finite, each inertia symmetric positive definite, each mass `> 0`."""
         return (
             super().parameter_conditions()
-            + spd_conditions("inertia", self.inertia)
+            + spd_conditions("inertia", self.tensor[..., :3, :3])
             + [(jnp.all(jnp.asarray(self.mass) > 0), "`mass` must be > 0 for every body.")]
         )
 
@@ -122,18 +121,14 @@ class RigidBodies(AbstractLieSystem):
         """The kinetic tensors `diag(J_i, m_i 1)`, one per body."""
         return jax.vmap(rigid_body_tensor)(self.inertia, self.mass)
 
-    def bodies(self) -> RigidBodySE3:
-        """The N free bodies as one `RigidBodySE3` batched along its leading axis (built
-        with `jax.vmap`): what each body's free step runs on."""
-        return jax.vmap(lambda J, m: RigidBodySE3(J, m))(self.inertia, self.mass)
-
     def free_flow(self, integrator, g, m, h: Scalar):
-        """Each body's free step by `integrator`, the N bodies at once (`jax.vmap`). The
-        step's report is that of the worst body: the first failing body's code, the most
-        Newton iterations, the largest residual."""
+        """Each body's free step by `integrator` (`AbstractKickIntegrator.free_body_step`:
+        a body in vacuum, origin at its centre of mass), the N bodies at once (`jax.vmap`).
+        The step's report is that of the worst body: the first failing body's code, the
+        most Newton iterations, the largest residual."""
         g_next, m_next, info = jax.vmap(
-            lambda body, g, m: integrator.free_step(body, g, m, h), in_axes=(0, 0, 0)
-        )(self.bodies(), g, m)
+            lambda J, mass, g, m: integrator.free_body_step(J, mass, g, m, h)
+        )(self.inertia, self.mass, g, m)
         failed = info.result != RESULTS.successful
         result = jnp.where(jnp.any(failed), info.result[jnp.argmax(failed)], RESULTS.successful)
         report = type(info)(
@@ -149,7 +144,7 @@ class RigidBodies(AbstractLieSystem):
 
     def velocity(self, m: Float[Array, "N 6"]) -> Float[Array, "N 6"]:
         tensor = self.tensor.astype(jnp.result_type(self.tensor, m))
-        return jax.vmap(_spd_solve)(tensor, m)
+        return jax.vmap(spd_solve)(tensor, m)
 
     def energy(self, m: Float[Array, "N 6"]) -> Scalar:
         """The kinetic energy `Σ_i ½ m_iᵀ M_i⁻¹ m_i` (`lievi.diagnostics.energy` adds `V`)."""
