@@ -24,6 +24,7 @@ import jax.numpy as jnp
 from jaxtyping import Scalar
 
 from .._groups._se3 import SE3
+from .._groups._so3 import SO3
 from .._systems._rigid_body import RigidBody
 
 
@@ -33,10 +34,16 @@ def rotation_and_drift(integrator, inertia, mass, g, m, h: Scalar):
     R, p = SE3.rotation(g), SE3.translation(g)
     Pi, P = m[:3], m[3:]
     R_next, Pi_next, info = integrator.free_step(RigidBody(inertia), R, Pi, h)
-    spatial = R @ P  # the spatial linear momentum: constant along the free flow
-    p_next = p + h * spatial / mass
-    P_next = R_next.T @ spatial
-    # The rotation kept orthogonal as `SE3.compose` keeps it: the kicks of a coupling
-    # conserve the total angular momentum only for orthogonal rotations.
-    g_next = SE3.project(SE3.from_rotation_translation(R_next, p_next))
-    return g_next, jnp.concatenate([Pi_next, P_next]), info
+    # The spatial momenta `RΠ` (kept by the rotation step) and `RP` (constant).
+    angular, linear = R_next @ Pi_next, R @ P
+    p_next = p + h * linear / mass
+    # The rotation is kept orthogonal as `SE3.compose` keeps it (the kicks of a coupling
+    # conserve the total angular momentum only for orthogonal rotations), and the body
+    # momenta are read off the spatial ones with the projected rotation: with the rotation
+    # before the projection, its rounding defect — of one sign step after step for a
+    # steady spin (cos² + sin² − 1 rounds alike) — would move the spatial momentum by a
+    # few ulps per step, in one direction (measured: 7e-11 of the total angular momentum
+    # of a binary after 1e5 steps).
+    R_next = SO3.project(R_next)
+    m_next = jnp.concatenate([R_next.T @ angular, R_next.T @ linear])
+    return SE3.from_rotation_translation(R_next, p_next), m_next, info
