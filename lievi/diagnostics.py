@@ -125,7 +125,8 @@ def _del_residual(system, integrator, g, h):
                 system, g_prev, moved, h
             ) + integrator.discrete_lagrangian(system, moved, g_next, h)
 
-        return jax.grad(action)(jnp.zeros(group.algebra_dim, g.dtype))
+        # One variation per body where the system has several (`momentum_shape`).
+        return jax.grad(action)(jnp.zeros(system.momentum_shape(), g.dtype))
 
     return jax.vmap(residual)(g[:-2], g[1:-1], g[2:])
 

@@ -212,7 +212,7 @@ def _run(problem, integrator, n_steps, save_every=10):
     return system, sol
 
 
-def _check_conservation(system, sol, energy_amplitude):
+def _check_conservation(system, sol, energy_amplitude, drift_check=False):
     L = dg.total_momentum(system, sol.g, sol.m)
     # Relative to the size of the terms: the angular part sums p × RP over the bodies.
     scale = float(jnp.max(jnp.abs(L[0]))) + float(
@@ -221,20 +221,21 @@ def _check_conservation(system, sol, energy_amplitude):
     assert float(jnp.max(jnp.abs(L - L[0]))) <= ROUNDOFF * scale
     energy = np.asarray(dg.energy(system, sol.m, sol.g))
     error = np.abs(energy - energy[0]) / abs(energy[0])
-    half = len(error) // 2
     assert error.max() <= energy_amplitude
-    # Bounded, no drift: the error of the second half of the run of the size of the
-    # first's (it oscillates with the configuration: close encounters of sites raise it).
-    assert error[half:].max() <= 2 * error[:half].max() + 10 * ROUNDOFF, (
-        error[:half].max(),
-        error[half:].max(),
-    )
+    if drift_check:
+        # Bounded, no drift: the error of the last tenth of a long run (many periods of
+        # the orbit and of its exchange with the spins) no larger than that of the first.
+        tenth = len(error) // 10
+        assert error[-tenth:].max() <= 1.5 * error[:tenth].max() + 10 * ROUNDOFF, (
+            error[:tenth].max(),
+            error[-tenth:].max(),
+        )
 
 
 CONSERVATION_CASES = [
     ("molecules", lievi.DEP(chart="cayley")),
     ("molecules", lievi.LiePoissonSplitting()),
-    ("binary", lievi.DEP(chart="exp")),
+    pytest.param("binary", lievi.DEP(chart="exp"), marks=SLOW),
     pytest.param("binary", lievi.MoserVeselov(), marks=SLOW),
     pytest.param("molecules", lievi.Composition(lievi.DEP(chart="cayley"), order=4), marks=SLOW),
 ]
@@ -242,16 +243,25 @@ CONSERVATION_CASES = [
 
 @pytest.mark.parametrize("problem, integrator", CONSERVATION_CASES)
 def test_total_momentum_and_energy(problem, integrator):
-    """Total linear and angular momentum to round-off over 2000 steps; energy bounded."""
+    """Total linear and angular momentum to round-off over 2000 steps; the energy error
+    within its O(h²) amplitude (h = 0.01; the no-drift check is on the long runs)."""
     system, sol = _run(problem, integrator, 2_000)
-    _check_conservation(system, sol, 1e-3)
+    _check_conservation(system, sol, 1e-4)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("integrator", (lievi.DEP(chart="cayley"), lievi.LiePoissonSplitting()))
 def test_total_momentum_1e5(integrator):
     system, sol = _run("binary", integrator, 100_000, save_every=100)
-    _check_conservation(system, sol, 1e-3)
+    _check_conservation(system, sol, 1e-4, drift_check=True)
+
+
+@pytest.mark.slow
+def test_energy_bounded_1e6():
+    """The binary over 1e6 steps (about 1.6e3 orbits): energy bounded without drift, total
+    momentum to round-off."""
+    system, sol = _run("binary", lievi.LiePoissonSplitting(), 1_000_000, save_every=1000)
+    _check_conservation(system, sol, 1e-4, drift_check=True)
 
 
 def test_diagnostics_one_body_and_kinetic_energy():
@@ -277,10 +287,13 @@ def test_diagnostics_one_body_and_kinetic_energy():
 # ---- gradients -------------------------------------------------------------------------------
 
 
-def test_gradient_of_coupling_parameter():
-    """d(final state)/dε of the Lennard-Jones ε equals central differences."""
+@pytest.mark.parametrize(
+    "integrator", (lievi.LiePoissonSplitting(), pytest.param(lievi.DEP(chart="cayley"), marks=SLOW))
+)
+def test_gradient_of_coupling_parameter(integrator):
+    """d(final state)/dε of the Lennard-Jones ε equals central differences (through the
+    implicit differentiation of each body's Newton solve, for DEP)."""
     _, g0, m0 = molecules_problem()
-    integrator = lievi.DEP(chart="cayley")
 
     @jax.jit
     def loss(epsilon):
@@ -304,7 +317,7 @@ def test_coincident_sites_are_nonfinite():
     )
     g0 = jnp.stack([jnp.eye(4), SE3.from_rotation_translation(jnp.eye(3), jnp.array([1.0, 0, 0]))])
     sol = lievi.simulate(
-        system, lievi.DEP(chart="cayley"), g0, jnp.zeros((2, 6)), h=0.01, n_steps=5, throw=False
+        system, lievi.LiePoissonSplitting(), g0, jnp.zeros((2, 6)), h=0.01, n_steps=5, throw=False
     )
     assert sol.result == lievi.RESULTS.nonfinite
     assert int(sol.stats["failed_step"]) == 0
