@@ -118,8 +118,13 @@ class RigidBodies(AbstractLieSystem):
 
     @property
     def tensor(self) -> Float[Array, "N 6 6"]:
-        """The kinetic tensors `diag(J_i, m_i 1)`, one per body."""
-        return jax.vmap(rigid_body_tensor)(self.inertia, self.mass)
+        """The kinetic tensors `diag(J_i, m_i 1)`, one per body (`(…, N, 6, 6)`, any leading
+        axes of a batch of systems built with `jax.vmap` kept)."""
+        mass = jnp.asarray(self.mass)
+        inertia = jnp.asarray(self.inertia)
+        per_body = inertia.shape[mass.ndim :]
+        flat = jax.vmap(rigid_body_tensor)(inertia.reshape(-1, *per_body), mass.reshape(-1))
+        return flat.reshape(*mass.shape, 6, 6)
 
     def free_flow(self, integrator, g, m, h: Scalar):
         """Each body's free step by `integrator` (`AbstractKickIntegrator.free_body_step`:
