@@ -223,13 +223,13 @@ def _check_conservation(system, sol, energy_amplitude, drift_check=False, moment
     error = np.abs(energy - energy[0]) / abs(energy[0])
     assert error.max() <= energy_amplitude
     if drift_check:
-        # Bounded, no drift: the error of the last tenth of a long run (many periods of
-        # the orbit and of its exchange with the spins) no larger than that of the first.
-        tenth = len(error) // 10
-        assert error[-tenth:].max() <= 1.5 * error[:tenth].max() + 10 * ROUNDOFF, (
-            error[:tenth].max(),
-            error[-tenth:].max(),
-        )
+        # Bounded, no drift: the mean error over the second half of a long run (many
+        # periods of the orbit and of its exchange with the spins) within 1.5× the first
+        # half's. A drift would show: an error growing like t gives 3×, like √t 1.8×. (The
+        # maxima are no test: rare close configurations set them, in any tenth of the run.)
+        half = len(error) // 2
+        first, second = error[1:half].mean(), error[half:].mean()
+        assert second <= 1.5 * first, (first, second)
 
 
 # The relative energy error at h = 0.01: the molecules' close encounters of sites raise it
@@ -268,7 +268,7 @@ def test_energy_bounded_1e6():
     each step leaves a rounding error, with a small bias of one sign along the orbit
     (measured: about 1e-17 per step): 7.5e-13 after 1e5 steps, 1.9e-11 after 1e6 (5.5e-12
     of the size of its terms), which the momentum bound here allows for."""
-    system, sol = _run("binary", lievi.LiePoissonSplitting(), 1_000_000, save_every=1000)
+    system, sol = _run("binary", lievi.LiePoissonSplitting(), 1_000_000, save_every=100)
     _check_conservation(system, sol, 1e-4, drift_check=True, momentum=1e-10)
 
 
