@@ -398,3 +398,22 @@ def test_simulate_batch_of_systems():
     for b in range(2):
         one = lievi.simulate(system, integrator, g0, m0s[b], h=0.01, n_steps=20)
         assert float(jnp.max(jnp.abs(batch.m[b] - one.m))) <= ROUNDOFF
+
+
+def test_damping_force_law_per_body():
+    """A force law per body, linear damping `f_i = −c m_i`: each kick scales every body's
+    momentum, the coupling's kicks and the free steps keep the total momentum, so the
+    discrete Lagrange–d'Alembert step gives `J_{k+1} = J_k (1 − ch/2)/(1 + ch/2)` exactly
+    (the end kick is implicit in `m`)."""
+    system, g0, m0 = molecules_problem()
+    c, h, n = 0.5, 0.01, 200
+    law = lievi.ForceLaw(lambda t, g, m, args: -c * m)
+    sol = lievi.simulate(system, lievi.LiePoissonSplitting(), g0, m0, h=h, n_steps=n, forcing=law)
+    J = dg.total_momentum(system, sol.g, sol.m)
+    ratio = (1 - c * h / 2) / (1 + c * h / 2)
+    expected = J[0] * ratio ** jnp.arange(n + 1)[:, None]
+    scale = float(jnp.max(jnp.abs(J[0]))) + float(
+        jnp.max(jnp.abs(sol.g[..., :3, 3])) * jnp.max(jnp.abs(sol.m[..., 3:]))
+    )
+    assert float(jnp.max(jnp.abs(J - expected))) <= ROUNDOFF * scale
+    assert float(dg.energy(system, sol.m[-1], sol.g[-1])) < float(dg.energy(system, m0, g0))

@@ -228,14 +228,19 @@ def forced_end_kick(
             jnp.asarray(RESULTS.successful, jnp.int32), jnp.zeros((), jnp.int32), zero
         )
 
-    def residual(m):
-        return m - m_minus - h / 2 * _checked_force(force, t, g, m)
+    # Newton on the momentum as one vector (a system of several bodies has one row each).
+    shape = jnp.shape(m_minus)
+
+    def residual(flat):
+        m = flat.reshape(shape)
+        return (m - m_minus - h / 2 * _checked_force(force, t, g, m)).reshape(-1)
 
     guess = m_minus + h / 2 * _checked_force(force, t, g, m_minus)
     # The terms of the equation are of the size of `m⁻` and of the root (≈ the guess).
     scale = jnp.maximum(jnp.max(jnp.abs(m_minus)), jnp.max(jnp.abs(guess)))
     tolerance = newton_tolerance(scale, m_minus.dtype, rtol, atol)
-    m, info = newton_solve(residual, guess, tolerance, END_KICK_MAX_STEPS)
+    m, info = newton_solve(residual, guess.reshape(-1), tolerance, END_KICK_MAX_STEPS)
+    m = m.reshape(shape)
     ok = info.converged | (result_before != RESULTS.successful)
     result = jnp.where(ok, RESULTS.successful, RESULTS.newton_not_converged)
     return m, StepInfo(result.astype(jnp.int32), info.iterations, info.residual)
