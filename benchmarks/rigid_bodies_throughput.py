@@ -10,7 +10,9 @@ Rows, all in one run, float64, `--steps` steps of size 0.01, final state only:
   `jax.vmap(simulate)` over the systems, each step kick – free step of both bodies –
   kick; `2·B` body-steps per step;
 - "one system of N bodies": one `simulate` of `N` single-site Lennard-Jones bodies (all
-  `N(N−1)/2` pairs: no neighbour list), `N` body-steps per step.
+  `N(N−1)/2` pairs: no neighbour list), `N` body-steps per step;
+- the cost of a gradient: `jax.grad` with respect to the gravitational constant `G` of a
+  function of the final state of one binary, against the same run forward.
 
 Compile time is reported apart (first call minus the best of the timed calls). The load
 average (`os.getloadavg`) is printed and saved with the figures: on a shared machine the
@@ -31,6 +33,7 @@ import pathlib
 import platform
 import time
 
+import equinox as eqx
 import jax
 
 jax.config.update("jax_enable_x64", True)
@@ -163,6 +166,44 @@ def main():
                 f"{name:11s} {label:52s} {rate:10.3g} body-steps/s ({rate / baseline:.3g}× the "
                 f"baseline), compile {compile_s:.1f} s"
             )
+
+    # Gradient cost: d/dG of a function of the final state of one binary asteroid,
+    # `--steps` × 10 steps, against the forward run (the same compiled run without `grad`).
+    system, g0, m0 = systems, g_bin[0], m_bin[0]
+    one = jax.tree.map(lambda x: x[0], system)
+    n_steps = 10 * args.steps
+    for name, method in METHODS.items():
+
+        def final(G, method=method):
+            coupled = eqx.tree_at(lambda s: s.potential.G, one, G)
+            sol = lievi.simulate(coupled, method, g0, m0, h=H, n_steps=n_steps, save_every=n_steps)
+            return jnp.sum(sol.m[-1] ** 2) + jnp.sum(sol.g[-1, :, :3, 3] ** 2)
+
+        forward, gradient = jax.jit(final), jax.jit(jax.grad(final))
+        G = jnp.asarray(1.0)
+        times = {}
+        for label, fn in (("forward", forward), ("gradient", gradient)):
+            jax.block_until_ready(fn(G))
+            best = []
+            for _ in range(3):
+                start = time.perf_counter()
+                jax.block_until_ready(fn(G))
+                best.append(time.perf_counter() - start)
+            times[label] = min(best)
+        ratio = times["gradient"] / times["forward"]
+        rows.append(
+            {
+                "method": name,
+                "case": f"gradient d/dG, one binary, {n_steps} steps",
+                "forward_s": times["forward"],
+                "gradient_s": times["gradient"],
+                "gradient_over_forward": ratio,
+            }
+        )
+        print(
+            f"{name:11s} gradient d/dG of one binary, {n_steps} steps: forward "
+            f"{times['forward']:.3g} s, gradient {times['gradient']:.3g} s ({ratio:.2f}×)"
+        )
 
     document = {
         "steps": args.steps,
