@@ -218,23 +218,24 @@ class ForceLaw(AbstractForcing):
         return LawForce(self.fn, args)
 
     def check(self, system, n_steps, dtype, args):
-        n, d = system.group.matrix_dim, system.group.algebra_dim
+        # One state's shapes: `(n, n)` and `(d,)`, per body for a system of several.
+        element, momentum = system.element_shape(), system.momentum_shape()
         probe = (
             jax.ShapeDtypeStruct((), dtype),
-            jax.ShapeDtypeStruct((n, n), dtype),
-            jax.ShapeDtypeStruct((d,), dtype),
+            jax.ShapeDtypeStruct(element, dtype),
+            jax.ShapeDtypeStruct(momentum, dtype),
         )
         try:
             out = jax.eval_shape(lambda t, g, m: self.fn(t, g, m, args), *probe)
         except Exception as error:  # the user's function, any failure: say whose it is
             raise ValueError(
                 f"`forcing`: the force law could not be evaluated as fn(t, g, m, args) with "
-                f"t a scalar, g ({n}, {n}), m ({d},): {error}"
+                f"t a scalar, g {element}, m {momentum}: {error}"
             ) from error
-        if getattr(out, "shape", None) != (d,):
+        if getattr(out, "shape", None) != momentum:
             raise ValueError(
-                f"`forcing`: the force law must return a generalised force of shape ({d},), "
-                f"got {getattr(out, 'shape', type(out).__name__)}."
+                f"`forcing`: the force law must return a generalised force of shape "
+                f"{momentum}, got {getattr(out, 'shape', type(out).__name__)}."
             )
 
 

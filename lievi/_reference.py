@@ -47,8 +47,9 @@ def reference_solution(
             "reference_solution needs float64: call jax.config.update('jax_enable_x64', True) "
             "before creating arrays."
         )
-    group = system.group
-    n, d = group.matrix_dim, group.algebra_dim
+    # One state's shapes (per body for a system of several bodies), flattened for DOP853.
+    element, momentum = system.element_shape(), system.momentum_shape()
+    d = int(np.prod(momentum))
     forcing = as_forcing(forcing)
     ts = np.asarray(ts, dtype=float)
     per_step = None if forcing is None else forcing.per_step()
@@ -58,10 +59,10 @@ def reference_solution(
 
     @jax.jit
     def rhs(t, y, data):
-        m, g = y[:d], y[d:].reshape(n, n)
+        m, g = y[:d].reshape(momentum), y[d:].reshape(element)
         force = None if forcing is None else forcing.at_step(data, args)
         g_dot, m_dot = euler_poincare_vector_field(system, g, m, force, t)
-        return jnp.concatenate([m_dot, g_dot.reshape(-1)])
+        return jnp.concatenate([m_dot.reshape(-1), g_dot.reshape(-1)])
 
     def solve(t_eval, y0, data):
         sol = solve_ivp(
@@ -77,7 +78,7 @@ def reference_solution(
             raise RuntimeError(f"reference_solution: DOP853 failed: {sol.message}")
         return sol.y.T
 
-    y0 = np.concatenate([np.asarray(m0, float), np.asarray(g0, float).reshape(-1)])
+    y0 = np.concatenate([np.asarray(m0, float).reshape(-1), np.asarray(g0, float).reshape(-1)])
     if piecewise:
         ys = [y0]
         for k in range(len(ts) - 1):
@@ -86,4 +87,4 @@ def reference_solution(
         y = np.stack(ys)
     else:
         y = solve(ts, y0, per_step)
-    return y[:, d:].reshape(-1, n, n), y[:, :d]
+    return y[:, d:].reshape(-1, *element), y[:, :d].reshape(-1, *momentum)

@@ -79,9 +79,9 @@ def has_fast_path(
 def _is_one_system(system) -> bool:
     """Whether `system` describes one system: its energy of one momentum `(d,)` and its
     potential at one element `(n, n)` are scalars (by shapes alone, nothing computed)."""
-    n, d = system.group.matrix_dim, system.group.algebra_dim
     dtype = state_dtype(system)
-    g, m = jax.ShapeDtypeStruct((n, n), dtype), jax.ShapeDtypeStruct((d,), dtype)
+    g = jax.ShapeDtypeStruct(system.element_shape(), dtype)
+    m = jax.ShapeDtypeStruct(system.momentum_shape(), dtype)
     try:
         shapes = eqx.filter_eval_shape(
             lambda s, g, m: (s.energy(m), s.potential_energy(g)), system, g, m
@@ -248,17 +248,18 @@ def simulate_batch(
         fixed_iterations = check_integer("fixed_iterations", fixed_iterations, 1)
     unroll = check_integer("unroll", unroll, 1)
     progress = as_progress_meter(progress_meter)
-    n, d = system.group.matrix_dim, system.group.algebra_dim
+    # One state's shapes, `(n, n)` and `(d,)` (per body for a system of several bodies).
+    element, momentum = system.element_shape(), system.momentum_shape()
     for name, x in (("g0", g0), ("m0", m0), ("h", h)):
         if isinstance(x, (bool, np.bool_)):
             raise ValueError(f"`{name}` must hold real numbers, got {x!r}.")
         check_real_dtype(name, x)
     g0, m0 = jnp.asarray(g0), jnp.asarray(m0)
-    if jnp.shape(g0) == (n, n) and jnp.ndim(m0) == 2:
+    if jnp.shape(g0) == element and jnp.ndim(m0) == 1 + len(momentum):
         # One initial element for every body (e.g. all starting at the identity).
-        g0 = jnp.broadcast_to(g0, (jnp.shape(m0)[0], n, n))
-    _check_batch("g0", g0, (n, n), "one group element per body")
-    _check_batch("m0", m0, (d,), "one momentum per body")
+        g0 = jnp.broadcast_to(g0, (jnp.shape(m0)[0], *element))
+    _check_batch("g0", g0, element, "one group element per body")
+    _check_batch("m0", m0, momentum, "one momentum per body")
     batch = jnp.shape(g0)[0]
     if batch == 0:
         raise ValueError("the batch is empty (`g0` has 0 bodies); pass at least one body.")
@@ -295,6 +296,7 @@ def simulate_batch(
         # orthogonal matrix.
         with jax.ensure_compile_time_eval():
             defect = np.asarray(system.group.membership_defect(jnp.asarray(g0, float)))
+            defect = defect.reshape(defect.shape[0], -1).max(axis=1)  # the worst of each state
         worst, bound = int(np.argmax(defect)), membership_tolerance(g0.dtype)
         if defect[worst] > bound:
             raise ValueError(

@@ -55,7 +55,7 @@ class Solution(eqx.Module):
         """
         if frame not in ("body", "spatial"):
             raise ValueError(f"`frame` must be 'body' or 'spatial', got {frame!r}.")
-        xi = _over_leading_axes(system.velocity, 1, self.m)
+        xi = _over_leading_axes(system.velocity, len(system.momentum_shape()), self.m)
         # Left-invariant systems carry the body velocity, right-invariant the spatial one.
         if frame != system.side.carried_frame():
             xi = system.side.other_frame(system.group, self.g, xi)

@@ -1,6 +1,6 @@
 """Conservation and structure diagnostics (docs/theory/checks.md).
 
-- `energy`, `casimirs`, `spatial_momentum`, `orthogonality_defect`: quantities the flow
+- `energy`, `casimirs`, `spatial_momentum`, `total_momentum`, `orthogonality_defect`: quantities the flow
   conserves (paper §3, §6), evaluated along a trajectory;
 - `del_residual`: the discrete Euler–Lagrange equations (2.1) checked by autodiff of the
   integrator's discrete Lagrangian (Theorem 2.1), independent of any hand derivation;
@@ -37,7 +37,8 @@ def energy(
 
     `g` is needed, and required, when the system has a potential.
     """
-    kinetic = _batched(system.energy, 1, m)
+    # One state has the system's own shapes (`(d,)`, `(n, n)`; per body for several).
+    kinetic = _batched(system.energy, len(system.momentum_shape()), m)
     if system.potential is None:
         return kinetic
     if g is None:
@@ -45,7 +46,7 @@ def energy(
             "energy: the system has a potential, so its energy depends on the attitude: pass "
             "`g` (e.g. `energy(system, sol.m, sol.g)`)."
         )
-    return kinetic + _batched(system.potential_energy, 2, g)
+    return kinetic + _batched(system.potential_energy, len(system.element_shape()), g)
 
 
 def casimirs(system: AbstractLieSystem, m: Float[Array, "*batch d"]) -> Float[Array, "*batch k"]:
@@ -66,6 +67,21 @@ def spatial_momentum(
     on SO(n)). Right-invariant: the body momentum `Ad_gᵀ μ`.
     """
     return system.side.noether_momentum(system.group, g, m)
+
+
+def total_momentum(
+    system: AbstractLieSystem, g: Float[Array, "*batch n n"], m: Float[Array, "*batch d"]
+) -> Float[Array, "*batch d"]:
+    """The momentum of the diagonal symmetry: `spatial_momentum` summed over the bodies.
+
+    For `lievi.RigidBodies` (`g` `(…, N, 4, 4)`, `m` `(…, N, 6)`): the total angular
+    momentum about the world origin and the total linear momentum,
+    `(Σ R_i Π_i + p_i × R_i P_i, Σ R_i P_i)`, conserved when the coupling depends on the
+    relative poses only. For one body, its `spatial_momentum`.
+    """
+    each = spatial_momentum(system, g, m)
+    bodies = len(system.momentum_shape()) - 1  # 0 for one body, 1 for several
+    return jnp.sum(each, axis=tuple(range(-1 - bodies, -1)))
 
 
 def orthogonality_defect(system: AbstractLieSystem, g: Float[Array, "*batch n n"]):
@@ -109,7 +125,8 @@ def _del_residual(system, integrator, g, h):
                 system, g_prev, moved, h
             ) + integrator.discrete_lagrangian(system, moved, g_next, h)
 
-        return jax.grad(action)(jnp.zeros(group.algebra_dim, g.dtype))
+        # One variation per body where the system has several (`momentum_shape`).
+        return jax.grad(action)(jnp.zeros(system.momentum_shape(), g.dtype))
 
     return jax.vmap(residual)(g[:-2], g[1:-1], g[2:])
 

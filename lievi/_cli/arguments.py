@@ -86,7 +86,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=(*PROBLEMS, CONTROL_PROBLEM),
         default=DEFAULT_PROBLEM,
         help=f"the test problem (default {DEFAULT_PROBLEM}; heavy-top: the asymmetric heavy "
-        "top; control: optimal rest-to-rest reorientation, solved through the integrator)",
+        "top; binary: a binary asteroid, two bodies in mutual gravity; control: optimal "
+        "rest-to-rest reorientation, solved through the integrator)",
     )
     parser.add_argument(
         "--plot",

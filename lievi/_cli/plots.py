@@ -23,6 +23,12 @@ def _pyplot():
     return plt
 
 
+def _flat(m):
+    """Momenta `(T, …)` as `(T, k)`: one row per saved time."""
+    m = np.asarray(m)
+    return m.reshape(m.shape[0], -1)
+
+
 def save_plot(
     path: str,
     ts,
@@ -49,11 +55,12 @@ def save_plot(
     for i in range(3):
         ax = fig.add_subplot(grid[i, 0], sharex=axes[0] if axes else None)
         axes.append(ax)
-        ax.plot(ts, m_ref[:, i], color="black", lw=3, alpha=0.3, label="reference (DOP853)")
+        # The first three momentum coordinates: Π, or the first body's Π for several bodies.
+        ax.plot(ts, _flat(m_ref)[:, i], color="black", lw=3, alpha=0.3, label="reference (DOP853)")
         for j, (name, solution, _) in enumerate(runs):
             ax.plot(
                 ts,
-                np.asarray(solution.m[:, i]),
+                _flat(solution.m)[:, i],
                 color=colours[j % len(colours)],
                 ls=styles[j % len(styles)],
                 lw=1.2,

@@ -22,6 +22,7 @@ from .._kernels._kick import KickKernel
 from .._newton import newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
+from .._systems._se3_body import RigidBodySE3
 
 
 class StepInfo(eqx.Module):
@@ -81,8 +82,9 @@ class AbstractIntegrator(eqx.Module):
         A NaN momentum is not "too large" (it is reported as `nonfinite`)."""
         # The angle the group's exponential turns (`exp_norm`: on SE(3) the rotation part
         # only; a translation per step has no such bound).
+        # `any`: a system of several bodies steps too far if one of them does.
         xi = system.velocity(m)
-        return jnp.abs(h) * system.group.exp_norm(xi) > self.step_bound()
+        return jnp.any(jnp.abs(h) * system.group.exp_norm(xi) > self.step_bound())
 
     def kernels(self) -> tuple[AbstractBatchKernel, ...]:
         """This method's structure-of-arrays steps of the free system, one per kind of
@@ -151,6 +153,13 @@ class AbstractKickIntegrator(AbstractIntegrator):
     ) -> tuple[Float[Array, "n n"], Float[Array, " d"], StepInfo]:
         """The step of the system without its potential."""
 
+    def free_body_step(self, inertia, mass, g, m, h: Scalar):
+        """The free step of a rigid body in vacuum, `lievi.RigidBodySE3(inertia, mass)`
+        (origin at its centre of mass): what `lievi.RigidBodies` runs on each of its bodies.
+        By default this method's `free_step` of that body; a method of the rotation alone
+        steps the rotation and translates exactly (`_drift.rotation_and_drift`)."""
+        return self.free_step(RigidBodySE3(inertia, mass), g, m, h)
+
     def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
         free = self.free_kernel(system, batched)
         if free is None or system.potential is None:
@@ -160,13 +169,15 @@ class AbstractKickIntegrator(AbstractIntegrator):
         return kernel if kernel.physics(system, batched) is not None else None
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
+        # `system.free_flow`: the system decides how this method's free step applies to it
+        # (one body: `free_step` itself; several bodies: each of them).
         if system.potential is None and force is None:
-            return self.free_step(system, g, m, h)
+            return system.free_flow(self, g, m, h)
         m_plus = system.kick(g, m, h / 2)
         if force is not None:
             # The discrete Lagrange–d'Alembert force at g_k: f_k⁻ = (h/2) f(t_k, g_k, m_k).
             m_plus = m_plus + h / 2 * _checked_force(force, t, g, m)
-        g_next, m_next, info = self.free_step(system, g, m_plus, h)
+        g_next, m_next, info = system.free_flow(self, g, m_plus, h)
         m_next = system.kick(g_next, m_next, h / 2)
         iterations, residual, result = info.iterations, info.residual, info.result
         if force is not None:
@@ -227,14 +238,19 @@ def forced_end_kick(
             jnp.asarray(RESULTS.successful, jnp.int32), jnp.zeros((), jnp.int32), zero
         )
 
-    def residual(m):
-        return m - m_minus - h / 2 * _checked_force(force, t, g, m)
+    # Newton on the momentum as one vector (a system of several bodies has one row each).
+    shape = jnp.shape(m_minus)
+
+    def residual(flat):
+        m = flat.reshape(shape)
+        return (m - m_minus - h / 2 * _checked_force(force, t, g, m)).reshape(-1)
 
     guess = m_minus + h / 2 * _checked_force(force, t, g, m_minus)
     # The terms of the equation are of the size of `m⁻` and of the root (≈ the guess).
     scale = jnp.maximum(jnp.max(jnp.abs(m_minus)), jnp.max(jnp.abs(guess)))
     tolerance = newton_tolerance(scale, m_minus.dtype, rtol, atol)
-    m, info = newton_solve(residual, guess, tolerance, END_KICK_MAX_STEPS)
+    m, info = newton_solve(residual, guess.reshape(-1), tolerance, END_KICK_MAX_STEPS)
+    m = m.reshape(shape)
     ok = info.converged | (result_before != RESULTS.successful)
     result = jnp.where(ok, RESULTS.successful, RESULTS.newton_not_converged)
     return m, StepInfo(result.astype(jnp.int32), info.iterations, info.residual)

@@ -54,6 +54,7 @@ from .._systems._base import AbstractLieSystem
 from .._systems._generalized_rigid_body import GeneralizedRigidBody
 from .._systems._rigid_body import RigidBody
 from ._base import AbstractVariationalIntegrator, StepInfo
+from ._drift import rotation_and_drift
 
 
 def check_rigid_body(method: str, system: AbstractLieSystem) -> None:
@@ -136,6 +137,10 @@ class MoserVeselov(AbstractVariationalIntegrator):
     def is_symmetric(self) -> bool:
         # −L_d(g₁, g₀; −h) = tr((I − g₁ᵀg₀)Λ)/h = L_d(g₀, g₁; h): tr(AᵀΛ) = tr(AΛ).
         return True
+
+    def free_body_step(self, inertia, mass, g, m, h: Scalar):
+        # A method of the rotation: the body's rotation by it, its translation exactly.
+        return rotation_and_drift(self, inertia, mass, g, m, h)
 
     def kernels(self):
         return (NewtonKernel(MoserVeselovEquation(), self.rtol, self.atol, self.max_steps),)

@@ -34,7 +34,9 @@ from ._base import AbstractIntegrator, StepInfo
 def momentum_rate(system: AbstractLieSystem, g, m, xi, force=None, t=0.0):
     """`ṁ = ± ad_ξᵀ m + M(g) (+ force(t, g, m))`: the Euler–Poincaré equation (2.4)/(2.5)
     with the potential's generalised force and an external one (`None`: none)."""
-    m_dot = system.side.coadjoint_sign() * system.group.ad(xi).T @ m
+    # `ad_ξᵀ m` per body where the state holds several (leading axes).
+    ad = system.group.ad(xi)
+    m_dot = system.side.coadjoint_sign() * jnp.einsum("...ba,...b->...a", ad, m)
     if system.potential is not None:
         m_dot = m_dot + system.force(g)
     if force is not None:
@@ -71,10 +73,8 @@ class RK4(AbstractIntegrator):
         return (RK4Kernel(),)
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
-        group = system.group
-        n, d = group.matrix_dim, group.algebra_dim
-        check_shape("g", g, (n, n), f"a {n}×{n} group element")
-        check_shape("m", m, (d,), f"momentum coordinates of dimension {d}")
+        check_shape("g", g, system.element_shape(), "the system's configuration")
+        check_shape("m", m, system.momentum_shape(), "the system's momentum coordinates")
         # The kernel integrates the free, unforced body: otherwise the generic field.
         fast = None
         if force is None and system.potential is None:

@@ -47,6 +47,7 @@ from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from .._systems._generalized_rigid_body import GeneralizedRigidBody
 from ._base import AbstractKickIntegrator, StepInfo
+from ._drift import rotation_and_drift
 from ._moser_veselov import check_pair_sums, check_rigid_body
 
 
@@ -104,6 +105,10 @@ class LiePoissonSplitting(AbstractKickIntegrator):
     def is_symmetric(self) -> bool:
         # A palindromic (Strang) product of exact flows: Φ_{−h} = Φ_h⁻¹.
         return True
+
+    def free_body_step(self, inertia, mass, g, m, h: Scalar):
+        # A method of the rotation: the body's rotation by it, its translation exactly.
+        return rotation_and_drift(self, inertia, mass, g, m, h)
 
     def kernels(self):
         return (SplittingKernel(),)

@@ -52,17 +52,18 @@ class AbstractLieSystem(eqx.Module):
         raise_if_violated(self.parameter_conditions, self)
         if self.potential is None:
             return
-        n = self.group.matrix_dim
-        probe = jax.ShapeDtypeStruct((n, n), jnp.result_type(float))
+        shape = self.element_shape()
+        what = "×".join(map(str, shape))
+        probe = jax.ShapeDtypeStruct(shape, jnp.result_type(float))
         try:
             out = jax.eval_shape(self.potential, probe)
         except Exception as error:  # the user's function, any failure: say whose it is
             raise ValueError(
-                f"`potential` could not be evaluated on an {n}×{n} group element: {error}"
+                f"`potential` could not be evaluated on a {what} configuration: {error}"
             ) from error
         if getattr(out, "shape", None) != ():
             raise ValueError(
-                f"`potential` must return a scalar V(g) for an {n}×{n} `g`, got "
+                f"`potential` must return a scalar V(g) for a {what} `g`, got "
                 f"{getattr(out, 'shape', type(out).__name__)}."
             )
         if not jnp.issubdtype(out.dtype, jnp.floating):
@@ -72,6 +73,22 @@ class AbstractLieSystem(eqx.Module):
                 "(e.g. `lambda g: 0` returns an integer: write `0.0`, or convert with "
                 "`jnp.asarray(value, float)`)."
             )
+
+    def element_shape(self) -> tuple[int, ...]:
+        """The shape of a configuration `g`: `(n, n)`, one group element (the default);
+        a system of several bodies has one element per body."""
+        n = self.group.matrix_dim
+        return (n, n)
+
+    def momentum_shape(self) -> tuple[int, ...]:
+        """The shape of a momentum `m`: `(d,)` (the default), or one row per body."""
+        return (self.group.algebra_dim,)
+
+    def free_flow(self, integrator, g, m, h: Scalar):
+        """The free step of a kick integrator (`AbstractKickIntegrator.free_step`) on this
+        system: the integrator's own (the default). A system of several bodies steps each
+        body with it (`lievi.RigidBodies`)."""
+        return integrator.free_step(self, g, m, h)
 
     @abc.abstractmethod
     def lagrangian(self, xi: Float[Array, " d"]) -> Scalar:
@@ -114,15 +131,15 @@ class AbstractLieSystem(eqx.Module):
         `g₃₃ < 0`, can have a finite derivative, and the step that reached it must be
         reported (`RESULTS.nonfinite`), not integrated on.
         """
-        d = self.group.algebra_dim
+        shape = self.momentum_shape()
         if self.potential is None:
-            return jnp.zeros(d, jnp.result_type(g))
+            return jnp.zeros(shape, jnp.result_type(g))
 
         def along(eta):
             E = self.group.hat(eta)
             return self.potential(g + self.side.translate(g, E))
 
-        value, gradient = jax.value_and_grad(along)(jnp.zeros(d, jnp.result_type(g, float)))
+        value, gradient = jax.value_and_grad(along)(jnp.zeros(shape, jnp.result_type(g, float)))
         return jnp.where(jnp.isfinite(value), -gradient, jnp.nan)
 
     def kick(self, g: Float[Array, "n n"], m: Float[Array, " d"], dt: Scalar) -> Float[Array, " d"]:
@@ -139,10 +156,15 @@ class AbstractLieSystem(eqx.Module):
         return None
 
     def check_element(self, name: str, g) -> None:
-        """Raise `ValueError` unless `g` is an `(n, n)` finite element of the group (to
-        `membership_tolerance` of its dtype, the bound of `element_valid`)."""
+        """Raise `ValueError` unless `g` is a finite configuration of `element_shape()` (an
+        `(n, n)` element of the group, to `membership_tolerance` of its dtype, the bound of
+        `element_valid`; for several bodies, every one)."""
+        shape = self.element_shape()
         n = self.group.matrix_dim
-        check_shape(name, g, (n, n), f"a {n}×{n} group element")
+        what = f"a {n}×{n} group element" + (
+            f" for each of {shape[0]} bodies" if len(shape) > 2 else ""
+        )
+        check_shape(name, g, shape, what)
         check_finite(name, g)
         if is_concrete(g):
             # Evaluated now even when `simulate` is being traced by an outer `jit` with a
@@ -150,7 +172,7 @@ class AbstractLieSystem(eqx.Module):
             g = jnp.asarray(g)
             bound = membership_tolerance(g.dtype)
             with jax.ensure_compile_time_eval():
-                defect = float(self.group.membership_defect(jnp.asarray(g, float)))
+                defect = float(jnp.max(self.group.membership_defect(jnp.asarray(g, float))))
             if defect > bound:
                 raise ValueError(
                     f"`{name}` is not in the group: membership defect {defect:.3g} > "
@@ -181,10 +203,11 @@ class AbstractLieSystem(eqx.Module):
         g = jnp.asarray(g, dtype)
         finite = jnp.all(jnp.isfinite(g))
         safe = jnp.where(finite, g, jnp.eye(g.shape[-1], dtype=dtype))
-        return finite & (self.group.membership_defect(safe) <= membership_tolerance(dtype))
+        defect = self.group.membership_defect(safe)
+        return finite & jnp.all(defect <= membership_tolerance(dtype))
 
     def check_momentum(self, name: str, m) -> None:
-        """Raise `ValueError` unless `m` is a finite `(d,)` momentum."""
+        """Raise `ValueError` unless `m` is a finite momentum of `momentum_shape()`."""
         d = self.group.algebra_dim
-        check_shape(name, m, (d,), f"momentum coordinates of dimension {d}")
+        check_shape(name, m, self.momentum_shape(), f"momentum coordinates of dimension {d}")
         check_finite(name, m)

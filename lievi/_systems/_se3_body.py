@@ -44,7 +44,7 @@ def _inertia_matrix(inertia):
     return jnp.diag(inertia) if inertia.ndim == 1 else inertia
 
 
-def _spd_solve(M: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " k"]:
+def spd_solve(M: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " k"]:
     """`M⁻¹ b` for a small SPD `M` by an unrolled Cholesky factorisation.
 
     Written with scalar operations so that XLA fuses it into a few instructions; a LAPACK
@@ -150,7 +150,7 @@ class RigidBodySE3(AbstractLieSystem):
         return jnp.asarray(self.tensor) @ xi
 
     def velocity(self, m: Float[Array, 6]) -> Float[Array, 6]:
-        return _spd_solve(jnp.asarray(self.tensor, jnp.result_type(self.tensor, m)), m)
+        return spd_solve(jnp.asarray(self.tensor, jnp.result_type(self.tensor, m)), m)
 
     def energy(self, m: Float[Array, 6]) -> Scalar:
         return jnp.dot(m, self.velocity(m)) / 2

@@ -109,6 +109,21 @@ class CentralGravity(AbstractPotential):
         return -self.mu * jnp.sum(jnp.asarray(self.masses) / distances)
 
 
+def point_mass_body(masses: Float[Array, " k"], points: Float[Array, "k 3"]):
+    """`(mass, centred points, inertia)` of a rigid body made of point masses: the total
+    mass, the points measured from their centre of mass, and the inertia tensor about it,
+    `Σ m_i (|ρ_i|² I − ρ_i ρ_iᵀ)`."""
+    mass = jnp.sum(masses)
+    centered = points - masses @ points / mass
+    squared = jnp.sum(centered**2, axis=-1)
+    inertia = jnp.einsum(
+        "i,ijk->jk",
+        masses,
+        squared[:, None, None] * jnp.eye(3) - centered[:, :, None] * centered[:, None, :],
+    )
+    return mass, centered, inertia
+
+
 def full_body_problem(mu, masses, points, extra_inertia=None) -> RigidBodySE3:
     """A rigid satellite of point masses orbiting a planet: `RigidBodySE3` + `CentralGravity`.
 
@@ -127,14 +142,7 @@ def full_body_problem(mu, masses, points, extra_inertia=None) -> RigidBodySE3:
             f"`masses` must have shape (k,) and `points` shape (k, 3), got {masses.shape} and "
             f"{points.shape}."
         )
-    mass = jnp.sum(masses)
-    centered = points - masses @ points / mass
-    squared = jnp.sum(centered**2, axis=-1)
-    inertia = jnp.einsum(
-        "i,ijk->jk",
-        masses,
-        squared[:, None, None] * jnp.eye(3) - centered[:, :, None] * centered[:, None, :],
-    )
+    mass, centered, inertia = point_mass_body(masses, points)
     if extra_inertia is not None:
         inertia = inertia + jnp.asarray(extra_inertia)
     return RigidBodySE3(inertia, mass, potential=CentralGravity(mu, masses, centered))

@@ -1,0 +1,224 @@
+"""Throughput of interacting rigid bodies (`lievi.RigidBodies`) in body-steps per second.
+
+Rows, all in one run, float64, `--steps` steps of size 0.01, final state only:
+
+- "free SE(3) body, fast path": `simulate_batch` of `2·B` independent free
+  `RigidBodySE3` bodies (the structure-of-arrays kernel `_kernels/_se3.py`): the baseline
+  every ratio is taken against;
+- "B two-body systems": `simulate_batch` of `B` independent binary asteroids
+  (`lievi.gravitating_bodies`, two bodies of three point masses in mutual gravity) —
+  `jax.vmap(simulate)` over the systems, each step kick – free step of both bodies –
+  kick; `2·B` body-steps per step;
+- "one system of N bodies": one `simulate` of `N` single-site Lennard-Jones bodies (all
+  `N(N−1)/2` pairs: no neighbour list), `N` body-steps per step;
+- the cost of a gradient: `jax.grad` with respect to the gravitational constant `G` of a
+  function of the final state of one binary, against the same run forward.
+
+Compile time is reported apart (first call minus the best of the timed calls). The load
+average (`os.getloadavg`) is printed and saved with the figures: on a shared machine the
+figures move with it, the ratios (same run) less.
+
+    python benchmarks/rigid_bodies_throughput.py [--systems 1000] [--bodies 1000]
+                                                 [--steps 100] [--out rigid_bodies_throughput]
+
+Writes `benchmarks/results/<out>.json`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import time
+
+import equinox as eqx
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import lievi  # noqa: E402
+
+H = 0.01
+RESULTS = pathlib.Path(__file__).parent / "results"
+METHODS = {"DEP Cayley": lievi.DEP(chart="cayley"), "splitting": lievi.LiePoissonSplitting()}
+
+
+def _timed(run, rounds=3):
+    """`(best seconds, compile seconds)`: the first call compiles and runs."""
+    start = time.perf_counter()
+    jax.block_until_ready(run())
+    first = time.perf_counter() - start
+    times = []
+    for _ in range(rounds):
+        start = time.perf_counter()
+        out = jax.block_until_ready(run())
+        times.append(time.perf_counter() - start)
+    assert jnp.all(out.result == lievi.RESULTS.successful)
+    return min(times), max(first - min(times), 0.0)
+
+
+def binaries(n_systems, rng):
+    """`n_systems` binary asteroids: random point masses and shapes, near-circular orbits."""
+    masses = rng.uniform(0.3, 1.0, size=(n_systems, 2, 3))
+    points = rng.uniform(-0.12, 0.12, size=(n_systems, 2, 3, 3))
+    systems = jax.vmap(lambda m, p: lievi.gravitating_bodies(1.0, m, p))(
+        jnp.asarray(masses), jnp.asarray(points)
+    )
+    mass = systems.mass  # (B, 2)
+    total = jnp.sum(mass, axis=1)
+    x = 1.5 * jnp.stack([-mass[:, 1], mass[:, 0]], axis=1) / total[:, None]
+    speed = jnp.sqrt(total / 1.5)
+    v = speed[:, None] * jnp.stack([-mass[:, 1], mass[:, 0]], axis=1) / total[:, None]
+    g0 = jnp.broadcast_to(jnp.eye(4), (n_systems, 2, 4, 4)).at[:, :, 0, 3].set(x)
+    spin = jnp.asarray(rng.normal(size=(n_systems, 2, 3)))
+    Pi = jnp.einsum("bnij,bnj->bni", systems.tensor[..., :3, :3], spin)
+    P = jnp.zeros((n_systems, 2, 3)).at[:, :, 1].set(mass * v)
+    return systems, g0, jnp.concatenate([Pi, P], axis=-1)
+
+
+def lennard_jones_cloud(n_bodies, rng):
+    """`n_bodies` one-site bodies on a jittered cubic lattice (spacing 1.5σ), random spins."""
+    side = int(np.ceil(n_bodies ** (1 / 3)))
+    grid = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    positions = 1.5 * grid[:n_bodies] + rng.uniform(-0.1, 0.1, size=(n_bodies, 3))
+    sites = jnp.zeros((n_bodies, 1, 3)).at[:, 0, 0].set(0.05)  # off the centre: torques
+    potential = lievi.SitePotential(sites, lievi.LennardJones(1.0, 1.0))
+    system = lievi.RigidBodies(jnp.ones((n_bodies, 3)), jnp.ones(n_bodies), potential=potential)
+    g0 = jnp.broadcast_to(jnp.eye(4), (n_bodies, 4, 4)).at[:, :3, 3].set(jnp.asarray(positions))
+    m0 = jnp.asarray(rng.normal(size=(n_bodies, 6)) * 0.1)
+    return system, g0, m0
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--systems", type=int, default=1000)
+    parser.add_argument("--bodies", type=int, default=1000)
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--out", default="rigid_bodies_throughput")
+    args = parser.parse_args()
+    rng = np.random.default_rng(0)
+    load = os.getloadavg()[0]
+    print(f"load average at start: {load:.2f}; {platform.processor() or platform.machine()}")
+    rows = []
+
+    free_bodies = 2 * args.systems
+    inertia = jnp.asarray(rng.uniform(0.5, 2.0, size=(free_bodies, 3)))
+    free = jax.vmap(lambda J: lievi.RigidBodySE3(J, 1.0))(inertia)
+    g_free = jnp.broadcast_to(jnp.eye(4), (free_bodies, 4, 4))
+    m_free = jnp.asarray(rng.normal(size=(free_bodies, 6)))
+    systems, g_bin, m_bin = binaries(args.systems, rng)
+    cloud, g_cloud, m_cloud = lennard_jones_cloud(args.bodies, rng)
+
+    # The baseline: the free SE(3) body's structure-of-arrays fast path (DEP, Cayley chart).
+    seconds, compile_s = _timed(
+        lambda: lievi.simulate_batch(
+            free, lievi.DEP(chart="cayley"), g_free, m_free, h=H, n_steps=args.steps, save=()
+        )
+    )
+    baseline = free_bodies * args.steps / seconds
+    rows.append(
+        {
+            "method": "DEP Cayley",
+            "case": f"{free_bodies} free SE(3) bodies, fast path (baseline)",
+            "body_steps_per_s": baseline,
+            "seconds": seconds,
+            "compile_s": compile_s,
+            "ratio_to_free_fast_path": 1.0,
+        }
+    )
+    print(f"{'DEP Cayley':11s} {rows[-1]['case']:52s} {baseline:10.3g} body-steps/s")
+    for name, method in METHODS.items():
+        cases = (
+            (
+                f"{args.systems} two-body systems (simulate_batch)",
+                2 * args.systems,
+                lambda m=method: lievi.simulate_batch(
+                    systems, m, g_bin, m_bin, h=H, n_steps=args.steps, save=()
+                ),
+            ),
+            (
+                f"one system of {args.bodies} Lennard-Jones bodies (all pairs)",
+                args.bodies,
+                lambda m=method: lievi.simulate(
+                    cloud, m, g_cloud, m_cloud, h=H, n_steps=args.steps, save_every=args.steps
+                ),
+            ),
+        )
+        for label, bodies, run in cases:
+            seconds, compile_s = _timed(run)
+            rate = bodies * args.steps / seconds
+            rows.append(
+                {
+                    "method": name,
+                    "case": label,
+                    "body_steps_per_s": rate,
+                    "seconds": seconds,
+                    "compile_s": compile_s,
+                    "ratio_to_free_fast_path": rate / baseline,
+                }
+            )
+            print(
+                f"{name:11s} {label:52s} {rate:10.3g} body-steps/s ({rate / baseline:.3g}× the "
+                f"baseline), compile {compile_s:.1f} s"
+            )
+
+    # Gradient cost: d/dG of a function of the final state of one binary asteroid,
+    # `--steps` × 10 steps, against the forward run (the same compiled run without `grad`).
+    system, g0, m0 = systems, g_bin[0], m_bin[0]
+    one = jax.tree.map(lambda x: x[0], system)
+    n_steps = 10 * args.steps
+    for name, method in METHODS.items():
+
+        def final(G, method=method):
+            coupled = eqx.tree_at(lambda s: s.potential.G, one, G)
+            sol = lievi.simulate(coupled, method, g0, m0, h=H, n_steps=n_steps, save_every=n_steps)
+            return jnp.sum(sol.m[-1] ** 2) + jnp.sum(sol.g[-1, :, :3, 3] ** 2)
+
+        forward, gradient = jax.jit(final), jax.jit(jax.grad(final))
+        G = jnp.asarray(1.0)
+        times = {}
+        for label, fn in (("forward", forward), ("gradient", gradient)):
+            jax.block_until_ready(fn(G))
+            best = []
+            for _ in range(3):
+                start = time.perf_counter()
+                jax.block_until_ready(fn(G))
+                best.append(time.perf_counter() - start)
+            times[label] = min(best)
+        ratio = times["gradient"] / times["forward"]
+        rows.append(
+            {
+                "method": name,
+                "case": f"gradient d/dG, one binary, {n_steps} steps",
+                "forward_s": times["forward"],
+                "gradient_s": times["gradient"],
+                "gradient_over_forward": ratio,
+            }
+        )
+        print(
+            f"{name:11s} gradient d/dG of one binary, {n_steps} steps: forward "
+            f"{times['forward']:.3g} s, gradient {times['gradient']:.3g} s ({ratio:.2f}×)"
+        )
+
+    document = {
+        "steps": args.steps,
+        "h": H,
+        "dtype": "float64",
+        "load_average_start": load,
+        "load_average_end": os.getloadavg()[0],
+        "device": str(jax.devices()[0]),
+        "rows": rows,
+    }
+    RESULTS.mkdir(exist_ok=True)
+    path = RESULTS / f"{args.out}.json"
+    path.write_text(json.dumps(document, indent=2))
+    print(f"load average at end: {document['load_average_end']:.2f}; written {path}")
+
+
+if __name__ == "__main__":
+    main()
