@@ -61,6 +61,7 @@ def test_demo_in_process_json_and_plot(tmp_path, capsys):
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.slow  # ~50 s: the demo's full run (CI runs the demo itself)
 def test_demo_reports_failure(tmp_path, capsys):
     # h = 2.5: the first step turns the body by h·|ω₀| = 3.39 rad, inside the largest step
     # bound of the methods (the order-6 composition's 3.93, so the command line takes it)
@@ -140,6 +141,7 @@ def test_cli_step_bound_names_the_largest_step(capsys):
     assert largest == pytest.approx(bound / rate, rel=1e-2)
 
 
+@pytest.mark.slow  # ~50 s: the demo's full run (CI runs the demo itself)
 def test_demo_heavy_top(tmp_path, capsys):
     """`--problem heavy-top`: every integrator that takes a potential, the heavy top's
     Casimirs |Γ|² and Π·Γ kept to round-off by the Lie–Poisson integrators, the energy
@@ -187,6 +189,7 @@ def test_demo_checks_output_paths_before_the_run(tmp_path, capsys, monkeypatch):
     assert not ran
 
 
+@pytest.mark.slow  # ~50 s: the demo's full run (CI runs the demo itself)
 def test_demo_bad_json_keeps_the_plot(tmp_path, capsys, monkeypatch):
     """A --json that fails while writing (after the checks) does not lose the --plot."""
     pytest.importorskip("matplotlib")

@@ -59,7 +59,8 @@ def test_newton_residual_and_equation(hlw_run):
     body, sol = hlw_run
     assert sol.result == lievi.RESULTS.successful
     assert jnp.max(sol.stats["residual"]) <= 1e-14
-    assert jnp.max(sol.stats["newton_iterations"]) <= 3
+    # The kernel's 4 fixed scalar Newton iterations, then its check: no body needed more.
+    assert jnp.max(sol.stats["newton_iterations"]) <= 4
     assert mv_equation_residual(body, sol.m, H) <= 1e-14
 
 
