@@ -314,8 +314,8 @@ def _simulate_on_kernel(
         segment,
         valid,
         group,
-        t0,
-        progress,
+        t0=t0,
+        progress=progress,
     )
     # The batch of one's leading axis off; `simulate`'s statistics.
     one = jax.tree.map(lambda x: x[0], one)

@@ -1,5 +1,7 @@
 """Shared test problems and tolerances (stated once, here)."""
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -38,3 +40,15 @@ def random_generalized_body(rng, n):
 # Every integrator of the core library, for parametrize.
 INTEGRATORS = (lievi.DEP(chart="exp"), lievi.DEP(chart="cayley"))
 INTEGRATOR_IDS = ("dep-exp", "dep-cayley")
+
+
+@eqx.filter_jit
+def final_state(system, integrator, g0, m0, h, n):
+    """`(g, m, all steps successful)` after `n` steps of size `h` (both traced: one compile serves every step size)."""
+
+    def body(_, state):
+        g, m, ok = state
+        g, m, info = integrator.step(system, g, m, h)
+        return g, m, ok & (info.result == lievi.RESULTS.successful)
+
+    return jax.lax.fori_loop(0, n, body, (g0, m0, jnp.asarray(True)))

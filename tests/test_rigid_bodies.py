@@ -9,7 +9,6 @@ poses; the gradient against central differences. Float64. Long runs are in the s
 
 import functools
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,7 +16,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import lievi
-from helpers import ROUNDOFF
+from helpers import ROUNDOFF, final_state
 from lievi import diagnostics as dg
 
 SE3, SO3 = lievi.SE3, lievi.SO3
@@ -135,24 +134,12 @@ def newton_euler_reference(system, g0, m0, T):
     return pose(R, x), m
 
 
-@eqx.filter_jit
-def _final_state(system, integrator, g0, m0, h, n):
-    """`n` steps of size `h` (both traced: one compile serves every step size)."""
-
-    def body(_, state):
-        g, m, ok = state
-        g, m, info = integrator.step(system, g, m, h)
-        return g, m, ok & (info.result == lievi.RESULTS.successful)
-
-    return jax.lax.fori_loop(0, n, body, (g0, m0, jnp.asarray(True)))
-
-
 def observed_order(problem, integrator, T, hs):
     system, g0, m0 = PROBLEMS[problem]()
     g_ref, m_ref = newton_euler_reference(system, g0, m0, T)
     errors = []
     for h in hs:
-        g, m, ok = _final_state(system, integrator, g0, m0, jnp.asarray(h), int(round(T / h)))
+        g, m, ok = final_state(system, integrator, g0, m0, jnp.asarray(h), int(round(T / h)))
         assert ok
         errors.append(max(float(jnp.max(jnp.abs(m - m_ref))), float(jnp.max(jnp.abs(g - g_ref)))))
     return np.polyfit(np.log(hs), np.log(errors), 1)[0], errors

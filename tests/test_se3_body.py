@@ -9,14 +9,13 @@ body problem). Float64 unless stated. Long runs (1e5 steps) are in the slow set.
 
 import functools
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import lievi
-from helpers import ROUNDOFF
+from helpers import ROUNDOFF, final_state
 from lievi import diagnostics as dg
 
 SE3 = lievi.SE3
@@ -66,23 +65,11 @@ PROBLEMS = {
 }
 
 
-@eqx.filter_jit
-def _final_state(system, integrator, g0, m0, h, n):
-    """`n` steps of size `h` (both traced: one compile serves every step size)."""
-
-    def body(_, state):
-        g, m, ok = state
-        g, m, info = integrator.step(system, g, m, h)
-        return g, m, ok & (info.result == lievi.RESULTS.successful)
-
-    return jax.lax.fori_loop(0, n, body, (g0, m0, jnp.asarray(True)))
-
-
 def observed_order(system, integrator, g0, m0, T, hs):
     g_ref, m_ref = lievi.reference_solution(system, g0, m0, [0.0, T])
     errors = []
     for h in hs:
-        g, m, ok = _final_state(system, integrator, g0, m0, jnp.asarray(h), int(round(T / h)))
+        g, m, ok = final_state(system, integrator, g0, m0, jnp.asarray(h), int(round(T / h)))
         assert ok
         errors.append(max(np.max(np.abs(m - m_ref[-1])), np.max(np.abs(g - g_ref[-1]))))
     return np.polyfit(np.log(hs), np.log(errors), 1)[0], errors
