@@ -18,6 +18,7 @@ from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -31,17 +32,24 @@ class AbstractProgressMeter(eqx.Module):
 
     reports: ClassVar[bool] = True
 
-    def report(self, k, n_steps: int) -> None:
+    def report(self, k, n_steps):
         """Send `k / n_steps` to the host about every 1% of the steps (`k`, traced, counts
-        the steps done; `n_steps` is static). Called inside `simulate`'s loop."""
+        the steps done; `n_steps` static or traced: an eager run's horizon is traced, see
+        `lievi._horizon`). Called inside `simulate`'s loop.
+
+        Returns `k`, after the report: what is computed from the returned value is ordered
+        after it (the callbacks are otherwise unordered)."""
         if not self.reports:
-            return
-        stride = max(1, n_steps // 100)
+            return k
+        stride = jnp.maximum(1, n_steps // 100)
 
         def send(k):
             jax.debug.callback(_on_host, self, k / n_steps)
+            # Not the operand itself, or XLA drops the dependency (both branches would
+            # return their operand) and may run the report alongside what follows.
+            return jax.lax.optimization_barrier(k)
 
-        jax.lax.cond((k % stride == 0) | (k == n_steps), send, lambda k: None, k)
+        return jax.lax.cond((k % stride == 0) | (k == n_steps), send, lambda k: k, k)
 
     def show(self, fraction: float) -> None:
         """Show `fraction` done, from the host: for a loop run in Python (`stream_batch`'s

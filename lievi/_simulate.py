@@ -1,4 +1,5 @@
-"""`simulate`: the one entry point, a jit-compiled `lax.scan` over integrator steps."""
+"""`simulate`: the one entry point. Checks its inputs, then runs the integrator's kernel
+(`lievi._simulate_kernel`) or its own step (`lievi._simulate_generic`)."""
 
 from __future__ import annotations
 
@@ -18,13 +19,15 @@ from ._checks import (
     state_dtype,
 )
 from ._forcing import as_forcing
+from ._horizon import horizon_traced
 from ._integrators._base import AbstractIntegrator, AbstractVariationalIntegrator
 from ._progress import AbstractProgressMeter, NoProgressMeter, as_progress_meter
 from ._results import RESULTS
 from ._save import Save
-from ._scan import checkpoint_segment, scan_in_segments
+from ._scan import checkpoint_segment
+from ._simulate_generic import simulate_blocks, simulate_scan
 from ._simulate_kernel import simulate_kernel
-from ._solution import Solution
+from ._solution import Solution, advected_of
 from ._systems._base import AbstractLieSystem
 
 
@@ -193,15 +196,6 @@ def _as_array(name: str, x):
     return jnp.asarray(x)
 
 
-def checked_step_result(integrator, system, m, h, g_next, m_next, result):
-    """The step's own code, completed by the checks every method gets: a non-finite `g`
-    or `m` is `nonfinite` (not only the momentum: a NaN attitude is caught too), and a
-    step beyond `integrator.step_bound()` is `step_too_large`, whatever the solve said."""
-    finite = jnp.all(jnp.isfinite(g_next)) & jnp.all(jnp.isfinite(m_next))
-    return RESULTS.checked(result, finite, integrator.step_too_large(system, m, h))
-
-
-@eqx.filter_jit
 def _simulate(
     system,
     integrator,
@@ -217,77 +211,33 @@ def _simulate(
     forcing=None,
     args=None,
 ) -> Solution:
-    # Per-run state (e.g. a preprocessed method's modified moments for this `h`), once.
-    integrator = integrator.init(system, m0, h)
+    """The run: on the integrator's kernel for the system where it has one (and no force is
+    given), else on its own `step` (`lievi._simulate_generic`). Eagerly, either loop runs
+    in blocks of saves whose program does not depend on `n_steps` or `save_every`
+    (`lievi._horizon`); under a transformation, one static checkpointed scan."""
     kernel = None if forcing is not None else integrator.batch_kernel(system)
     if kernel is not None:
         return _simulate_on_kernel(
             kernel, system, integrator, g0, m0, h, t0, n_steps, save_every, segment, valid, progress
         )
-    nan = jnp.asarray(jnp.nan, m0.dtype)
-    progress.report(jnp.asarray(0, jnp.int32), n_steps)
-
-    def one_step(carry, data):
-        g, m, result, failed_step, k = carry
-        if forcing is None:
-            g_next, m_next, info = integrator.step(system, g, m, h)
-        else:
-            force = forcing.at_step(data, args)
-            g_next, m_next, info = integrator.step(system, g, m, h, force, t0 + k * h)
-        step_result = checked_step_result(integrator, system, m, h, g_next, m_next, info.result)
-        result, failed_step, ok = RESULTS.record(result, failed_step, k, step_result)
-        # After a failure the last good state is carried on (`RESULTS.record`); the saved
-        # state is NaN.
-        g_next = jnp.where(ok, g_next, g)
-        m_next = jnp.where(ok, m_next, m)
-        progress.report(k + 1, n_steps)
-        return (g_next, m_next, result, failed_step, k + 1), (info.iterations, info.residual)
-
-    inner = segment if segment is not None and segment < save_every else None
-    outer = segment // save_every if segment is not None and segment > save_every else None
-
-    def one_save(carry, data):
-        carry, (iterations, residuals) = scan_in_segments(one_step, carry, save_every, inner, data)
-        g, m, result = carry[0], carry[1], carry[2]
-        if drifts_off_group(g.dtype):
-            # Low precision: the saved state, from which a run may be continued, is kept
-            # on the group (to `membership_tolerance`), as is the state carried on.
-            g = system.group.project(g)
-            carry = (g, *carry[1:])
-        # No silent numbers past the failed step.
-        ok = result == RESULTS.successful
-        g, m = jnp.where(ok, g, nan), jnp.where(ok, m, nan)
-        return carry, (g, m, jnp.max(iterations), jnp.sum(iterations), jnp.max(residuals))
-
-    init = (g0, m0, *RESULTS.initial(valid), jnp.asarray(0, jnp.int32))
-    n_saves = n_steps // save_every
-    # Per-step forcing data (a control sequence), scanned over, not indexed: reverse mode
-    # then accumulates one row of the cotangent per step.
-    per_step = None if forcing is None else forcing.per_step()
-    per_step = jax.tree.map(
-        lambda x: jnp.asarray(x, m0.dtype).reshape((n_saves, save_every) + jnp.shape(x)[1:]),
-        per_step,
-    )
-    final, (gs, ms, iterations, total, residuals) = scan_in_segments(
-        one_save, init, n_saves, outer, per_step
-    )
-    _, _, result, failed_step, _ = final
-    ts = t0 + h * save_every * jnp.arange(n_saves + 1, dtype=m0.dtype)
-    stats = {
-        "newton_iterations": iterations,
-        "residual": residuals,
-        "failed_step": failed_step,
-        "total_newton_iterations": jnp.sum(total),
-        "num_steps": jnp.asarray(n_steps),
-    }
-    gs = jnp.concatenate([g0[None], gs])
-    return Solution(
-        ts=ts,
-        g=gs,
-        m=jnp.concatenate([m0[None], ms]),
-        result=result,
-        stats=stats,
-        advected=advected_of(system, gs),
+    if forcing is None and horizon_traced(system, integrator, g0, m0, h, t0, valid):
+        return simulate_blocks(
+            system, integrator, g0, m0, h, t0, n_steps, save_every, valid, progress
+        )
+    return simulate_scan(
+        system,
+        integrator,
+        g0,
+        m0,
+        h,
+        t0,
+        n_steps,
+        save_every,
+        segment,
+        valid,
+        progress,
+        forcing,
+        args,
     )
 
 
@@ -317,7 +267,12 @@ def _simulate_on_kernel(
         t0=t0,
         progress=progress,
     )
-    # The batch of one's leading axis off; `simulate`'s statistics.
+    return _one_of_batch(system, one, n_steps)
+
+
+@eqx.filter_jit
+def _one_of_batch(system, one: Solution, n_steps: int) -> Solution:
+    """The batch of one's leading axis off; `simulate`'s statistics."""
     one = jax.tree.map(lambda x: x[0], one)
     stats = dict(one.stats, num_steps=jnp.asarray(n_steps))
     return Solution(
@@ -328,11 +283,3 @@ def _simulate_on_kernel(
         stats=stats,
         advected=advected_of(system, one.g),
     )
-
-
-def advected_of(system, g):
-    """`Γ = gᵀa` of the system's potential for saved elements `g` (any leading axes), or
-    `None` where the potential has no advected direction (`Solution.advected`)."""
-    if system.potential is None or system.potential.advected_direction() is None:
-        return None
-    return system.potential.advected(g)

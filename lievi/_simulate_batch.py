@@ -34,13 +34,13 @@ from ._checks import (
 )
 from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator
-from ._progress import AbstractProgressMeter, NoProgressMeter, as_progress_meter
+from ._progress import AbstractProgressMeter, as_progress_meter
 from ._results import RESULTS
 from ._save import Save, as_save
 from ._scan import checkpoint_segment
-from ._simulate import advected_of, simulate
 from ._simulate_kernel import simulate_kernel
-from ._solution import Solution
+from ._simulate_vmap import simulate_vmap
+from ._solution import Solution, advected_of
 from ._systems._base import AbstractLieSystem
 
 SAVE_FIELDS = ("g", "m", "stats")  # the default `save`
@@ -356,7 +356,7 @@ def simulate_batch(
                 is_leaf=lambda x: x is None,
             )
     else:
-        solution = _simulate_vmap(
+        solution = simulate_vmap(
             system,
             integrator,
             g0_given,
@@ -404,67 +404,3 @@ def _advected(system, system_axis, g):
     """`Solution.advected` of a batch, read off the saved elements `g` `(B, T, n, n)`
     (`None` where the potential has no advected direction)."""
     return jax.vmap(advected_of, in_axes=(system_axis, 0))(system, g)
-
-
-def _keep(solution: Solution, save) -> Solution:
-    stats = dict(solution.stats)
-    if not save.stats:
-        del stats["newton_iterations"], stats["residual"]
-    keep_advected = save.with_advected()
-    return Solution(
-        ts=solution.ts,
-        g=solution.g if save.g else None,
-        m=solution.m if save.m else None,
-        result=solution.result,
-        stats=stats,
-        advected=solution.advected if keep_advected else None,
-    )
-
-
-@eqx.filter_jit
-def _simulate_vmap(
-    system,
-    integrator,
-    g0,
-    m0,
-    h,
-    n_steps,
-    save_every,
-    save,
-    system_axis,
-    segment,
-    forcing=None,
-    args=None,
-    progress=NoProgressMeter(),
-):
-    def one(system, g0, m0, h, forcing):
-        return simulate(
-            system,
-            integrator,
-            g0,
-            m0,
-            h=h,
-            n_steps=n_steps,
-            save_every=save_every,
-            throw=False,
-            checkpoint=False if segment is None else segment,
-            forcing=forcing,
-            args=args,
-            progress_meter=progress,
-        )
-
-    h_axis = None if h.ndim == 0 else 0
-    forcing_axes = None if forcing is None else forcing.batch_axes()
-    solution = jax.vmap(one, in_axes=(system_axis, 0, 0, h_axis, forcing_axes))(
-        system, g0, m0, h, forcing
-    )
-    if h_axis is None:
-        solution = eqx.tree_at(
-            lambda s: s.ts,
-            solution,
-            jnp.broadcast_to(solution.ts, (g0.shape[0],) + solution.ts.shape[1:]),
-        )
-    stats = dict(solution.stats)
-    stats["num_steps"] = jnp.broadcast_to(jnp.asarray(n_steps), (g0.shape[0],))
-    # `simulate` gives Γ_k = g_kᵀa from the saved elements (NaN after a failure, as `g`).
-    return _keep(eqx.tree_at(lambda s: s.stats, solution, stats), save)

@@ -1,9 +1,12 @@
-"""`simulate_batch`'s fast path: one kernel (`AbstractBatchKernel`) inside one `lax.scan`.
+"""`simulate_batch`'s fast path: one kernel (`AbstractBatchKernel`) inside one step loop.
 
 The state is structure of arrays, component-major with the batch minor; the kernel owns
 the layout (`carried`, `elements`). The loop adds what every method gets: the step bound
 (`turn_squared`), failure masking per body (a failed body's state becomes NaN and costs no
 further Newton iterations), statistics reduced in the carry, and checkpointing.
+
+The loop is a static `lax.scan` under a transformation, and blocks of saves by one
+compiled program whatever the horizon in an eager call (`lievi._horizon`).
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import jax
 import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
+from ._horizon import as_count, block_saves, horizon_traced, run_blocks, save_buffers, store
 from ._kernels._base import ROOT_NAME
 from ._progress import AbstractProgressMeter, NoProgressMeter
 from ._results import RESULTS
@@ -22,7 +26,6 @@ from ._scan import scan_in_segments
 from ._solution import Solution
 
 
-@eqx.filter_jit
 def simulate_kernel(
     kernel,
     constants,
@@ -46,7 +49,20 @@ def simulate_kernel(
     is compiled for `NoProgressMeter`).
 
     `simulate` runs one body here too, as a batch of one: under `jax.vmap` each component
-    is then one `(B, 1)` array, the layout `simulate_batch` runs in."""
+    is then one `(B, 1)` array, the layout `simulate_batch` runs in.
+
+    Eagerly (and with `unroll = 1`) the saves run in blocks of one compiled program whatever
+    `n_steps` and `save_every` (`lievi._horizon`); under a transformation, one static scan."""
+    args = (kernel, constants, step_bound, g0, m0, h)
+    if unroll == 1 and horizon_traced(*args, valid, t0):
+        return _kernel_blocks(*args, n_steps, save_every, save, valid, group, t0, progress)
+    args = (*args, n_steps, save_every, save, unroll, segment, valid, group, t0, progress)
+    return _kernel_scan(*args)
+
+
+def _setup(kernel, constants, step_bound, g0, m0, h, valid, n_steps, progress):
+    """`(one_step, init)`: the checked step on the kernel's structure of arrays and the
+    initial state (both loops; `n_steps` static or traced, for the meter)."""
     batch, dtype = g0.shape[0], m0.dtype
     constants = jax.tree.map(lambda x: jnp.asarray(x, dtype), constants)
     # Structure of arrays: component-major, batch minor; the kernel owns the layout.
@@ -56,8 +72,6 @@ def simulate_kernel(
     # alone on the reduced path).
     g = kernel.carried(g0)
     m = tuple(m0[:, i] for i in range(m0.shape[1]))
-    nan = jnp.asarray(jnp.nan, dtype)
-    int32 = jnp.int32
     # Per-run constants of the step-size check, once outside the loop: the per-step check
     # then needs no division and no square root (both run at a fraction of the rate of a
     # product on CPU).
@@ -98,43 +112,188 @@ def simulate_kernel(
         iterations = jnp.where(alive, iterations, 0)
         residual = jnp.where(alive, residual, -jnp.inf)
         counters = (total + iterations, jnp.maximum(most, iterations), jnp.fmax(worst, residual))
-        progress.report(k + 1, n_steps)
-        return ((g_next, m_next, result, failed_step, k + 1), counters), None
+        k = progress.report(k + 1, n_steps)
+        return ((g_next, m_next, result, failed_step, k), counters), None
 
-    zero_counters = (
+    result0, failed_step0 = (jnp.broadcast_to(x, (batch,)) for x in RESULTS.initial(valid))
+    init = (g, m, result0, failed_step0, jnp.asarray(0, jnp.int32))
+    return one_step, init
+
+
+def _zero_counters(batch, dtype):
+    int32 = jnp.int32
+    return (
         jnp.zeros((batch,), int32),
         jnp.zeros((batch,), int32),
         jnp.full((batch,), -jnp.inf, dtype),
     )
+
+
+def _outputs(kernel, state, counters, save, group):
+    """`(state, out)` at a save: the state (put back on `group` where given) and what is
+    stored of it (NaN after a body's failure)."""
+    total, most, worst = counters
+    if group is not None:
+        # (k, B) entries → (B, n, n) elements → projected → the kernel's entries.
+        elements = group.project(kernel.elements(jnp.stack(state[0])[None])[:, 0])
+        state = (kernel.carried(elements), *state[1:])
+    nan = jnp.asarray(jnp.nan, worst.dtype)
+    ok = state[2] == RESULTS.successful
+    out = {"iterations": total}
+    if save.g:
+        out["g"] = jnp.where(ok, jnp.stack(state[0]), nan)
+    if save.m:
+        out["m"] = jnp.where(ok, jnp.stack(state[1]), nan)
+    if save.advected:
+        out["advected"] = jnp.where(ok, jnp.stack(kernel.advected(state[0])), nan)
+    if save.stats:
+        out["max_iterations"] = most
+        out["residual"] = worst
+    return state, out
+
+
+@eqx.filter_jit
+def _kernel_scan(
+    kernel,
+    constants,
+    step_bound,
+    g0,
+    m0,
+    h,
+    n_steps,
+    save_every,
+    save,
+    unroll,
+    segment,
+    valid,
+    group,
+    t0,
+    progress,
+):
+    setup = (kernel, constants, step_bound, g0, m0, h, valid, n_steps, progress)
+    one_step, init = _setup(*setup)
+    zero_counters = _zero_counters(g0.shape[0], m0.dtype)
     # Checkpointed segments inside one save interval, or spanning whole save intervals.
     inner = segment if segment is not None and segment < save_every else None
     outer = segment // save_every if segment is not None and segment >= save_every else None
 
     def one_save(state, _):
-        (state, (total, most, worst)), _ = scan_in_segments(
+        (state, counters), _ = scan_in_segments(
             one_step, (state, zero_counters), save_every, inner, unroll=unroll
         )
-        if group is not None:
-            # (k, B) entries → (B, n, n) elements → projected → the kernel's entries.
-            elements = group.project(kernel.elements(jnp.stack(state[0])[None])[:, 0])
-            state = (kernel.carried(elements), *state[1:])
-        ok = state[2] == RESULTS.successful
-        out = {"iterations": total}
-        if save.g:
-            out["g"] = jnp.where(ok, jnp.stack(state[0]), nan)
-        if save.m:
-            out["m"] = jnp.where(ok, jnp.stack(state[1]), nan)
-        if save.advected:
-            out["advected"] = jnp.where(ok, jnp.stack(kernel.advected(state[0])), nan)
-        if save.stats:
-            out["max_iterations"] = most
-            out["residual"] = worst
-        return state, out
+        return _outputs(kernel, state, counters, save, group)
 
-    progress.report(jnp.asarray(0, int32), n_steps)
-    result0, failed_step0 = (jnp.broadcast_to(x, (batch,)) for x in RESULTS.initial(valid))
-    init = (g, m, result0, failed_step0, jnp.asarray(0, int32))
+    progress.report(jnp.asarray(0, jnp.int32), n_steps)
     final, out = scan_in_segments(one_save, init, n_steps // save_every, outer)
+    out = _layout(kernel, out)
+    return _solution(kernel, g0, m0, h, t0, n_steps, save_every, save, final, out)
+
+
+def _kernel_blocks(
+    kernel, constants, step_bound, g0, m0, h, n_steps, save_every, save, valid, group, t0, progress
+):
+    """The eager run: blocks of saves by one compiled program (`_block`) whatever the
+    horizon; the same steps and saves as `_kernel_scan`."""
+    args = (kernel, constants, step_bound, g0, m0, h, valid, save, group)
+    init = _initial(*args)
+    shapes = _save_shapes(*args)
+    size = block_saves(sum(s.size * s.dtype.itemsize for s in jax.tree.leaves(shapes)))
+    steps, every = as_count(n_steps), as_count(save_every)
+
+    def block(state, count):
+        return _block(*args, progress, state, steps, every, count, size)
+
+    final, outputs = run_blocks(block, init, n_steps // save_every, size)
+    return _join(kernel, g0, m0, h, t0, n_steps, save_every, save, final, outputs)
+
+
+@eqx.filter_jit
+def _initial(kernel, constants, step_bound, g0, m0, h, valid, save, group):
+    return _setup(kernel, constants, step_bound, g0, m0, h, valid, 1, NoProgressMeter())[1]
+
+
+def _save_shapes(kernel, constants, step_bound, g0, m0, h, valid, save, group):
+    """The shapes of one save's outputs (nothing computed)."""
+
+    def one(g0, m0, h):
+        setup = (kernel, constants, step_bound, g0, m0, h, valid, 1, NoProgressMeter())
+        _, init = _setup(*setup)
+        return _outputs(kernel, init, _zero_counters(g0.shape[0], m0.dtype), save, group)[1]
+
+    return eqx.filter_eval_shape(one, g0, m0, h)
+
+
+@eqx.filter_jit
+def _block(
+    kernel,
+    constants,
+    step_bound,
+    g0,
+    m0,
+    h,
+    valid,
+    save,
+    group,
+    progress,
+    state,
+    n_steps,
+    save_every,
+    count,
+    size,
+):
+    """`count` saves of `save_every` steps each (traced), into buffers of `size` saves."""
+    setup = (kernel, constants, step_bound, g0, m0, h, valid, n_steps, progress)
+    one_step, _ = _setup(*setup)
+    zero_counters = _zero_counters(g0.shape[0], m0.dtype)
+    # 0 at the start of a run (a repeat at a later block is not shown again), before the
+    # loop: the loop starts from the step count it returns.
+    state = (*state[:4], progress.report(state[4], n_steps))
+
+    def one_save(index, carry):
+        state, buffers = carry
+        step = lambda _, carry: one_step(carry, None)[0]  # noqa: E731
+        state, counters = jax.lax.fori_loop(0, save_every, step, (state, zero_counters))
+        state, out = _outputs(kernel, state, counters, save, group)
+        return state, store(buffers, index, out)
+
+    _, out = _outputs(kernel, state, zero_counters, save, group)  # for its shapes only
+    shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), out)
+    state, buffers = jax.lax.fori_loop(0, count, one_save, (state, save_buffers(shapes, size)))
+    # Batch-major here, once: what is compiled per horizon (`_join`) only concatenates. The
+    # buffers past `count` are zeros, so the iterations sum over the block.
+    return state, _layout(kernel, buffers)
+
+
+@eqx.filter_jit
+def _join(kernel, g0, m0, h, t0, n_steps, save_every, save, final, outputs):
+    n_saves = n_steps // save_every
+    out = {
+        name: sum(x[name] for x in outputs)
+        if name == "iterations"
+        else jnp.concatenate([x[name] for x in outputs], axis=1)[:, :n_saves]
+        for name in outputs[0]
+    }
+    return _solution(kernel, g0, m0, h, t0, n_steps, save_every, save, final, out)
+
+
+def _layout(kernel, out):
+    """The stacked per-save outputs `(T, k, B)` batch-major: `g` `(B, T, n, n)`, `m` and
+    `advected` `(B, T, ·)`, the statistics `(B, T)`, and `iterations` summed, `(B,)`."""
+    moved = {"iterations": jnp.sum(out["iterations"], axis=0)}
+    if "g" in out:
+        moved["g"] = kernel.elements(out["g"])
+    for name in ("m", "advected"):
+        if name in out:
+            moved[name] = jnp.moveaxis(out[name], -1, 0)
+    for name in ("max_iterations", "residual"):
+        if name in out:
+            moved[name] = out[name].T
+    return moved
+
+
+def _solution(kernel, g0, m0, h, t0, n_steps, save_every, save, final, out):
+    """The batch's `Solution` from the final state and the per-save outputs (`_layout`)."""
+    batch, dtype = g0.shape[0], m0.dtype
     _, _, result, failed_step, _ = final
     n_saves = n_steps // save_every
     # As `simulate`: t0 + h·save_every·k.
@@ -142,22 +301,19 @@ def simulate_kernel(
     ts = jnp.broadcast_to(ts, (batch, n_saves + 1))
     stats = {
         "failed_step": failed_step,
-        "total_newton_iterations": jnp.sum(out["iterations"], axis=0),
+        "total_newton_iterations": out["iterations"],
         "num_steps": jnp.full((batch,), n_steps),
     }
     if save.stats:
-        stats["newton_iterations"] = out["max_iterations"].T
-        stats["residual"] = out["residual"].T
-    gs = ms = None
+        stats["newton_iterations"] = out["max_iterations"]
+        stats["residual"] = out["residual"]
+    gs = ms = advected = None
     if save.g:
-        # (T−1, k, B) → (B, T, n, n), initial state first.
-        gs = jnp.concatenate([g0[:, None], kernel.elements(out["g"])], axis=1)
+        # Initial state first.
+        gs = jnp.concatenate([g0[:, None], out["g"]], axis=1)
     if save.m:
-        ms = jnp.concatenate([m0[:, None], jnp.moveaxis(out["m"], -1, 0)], axis=1)
-    advected = None
+        ms = jnp.concatenate([m0[:, None], out["m"]], axis=1)
     if save.advected:
-        advected0 = jnp.stack(kernel.advected(g), axis=-1)
-        advected = jnp.concatenate(
-            [advected0[:, None], jnp.moveaxis(out["advected"], -1, 0)], axis=1
-        )
+        advected0 = jnp.stack(kernel.advected(kernel.carried(g0)), axis=-1)
+        advected = jnp.concatenate([advected0[:, None], out["advected"]], axis=1)
     return Solution(ts=ts, g=gs, m=ms, result=result, stats=stats, advected=advected)

@@ -83,3 +83,11 @@ def _over_leading_axes(fn, core_ndim: int, x):
     for _ in range(x.ndim - core_ndim):
         fn = jax.vmap(fn)
     return fn(x)
+
+
+def advected_of(system, g):
+    """`Γ = gᵀa` of the system's potential for saved elements `g` (any leading axes), or
+    `None` where the potential has no advected direction (`Solution.advected`)."""
+    if system.potential is None or system.potential.advected_direction() is None:
+        return None
+    return system.potential.advected(g)

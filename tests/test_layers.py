@@ -19,8 +19,20 @@ LAYERS = (
     ("physics", ("_systems", "_forcing")),
     ("kernels", ("_kernels",)),
     ("integrators", ("_integrators",)),
-    ("step loop", ("_scan", "_progress", "_save", "_solution", "_simulate_kernel", "_simulate")),
-    ("batches", ("_simulate_batch", "_sharding", "_stream", "_stream_writer")),
+    (
+        "step loop",
+        (
+            "_scan",
+            "_progress",
+            "_horizon",
+            "_save",
+            "_solution",
+            "_simulate_generic",
+            "_simulate_kernel",
+            "_simulate",
+        ),
+    ),
+    ("batches", ("_simulate_vmap", "_simulate_batch", "_sharding", "_stream", "_stream_writer")),
     (
         "applications",
         (
