@@ -24,8 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from .._groups._so3 import SO3
-
-ROOT_NAME = "lievi_step_root"
+from .._newton import ROOT_NAME as ROOT_NAME
 
 # Whether integrators may run their kernels (`AbstractIntegrator.free_kernel`).
 _ENABLED = [True]
