@@ -113,15 +113,15 @@ print(f"energy: max relative error {energy_error:.1e}")
 print(f"spin ↔ orbit: up to {exchanged:.2e} of angular momentum exchanged (|J| = "
       f"{float(jnp.linalg.norm(total[0, :3])):.3f})")  # fmt: skip
 assert momentum_drift <= 1e-11
-assert energy_error <= 2e-4
+assert energy_error <= 5e-4
 assert exchanged > 1e6 * momentum_drift * float(jnp.linalg.norm(total[0, :3]))
 
-# First half against second half: bounded, no drift.
+# First half against second half: bounded, no drift (a linear drift gives 3×).
 error = jnp.abs(energy - energy[0])
 half = len(error) // 2
-print(
-    f"mean energy error, second half / first half: {float(error[half:].mean() / error[1:half].mean()):.2f}"
-)
+ratio = float(error[half:].mean() / error[1:half].mean())
+print(f"mean energy error, second half / first half: {ratio:.2f}")
+assert ratio <= 2.0
 
 # %%
 t = sol.ts
