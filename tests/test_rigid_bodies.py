@@ -325,6 +325,7 @@ def _binary_loss(integrator, n_steps, checkpoint=False):
     return loss
 
 
+@SLOW  # three compilations of the DEP run (forward, gradient, segmented gradient)
 def test_gradient_of_binary_equals_central_differences():
     """d(final state)/dG of the binary, DEP Cayley, 200 steps: the step is checkpointed
     (its roots kept, the rest recomputed backwards) and equals central differences to
