@@ -19,7 +19,7 @@
 # `lievi.RigidBodies` is N rigid bodies on $SE(3)^N$ coupled by a potential of their poses.
 # A kick integrator steps it as a half kick of every body by its wrench, the free step of
 # each body (the method's own step of one body, the N bodies at once), and a half kick
-# ([Interacting rigid bodies](../rigid-bodies.md)). Two systems:
+# (the guide "Interacting rigid bodies", `docs/rigid-bodies.md`). Two systems:
 #
 # 1. **A binary asteroid** (`lievi.gravitating_bodies`): two bodies of three point masses
 #    each in mutual gravity, the full two-body problem. A coupling of the relative poses
