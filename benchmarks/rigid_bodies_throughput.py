@@ -20,6 +20,11 @@ figures move with it, the ratios (same run) less.
 
     python benchmarks/rigid_bodies_throughput.py [--systems 1000] [--bodies 1000]
                                                  [--steps 100] [--out rigid_bodies_throughput]
+                                                 [--gradient-only]
+
+`--gradient-only` runs the gradient rows alone. The gradient and the forward run are timed
+in interleaved rounds (7), each the best of its rounds, in wall-clock and in process CPU
+time (less sensitive to other jobs on the machine).
 
 Writes `benchmarks/results/<out>.json`.
 """
@@ -100,6 +105,7 @@ def main():
     parser.add_argument("--bodies", type=int, default=1000)
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--out", default="rigid_bodies_throughput")
+    parser.add_argument("--gradient-only", action="store_true")
     args = parser.parse_args()
     rng = np.random.default_rng(0)
     load = os.getloadavg()[0]
@@ -114,58 +120,59 @@ def main():
     systems, g_bin, m_bin = binaries(args.systems, rng)
     cloud, g_cloud, m_cloud = lennard_jones_cloud(args.bodies, rng)
 
-    # The baseline: the free SE(3) body's structure-of-arrays fast path (DEP, Cayley chart).
-    seconds, compile_s = _timed(
-        lambda: lievi.simulate_batch(
-            free, lievi.DEP(chart="cayley"), g_free, m_free, h=H, n_steps=args.steps, save=()
-        )
-    )
-    baseline = free_bodies * args.steps / seconds
-    rows.append(
-        {
-            "method": "DEP Cayley",
-            "case": f"{free_bodies} free SE(3) bodies, fast path (baseline)",
-            "body_steps_per_s": baseline,
-            "seconds": seconds,
-            "compile_s": compile_s,
-            "ratio_to_free_fast_path": 1.0,
-        }
-    )
-    print(f"{'DEP Cayley':11s} {rows[-1]['case']:52s} {baseline:10.3g} body-steps/s")
-    for name, method in METHODS.items():
-        cases = (
-            (
-                f"{args.systems} two-body systems (simulate_batch)",
-                2 * args.systems,
-                lambda m=method: lievi.simulate_batch(
-                    systems, m, g_bin, m_bin, h=H, n_steps=args.steps, save=()
-                ),
-            ),
-            (
-                f"one system of {args.bodies} Lennard-Jones bodies (all pairs)",
-                args.bodies,
-                lambda m=method: lievi.simulate(
-                    cloud, m, g_cloud, m_cloud, h=H, n_steps=args.steps, save_every=args.steps
-                ),
-            ),
-        )
-        for label, bodies, run in cases:
-            seconds, compile_s = _timed(run)
-            rate = bodies * args.steps / seconds
-            rows.append(
-                {
-                    "method": name,
-                    "case": label,
-                    "body_steps_per_s": rate,
-                    "seconds": seconds,
-                    "compile_s": compile_s,
-                    "ratio_to_free_fast_path": rate / baseline,
-                }
+    if not args.gradient_only:
+        # The baseline: the free SE(3) body's structure-of-arrays fast path (DEP, Cayley chart).
+        seconds, compile_s = _timed(
+            lambda: lievi.simulate_batch(
+                free, lievi.DEP(chart="cayley"), g_free, m_free, h=H, n_steps=args.steps, save=()
             )
-            print(
-                f"{name:11s} {label:52s} {rate:10.3g} body-steps/s ({rate / baseline:.3g}× the "
-                f"baseline), compile {compile_s:.1f} s"
+        )
+        baseline = free_bodies * args.steps / seconds
+        rows.append(
+            {
+                "method": "DEP Cayley",
+                "case": f"{free_bodies} free SE(3) bodies, fast path (baseline)",
+                "body_steps_per_s": baseline,
+                "seconds": seconds,
+                "compile_s": compile_s,
+                "ratio_to_free_fast_path": 1.0,
+            }
+        )
+        print(f"{'DEP Cayley':11s} {rows[-1]['case']:52s} {baseline:10.3g} body-steps/s")
+        for name, method in METHODS.items():
+            cases = (
+                (
+                    f"{args.systems} two-body systems (simulate_batch)",
+                    2 * args.systems,
+                    lambda m=method: lievi.simulate_batch(
+                        systems, m, g_bin, m_bin, h=H, n_steps=args.steps, save=()
+                    ),
+                ),
+                (
+                    f"one system of {args.bodies} Lennard-Jones bodies (all pairs)",
+                    args.bodies,
+                    lambda m=method: lievi.simulate(
+                        cloud, m, g_cloud, m_cloud, h=H, n_steps=args.steps, save_every=args.steps
+                    ),
+                ),
             )
+            for label, bodies, run in cases:
+                seconds, compile_s = _timed(run)
+                rate = bodies * args.steps / seconds
+                rows.append(
+                    {
+                        "method": name,
+                        "case": label,
+                        "body_steps_per_s": rate,
+                        "seconds": seconds,
+                        "compile_s": compile_s,
+                        "ratio_to_free_fast_path": rate / baseline,
+                    }
+                )
+                print(
+                    f"{name:11s} {label:52s} {rate:10.3g} body-steps/s ({rate / baseline:.3g}× the "
+                    f"baseline), compile {compile_s:.1f} s"
+                )
 
     # Gradient cost: d/dG of a function of the final state of one binary asteroid,
     # `--steps` × 10 steps, against the forward run (the same compiled run without `grad`).
@@ -181,15 +188,19 @@ def main():
 
         forward, gradient = jax.jit(final), jax.jit(jax.grad(final))
         G = jnp.asarray(1.0)
-        times = {}
-        for label, fn in (("forward", forward), ("gradient", gradient)):
+        fns = {"forward": forward, "gradient": gradient}
+        for fn in fns.values():
             jax.block_until_ready(fn(G))
-            best = []
-            for _ in range(3):
-                start = time.perf_counter()
+        wall = {label: [] for label in fns}
+        cpu = {label: [] for label in fns}
+        for _ in range(7):
+            for label, fn in fns.items():
+                start, start_cpu = time.perf_counter(), time.process_time()
                 jax.block_until_ready(fn(G))
-                best.append(time.perf_counter() - start)
-            times[label] = min(best)
+                wall[label].append(time.perf_counter() - start)
+                cpu[label].append(time.process_time() - start_cpu)
+        times = {label: min(wall[label]) for label in fns}
+        cpu_ratio = min(cpu["gradient"]) / min(cpu["forward"])
         ratio = times["gradient"] / times["forward"]
         rows.append(
             {
@@ -198,11 +209,13 @@ def main():
                 "forward_s": times["forward"],
                 "gradient_s": times["gradient"],
                 "gradient_over_forward": ratio,
+                "gradient_over_forward_cpu_time": cpu_ratio,
             }
         )
         print(
             f"{name:11s} gradient d/dG of one binary, {n_steps} steps: forward "
-            f"{times['forward']:.3g} s, gradient {times['gradient']:.3g} s ({ratio:.2f}×)"
+            f"{times['forward']:.3g} s, gradient {times['gradient']:.3g} s ({ratio:.2f}×; CPU "
+            f"time {cpu_ratio:.2f}×)"
         )
 
     document = {

@@ -15,7 +15,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array, Float, Int, Scalar
+
+# The name (`jax.ad_checkpoint.checkpoint_name`) of each implicit step's root: a
+# `jax.checkpoint` that keeps it stores the root, and the backward pass evaluates the
+# implicit derivative there instead of solving again (`simulate`, `simulate_batch`).
+ROOT_NAME = "lievi_step_root"
 
 
 def check_newton_options(max_steps, rtol, atol) -> None:
@@ -100,13 +106,13 @@ def newton_solve(
         if jnp.shape(x0) == (3,):
             linear_solve = _cramer3
 
-    def jacobian_and_value(f, x):
+    def jacobian_and_value(x):
         if residual_and_jacobian is None:
-            return _jacobian_and_value(f, x)
+            return _jacobian_and_value(residual, x)
         r, jac = residual_and_jacobian(x)
         return jac, r
 
-    def solve(f, guess):
+    def iterate(evaluate, guess):
         def cond(carry):
             _, r, _, it = carry
             norm = jnp.max(jnp.abs(r))
@@ -115,23 +121,30 @@ def newton_solve(
         def body(carry):
             x, r, jac, it = carry
             x = x - linear_solve(jac, r)
-            jac, r = jacobian_and_value(f, x)
+            jac, r = evaluate(x)
             return x, r, jac, it + 1
 
-        jac, r = jacobian_and_value(f, guess)
+        jac, r = evaluate(guess)
         x, r, _, it = jax.lax.while_loop(cond, body, (guess, r, jac, jnp.array(0, jnp.int32)))
         # A diverged solve (reported through the residual) hands back the finite guess:
         # the implicit derivative is then evaluated at a finite point, so a failed step
         # whose output is masked contributes 0, not NaN, to a gradient.
         x = jnp.where(jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(r)), x, guess)
-        # Auxiliary outputs stay floating point: custom_root gives them (zero) tangents,
-        # which an integer output cannot carry.
-        return x, (it.astype(r.dtype), jnp.max(jnp.abs(r)))
+        return x, it, jnp.max(jnp.abs(r))
+
+    # The iterations run on the residual with what it closes over cut from the gradient,
+    # outside `custom_root`; the root is tagged `ROOT_NAME` and handed to `custom_root`
+    # as its own guess (its solve returns it), which adds the implicit derivative. So a
+    # `jax.checkpoint` that keeps `ROOT_NAME` (`simulate`'s step) stores the root, and
+    # its backward pass evaluates the derivative there without solving again.
+    closed, consts = jax.closure_convert(jacobian_and_value, x0)
+    consts = jax.lax.stop_gradient(consts)
+    root, iterations, norm = iterate(lambda x: closed(x, *consts), jax.lax.stop_gradient(x0))
+    root = checkpoint_name(root, ROOT_NAME)
 
     def tangent_solve(linear, y):
         return linear_solve(jax.jacobian(linear)(y), y)
 
-    x, (iterations, norm) = jax.lax.custom_root(residual, x0, solve, tangent_solve, has_aux=True)
-    iterations = jax.lax.stop_gradient(iterations).astype(jnp.int32)
-    norm = jax.lax.stop_gradient(norm)
+    x = jax.lax.custom_root(residual, root, lambda f, guess: guess, tangent_solve)
+    iterations, norm = jax.lax.stop_gradient((iterations, norm))
     return x, NewtonInfo(iterations, norm, norm <= tolerance)

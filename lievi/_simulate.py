@@ -74,7 +74,8 @@ def simulate(
       `JaxRuntimeError` (lievi's message is in its text); wrap with `eqx.filter_jit` for
       a readable error, or pass `throw=False` and read `result`.
     - `checkpoint`: memory of reverse-mode differentiation (`jax.grad`). `False` (default)
-      stores every step's internals, O(`n_steps`) memory. `True` splits the run into
+      stores each step's state and the roots of its implicit solves, O(`n_steps`)
+      memory, and recomputes the rest of the step in the backward pass. `True` splits the run into
       segments of about √`n_steps` steps, each wrapped in `jax.checkpoint`: the backward
       pass stores only the state at segment boundaries and recomputes one segment at a
       time, O(√`n_steps`) memory for one extra forward pass. An `int` sets the segment

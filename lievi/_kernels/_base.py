@@ -10,8 +10,8 @@ Kernels are differentiable in both modes: explicit ones by hand-written tangents
 (`_explicit_adjoints.py`), implicit ones by the implicit function theorem at each step's
 converged root (no differentiation through the Newton iterations or their
 `while_loop`). The root is tagged `ROOT_NAME` (see `jax.ad_checkpoint.checkpoint_name`)
-so that `simulate_batch` can keep it across a `jax.checkpoint`: the backward pass then
-re-evaluates the explicit part of a step from the stored root instead of solving again.
+so that `simulate_batch` and `simulate` can keep it across a `jax.checkpoint`: the
+backward pass then re-evaluates the explicit part of a step from the stored root instead of solving again.
 """
 
 from __future__ import annotations
@@ -24,8 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from .._groups._so3 import SO3
-
-ROOT_NAME = "lievi_step_root"
+from .._newton import ROOT_NAME as ROOT_NAME
 
 # Whether integrators may run their kernels (`AbstractIntegrator.free_kernel`).
 _ENABLED = [True]

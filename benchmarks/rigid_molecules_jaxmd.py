@@ -1,0 +1,289 @@
+"""Rigid three-site molecules: energy error against step size, lievi against jax-md.
+
+One system, float64, free space: `--molecules` (default 8) rigid water-like molecules (an
+"O" site of mass 16 and two "H" sites of mass 1, O–H 0.33, angle 104.5°) on a jittered
+cubic lattice of spacing 1.6, random orientations, random body angular momenta and
+linear momenta (total linear momentum zero). Site–site energies between sites of
+different molecules, no cut-off: Lennard-Jones between O sites (`ε = 1`, `σ = 1`) and
+Coulomb between all sites (charges −0.8, +0.4, +0.4, `k = 1`).
+
+- **jax-md** (`jax_md.rigid_body`, `jax_md.simulate.nve`): the molecule is a
+  `rigid_body.point_union_shape`, the energy `rigid_body.point_energy` of a site energy
+  on the world positions of the sites (the pairs of different molecules, listed once as
+  index arrays), the state `RigidBody(center, Quaternion)`, integrated by `simulate.nve`
+  (velocity Verlet on the centres, Miller et al.'s NO_SQUISH symplectic quaternion
+  scheme on the orientations), `jax.jit` around a `lax.scan` of steps.
+- **lievi**: `RigidBodies` with `SitePotential((LennardJones, Coulomb))`, the same sites
+  (jax-md's principal-frame points), masses and principal moments (jax-md's: each point
+  carries a sphere of radius 0.5, `2/5 r² m`), `simulate` with `DEP(chart="cayley")` and
+  `LiePoissonSplitting()`.
+
+The same initial state in both (`g = [[R(q), x], [0, 1]]`, `Π` the body angular
+momentum, `P = Rᵀp`); the initial energies are checked equal. For each step size `h` the
+run takes `--steps` steps; the energy error is `max_k |E_k − E_0| / |E_0|`. Wall time per
+step is the best of 3 compiled runs at each `h`.
+
+    python benchmarks/rigid_molecules_jaxmd.py [--molecules 8] [--steps 1000]
+                                                [--out rigid_molecules_jaxmd]
+
+Needs jax-md (`pip install -e ".[jaxmd]"`). Writes `benchmarks/results/<out>.json` and
+`<out>.png`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import json
+import os
+import pathlib
+import platform
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import lievi  # noqa: E402
+from lievi import diagnostics  # noqa: E402
+
+RESULTS = pathlib.Path(__file__).parent / "results"
+STEP_SIZES = (0.0025, 0.005, 0.01, 0.02)
+CHARGES = np.array([-0.8, 0.4, 0.4])
+MASSES = np.array([16.0, 1.0, 1.0])
+
+
+def molecule_sites():
+    """The three sites of one molecule, O at the origin, H–O–H 104.5° in the x–y plane."""
+    half = np.deg2rad(104.5) / 2
+    bond = 0.33
+    return np.array(
+        [[0.0, 0.0, 0.0], [bond * np.sin(half), bond * np.cos(half), 0.0],
+         [-bond * np.sin(half), bond * np.cos(half), 0.0]]
+    )  # fmt: skip
+
+
+def initial_state(n, rng):
+    """Centres, unit quaternions (w, x, y, z), body angular momenta and world linear momenta."""
+    side = int(np.ceil(n ** (1 / 3)))
+    grid = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)[:n]
+    centres = 1.6 * grid + rng.uniform(-0.1, 0.1, size=(n, 3))
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    angular = rng.normal(size=(n, 3)) * 0.5
+    linear = rng.normal(size=(n, 3)) * 1.0
+    linear -= linear.mean(axis=0)
+    return centres, q, angular, linear
+
+
+def molecule_shape():
+    """`(sites, moments, mass)` of one molecule as `jax_md.rigid_body.point_union_shape`
+    builds it (checked against it in `main`): the sites about their centre of mass,
+    turned to the principal frame (`jnp.linalg.eigh`), each point a sphere of radius 0.5
+    (`2/5 r² m` added to each principal moment; jax-md computes `2/5 r²` in float32, and
+    so does this, for the same moments to round-off)."""
+    sites = molecule_sites() - MASSES @ molecule_sites() / MASSES.sum()
+    sphere = float(2 / 5 * np.float32(0.5) ** 2)
+    inertia = sum(
+        m * (np.dot(s, s) * np.eye(3) - np.outer(s, s) + sphere * np.eye(3))
+        for m, s in zip(MASSES, sites)
+    )
+    moments, axes = jnp.linalg.eigh(jnp.asarray(inertia))
+    return np.asarray(sites @ np.asarray(axes)), np.asarray(moments), MASSES.sum()
+
+
+def lievi_molecules(n, seed=0):
+    """`(system, g0, m0, raw)`: `n` molecules as `lievi.RigidBodies` and their initial
+    state; `raw = (centres, quaternions, body angular momenta, world linear momenta)`."""
+    sites, moments, mass = molecule_shape()
+    centres, q, angular, linear = initial_state(n, np.random.default_rng(seed))
+    pairs = lievi.SitePotential(
+        np.broadcast_to(sites, (n, 3, 3)),
+        (lievi.LennardJones(epsilon=[[1.0, 0.0], [0.0, 0.0]], sigma=1.0), lievi.Coulomb()),
+        types=np.tile([0, 1, 1], (n, 1)),
+        charges=np.tile(CHARGES, (n, 1)),
+    )
+    system = lievi.RigidBodies(np.tile(moments, (n, 1)), np.full(n, mass), potential=pairs)
+    R = jax.vmap(lievi.quaternion_wxyz_to_matrix)(jnp.asarray(q))
+    g0 = jnp.broadcast_to(jnp.eye(4), (n, 4, 4)).at[:, :3, :3].set(R).at[:, :3, 3].set(centres)
+    P = jnp.einsum("nji,nj->ni", R, jnp.asarray(linear))  # body frame
+    m0 = jnp.concatenate([jnp.asarray(angular), P], axis=1)
+    return system, g0, m0, (centres, q, angular, linear)
+
+
+def site_energy_fn(n):
+    """The site energy of `n` molecules' world site positions `(3n, 3)`: every pair of
+    sites on different molecules, O–O Lennard-Jones and Coulomb (pure jnp)."""
+    i, j = np.triu_indices(3 * n, k=1)
+    keep = i // 3 != j // 3
+    i, j = i[keep], j[keep]
+    oxygen = np.arange(3 * n) % 3 == 0
+    lj = oxygen[i] & oxygen[j]
+    qq = np.tile(CHARGES, n)[i] * np.tile(CHARGES, n)[j]
+
+    def energy(x):
+        d = x[i] - x[j]
+        r2 = jnp.sum(d * d, axis=-1)
+        s6 = 1 / (r2 * r2 * r2)
+        return jnp.sum(jnp.where(lj, 4 * (s6 * s6 - s6), 0.0)) + jnp.sum(qq / jnp.sqrt(r2))
+
+    return energy
+
+
+def run_jaxmd(n, state0, steps, h):
+    """`(energies (steps + 1,), seconds per step, E_0)` of jax-md's rigid-body NVE."""
+    from jax_md import rigid_body, simulate, space
+
+    shape, centres, q, angular, linear = state0
+    _, shift = space.free()
+    energy_fn = rigid_body.point_energy(site_energy_fn(n), shape)
+    mass = shape.mass()
+    body = rigid_body.RigidBody(jnp.asarray(centres), rigid_body.Quaternion(jnp.asarray(q)))
+    conjugate = rigid_body.angular_momentum_to_conjugate_momentum(
+        body.orientation, jnp.asarray(angular)
+    )
+    momentum = rigid_body.RigidBody(jnp.asarray(linear), conjugate)
+    init_fn, apply_fn = simulate.nve(energy_fn, shift, h)
+
+    def total(state):
+        return rigid_body.kinetic_energy(state.position, state.momentum, state.mass) + energy_fn(
+            state.position
+        )
+
+    @jax.jit
+    def run(position, momentum):
+        state = init_fn(jax.random.PRNGKey(0), position, 0.0, mass=mass, momenta=momentum)
+
+        def one(state, _):
+            state = apply_fn(state)
+            return state, total(state)
+
+        state0 = state
+        _, energies = jax.lax.scan(one, state, None, length=steps)
+        return jnp.concatenate([total(state0)[None], energies])
+
+    return _timed(lambda: run(body, momentum), steps)
+
+
+def run_lievi(system, method, g0, m0, steps, h):
+    @jax.jit
+    def run(g0, m0):
+        sol = lievi.simulate(system, method, g0, m0, h=h, n_steps=steps, save_every=1)
+        return diagnostics.energy(system, sol.m, sol.g)
+
+    return _timed(lambda: run(g0, m0), steps)
+
+
+def _timed(run, steps):
+    energies = jax.block_until_ready(run())
+    best = []
+    for _ in range(3):
+        start = time.perf_counter()
+        jax.block_until_ready(run())
+        best.append(time.perf_counter() - start)
+    return np.asarray(energies), min(best) / steps
+
+
+def main():
+    from jax_md import rigid_body
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--molecules", type=int, default=8)
+    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--out", default="rigid_molecules_jaxmd")
+    args = parser.parse_args()
+    n, steps = args.molecules, args.steps
+    load = os.getloadavg()[0]
+    print(f"load average at start: {load:.2f}; {platform.processor() or platform.machine()}")
+
+    system, g0, m0, (centres, q, angular, linear) = lievi_molecules(n)
+    # The molecule as jax-md builds it: the same principal-frame sites, masses and moments.
+    sites, moments, mass = molecule_shape()
+    shape = rigid_body.point_union_shape(
+        jnp.asarray(molecule_sites() - MASSES @ molecule_sites() / MASSES.sum()),
+        jnp.asarray(MASSES),
+    )
+    assert np.allclose(np.asarray(shape.points), sites, atol=1e-14)
+    assert np.allclose(np.asarray(shape.mass().orientation).reshape(3), moments, rtol=1e-14)
+    assert np.isclose(float(np.asarray(shape.mass().center).reshape(-1)[0]), mass, rtol=1e-15)
+
+    # The same world site positions in both.
+    body = rigid_body.RigidBody(jnp.asarray(centres), rigid_body.Quaternion(jnp.asarray(q)))
+    world_jaxmd, _ = rigid_body.union_to_points(body, shape)
+    world_lievi = jnp.einsum("nij,kj->nki", g0[:, :3, :3], jnp.asarray(sites)) + g0[:, None, :3, 3]
+    assert np.allclose(world_jaxmd, world_lievi.reshape(-1, 3), atol=1e-13)
+
+    methods = {
+        "jax-md NVE (NO_SQUISH)": None,
+        "lievi DEP Cayley": lievi.DEP(chart="cayley"),
+        "lievi splitting": lievi.LiePoissonSplitting(),
+    }
+    rows = []
+    for h in STEP_SIZES:
+        for name, method in methods.items():
+            if method is None:
+                energies, per_step = run_jaxmd(n, (shape, centres, q, angular, linear), steps, h)
+            else:
+                energies, per_step = run_lievi(system, method, g0, m0, steps, h)
+            error = float(np.max(np.abs(energies - energies[0])) / abs(energies[0]))
+            rows.append(
+                {
+                    "method": name,
+                    "h": h,
+                    "energy_0": float(energies[0]),
+                    "relative_energy_error": error,
+                    "seconds_per_step": per_step,
+                    "finite": bool(np.all(np.isfinite(energies))),
+                }
+            )
+            print(
+                f"h={h:<7g} {name:24s} E0 {energies[0]: .12f}  max|ΔE|/|E0| {error:.3e}  "
+                f"{per_step * 1e6:8.1f} µs/step",
+                flush=True,
+            )
+    e0 = {r["energy_0"] for r in rows}
+    assert max(e0) - min(e0) <= 1e-12 * max(abs(e) for e in e0), e0
+
+    document = {
+        "molecules": n,
+        "steps": steps,
+        "dtype": "float64",
+        "load_average_start": load,
+        "load_average_end": os.getloadavg()[0],
+        "device": str(jax.devices()[0]),
+        "jax": jax.__version__,
+        "jax_md": importlib.metadata.version("jax-md"),
+        "rows": rows,
+    }
+    RESULTS.mkdir(exist_ok=True)
+    path = RESULTS / f"{args.out}.json"
+    path.write_text(json.dumps(document, indent=2))
+    _plot(rows, RESULTS / f"{args.out}.png", n, steps)
+    print(f"load average at end: {document['load_average_end']:.2f}; written {path}")
+
+
+def _plot(rows, path, n, steps):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    for name in dict.fromkeys(r["method"] for r in rows):
+        mine = [r for r in rows if r["method"] == name]
+        hs = [r["h"] for r in mine]
+        left.loglog(hs, [r["relative_energy_error"] for r in mine], "o-", label=name)
+        right.semilogx(hs, [r["seconds_per_step"] * 1e6 for r in mine], "o-", label=name)
+    left.set(xlabel="step size h", ylabel="max |E − E₀| / |E₀|",
+             title=f"{n} rigid 3-site molecules, {steps} steps")  # fmt: skip
+    right.set(xlabel="step size h", ylabel="wall time per step (µs)", title="cost (CPU)")
+    left.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+if __name__ == "__main__":
+    main()
