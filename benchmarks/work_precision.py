@@ -49,7 +49,7 @@ the attitude as a matrix (lievi's and diffrax's), `‖gᵀg − I‖_F` at the e
 carries a quaternion, normalised every step). All from `lievi.diagnostics` on the final
 states.
 
-    python benchmarks/work_precision.py [--batch 4096] [--quick]
+    python benchmarks/work_precision.py [--batch 4096] [--quick] [--no-long-run]
 
 `mujoco` and `diffrax` are optional (`pip install -e .[bench]` brings both); a family whose
 package is missing is skipped and said so.
