@@ -36,9 +36,20 @@ horizon. Methods:
 
 The table printed (and written to `benchmarks/results/work_precision.json`, with a PNG of
 error against cost per problem) also gives, for every target error 1e-2 … 1e-10, the
-cheapest run of each family that reaches it.
+cheapest run of each family that reaches it, and how many times cheaper lievi's is than
+the cheaper of the other two (`lievi_advantage`).
 
-    python benchmarks/work_precision.py [--batch 4096] [--quick]
+**Invariants over a long run** (`long_run` in the JSON): every method again, on the first
+`--reference` bodies, for `LONG_STEPS = 10⁵` steps of `LONG_H = 0.05` (T = 5000; diffrax's
+Dopri8 over the same horizon at tolerance `LONG_TOL = 1e-8`): the largest relative energy
+error `|H(T) − H(0)|/|H(0)|`, the largest momentum error `|J(T) − J(0)|/|Π₀|` (`J` the
+spatial angular momentum `gΠ` of the free body, the vertical one `e₃·gΠ` of the heavy top:
+the Noether momenta of the symmetries each problem has) and, for the methods that carry
+the attitude as a matrix (lievi's and diffrax's), `‖gᵀg − I‖_F` at the end (MuJoCo
+carries a quaternion, normalised every step). All from `lievi.diagnostics` on the final
+states.
+
+    python benchmarks/work_precision.py [--batch 4096] [--quick] [--no-long-run]
 
 `mujoco` and `diffrax` are optional (`pip install -e .[bench]` brings both); a family whose
 package is missing is skipped and said so.
@@ -70,6 +81,7 @@ PROBLEMS = {
     "heavy top": dict(m0=np.array([0.5, 0.3, 1.2]), tilt=np.array([0.3, -0.2, 0.1]), gravity=True),
 }
 TARGETS = [10.0**-k for k in range(2, 11)]
+LONG_STEPS, LONG_H, LONG_TOL = 100_000, 0.05, 1e-8
 
 
 def lievi_system(problem):
@@ -135,22 +147,25 @@ LIEVI_METHODS = {
 }
 
 
-def lievi_run(problem, method, h, batch):
+def lievi_run(problem, method, h, batch, n=None, with_m=False):
+    """`(g(T), seconds, ok)`, or `(g, m, seconds, ok)` after `n` steps with `with_m`."""
     system = lievi_system(problem)
     g0, m0 = initial_states(problem, batch)
-    n = int(round(T / h))
+    n = int(round(T / h)) if n is None else n
     integrator = LIEVI_METHODS[method][0]()
-    save = lievi.Save(g=True, m=False, stats=False)
+    save = lievi.Save(g=True, m=with_m, stats=False)
 
     @jax.jit
     def run(m0):
         sol = lievi.simulate_batch(
             system, integrator, jnp.asarray(g0), m0, h=h, n_steps=n, save=save, throw=False
         )
-        return sol.g[:, -1], sol.result
+        return sol.g[:, -1], (sol.m[:, -1] if with_m else None), sol.result
 
-    (g_final, result), seconds = timed(run, jnp.asarray(m0))
+    (g_final, m_final, result), seconds = timed(run, jnp.asarray(m0))
     ok = bool(np.all(np.asarray(result) == 0))
+    if with_m:
+        return np.asarray(g_final), np.asarray(m_final), seconds, ok
     return np.asarray(g_final), seconds, ok
 
 
@@ -174,14 +189,15 @@ def diffrax_field(problem):
     return field
 
 
-def diffrax_run(problem, solver_name, h_or_tol, batch):
+def diffrax_run(problem, solver_name, h_or_tol, batch, t1=T, with_m=False):
+    """`(g(t1), seconds, ok)`, or `(g, Π, seconds, ok)` with `with_m`."""
     import diffrax
 
     g0, m0 = initial_states(problem, batch)
     y0 = np.concatenate([np.broadcast_to(g0.reshape(9), (batch, 9)), m0], axis=1)
     term = diffrax.ODETerm(diffrax_field(problem))
     if solver_name == "Tsit5":
-        n = int(round(T / h_or_tol))
+        n = int(round(t1 / h_or_tol))
         kwargs = dict(
             solver=diffrax.Tsit5(),
             dt0=h_or_tol,
@@ -193,21 +209,22 @@ def diffrax_run(problem, solver_name, h_or_tol, batch):
             solver=diffrax.Dopri8(),
             dt0=None,
             stepsize_controller=diffrax.PIDController(rtol=h_or_tol, atol=h_or_tol),
-            max_steps=1_000_000,
+            max_steps=100 * LONG_STEPS,
         )
 
     @jax.jit
     def run(y0):
         def one(y):
             sol = diffrax.diffeqsolve(
-                term, t0=0.0, t1=T, y0=y, saveat=diffrax.SaveAt(t1=True), throw=False, **kwargs
+                term, t0=0.0, t1=t1, y0=y, saveat=diffrax.SaveAt(t1=True), throw=False, **kwargs
             )
             return sol.ys[-1], sol.result == diffrax.RESULTS.successful
 
         return jax.vmap(one)(y0)
 
     (y, ok), seconds = timed(run, jnp.asarray(y0))
-    return np.asarray(y[:, :9]).reshape(-1, 3, 3), seconds, bool(np.all(np.asarray(ok)))
+    g, ok = np.asarray(y[:, :9]).reshape(-1, 3, 3), bool(np.all(np.asarray(ok)))
+    return (g, np.asarray(y[:, 9:]), seconds, ok) if with_m else (g, seconds, ok)
 
 
 # ---- MuJoCo -------------------------------------------------------------------------------
@@ -231,7 +248,8 @@ def mjcf(problem, h, integrator):
 </mujoco>"""
 
 
-def mujoco_run(problem, integrator, h, batch, chunk=200):
+def mujoco_run(problem, integrator, h, batch, chunk=200, n=None, with_m=False):
+    """`(g(T), seconds, ok)`, or `(g, Π, seconds, ok)` after `n` steps with `with_m`."""
     import mujoco
     from mujoco import rollout
 
@@ -258,7 +276,7 @@ def mujoco_run(problem, integrator, h, batch, chunk=200):
         mujoco.mj_getState(model, data, state, spec)
         states.append(state)
     initial = np.array(states)
-    n = int(round(T / h))
+    n = int(round(T / h)) if n is None else n
     start = time.perf_counter()
     state = initial
     done = 0
@@ -271,7 +289,14 @@ def mujoco_run(problem, integrator, h, batch, chunk=200):
     # FULLPHYSICS state: time, qpos, qvel, …
     quaternion = state[:, 1 + 3 : 1 + 7] if free else state[:, 1 : 1 + 4]
     g = np.asarray(lievi.quaternion_wxyz_to_matrix(jnp.asarray(quaternion)))
-    return g, seconds, bool(np.all(np.isfinite(state)))
+    ok = bool(np.all(np.isfinite(state)))
+    if not with_m:
+        return g, seconds, ok
+    # FULLPHYSICS: time, qpos (7 | 4), qvel (6 | 3); the body angular velocity, times the
+    # moments about the joint, is the body momentum Π.
+    nq = 7 if free else 4
+    omega = state[:, 1 + nq + 3 : 1 + nq + 6] if free else state[:, 1 + nq : 1 + nq + 3]
+    return g, omega * moments_about_the_fixed_point(problem), seconds, ok
 
 
 # ---- the sweep ----------------------------------------------------------------------------
@@ -316,6 +341,61 @@ def sweep(problem, batch, mujoco_batch, quick, g_ref):
     return rows
 
 
+def invariant_errors(problem, g0, m0, g, m):
+    """`(energy error, momentum error, ‖gᵀg − I‖_F)`, each the largest over the bodies."""
+    system = lievi_system(problem)
+    g0 = np.broadcast_to(g0, g.shape)
+
+    def invariants(g, m):
+        g, m = jnp.asarray(g), jnp.asarray(m)
+        J = lievi.diagnostics.spatial_momentum(system, g, m)
+        J = J[:, 2:] if PROBLEMS[problem]["gravity"] else J  # vertical / all of it
+        return np.asarray(lievi.diagnostics.energy(system, m, g)), np.asarray(J)
+
+    (H0, J0), (H, J) = invariants(g0, m0), invariants(g, m)
+    energy = np.max(np.abs(H - H0) / np.abs(H0))
+    momentum = np.max(np.linalg.norm(J - J0, axis=-1) / np.linalg.norm(m0, axis=-1))
+    defect = np.linalg.norm(np.swapaxes(g, -1, -2) @ g - np.eye(3), axis=(-2, -1)).max()
+    return float(energy), float(momentum), float(defect)
+
+
+def long_run(problem, count):
+    """The invariants after `LONG_STEPS` steps of `LONG_H`, every method, `count` bodies."""
+    g0, m0 = initial_states(problem, count)
+    runs = [(m, LONG_H, lambda m=m: lievi_run(problem, m, LONG_H, count, LONG_STEPS, True))
+            for m in LIEVI_METHODS]  # fmt: skip
+    t1 = LONG_STEPS * LONG_H
+    try:
+        import diffrax  # noqa: F401
+
+        runs += [
+            ("diffrax Tsit5", LONG_H, lambda: diffrax_run(problem, "Tsit5", LONG_H, count, t1, True)),
+            ("diffrax Dopri8 (adaptive)", LONG_TOL,
+             lambda: diffrax_run(problem, "Dopri8", LONG_TOL, count, t1, True)),
+        ]  # fmt: skip
+    except ImportError:
+        pass
+    try:
+        import mujoco  # noqa: F401
+
+        runs += [(f"MuJoCo {i}", LONG_H, lambda i=i: mujoco_run(
+                  problem, i, LONG_H, count, 1000, LONG_STEPS, True))
+                 for i in ("Euler", "implicitfast", "RK4")]  # fmt: skip
+    except ImportError:
+        pass
+    rows = []
+    for method, knob, run in runs:
+        g, m, seconds, ok = run()
+        energy, momentum, defect = invariant_errors(problem, g0, m0, g, m)
+        if method.startswith("MuJoCo"):
+            defect = None  # a quaternion, normalised every step: no matrix to leave SO(3)
+        rows.append(dict(method=method, knob=knob, steps=LONG_STEPS, ok=ok, energy_error=energy,
+                         momentum_error=momentum, orthogonality=defect))  # fmt: skip
+        print(f"  {method:<28} {knob:>7.3g}  energy {energy:9.2e}  momentum {momentum:9.2e}"
+              f"  ‖gᵀg − I‖ {defect if defect is not None else float('nan'):9.2e}")  # fmt: skip
+    return rows
+
+
 def cheapest(rows):
     """Per target error and family, the cheapest run that reaches it."""
     table = {}
@@ -326,6 +406,9 @@ def cheapest(rows):
             if hits:
                 best = min(hits, key=lambda r: r["cost"])
                 entry[family] = {k: best[k] for k in ("method", "knob", "cost", "error")}
+        others = [entry[f]["cost"] for f in ("diffrax", "MuJoCo") if f in entry]
+        if "lievi" in entry and others:
+            entry["lievi_advantage"] = min(others) / entry["lievi"]["cost"]
         table[f"{target:.0e}"] = entry
     return table
 
@@ -363,18 +446,22 @@ def main():
     parser.add_argument("--reference", type=int, default=8, help="bodies checked against DOP853")
     parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=list(PROBLEMS))
     parser.add_argument("--quick", action="store_true", help="two step sizes, small batches")
+    parser.add_argument("--no-long-run", action="store_true", help="skip the 1e5-step run")
     parser.add_argument("--out", default="work_precision")
     parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
     args = parser.parse_args()
     if args.quick:
         args.batch, args.mujoco_batch = min(args.batch, 256), min(args.mujoco_batch, 64)
-    load = os.getloadavg()[0]
+    load, start = os.getloadavg()[0], time.perf_counter()
     results = {}
     for problem in args.problems:
         print(f"{problem} (T = {T}, batch {args.batch}, MuJoCo batch {args.mujoco_batch}):")
         g_ref = reference(problem, args.reference)
         rows = sweep(problem, args.batch, args.mujoco_batch, args.quick, g_ref)
         results[problem] = {"rows": rows, "cheapest": cheapest(rows)}
+        if not args.no_long_run:
+            print(f"  invariants after {LONG_STEPS} steps of {LONG_H} ({args.reference} bodies):")
+            results[problem]["long_run"] = long_run(problem, args.reference)
         print(f"  {'target':>8}  cheapest lievi / diffrax / MuJoCo [s per 1e6 bodies]")
         for target, entry in results[problem]["cheapest"].items():
             cells = [
@@ -383,7 +470,8 @@ def main():
                 else "—"
                 for f in ("lievi", "diffrax", "MuJoCo")
             ]
-            print(f"  {target:>8}  " + " / ".join(cells))
+            advantage = entry.get("lievi_advantage", float("nan"))
+            print(f"  {target:>8}  " + " / ".join(cells) + f"  lievi {advantage:.2g}× cheaper")
     outdir = pathlib.Path(args.outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     meta = {
@@ -393,6 +481,9 @@ def main():
         "T": T,
         "batch": args.batch,
         "mujoco_batch": args.mujoco_batch,
+        "long_run": None if args.no_long_run else dict(steps=LONG_STEPS, h=LONG_H, tol=LONG_TOL),
+        "load_average_at_end": os.getloadavg()[0],
+        "wall_seconds": time.perf_counter() - start,
     }
     (outdir / f"{args.out}.json").write_text(json.dumps({"meta": meta, **results}, indent=1))
     plot(results, outdir / f"{args.out}.png")

@@ -40,6 +40,11 @@ def _se3(tensor):
     return lievi.RigidBodySE3(tensor=tensor)
 
 
+def _se3_gravity(tensor):
+    gravity = lievi.UniformGravitySE3(2.0, 1.0, jnp.array([0.1, 0.05, 0.4]))
+    return lievi.RigidBodySE3(tensor=tensor, potential=gravity)
+
+
 # (name, integrator, system builder from its parameter, parameter, g0, m0, kernel class)
 REGISTRY = [
     ("dep-exp", lievi.DEP(), _rigid_body, INERTIA, jnp.eye(3), M0, "NewtonKernel"),
@@ -57,6 +62,16 @@ REGISTRY = [
     ("rk4", lievi.RK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RK4Kernel"),
     ("rkmk4", lievi.RKMK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RKMK4Kernel"),
     ("rkmk4-heavy-top", lievi.RKMK4(), _heavy_top, INERTIA, jnp.eye(3), M0, "RKMK4Kernel"),
+    ("rkmk4-se3", lievi.RKMK4(), _se3, SE3_TENSOR, jnp.eye(4), SE3_M0, "RKMK4SE3Kernel"),
+    (
+        "rkmk4-se3-gravity",
+        lievi.RKMK4(),
+        _se3_gravity,
+        SE3_TENSOR,
+        lievi.SE3.exp(jnp.array([0.3, -0.2, 0.1, 0.5, 0.0, -0.4])),
+        SE3_M0,
+        "RKMK4SE3Kernel",
+    ),
     (
         "composition-splitting-6",
         lievi.Composition(lievi.LiePoissonSplitting(), order=6),
@@ -133,6 +148,7 @@ BATCH_DEFAULT = (
     "rk4",
     "dep-exp-heavy-top",
     "dep-exp-se3",
+    "rkmk4-se3-gravity",
     "composition-splitting-6",
 )
 BATCHED = [
@@ -165,7 +181,8 @@ def test_kernel_runs(entry):
 
 ONE_BODY = [
     # The slowest compilations under -m slow (RKMK4 in gravity is also checked against
-    # DOP853 by its order test, through the kernel, in the default suite; the SE(3)
+    # DOP853 by its order test, through the kernel, in the default suite, and on SE(3)
+    # batched against the generic path's gradients, `tests/test_rkmk.py`; the SE(3)
     # composition stays: its negative stage exercises the SE(3) kernel at h < 0; the
     # splitting's composition is compared batched in the default suite).
     pytest.param(entry, marks=pytest.mark.slow)
@@ -173,6 +190,7 @@ ONE_BODY = [
     in (
         "dep-cayley-se3",
         "rkmk4-heavy-top",
+        "rkmk4-se3-gravity",
         "composition-dep-4-heavy-top",
         "composition-splitting-6",
     )

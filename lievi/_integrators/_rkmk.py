@@ -24,10 +24,14 @@ at O(h⁴) per unit time, as RK4's do.
 Chosen over Crouch–Grossman and commutator-free methods because it needs only the group's
 `exp` and `dexpinv` (closed forms on SO(3) and SE(3), generic ones on any matrix group),
 one exponential per step, and works unchanged on both sides and with any force.
+
+Fast paths (`kernels`): the rigid body with principal moments on SO(3) and any body on
+SE(3) (`RigidBodySE3`), free or in a potential linear in `g` (uniform gravity).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax.numpy as jnp
@@ -36,6 +40,7 @@ from jaxtyping import Scalar
 from .._checks import check_shape
 from .._kernels._base import kernels_enabled
 from .._kernels._rkmk import RKMK4Kernel
+from .._kernels._rkmk_se3 import RKMK4SE3Kernel
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from ._base import AbstractIntegrator, StepInfo
@@ -58,17 +63,21 @@ class RKMK4(AbstractIntegrator):
         return 2 * math.sqrt(2)
 
     def kernels(self):
-        # Closed forms for the free rigid body with principal moments (`_kernels/_rkmk.py`).
-        return (RKMK4Kernel(),)
+        # Closed forms for the rigid body with principal moments (`_kernels/_rkmk.py`) and
+        # for any body on SE(3) (`_kernels/_rkmk_se3.py`).
+        return RKMK4Kernel(), RKMK4SE3Kernel()
 
     def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
-        # With a potential linear in `g` (gravity) the same kernel takes its torque per stage.
+        # With a potential linear in `g` (gravity) the same kernels take its wrench per stage.
         if system.potential is None:
             return self.free_kernel(system, batched)
-        kernel = RKMK4Kernel(system.potential)
-        if not kernels_enabled() or kernel.physics(system, batched) is None:
+        if not kernels_enabled() or not self._kernels_compute_step():
             return None
-        return kernel
+        for kernel in self.kernels():
+            kernel = dataclasses.replace(kernel, potential=system.potential)
+            if kernel.physics(system, batched) is not None:
+                return kernel
+        return None
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
         group, side = system.group, system.side

@@ -34,6 +34,27 @@ def _rotation_coefficients(t):
     return S * C, S * S / 2
 
 
+def advected_at(u, Gamma):
+    """`Γ = (g_k exp(u))ᵀa = exp(u)ᵀΓ_k` at a stage, from `Γ_k = g_kᵀa`."""
+    alpha, beta = _rotation_coefficients(dot(u, u))
+    uG = cross(u, Gamma)
+    uuG = cross(u, uG)
+    return tuple(Gamma[i] - alpha * uG[i] + beta * uuG[i] for i in range(3))
+
+
+def dexpinv_coefficient(u):
+    """`c = (1 − (θ/2)cot(θ/2))/θ²` at `θ = |u|`."""
+    q = dot(u, u) / 4
+    return horner(P_SERIES, q) / (4 * horner(S_SERIES, q))
+
+
+def left_dexpinv(u, w, c):
+    """`dexp⁻¹_{−u}(w) = w + u×w/2 + c u×(u×w)` on SO(3) (`c = dexpinv_coefficient(u)`)."""
+    uw = cross(u, w)
+    uuw = cross(u, uw)
+    return tuple(w[i] + uw[i] / 2 + c * uuw[i] for i in range(3))
+
+
 def _stage(u, m, rate, coupling):
     """`(h u̇, h Π̇)` at the stage `(u, Π)` (`u = None`: the stage at `u = 0`).
     `coupling`: `None`, or `(Γ_k, h b)` of a potential `V = aᵀ g b`."""
@@ -42,20 +63,29 @@ def _stage(u, m, rate, coupling):
     if coupling is not None:
         Gamma, hb = coupling
         if u is not None:
-            # Γ at the stage: exp(u)ᵀΓ_k.
-            alpha, beta = _rotation_coefficients(dot(u, u))
-            uG = cross(u, Gamma)
-            uuG = cross(u, uG)
-            Gamma = tuple(Gamma[i] - alpha * uG[i] + beta * uuG[i] for i in range(3))
+            Gamma = advected_at(u, Gamma)
         torque = coupling_torque(hb, Gamma)
         dm = tuple(dm[i] + torque[i] for i in range(3))
     if u is None:
         return w, dm
-    q = dot(u, u) / 4
-    c = horner(P_SERIES, q) / (4 * horner(S_SERIES, q))
-    uw = cross(u, w)
-    uuw = cross(u, uw)
-    return tuple(w[i] + uw[i] / 2 + c * uuw[i] for i in range(3)), dm
+    return left_dexpinv(u, w, dexpinv_coefficient(u)), dm
+
+
+def rk4_in_the_chart(stage, m):
+    """Classical RK4 on `(u, m)` from `u = 0` (`_integrators/_rkmk.py`), the stages
+    `stage(u, m) = (h u̇, h ṁ)` (`u = None` at `u = 0`) on tuples of components. Returns
+    `(u_{k+1}, m_{k+1})`."""
+
+    def axpy(a, x, y):
+        return tuple(y[i] + a * x[i] for i in range(len(y)))
+
+    du1, dm1 = stage(None, m)
+    du2, dm2 = stage(tuple(x / 2 for x in du1), axpy(0.5, dm1, m))
+    du3, dm3 = stage(tuple(x / 2 for x in du2), axpy(0.5, dm2, m))
+    du4, dm4 = stage(du3, axpy(1.0, dm3, m))
+    u = tuple((du1[i] + 2 * du2[i] + 2 * du3[i] + du4[i]) / 6 for i in range(len(du1)))
+    m_next = tuple(m[i] + (dm1[i] + 2 * dm2[i] + 2 * dm3[i] + dm4[i]) / 6 for i in range(len(m)))
+    return u, m_next
 
 
 def rkmk4_step(g, m, rate, coupling=None):
@@ -64,16 +94,7 @@ def rkmk4_step(g, m, rate, coupling=None):
     `(g_next, m_next, result)`."""
     if coupling is not None:
         coupling = (advected_rows(coupling[0], g), coupling[1])
-
-    def axpy(a, x, y):
-        return tuple(y[i] + a * x[i] for i in range(3))
-
-    du1, dm1 = _stage(None, m, rate, coupling)
-    du2, dm2 = _stage(tuple(x / 2 for x in du1), axpy(0.5, dm1, m), rate, coupling)
-    du3, dm3 = _stage(tuple(x / 2 for x in du2), axpy(0.5, dm2, m), rate, coupling)
-    du4, dm4 = _stage(du3, axpy(1.0, dm3, m), rate, coupling)
-    u = tuple((du1[i] + 2 * du2[i] + 2 * du3[i] + du4[i]) / 6 for i in range(3))
-    m_next = tuple(m[i] + (dm1[i] + 2 * dm2[i] + 2 * dm3[i] + dm4[i]) / 6 for i in range(3))
+    u, m_next = rk4_in_the_chart(lambda u, m: _stage(u, m, rate, coupling), m)
     # g exp(u), Rodrigues' coefficients.
     g_next = rotate_rows(g, u, *_rotation_coefficients(dot(u, u)))
     return g_next, m_next, finite_result(m_next, g_next)

@@ -206,26 +206,10 @@ def solve_increment(chart, m, A, C, guess, tolerance, fixed: int, max_steps: int
     return x, iterations, norm, norm <= tolerance, off_branch
 
 
-def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, alive=True):
-    """One DEP + DLP + reconstruction step on structure-of-arrays state.
-
-    `g`: 12 arrays, the rows of `[R | p]`; `m`: 6; `A = M/h`, `Ainv = h M⁻¹`: 6×6 nested
-    tuples of arrays or scalars. Returns `(g_next, m_next, result, iterations, residual)`;
-    reverse-mode differentiable in `g`, `m`, `A`.
-    """
-    stopped = jax.lax.stop_gradient((m, A, Ainv, C, tolerance))
-    sm, sA, sAinv, sC, stol = stopped
-    # The explicit-Euler guess `h M⁻¹ m` (`DEP.solve_increment`'s).
-    guess = tuple(sum(sAinv[i][j] * sm[j] for j in range(6)) for i in range(6))
-    x, iterations, norm, converged, off_branch = solve_increment(
-        chart, sm, sA, sC, guess, stol, fixed, max_steps, alive
-    )
-    x = differentiable_root(SE3Equation(chart), x, guess, m, A)
-    one = ones(m[0])
-    # Stored once each (`materialise`): read by every entry of `F`, `m_{k+1}`, `g_{k+1}`.
-    x = materialise(x, one)
-
-    w, v = x[:3], x[3:]
+def increment(chart, w, v, one):
+    """The increment `F = φ(ξ)` of `ξ = (ω, v)` in the chart (`lievi.SE3.exp` or `cay`) as
+    `(R_F, t_F)`, 3×3 nested and 3 arrays, each entry stored once (`materialise`: read by
+    every entry of `m_{k+1}` and `g_{k+1}`)."""
     t = dot(w, w)
     if chart == "exp":
         S, C = horner(S_SERIES, t / 4), horner(C_SERIES, t / 4)
@@ -249,15 +233,12 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
     if chart == "cayley":
         RFv = mv(RF, v)
         tF = tuple((v[i] + RFv[i]) / 2 for i in range(3))  # (1 − ω̂/2)⁻¹ v
-    RF, tF = nested(materialise(flat(RF), one)), materialise(tF, one)
-    # Ad_Fᵀ m = (RFᵀ(Π + P × tF), RFᵀ P).
-    Pi, P = m[:3], m[3:]
-    Pt = cross(P, tF)
-    y = tuple(Pi[i] + Pt[i] for i in range(3))
-    m_next = tuple(sum(RF[k][i] * y[k] for k in range(3)) for i in range(3)) + tuple(
-        sum(RF[k][i] * P[k] for k in range(3)) for i in range(3)
-    )
-    # g F: R RF, one Newton–Schulz step R ← R − R(RᵀR − 1)/2 (as `SE3.compose`), p + R tF.
+    return nested(materialise(flat(RF), one)), materialise(tF, one)
+
+
+def compose_increment(g, RF, tF, one):
+    """`g F` (2.9) on the 12 entries of `[R | p]`: `R R_F`, re-orthonormalised by one
+    Newton–Schulz step `R ← R − R(RᵀR − 1)/2` (as `lievi.SE3.compose`), and `p + R t_F`."""
     R = tuple(tuple(g[4 * i + j] for j in range(3)) for i in range(3))
     p = tuple(g[4 * i + 3] for i in range(3))
     Rn = tuple(tuple(sum(R[i][k] * RF[k][j] for k in range(3)) for j in range(3)) for i in range(3))
@@ -271,7 +252,38 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
         for i in range(3)
     )
     Rt = mv(R, tF)
-    g_next = tuple(e for i in range(3) for e in (Rn[i][0], Rn[i][1], Rn[i][2], Rt[i] + p[i]))
+    return tuple(e for i in range(3) for e in (Rn[i][0], Rn[i][1], Rn[i][2], Rt[i] + p[i]))
+
+
+def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, alive=True):
+    """One DEP + DLP + reconstruction step on structure-of-arrays state.
+
+    `g`: 12 arrays, the rows of `[R | p]`; `m`: 6; `A = M/h`, `Ainv = h M⁻¹`: 6×6 nested
+    tuples of arrays or scalars. Returns `(g_next, m_next, result, iterations, residual)`;
+    reverse-mode differentiable in `g`, `m`, `A`.
+    """
+    stopped = jax.lax.stop_gradient((m, A, Ainv, C, tolerance))
+    sm, sA, sAinv, sC, stol = stopped
+    # The explicit-Euler guess `h M⁻¹ m` (`DEP.solve_increment`'s).
+    guess = tuple(sum(sAinv[i][j] * sm[j] for j in range(6)) for i in range(6))
+    x, iterations, norm, converged, off_branch = solve_increment(
+        chart, sm, sA, sC, guess, stol, fixed, max_steps, alive
+    )
+    x = differentiable_root(SE3Equation(chart), x, guess, m, A)
+    one = ones(m[0])
+    # Stored once each (`materialise`): read by every entry of `F`, `m_{k+1}`, `g_{k+1}`.
+    x = materialise(x, one)
+
+    w, v = x[:3], x[3:]
+    RF, tF = increment(chart, w, v, one)
+    # Ad_Fᵀ m = (RFᵀ(Π + P × tF), RFᵀ P).
+    Pi, P = m[:3], m[3:]
+    Pt = cross(P, tF)
+    y = tuple(Pi[i] + Pt[i] for i in range(3))
+    m_next = tuple(sum(RF[k][i] * y[k] for k in range(3)) for i in range(3)) + tuple(
+        sum(RF[k][i] * P[k] for k in range(3)) for i in range(3)
+    )
+    g_next = compose_increment(g, RF, tF, one)
 
     result = jnp.where(converged, RESULTS.successful, RESULTS.newton_not_converged)
     result = jnp.where(off_branch, RESULTS.step_too_large, result)
@@ -291,7 +303,38 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
 DEFAULT_FIXED_ITERATIONS = {"exp": 3, "cayley": 3}
 
 
-class SE3NewtonKernel(AbstractBatchKernel):
+class SE3Kernel(AbstractBatchKernel):
+    """The layout of a kernel for `RigidBodySE3` with a 6×6 kinetic tensor `M` (left
+    side): its constants the 36 entries of `M` and those of `M⁻¹` (`constants`), its state
+    the 12 entries of `[R | p]` and the 6 of `m = (Π, P)`."""
+
+    def physics(self, system, batched: bool = False):
+        # A left-invariant system on `SE3` with a quadratic Lagrangian `½ξᵀMξ`: its 6×6 `M`.
+        tensor = system.kinetic_tensor()
+        if system.group != SE3 or system.side != "left" or tensor is None:
+            return None
+        return tensor if jnp.shape(tensor)[batched:] == (6, 6) else None
+
+    def turn_rates(self, constants, h):
+        # |h| times the rotation rows of M⁻¹ (`SE3.exp_norm`: the rotation part of M⁻¹m).
+        Minv = constants[1]
+        return tuple(tuple(jnp.abs(h) * Minv[i][j] for j in range(6)) for i in range(3))
+
+    def turn_squared(self, rates, m):
+        omega = tuple(sum(rates[i][j] * m[j] for j in range(6)) for i in range(3))
+        return dot(omega, omega)
+
+    def carried(self, g0):
+        return tuple(g0[:, i, j] for i in range(3) for j in range(4))
+
+    def elements(self, entries):
+        # (…, 12, B) → (B, …, 4, 4), the last row (0, 0, 0, 1).
+        top = jnp.moveaxis(entries, -1, 0).reshape(entries.shape[-1:] + entries.shape[:-2] + (3, 4))
+        last = jnp.broadcast_to(jnp.eye(4, dtype=top.dtype)[3], top.shape[:-2] + (1, 4))
+        return jnp.concatenate([top, last], axis=-2)
+
+
+class SE3NewtonKernel(SE3Kernel):
     """`DEP`'s step (either chart) for `RigidBodySE3` without a potential (`dep_step`).
 
     Its constants are the kinetic tensor's 36 entries (row-major); its state the 12
@@ -303,13 +346,6 @@ class SE3NewtonKernel(AbstractBatchKernel):
     atol: float | None = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
     fixed_iterations: int | None = eqx.field(default=None, static=True)
-
-    def physics(self, system, batched: bool = False):
-        # A left-invariant system on `SE3` with a quadratic Lagrangian `½ξᵀMξ`: its 6×6 `M`.
-        tensor = system.kinetic_tensor()
-        if system.group != SE3 or system.side != "left" or tensor is None:
-            return None
-        return tensor if jnp.shape(tensor)[batched:] == (6, 6) else None
 
     def constants(self, tensor, batch):
         # The 36 entries of M, and those of M⁻¹ (not differentiated: the Newton guess and
@@ -344,21 +380,3 @@ class SE3NewtonKernel(AbstractBatchKernel):
 
     def with_fixed_iterations(self, fixed_iterations: int):
         return dataclasses.replace(self, fixed_iterations=fixed_iterations)
-
-    def turn_rates(self, constants, h):
-        # |h| times the rotation rows of M⁻¹ (`SE3.exp_norm`: the rotation part of M⁻¹m).
-        Minv = constants[1]
-        return tuple(tuple(jnp.abs(h) * Minv[i][j] for j in range(6)) for i in range(3))
-
-    def turn_squared(self, rates, m):
-        omega = tuple(sum(rates[i][j] * m[j] for j in range(6)) for i in range(3))
-        return dot(omega, omega)
-
-    def carried(self, g0):
-        return tuple(g0[:, i, j] for i in range(3) for j in range(4))
-
-    def elements(self, entries):
-        # (…, 12, B) → (B, …, 4, 4), the last row (0, 0, 0, 1).
-        top = jnp.moveaxis(entries, -1, 0).reshape(entries.shape[-1:] + entries.shape[:-2] + (3, 4))
-        last = jnp.broadcast_to(jnp.eye(4, dtype=top.dtype)[3], top.shape[:-2] + (1, 4))
-        return jnp.concatenate([top, last], axis=-2)

@@ -77,7 +77,8 @@ class AbstractPotential(eqx.Module):
         (`advected_direction` is `a`), and on a rigid body its torque has the closed form
         `M = Γ × b` (`V(g exp(εξ)) = aᵀg(1 + εξ̂)b`, so `dV·ξ = Γ·(ξ × b)`): the fast
         batched steps of the methods with a kick use it. Uniform gravity is the example:
-        `a = e_z`, `b = m γ ρ`.
+        `a = e_z`, `b = m γ ρ`. On SE(3) `a`, `b` are 4-vectors (`UniformGravitySE3`:
+        `a = (e_z, 0)`, `b = m γ (ρ, 1)`), the wrench `(Γ × b₃, −b₄Γ)` with `Γ = Rᵀa₃`.
         """
         return None
 

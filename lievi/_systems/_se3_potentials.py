@@ -66,6 +66,17 @@ class UniformGravitySE3(AbstractPotential):
         height = jnp.dot(g[2, :3], self.center_of_mass) + g[2, 3]  # e₃·(Rρ + p)
         return self.mass * self.gravity * height
 
+    def linear_coupling(self):
+        # V = aᵀ g b with a = (e₃, 0), b = mγ (ρ, 1): the height of the centre of mass,
+        # e₃·(Rρ + p). Its wrench is (Γ × mγρ, −mγΓ), Γ = Rᵀe₃ (the fast path of
+        # `lievi.RKMK4` on SE(3)). No `advected_direction`: the reduced `(Π, Γ)` paths are
+        # SO(3)'s.
+        weight = jnp.asarray(self.mass) * jnp.asarray(self.gravity)
+        a = jnp.array([0.0, 0.0, 1.0, 0.0])
+        rho = jnp.asarray(self.center_of_mass)
+        b = weight[..., None] * jnp.concatenate([rho, jnp.ones(rho.shape[:-1] + (1,))], -1)
+        return a, b
+
 
 class CentralGravity(AbstractPotential):
     """Newtonian gravity of a point mass at the world origin on a body of point masses.
