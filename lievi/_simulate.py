@@ -216,7 +216,7 @@ def _simulate(
     given), else on its own `step` (`lievi._simulate_generic`). Eagerly, either loop runs
     in blocks of saves whose program does not depend on `n_steps` or `save_every`
     (`lievi._horizon`); under a transformation, one static checkpointed scan."""
-    kernel = None if forcing is not None else integrator.batch_kernel(system)
+    kernel = run_kernel(system, integrator, forcing)
     if kernel is not None:
         return _simulate_on_kernel(
             kernel, system, integrator, g0, m0, h, t0, n_steps, save_every, segment, valid, progress
@@ -240,6 +240,14 @@ def _simulate(
         forcing,
         args,
     )
+
+
+def run_kernel(system, integrator, forcing, batched: bool = False):
+    """The kernel `simulate` runs (`AbstractIntegrator.batch_kernel`), or `None` for the
+    method's own step: a forced run always takes the step (the kernels integrate unforced
+    bodies). `batched`: `system` carries a leading batch axis (`jax.vmap(simulate)` over
+    per-body systems)."""
+    return None if forcing is not None else integrator.batch_kernel(system, batched)
 
 
 def _simulate_on_kernel(

@@ -201,7 +201,7 @@ def _kernel_blocks(
     steps, every = as_count(n_steps), as_count(save_every)
 
     def block(state, count):
-        return _block(*args, progress, state, steps, every, count, size)
+        return _block(*args, progress, state, steps, every, count, shapes, size)
 
     final, outputs = run_blocks(block, init, n_steps // save_every, size)
     return _join(kernel, g0, m0, h, t0, n_steps, save_every, save, final, outputs)
@@ -239,9 +239,11 @@ def _block(
     n_steps,
     save_every,
     count,
+    shapes,
     size,
 ):
-    """`count` saves of `save_every` steps each (traced), into buffers of `size` saves."""
+    """`count` saves of `save_every` steps each (traced), into buffers of `size` saves of
+    one save's `shapes` (`_save_shapes`)."""
     setup = (kernel, constants, step_bound, g0, m0, h, valid, n_steps, progress)
     one_step, _ = _setup(*setup)
     zero_counters = _zero_counters(g0.shape[0], m0.dtype)
@@ -256,8 +258,6 @@ def _block(
         state, out = _outputs(kernel, state, counters, save, group)
         return state, store(buffers, index, out)
 
-    _, out = _outputs(kernel, state, zero_counters, save, group)  # for its shapes only
-    shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), out)
     state, buffers = jax.lax.fori_loop(0, count, one_save, (state, save_buffers(shapes, size)))
     # Batch-major here, once: what is compiled per horizon (`_join`) only concatenates. The
     # buffers past `count` are zeros, so the iterations sum over the block.

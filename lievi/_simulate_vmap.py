@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from ._checks import input_valid
 from ._horizon import horizon_traced
 from ._progress import NoProgressMeter
-from ._simulate import simulate
+from ._simulate import run_kernel, simulate
 from ._simulate_generic import simulate_blocks
 from ._solution import Solution
 
@@ -54,8 +54,8 @@ def simulate_vmap(
     `simulate` runs it on each body (`lievi._simulate._simulate_on_kernel`), and so does the
     vmapped scan here; the blocks run the generic step, so only a method without one takes
     them (with a kernel, `simulate_batch`'s fast path is the one that compiles once)."""
-    kernel = integrator.batch_kernel(system, system_axis == 0)
-    if forcing is None and kernel is None and horizon_traced(system, integrator, g0, m0, h):
+    on_kernel = run_kernel(system, integrator, forcing, system_axis == 0) is not None
+    if forcing is None and not on_kernel and horizon_traced(system, integrator, g0, m0, h):
         axes = (system_axis, None if h.ndim == 0 else 0)
         valid = jax.vmap(input_valid, in_axes=(system_axis, 0, 0, axes[1]))(system, g0, m0, h)
         g0, t0 = jnp.asarray(g0, m0.dtype), jnp.zeros((), m0.dtype)

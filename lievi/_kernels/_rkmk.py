@@ -71,6 +71,16 @@ def _stage(u, m, rate, coupling):
     return left_dexpinv(u, w, dexpinv_coefficient(u)), dm
 
 
+def scaled_coupling(potential, h):
+    """`(a, h b)` of a potential `V = aᵀ g b` (`AbstractPotential.linear_coupling`), or
+    `None` without one: once per run (`prepare`), not per step. `h` per body scales `b`
+    per body."""
+    if potential is None:
+        return None
+    a, b = potential.linear_coupling()
+    return a, h[..., None] * b if jnp.ndim(h) else h * b
+
+
 def rk4_in_the_chart(stage, m):
     """Classical RK4 on `(u, m)` from `u = 0` (`_integrators/_rkmk.py`), the stages
     `stage(u, m) = (h u̇, h ṁ)` (`u = None` at `u = 0`) on tuples of components. Returns
@@ -114,13 +124,8 @@ class RKMK4Kernel(AbstractBatchKernel):
         return super().physics(system, batched)
 
     def prepare(self, inertia, h):
-        return tuple(h / moment for moment in inertia), h
+        return tuple(h / moment for moment in inertia), scaled_coupling(self.potential, h)
 
     def step(self, params, g, m, alive):
-        rate, h = params
-        coupling = None
-        if self.potential is not None:
-            a, b = self.potential.linear_coupling()
-            coupling = (a, h[..., None] * b if jnp.ndim(h) else h * b)
-        g_next, m_next, result = rkmk4_step(g, m, rate, coupling)
+        g_next, m_next, result = rkmk4_step(g, m, *params)
         return (g_next, m_next, result, *explicit_info(m))

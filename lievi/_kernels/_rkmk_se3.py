@@ -35,7 +35,7 @@ import jax.numpy as jnp
 
 from ._explicit import explicit_info, finite_result
 from ._kick import coupling_torque
-from ._rkmk import advected_at, left_dexpinv, rk4_in_the_chart
+from ._rkmk import advected_at, left_dexpinv, rk4_in_the_chart, scaled_coupling
 from ._se3 import SE3Kernel, compose_increment, increment
 from ._se3_residual import exp_series, ones
 from ._soa import cross, dot, entries
@@ -113,11 +113,7 @@ class RKMK4SE3Kernel(SE3Kernel):
 
     def prepare(self, constants, h):
         rate = tuple(tuple(h * e for e in row) for row in constants[1])
-        coupling = None
-        if self.potential is not None:
-            a, b = self.potential.linear_coupling()
-            coupling = (a, h[..., None] * b if jnp.ndim(h) else h * b)
-        return rate, coupling
+        return rate, scaled_coupling(self.potential, h)
 
     def step(self, params, g, m, alive):
         g_next, m_next, result = rkmk4_se3_step(g, m, *params)
