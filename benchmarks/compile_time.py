@@ -27,7 +27,8 @@ chart) only.
 `--throughput`: run times only (the best of 5 after a warm-up), to check that the loop
 in blocks (`lievi/_horizon.py`) costs nothing: `simulate_batch` on 10⁴ free rigid bodies,
 100 steps, the final state saved, through the fast path (DEP exp, Lie–Poisson splitting);
-`simulate` of one body for 10⁴ steps, every step saved (DEP exp, SO(3) and SE(3)).
+`simulate` of one body for 10⁴ steps, every step saved (DEP exp, SO(3) and SE(3)), and
+on SE(3) every 100th step and the final state only.
 """
 
 from __future__ import annotations
@@ -152,6 +153,12 @@ def throughput() -> list[dict]:
         ),
         "simulate 1e4 steps, SE(3) DEP exp": lambda: lievi.simulate(
             se3, lievi.DEP(), jnp.eye(4), m0_se3, h=0.05, n_steps=10_000
+        ),
+        "simulate 1e4 steps, SE(3) DEP exp, every 100th saved": lambda: lievi.simulate(
+            se3, lievi.DEP(), jnp.eye(4), m0_se3, h=0.05, n_steps=10_000, save_every=100
+        ),
+        "simulate 1e4 steps, SE(3) DEP exp, final state": lambda: lievi.simulate(
+            se3, lievi.DEP(), jnp.eye(4), m0_se3, h=0.05, n_steps=10_000, save_every=10_000
         ),
     }
     rows = []
