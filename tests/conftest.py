@@ -14,3 +14,106 @@ def _fresh_compilation_caches():
     XLA's compiler (not reproducible in a fresh process)."""
     yield
     jax.clear_caches()
+
+
+# The heavy cases of the default suite's checks, run with `pytest -m slow` instead: each
+# took ≥ 8 s on one worker of the 2-core reference machine (`pytest --durations=0`, idle;
+# mostly compiling SE(3), composition and coupled-body programs), and together they were
+# half of the suite's 23 minutes. Whatever they cost, the default suite keeps the paper's
+# equivalence theorem, the Poisson property, the gradient and implicit-derivative checks
+# against finite differences, one fast-against-reference parity case, the float32 batches
+# and the two-process run.
+HEAVY = frozenset(
+    {
+        "tests/test_batch.py::test_failures_are_per_body[exp]",  # 11 s
+        "tests/test_batch.py::test_fast_equals_generic[dep-exp]",  # 8 s
+        "tests/test_batch.py::test_fast_path_gradient_finite_when_a_body_fails",  # 12 s
+        "tests/test_batch.py::test_sharded_equals_unsharded",  # 13 s
+        "tests/test_branch_rule.py::test_successful_steps_are_on_the_continued_branch[dep-exp]",  # 18 s
+        "tests/test_branch_rule.py::test_successful_steps_are_on_the_continued_branch[moser-veselov]",  # 16 s
+        "tests/test_contracts.py::test_advected_whenever_g_is_saved",  # 12 s
+        "tests/test_contracts.py::test_membership_tolerance_is_the_same_eager_and_traced",  # 12 s
+        "tests/test_contracts.py::test_nonfinite_potential_value_is_reported",  # 9 s
+        "tests/test_contracts.py::test_parameter_check_eager_and_traced[central-gravity-negative-mu]",  # 23 s
+        "tests/test_contracts.py::test_parameter_check_eager_and_traced[se3-indefinite]",  # 39 s
+        "tests/test_contracts.py::test_parameter_check_eager_and_traced[uniform-gravity-negative-mass]",  # 8 s
+        "tests/test_convergence.py::test_second_order_on_son[dep-exp]",  # 8 s
+        "tests/test_conversions.py::test_euler_gradients_finite_at_gimbal_lock[float32]",  # 21 s
+        "tests/test_conversions.py::test_euler_gradients_finite_at_gimbal_lock[float64]",  # 16 s
+        "tests/test_demo.py::test_demo_in_process_json_and_plot",  # 33 s
+        "tests/test_dep.py::test_conservation_generalized_rigid_body[dep-exp]",  # 13 s
+        "tests/test_dep.py::test_del_residual_generalized_rigid_body[dep-exp-4]",  # 18 s
+        "tests/test_dep.py::test_right_invariant_is_mirrored_left_invariant[dep-exp]",  # 10 s
+        "tests/test_forcing.py::test_batch_with_per_body_controls",  # 8 s
+        "tests/test_forcing.py::test_zero_forcing_is_the_unforced_run[free-dep-exp]",  # 10 s
+        "tests/test_forcing.py::test_zero_forcing_is_the_unforced_run[heavy-top-dep-exp]",  # 9 s
+        "tests/test_gradients.py::test_gradient_independent_of_newton_iterations[exp]",  # 14 s
+        "tests/test_gradients.py::test_jacfwd_equals_jacrev[exp]",  # 11 s
+        "tests/test_group_autodiff.py::test_son_derivatives_are_finite[4]",  # 8 s
+        "tests/test_horizon.py::test_failure_is_recorded_across_blocks[generic]",  # 10 s
+        "tests/test_horizon.py::test_new_horizon_compiles_no_new_step[fast]",  # 9 s
+        "tests/test_horizon.py::test_new_horizon_compiles_no_new_step[generic]",  # 11 s
+        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[h-per-body-save0-generic]",  # 10 s
+        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[h-per-body-save1-generic]",  # 10 s
+        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[shared-h-save0-generic]",  # 13 s
+        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[shared-h-save1-generic]",  # 9 s
+        "tests/test_horizon.py::test_simulate_eager_equals_jit[preprocessed-12-3]",  # 8 s
+        "tests/test_identification.py::test_batch_shapes_and_report",  # 32 s
+        "tests/test_kernel_parity.py::test_batch_equals_reference[composition-splitting-6]",  # 19 s
+        "tests/test_kernel_parity.py::test_batch_equals_reference[dep-exp-heavy-top]",  # 18 s
+        "tests/test_kernel_parity.py::test_batch_equals_reference[dep-exp-se3]",  # 39 s
+        "tests/test_kernel_parity.py::test_batch_equals_reference[dep-exp]",  # 13 s
+        "tests/test_kernel_parity.py::test_batch_equals_reference[moser-veselov]",  # 13 s
+        "tests/test_kernel_parity.py::test_batch_equals_reference[rk4]",  # 10 s
+        "tests/test_kernel_parity.py::test_batch_equals_reference[rkmk4-se3-gravity]",  # 24 s
+        "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[composition-dep-4-se3]",  # 75 s
+        "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[dep-cayley-heavy-top]",  # 10 s
+        "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[dep-cayley]",  # 9 s
+        "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[dep-exp-heavy-top]",  # 11 s
+        "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[dep-exp-se3]",  # 37 s
+        "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[dep-exp]",  # 11 s
+        "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[moser-veselov-heavy-top]",  # 9 s
+        "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[moser-veselov]",  # 9 s
+        "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[rkmk4-se3]",  # 76 s
+        "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[rkmk4]",  # 10 s
+        "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[splitting-heavy-top]",  # 8 s
+        "tests/test_learned_dynamics.py::test_neural_potential_keeps_its_symmetry_and_is_differentiable",  # 16 s
+        "tests/test_notebooks.py::test_notebook_runs[01_free_rigid_body.ipynb]",  # 19 s
+        "tests/test_notebooks.py::test_notebook_runs[05_heavy_top.ipynb]",  # 32 s
+        "tests/test_optimal_control.py::test_sphere_rest_to_rest_matches_the_closed_form",  # 13 s
+        "tests/test_potentials.py::test_gradients_match_finite_differences",  # 8 s
+        "tests/test_potentials.py::test_potential_on_son",  # 19 s
+        "tests/test_potentials.py::test_right_invariant_mirror_image",  # 13 s
+        "tests/test_properties.py::test_fast_path_equals_generic_path",  # 9 s
+        "tests/test_properties.py::test_scale_invariance_float64",  # 11 s
+        "tests/test_reliability.py::test_overridden_step_is_run_on_every_path",  # 8 s
+        "tests/test_rigid_bodies.py::test_damping_force_law_per_body",  # 8 s
+        "tests/test_rigid_bodies.py::test_gradient_of_coupling_parameter[integrator0]",  # 10 s
+        "tests/test_rigid_bodies.py::test_one_body_equals_rigid_body_se3[exp]",  # 30 s
+        "tests/test_rigid_bodies.py::test_order[integrator1-molecules-2]",  # 11 s
+        "tests/test_rigid_bodies.py::test_reverse_pass_stores_little_per_step[integrator0]",  # 9 s
+        "tests/test_rigid_bodies.py::test_simulate_batch_of_systems",  # 10 s
+        "tests/test_rigid_bodies.py::test_total_momentum_and_energy[molecules-integrator0]",  # 17 s
+        "tests/test_rkmk.py::test_fourth_order_on_se3_through_the_kernel[free]",  # 13 s
+        "tests/test_se3_batch.py::test_failures_are_reported_per_body",  # 40 s
+        "tests/test_se3_batch.py::test_float32",  # 51 s
+        "tests/test_se3_batch.py::test_kernel_converges_where_newton_does[cayley]",  # 15 s
+        "tests/test_se3_batch.py::test_kernel_converges_where_newton_does[exp]",  # 21 s
+        "tests/test_se3_batch.py::test_stragglers_take_the_gathered_tail[exp]",  # 33 s
+        "tests/test_se3_body.py::test_closed_form_step_equals_generic[exp-False]",  # 15 s
+        "tests/test_se3_body.py::test_del_residual[exp-falling]",  # 10 s
+        "tests/test_se3_body.py::test_del_residual[exp-kirchhoff]",  # 14 s
+        "tests/test_se3_body.py::test_dep_second_order[exp-satellite]",  # 22 s
+        "tests/test_simulate.py::test_simulate_under_outer_jit_and_vmap",  # 10 s
+        "tests/test_stream.py::test_streamed_equals_in_memory[True]",  # 14 s
+        "tests/test_suggest.py::test_suggested_step_reaches_the_tolerance[1e-08]",  # 30 s
+        "tests/test_simulate.py::test_mixed_precision_promotes[dep]",  # 18 s
+        "tests/test_stream.py::test_save_m_only_and_progress",  # 14 s
+    }
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.nodeid in HEAVY:
+            item.add_marker(pytest.mark.slow)
