@@ -1,7 +1,7 @@
 """The fused batched step of a `Composition`: the inner method's kernel at each stage.
 
 `Φ_{γ_s h} ∘ … ∘ Φ_{γ_1 h}` as one structure-of-arrays step: the per-run constants of every
-stage (`γ_i h`) are prepared once, and the stages run back to back on the same
+stage (`γ_i h`) are prepared once, and the stages run as a loop over them on the same
 structure-of-arrays state inside the one loop of `simulate_batch` — instead of
 `jax.vmap(simulate)` of the per-body composition. The iterates are the per-body
 composition's (the kernel parity test).
@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from .._results import RESULTS
@@ -34,18 +35,24 @@ class CompositionKernel(AbstractBatchKernel):
         return self.inner.constants(values, batch)
 
     def prepare(self, constants, h):
-        # Each stage's constants for its own step `γ_i h`, once per run.
-        return tuple(self.inner.prepare(constants, gamma * h) for gamma in self.coefficients)
+        # Each stage's constants for its own step `γ_i h`, once per run, stacked along a
+        # leading axis of stages: the stages are a loop over them (`step`).
+        stages = [self.inner.prepare(constants, gamma * h) for gamma in self.coefficients]
+        return jax.tree.map(lambda *xs: jnp.stack(xs), *stages)
 
     def step(self, params, g, m, alive):
-        result = jnp.zeros(jnp.shape(m[0]), jnp.int32) + RESULTS.successful
-        iterations = jnp.zeros(jnp.shape(m[0]), jnp.int32)
-        residual = jnp.zeros(jnp.shape(m[0]), m[0].dtype)
-        for stage in params:
-            g, m, code, its, res = self.inner.step(stage, g, m, alive)
+        # A loop over the stages, not the stages written out: one stage's code is compiled.
+        # Written out, the 9- and 17-stage compositions compiled 4–17× the inner step's
+        # code, and on a GPU a step ran at a half to a quarter of its stages' cost.
+        def stage(carry, stage_params):
+            g, m, result, iterations, residual = carry
+            g, m, code, its, res = self.inner.step(stage_params, g, m, alive)
             result = RESULTS.first_failure(result, code)
-            iterations = iterations + its
-            residual = jnp.maximum(residual, res)
+            return (g, m, result, iterations + its, jnp.maximum(residual, res)), None
+
+        zeros = jnp.zeros(jnp.shape(m[0]), jnp.int32)
+        init = (g, m, zeros + RESULTS.successful, zeros, jnp.zeros_like(m[0]))
+        (g, m, result, iterations, residual), _ = jax.lax.scan(stage, init, params)
         return g, m, result, iterations, residual
 
     # The step bound is the integrator's (`Composition.step_bound`), on the full step.
