@@ -101,8 +101,9 @@ def test_order(hlw_reference, method, order, scheme):
 @pytest.mark.slow
 @pytest.mark.parametrize("method, order, scheme", SLOW_CASES, ids=SLOW_IDS)
 def test_order_other_schemes(hlw_reference, method, order, scheme):
-    # Larger error constants than the defaults: finer steps to reach the asymptotic regime.
-    steps = tuple(4 * n for n in STEPS[order])
+    # Larger error constants than the defaults: finer steps to reach the asymptotic regime
+    # (Yoshida's order 8 at 4× the steps still had local slopes 7.70, 7.81, 7.87).
+    steps = tuple((6 if order == 8 else 4) * n for n in STEPS[order])
     slope, errors = observed_order(hlw_reference, lievi.Composition(method, order, scheme), steps)
     assert abs(slope - order) <= ORDER_TOLERANCE, (slope, errors)
 
