@@ -43,7 +43,7 @@ class CompositionKernel(AbstractBatchKernel):
     def step(self, params, g, m, alive):
         # A loop over the stages, not the stages written out: one stage's code is compiled.
         # Written out, the 9- and 17-stage compositions compiled 4–17× the inner step's
-        # code, and on a GPU a step ran at a half to a quarter of its stages' cost.
+        # code, and on a GPU ran at a half to a quarter of the rate their stage count predicts.
         def stage(carry, stage_params):
             g, m, result, iterations, residual = carry
             g, m, code, its, res = self.inner.step(stage_params, g, m, alive)
