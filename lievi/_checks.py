@@ -187,7 +187,17 @@ def step_size_valid(h):
 def input_valid(system, g0, m0, h, t0=0.0):
     """Traceable validity of a run's inputs: the system's parameters, `g0` in the group,
     finite `m0`, `t0`, and a positive normal `h`. A boolean array (`simulate` turns
-    `False` into `RESULTS.invalid_input`)."""
+    `False` into `RESULTS.invalid_input`).
+
+    One compiled program: called eagerly, the checks would otherwise run operation by
+    operation, each a small program compiled at its first call (1.4 s of a first one-body
+    `simulate` on SO(3)) and dispatched at every call. `h` and `t0` are passed as arrays,
+    so that a new value is not a new program."""
+    return _input_valid(system, g0, m0, jnp.asarray(h), jnp.asarray(t0))
+
+
+@eqx.filter_jit
+def _input_valid(system, g0, m0, h, t0):
     return (
         system.parameters_valid()
         & system.element_valid(g0)
