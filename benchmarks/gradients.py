@@ -209,8 +209,6 @@ def batch_loss(integrator, steps: int, fast: bool, checkpoint):
 
 def batch_inputs(bodies: int):
     sys_path = str(pathlib.Path(__file__).parent)
-    import sys
-
     if sys_path not in sys.path:
         sys.path.insert(0, sys_path)
     from throughput import H as step
