@@ -112,9 +112,12 @@ class AbstractForcing(eqx.Module):
     def check(self, system, n_steps: int, dtype, args) -> None:
         """Raise `ValueError` for input that cannot be right (shapes, NaN), before tracing."""
 
-    def batch_axes(self) -> PyTree:
-        """`jax.vmap` in-axes of this forcing in a batch of bodies: shared by default."""
+    def batch_axes(self, system) -> PyTree:
+        """`jax.vmap` in-axes of this forcing in a batch of `system`s: shared by default."""
         return None
+
+    def check_batch(self, system, batch: int) -> None:
+        """Raise `ValueError` if per-member data does not have `batch` rows."""
 
 
 class Control(AbstractForcing):
@@ -123,16 +126,18 @@ class Control(AbstractForcing):
     **Arguments:**
 
     - `u`: shape `(n_steps, d)`: `u[k]` is the generalised force (for the rigid body, the
-      body-frame torque) over step `k`, from `t_k` to `t_{k+1}`. A pytree leaf: gradients
-      with respect to the whole sequence come from `jax.grad` (implicit differentiation
-      through the Newton solves, no unrolled iterations).
+      body-frame torque) over step `k`, from `t_k` to `t_{k+1}`; for a system of several
+      bodies, one row per body, `(n_steps, *momentum_shape)` (for `lievi.RigidBodies` of
+      N bodies `(n_steps, N, 6)`: each body's body-frame torque and force). A pytree
+      leaf: gradients with respect to the whole sequence come from `jax.grad` (implicit
+      differentiation through the Newton solves, no unrolled iterations).
 
     The discrete forces are `f_k⁻ = f_k⁺ = (h/2) u[k]`.
 
     `u` may be any array-like (a JAX or NumPy array, nested lists or tuples of numbers);
     it is converted with `jnp.asarray`, integers to the default float dtype. For
-    `lievi.simulate_batch` it may also have shape `(batch, n_steps, d)`, one sequence per
-    body.
+    `lievi.simulate_batch` it may also have a leading batch axis, `(batch, n_steps, d)`,
+    one sequence per member of the batch.
     """
 
     u: Float[Array, "n_steps d"]
@@ -146,19 +151,37 @@ class Control(AbstractForcing):
     def at_step(self, data, args):
         return HeldForce(data)
 
-    def batch_axes(self):
-        # In `simulate_batch`, `u` of shape (batch, n_steps, d) is one sequence per body.
+    def _per_member(self, system) -> bool:
+        """Whether `u` has a batch axis in front of one run's `(n_steps, *momentum_shape)`:
+        decided by the system's momentum shape, since a system of N bodies has per-body
+        rows of its own (`(n_steps, N, 6)` is one run's control, not a batch)."""
+        return jnp.ndim(self.u) == 2 + len(system.momentum_shape())
+
+    def batch_axes(self, system):
         # The in-axes pytree is built by `tree.map`, which bypasses `__init__`.
-        return jax.tree.map(lambda _: 0, self) if jnp.ndim(self.u) == 3 else None
+        return jax.tree.map(lambda _: 0, self) if self._per_member(system) else None
+
+    def check_batch(self, system, batch):
+        if self._per_member(system) and jnp.shape(self.u)[0] != batch:
+            shape = ", ".join(("batch", "n_steps", *map(str, system.momentum_shape())))
+            raise ValueError(
+                f"`forcing`: a control per member of the batch must have shape ({shape}) "
+                f"with batch = {batch}, got {jnp.shape(self.u)}."
+            )
 
     def check(self, system, n_steps, dtype, args):
-        d = system.group.algebra_dim
+        momentum = system.momentum_shape()
+        expected = (n_steps, *momentum)
         shape = tuple(jnp.shape(self.u))
-        if shape != (n_steps, d):
+        if shape != expected:
+            what = (
+                f"one generalised force of dimension {momentum[0]} per step"
+                if len(momentum) == 1
+                else f"one generalised force of shape {momentum} per step, a row per body"
+            )
             raise ValueError(
-                f"`forcing`: the control `u` must have shape (n_steps, d) = ({n_steps}, {d}) "
-                f"(one generalised force of dimension {d} per step, held over the step), got "
-                f"{shape}."
+                f"`forcing`: the control `u` must have shape {expected} ({what}, held over "
+                f"the step), got {shape}."
             )
         if is_concrete(self.u) and not np.all(np.isfinite(np.asarray(self.u))):
             bad = int(np.argmax(~np.all(np.isfinite(np.asarray(self.u)), axis=-1)))
@@ -169,12 +192,13 @@ class Control(AbstractForcing):
 
 
 def _as_control(u) -> Array:
-    """`u` as a real array of shape `(n_steps, d)` (or `(batch, n_steps, d)`), else a
+    """`u` as a real array of shape `(n_steps, d)` (or with more axes: per body, per member
+    of a batch; `Control.check` compares them with the system's), else a
     `ValueError` naming the argument and the fix."""
     fix = (
         "pass a real array of shape (n_steps, d), one generalised force of dimension d per "
-        "step (for the rigid body, d = 3: e.g. jnp.zeros((n_steps, 3))), or (batch, "
-        "n_steps, d) for lievi.simulate_batch"
+        "step (for the rigid body, d = 3: e.g. jnp.zeros((n_steps, 3)); for N bodies, "
+        "(n_steps, N, 6)), with a leading batch axis for lievi.simulate_batch"
     )
     if u is None or isinstance(u, (str, bytes)):
         raise ValueError(f"`u` of lievi.Control: {fix}; got {u!r}.")
@@ -189,7 +213,7 @@ def _as_control(u) -> Array:
         array = jnp.asarray(array, dtype=float)
     elif not jnp.issubdtype(dtype, jnp.floating):
         raise ValueError(f"`u` of lievi.Control must hold real numbers, got dtype {dtype}; {fix}.")
-    if array.ndim not in (2, 3) or 0 in array.shape[-1:]:
+    if array.ndim < 2 or 0 in array.shape[-1:]:
         raise ValueError(f"`u` of lievi.Control has shape {array.shape}; {fix}.")
     return array
 
@@ -254,8 +278,12 @@ class ForcingSum(AbstractForcing):
         for term in self.terms:
             term.check(system, n_steps, dtype, args)
 
-    def batch_axes(self):
-        return ForcingSum(tuple(term.batch_axes() for term in self.terms))
+    def batch_axes(self, system):
+        return ForcingSum(tuple(term.batch_axes(system) for term in self.terms))
+
+    def check_batch(self, system, batch):
+        for term in self.terms:
+            term.check_batch(system, batch)
 
 
 def as_forcing(forcing) -> AbstractForcing | None:

@@ -208,7 +208,8 @@ def simulate_batch(
       the segment length. No effect on values or on forward runs.
     - `forcing`, `args`: an external force, as for `lievi.simulate`. A `lievi.Control(u)`
       with `u` of shape `(batch, n_steps, d)` gives each body its own control sequence;
-      of shape `(n_steps, d)`, one shared by all. A force law and `args` are shared.
+      of shape `(n_steps, d)`, one shared by all (for systems of N bodies, `(batch,
+      n_steps, N, 6)` and `(n_steps, N, 6)`). A force law and `args` are shared.
       Forced runs take the generic path.
     - `progress_meter`: report the steps done while the batch computes, as in
       `lievi.simulate` (the same meters and shorthands: `"text"`, `"tqdm"`, `True`): one
@@ -306,12 +307,8 @@ def simulate_batch(
 
     forcing = as_forcing(forcing)
     if forcing is not None:
+        forcing.check_batch(system, batch)
         for x in jax.tree.leaves(forcing.per_step()):
-            if jnp.ndim(x) == 3 and jnp.shape(x)[0] != batch:
-                raise ValueError(
-                    f"`forcing`: a per-body control must have shape (batch, n_steps, d) with "
-                    f"batch = {batch}, got {jnp.shape(x)}."
-                )
             check_finite("forcing", x)
     dtype = state_dtype(system, g0, m0, h)
     # `g0` as given: held to the membership tolerance of its own dtype (as eagerly).

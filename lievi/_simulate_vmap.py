@@ -98,7 +98,7 @@ def _simulate_vmap_scan(
         )
 
     h_axis = None if h.ndim == 0 else 0
-    forcing_axes = None if forcing is None else forcing.batch_axes()
+    forcing_axes = None if forcing is None else forcing.batch_axes(system)
     solution = jax.vmap(one, in_axes=(system_axis, 0, 0, h_axis, forcing_axes))(
         system, g0, m0, h, forcing
     )

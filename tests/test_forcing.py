@@ -527,7 +527,6 @@ def test_control_accepts_array_likes():
     [
         pytest.param(jnp.zeros(3), id="one-step"),
         pytest.param(0.0, id="scalar"),
-        pytest.param(jnp.zeros((2, 3, 4, 5)), id="4d"),
         pytest.param(jnp.zeros((4, 0)), id="d=0"),
         pytest.param([[0.0, 0.0, 0.0], [0.0, 0.0]], id="ragged"),
         pytest.param(jnp.zeros((4, 3), jnp.complex64), id="complex"),
@@ -542,3 +541,18 @@ def test_control_rejects_non_arrays(u):
     `ValueError` at construction, naming the argument and the fix."""
     with pytest.raises(ValueError, match=r"`u` of lievi.Control.*shape \(n_steps, d\)"):
         lievi.Control(u)
+
+
+def test_control_with_axes_the_system_does_not_have():
+    """A control with more axes than one run of the system has (one body, `(n_steps, 3)`)
+    is accepted at construction (a system of N bodies takes `(n_steps, N, 6)`) and
+    rejected by the run, naming the shape it needs; in a batch, one extra leading axis is
+    the batch."""
+    system = lievi.RigidBody(jnp.array([1.0, 2.0, 3.0]))
+    u = lievi.Control(jnp.zeros((2, 4, 4, 3)))
+    with pytest.raises(ValueError, match=r"must have shape \(4, 3\)"):
+        lievi.simulate(system, lievi.DEP(), jnp.eye(3), jnp.ones(3), h=0.1, n_steps=4, forcing=u)
+    with pytest.raises(ValueError, match=r"must have shape \(4, 3\)"):
+        lievi.simulate_batch(
+            system, lievi.DEP(), jnp.eye(3), jnp.ones((2, 3)), h=0.1, n_steps=4, forcing=u
+        )

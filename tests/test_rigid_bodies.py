@@ -465,3 +465,51 @@ def test_damping_force_law_per_body():
     )
     assert float(jnp.max(jnp.abs(J - expected))) <= ROUNDOFF * scale
     assert float(dg.energy(system, sol.m[-1], sol.g[-1])) < float(dg.energy(system, m0, g0))
+
+
+def test_control_per_body_equals_each_body_alone():
+    """A control per body, `u` of shape `(n_steps, N, 6)`: N free bodies each under its own
+    body-frame torque and force step exactly as each body alone (`RigidBodySE3` under its
+    slice `u[:, i]`): without a coupling the product's kicks and free steps are those of
+    each body (round-off: the same operations, batched)."""
+    system, g0, m0 = molecules_problem()
+    free = lievi.RigidBodies(system.inertia, system.mass)
+    n, h = 30, 0.02
+    u = jnp.asarray(np.random.default_rng(5).normal(size=(n, 3, 6)))
+    integrator = lievi.DEP(chart="cayley")
+    sol = lievi.simulate(free, integrator, g0, m0, h=h, n_steps=n, forcing=lievi.Control(u))
+    assert bool(jnp.all(sol.result == lievi.RESULTS.successful))
+    for i in range(3):
+        body = lievi.RigidBodySE3(system.inertia[i], system.mass[i])
+        one = lievi.simulate(
+            body, integrator, g0[i], m0[i], h=h, n_steps=n, forcing=lievi.Control(u[:, i])
+        )
+        assert float(jnp.max(jnp.abs(sol.m[:, i] - one.m))) <= 10 * ROUNDOFF
+        assert float(jnp.max(jnp.abs(sol.g[:, i] - one.g))) <= 10 * ROUNDOFF
+
+
+def test_control_per_body_in_a_batch_of_systems():
+    """`(batch, n_steps, N, 6)`: one control sequence per system of the batch, each row per
+    body; the batch equals one `simulate` per system. A one-body shape for an N-body
+    system names the shape it needs."""
+    system, g0, m0 = molecules_problem()
+    n, h = 10, 0.01
+    u = jnp.asarray(np.random.default_rng(6).normal(size=(2, n, 3, 6)))
+    m0s = jnp.stack([m0, 0.5 * m0])
+    integrator = lievi.LiePoissonSplitting()
+    batch = lievi.simulate_batch(
+        system, integrator, g0, m0s, h=h, n_steps=n, forcing=lievi.Control(u)
+    )
+    for b in range(2):
+        one = lievi.simulate(
+            system, integrator, g0, m0s[b], h=h, n_steps=n, forcing=lievi.Control(u[b])
+        )
+        assert float(jnp.max(jnp.abs(batch.m[b, -1] - one.m[-1]))) <= ROUNDOFF
+    with pytest.raises(ValueError, match=r"\(10, 3, 6\)"):
+        lievi.simulate(
+            system, integrator, g0, m0, h=h, n_steps=n, forcing=lievi.Control(u[0, :, 0])
+        )
+    with pytest.raises(ValueError, match="batch = 2"):
+        lievi.simulate_batch(
+            system, integrator, g0, m0s, h=h, n_steps=n, forcing=lievi.Control(u[:1])
+        )
