@@ -35,7 +35,8 @@ def checked_step_result(integrator, system, m, h, g_next, m_next, result):
 
 def _stepper(system, integrator, h, t0, n_steps, progress, forcing, args):
     """One step of the run with its checks and failure record, `(carry, data) → (carry,
-    (iterations, residual))`, `carry = (g, m, result, failed_step, k)` (both loops)."""
+    (iterations, residual))`, `carry = (g, m, result, failed_step, k, cache)` (both
+    loops; `cache`: what the next step takes over, `AbstractIntegrator.step_cache`)."""
 
     # Reverse mode keeps each step's input state, the roots of its implicit solves
     # (tagged `ROOT_NAME`: the kernels' and `newton_solve`'s) and its survival mask, and
@@ -49,12 +50,11 @@ def _stepper(system, integrator, h, t0, n_steps, progress, forcing, args):
         policy=jax.checkpoint_policies.save_only_these_names(ROOT_NAME),
     )
     def one_step(carry, data):
-        g, m, result, failed_step, k = carry
-        if forcing is None:
-            g_next, m_next, info = integrator.step(system, g, m, h)
-        else:
-            force = forcing.at_step(data, args)
-            g_next, m_next, info = integrator.step(system, g, m, h, force, t0 + k * h)
+        g, m, result, failed_step, k, cache = carry
+        force = None if forcing is None else forcing.at_step(data, args)
+        g_next, m_next, info, cache_next = integrator.cached_step(
+            system, g, m, h, cache, force, t0 + k * h
+        )
         step_result = checked_step_result(integrator, system, m, h, g_next, m_next, info.result)
         result, failed_step, ok = RESULTS.record(result, failed_step, k, step_result)
         # Saved for the backward pass: all it needs of the step's checks.
@@ -63,8 +63,10 @@ def _stepper(system, integrator, h, t0, n_steps, progress, forcing, args):
         # state is NaN.
         g_next = jnp.where(ok, g_next, g)
         m_next = jnp.where(ok, m_next, m)
+        cache_next = jax.tree.map(lambda new, old: jnp.where(ok, new, old), cache_next, cache)
         k = progress.report(k + 1, n_steps)
-        return (g_next, m_next, result, failed_step, k), (info.iterations, info.residual)
+        carry = (g_next, m_next, result, failed_step, k, cache_next)
+        return carry, (info.iterations, info.residual)
 
     return one_step
 
@@ -88,7 +90,7 @@ def _assemble(system, g0, m0, h, t0, n_steps, save_every, final, saves) -> Solut
     """The `Solution` from the final carry and the per-save outputs `(g, m, most
     iterations, total iterations, largest residual)` of both loops."""
     gs, ms, iterations, total, residuals = saves
-    _, _, result, failed_step, _ = final
+    result, failed_step = final[2], final[3]
     n_saves = n_steps // save_every
     ts = t0 + h * save_every * jnp.arange(n_saves + 1, dtype=m0.dtype)
     stats = {
@@ -139,7 +141,8 @@ def simulate_scan(
         carry, g, m = _saved(system, carry)
         return carry, (g, m, jnp.max(iterations), jnp.sum(iterations), jnp.max(residuals))
 
-    init = (g0, m0, *RESULTS.initial(valid), jnp.asarray(0, jnp.int32))
+    cache = integrator.step_cache(system, g0)
+    init = (g0, m0, *RESULTS.initial(valid), jnp.asarray(0, jnp.int32), cache)
     n_saves = n_steps // save_every
     # Per-step forcing data (a control sequence), scanned over, not indexed: reverse mode
     # then accumulates one row of the cotangent per step.
@@ -161,7 +164,9 @@ def simulate_blocks(
     axis of `g0`, `m0` and `valid` (`simulate_batch`'s generic path)."""
     batch = () if axes is None else g0.shape[:1]
     result, failed_step = (jnp.broadcast_to(x, batch) for x in RESULTS.initial(valid))
-    carry = (g0, m0, result, failed_step, jnp.zeros(batch, jnp.int32))
+    # A function of `g0` alone (not of `init`'s per-run state): computed once here.
+    cache = _initial_cache(system, integrator, g0, axes)
+    carry = (g0, m0, result, failed_step, jnp.zeros(batch, jnp.int32), cache)
     n, d = g0.shape[-1], m0.shape[-1]
     bodies = g0.shape[0] if batch else 1
     size = block_saves(bodies * ((n * n + d + 2) * m0.dtype.itemsize + 8))
@@ -173,6 +178,13 @@ def simulate_blocks(
 
     final, outputs = run_blocks(block, carry, n_steps // save_every, size)
     return _join(system, g0, m0, h, t0, n_steps, save_every, final, outputs, axes)
+
+
+@eqx.filter_jit
+def _initial_cache(system, integrator, g0, axes):
+    """`AbstractIntegrator.step_cache` at `g0` (per body for a batch), compiled: on the
+    blocks' eager path it would otherwise run operation by operation."""
+    return _per_body(integrator.step_cache, axes, "system", 0)(system, g0)
 
 
 def _per_body(fn, axes, *in_axes):
@@ -193,7 +205,7 @@ def _block(system, integrator, m0, carry, h, t0, n_steps, save_every, count, pro
         integrator_ = integrator.init(system, m0, h)
         # 0 at the start of a run (a repeat at a later block is not shown again), before
         # the loop: the loop starts from the step count it returns.
-        carry = (*carry[:4], progress.report(carry[4], n_steps))
+        carry = (*carry[:4], progress.report(carry[4], n_steps), carry[5])
         one_step = _stepper(system, integrator_, h, t0, n_steps, progress, None, None)
         _, (iterations, residual) = jax.eval_shape(one_step, carry, None)
         stats0 = (

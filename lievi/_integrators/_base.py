@@ -67,6 +67,27 @@ class AbstractIntegrator(eqx.Module):
         `force(t, g, m) -> (d,)` (see `lievi.Control`, `lievi.ForceLaw`).
         """
 
+    def step_cache(self, system: AbstractLieSystem, g):
+        """What a step may take over from the step before it, a function of the state
+        `g` alone (e.g. a kick method's potential force, `AbstractKickIntegrator`), or
+        `None` (the default: nothing). The loops compute it once at the start of a run and
+        carry what `cached_step` returns from step to step."""
+        return None
+
+    def cached_step(
+        self, system: AbstractLieSystem, g, m, h: Scalar, cache, force=None, t: Scalar = 0.0
+    ):
+        """`step` given `cache = step_cache(system, g)`, also returning
+        `step_cache(system, g_{k+1})`: `(g_{k+1}, m_{k+1}, info, cache_{k+1})`; what the
+        loops run. The default is `step`, with nothing to take over."""
+        # Unforced, `step` is called without `force` and `t`: a user's step written for
+        # unforced runs (`step(system, g, m, h)`) keeps working.
+        if force is None:
+            g, m, info = self.step(system, g, m, h)
+        else:
+            g, m, info = self.step(system, g, m, h, force, t)
+        return g, m, info, cache
+
     def step_bound(self) -> float:
         """The largest angle `h·|ξ|` a step may turn (`ξ` the velocity of the current
         momentum, `|ξ|` its algebra norm, an upper bound of the largest rotation angle
@@ -110,9 +131,14 @@ class AbstractIntegrator(eqx.Module):
         test's deliberately broken method, a user's modified step), which then runs its
         own step everywhere — `simulate`, `simulate_batch`, under `jax.vmap` — rather than
         its parent's kernel."""
+        return not self._overridden_below("kernels", ("step", "free_step"))
+
+    def _overridden_below(self, owner: str, names: tuple[str, ...]) -> bool:
+        """Whether a class below the one that defines `owner` (a faster way to compute
+        this object's step) overrides one of `names`: then the override is what runs."""
         mro = type(self).__mro__
-        owner = next(i for i, cls in enumerate(mro) if "kernels" in vars(cls))
-        return not any("step" in vars(cls) or "free_step" in vars(cls) for cls in mro[:owner])
+        index = next(i for i, cls in enumerate(mro) if owner in vars(cls))
+        return any(name in vars(cls) for cls in mro[:index] for name in names)
 
     def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
         """The kernel `simulate_batch` runs for `system` (its potential included), or
@@ -169,16 +195,45 @@ class AbstractKickIntegrator(AbstractIntegrator):
         return kernel if kernel.physics(system, batched) is not None else None
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
+        return self._kick_step(system, g, m, h, None, force, t)[:3]
+
+    def step_cache(self, system: AbstractLieSystem, g):
+        """The potential's force `M(g_k)`: the force of one step's end kick is that of
+        the next step's first kick (the same `g`), so a run evaluates the potential's
+        force once per step, not twice — for coupled bodies, where the coupling is most
+        of the step, nearly half the cost. `None` for a free system, or where a subclass
+        runs its own `step`."""
+        if system.potential is None or self._overridden_below("cached_step", ("step",)):
+            return None
+        return system.force(g)
+
+    def cached_step(
+        self, system: AbstractLieSystem, g, m, h: Scalar, cache, force=None, t: Scalar = 0.0
+    ):
+        if self._overridden_below("cached_step", ("step",)):
+            # A subclass's own step runs as it is written (`AbstractIntegrator`'s default).
+            return super().cached_step(system, g, m, h, cache, force, t)
+        return self._kick_step(system, g, m, h, cache, force, t)
+
+    def _kick_step(self, system, g, m, h, start_force, force, t):
+        """The step, from the potential's force at `g_k` if known (`start_force`, else
+        computed), returning the force at `g_{k+1}` (`None` for a free system)."""
         # `system.free_flow`: the system decides how this method's free step applies to it
         # (one body: `free_step` itself; several bodies: each of them).
         if system.potential is None and force is None:
-            return system.free_flow(self, g, m, h)
-        m_plus = system.kick(g, m, h / 2)
+            return (*system.free_flow(self, g, m, h), None)
+        end_force = None
+        m_plus = m
+        if system.potential is not None:
+            start_force = system.force(g) if start_force is None else start_force
+            m_plus = m + h / 2 * start_force
         if force is not None:
             # The discrete Lagrange–d'Alembert force at g_k: f_k⁻ = (h/2) f(t_k, g_k, m_k).
             m_plus = m_plus + h / 2 * _checked_force(force, t, g, m)
         g_next, m_next, info = system.free_flow(self, g, m_plus, h)
-        m_next = system.kick(g_next, m_next, h / 2)
+        if system.potential is not None:
+            end_force = system.force(g_next)
+            m_next = m_next + h / 2 * end_force
         iterations, residual, result = info.iterations, info.residual, info.result
         if force is not None:
             # The integrator's stopping test (`newton_tolerance`), relative by default.
@@ -194,7 +249,7 @@ class AbstractKickIntegrator(AbstractIntegrator):
         # A non-finite potential or force shows up only after the free step's own checks.
         nonfinite = (result == RESULTS.successful) & ~jnp.all(jnp.isfinite(m_next))
         result = jnp.where(nonfinite, RESULTS.nonfinite, result)
-        return g_next, m_next, StepInfo(result, iterations, residual)
+        return g_next, m_next, StepInfo(result, iterations, residual), end_force
 
 
 def _checked_force(force, t, g, m):

@@ -194,27 +194,50 @@ class Composition(AbstractIntegrator):
         return None if inner is None else CompositionKernel(inner, self.coefficients)
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
+        return self._stages(system, g, m, h, self.method.step_cache(system, g), force, t)[:3]
+
+    def step_cache(self, system: AbstractLieSystem, g):
+        # Each stage ends where the next begins: the inner method's cache passes through
+        # the stages and from one step to the next (for a kick method, its force).
+        if self._overridden_below("cached_step", ("step",)):
+            return None
+        return self.method.step_cache(system, g)
+
+    def cached_step(
+        self, system: AbstractLieSystem, g, m, h: Scalar, cache, force=None, t: Scalar = 0.0
+    ):
+        if self._overridden_below("cached_step", ("step",)):
+            # A subclass's own step runs as it is written (`AbstractIntegrator`'s default).
+            return super().cached_step(system, g, m, h, cache, force, t)
+        return self._stages(system, g, m, h, cache, force, t)
+
+    def _stages(self, system, g, m, h, cache, force, t):
         gammas = jnp.asarray(self.coefficients, dtype=m.dtype)
         # Each stage starts where the previous ones ended (negative coefficients step back).
         starts = t + h * (jnp.cumsum(gammas) - gammas)
 
         def stage(carry, stage_data):
             gamma, start = stage_data
-            g, m, result, iterations, residual = carry
-            g, m, info = self.method.step(system, g, m, gamma * h, force, start)
+            g, m, cache, result, iterations, residual = carry
+            g, m, info, cache = self.method.cached_step(
+                system, g, m, gamma * h, cache, force, start
+            )
             result = RESULTS.first_failure(result, info.result)
             iterations = iterations + info.iterations
             residual = jnp.maximum(residual, info.residual)
-            return (g, m, result, iterations, residual), None
+            return (g, m, cache, result, iterations, residual), None
 
         init = (
             g,
             m,
+            cache,
             jnp.asarray(RESULTS.successful, jnp.int32),
             jnp.asarray(0, jnp.int32),
             jnp.asarray(0, m.dtype),
         )
         # A `scan` over the stages, not a Python loop: the inner step (a Newton solve for
         # the implicit methods) is traced and compiled once instead of up to nine times.
-        (g, m, result, iterations, residual), _ = jax.lax.scan(stage, init, (gammas, starts))
-        return g, m, StepInfo(result, iterations, residual)
+        (g, m, cache, result, iterations, residual), _ = jax.lax.scan(
+            stage, init, (gammas, starts)
+        )
+        return g, m, StepInfo(result, iterations, residual), cache
