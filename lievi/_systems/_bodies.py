@@ -14,6 +14,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from .._groups._so3 import SO3
 from .._results import RESULTS
 
 
@@ -45,3 +46,21 @@ def each_body(step, *per_body):
     leading body axis of each of `per_body`), with the report of the worst body."""
     g_next, m_next, info = jax.vmap(step)(*per_body)
     return g_next, m_next, worst_body_report(info)
+
+
+def orthonormal_frame(R, *spatial):
+    """`(R', v_1, …)`: the rotation `R` moved back onto SO(3) (`SO3.project`, its
+    orthogonality defect `δ` made `O(δ²)`), and the body-frame vectors `v_a = R'ᵀ s_a` of
+    the spatial vectors `s_a` (`(3,)` each) in that frame.
+
+    The kicks of a coupling of the relative rotations conserve the total spatial angular
+    momentum only for orthogonal rotations (their torques' spatial sum vanishes on the
+    group), so each body's rotation is kept orthogonal to an ulp after its free step, as
+    `SE3.compose` keeps a pose's. The body momenta are then read off the spatial ones,
+    which the free step conserves, with the projected rotation: with the rotation before
+    the projection its rounding defect — of one sign step after step for a steady spin,
+    or through a principal-axis change of frame (`cos² + sin² − 1` rounds alike) — would
+    move the spatial momentum by a few ulps per step, in one direction (measured: 7e-11
+    of the total angular momentum of a binary after 1e5 steps)."""
+    R = SO3.project(R)
+    return (R, *(R.T @ s for s in spatial))

@@ -40,7 +40,7 @@ from .._checks import check_real_dtype, spd_conditions
 from .._groups._base import MatrixLieGroup
 from .._groups._so3 import SO3
 from ._base import AbstractLieSystem
-from ._bodies import check_per_body_inertia, each_body
+from ._bodies import check_per_body_inertia, each_body, orthonormal_frame
 from ._potential import AbstractPotential, as_potential
 from ._rigid_body import RigidBody
 from ._side import Side
@@ -111,11 +111,17 @@ class RigidRotors(AbstractLieSystem):
     def free_flow(self, integrator, g, m, h: Scalar):
         """Each body's free step by `integrator`: its `free_step` of the free rigid body
         `RigidBody(J_i)` (the same code as for one body, its fast path included), the N
-        bodies at once (`jax.vmap`). The step's report is that of the worst body
+        bodies at once (`jax.vmap`), each rotation then kept orthogonal and its body
+        momentum read off the conserved spatial one (`_bodies.orthonormal_frame`, as for
+        `lievi.RigidBodies`). The step's report is that of the worst body
         (`_bodies.worst_body_report`)."""
-        return each_body(
-            lambda J, g, m: integrator.free_step(RigidBody(J), g, m, h), self.inertia, g, m
-        )
+
+        def one(J, g, m):
+            R, Pi, info = integrator.free_step(RigidBody(J), g, m, h)
+            R, Pi = orthonormal_frame(R, R @ Pi)
+            return R, Pi, info
+
+        return each_body(one, self.inertia, g, m)
 
     def lagrangian(self, xi: Float[Array, "N 3"]) -> Scalar:
         return jnp.sum(xi * self.legendre(xi)) / 2
