@@ -76,6 +76,7 @@ from ._systems._couplings import MutualGravity as MutualGravity
 from ._systems._couplings import SitePotential as SitePotential
 from ._systems._couplings import SiteSprings as SiteSprings
 from ._systems._couplings import gravitating_bodies as gravitating_bodies
+from ._systems._dipoles import DipoleCoupling as DipoleCoupling
 from ._systems._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
 from ._systems._lie_lagrangian import LieLagrangian as LieLagrangian
 from ._systems._neural_potential import NeuralPotential as NeuralPotential
@@ -89,6 +90,7 @@ from ._systems._potential import UniformGravity as UniformGravity
 from ._systems._rigid_bodies import RigidBodies as RigidBodies
 from ._systems._rigid_body import RigidBody as RigidBody
 from ._systems._rigid_body import heavy_top as heavy_top
+from ._systems._rigid_rotors import RigidRotors as RigidRotors
 from ._systems._se3_body import RigidBodySE3 as RigidBodySE3
 from ._systems._se3_potentials import CentralGravity as CentralGravity
 from ._systems._se3_potentials import UniformGravitySE3 as UniformGravitySE3

@@ -77,7 +77,10 @@ def total_momentum(
     For `lievi.RigidBodies` (`g` `(…, N, 4, 4)`, `m` `(…, N, 6)`): the total angular
     momentum about the world origin and the total linear momentum,
     `(Σ R_i Π_i + p_i × R_i P_i, Σ R_i P_i)`, conserved when the coupling depends on the
-    relative poses only. For one body, its `spatial_momentum`.
+    relative poses only. For `lievi.RigidRotors` (`g` `(…, N, 3, 3)`, `m` `(…, N, 3)`): the
+    total spatial angular momentum `Σ R_i Π_i` (each body's about its own pivot),
+    conserved when the coupling depends on the relative rotations only. For one body,
+    its `spatial_momentum`.
     """
     each = spatial_momentum(system, g, m)
     bodies = len(system.momentum_shape()) - 1  # 0 for one body, 1 for several

@@ -87,7 +87,7 @@ class AbstractLieSystem(eqx.Module):
     def free_flow(self, integrator, g, m, h: Scalar):
         """The free step of a kick integrator (`AbstractKickIntegrator.free_step`) on this
         system: the integrator's own (the default). A system of several bodies steps each
-        body with it (`lievi.RigidBodies`)."""
+        body with it (`lievi.RigidBodies`, `lievi.RigidRotors`)."""
         return integrator.free_step(self, g, m, h)
 
     @abc.abstractmethod

@@ -36,21 +36,11 @@ from jaxtyping import Array, Float, Scalar
 from .._checks import check_real_dtype, spd_conditions
 from .._groups._base import MatrixLieGroup
 from .._groups._se3 import SE3
-from .._results import RESULTS
 from ._base import AbstractLieSystem
+from ._bodies import check_per_body_inertia, each_body
 from ._potential import AbstractPotential, as_potential
 from ._se3_body import rigid_body_tensor, spd_solve
 from ._side import Side
-
-
-def _check_inertia(inertia) -> None:
-    shape = jnp.shape(inertia)
-    if (len(shape) == 2 and shape[-1] == 3) or (len(shape) == 3 and shape[-2:] == (3, 3)):
-        return
-    raise ValueError(
-        "`inertia` must be principal moments of shape (N, 3) or tensors of shape (N, 3, 3), "
-        f"one per body, got shape {shape}."
-    )
 
 
 class RigidBodies(AbstractLieSystem):
@@ -83,15 +73,13 @@ class RigidBodies(AbstractLieSystem):
         check_real_dtype("inertia", inertia)
         check_real_dtype("mass", mass)
         inertia = jnp.asarray(inertia)
-        _check_inertia(inertia)
+        check_per_body_inertia(inertia)
         mass = jnp.asarray(mass)
         if mass.shape != inertia.shape[:1]:
             raise ValueError(
                 f"`mass` must have shape (N,) with N = {inertia.shape[0]} bodies (the leading "
                 f"axis of `inertia`), got shape {mass.shape}."
             )
-        if inertia.shape[0] < 1:
-            raise ValueError("`inertia` and `mass` describe no body: pass at least one.")
         self.inertia = inertia
         self.mass = mass
         self.potential = as_potential(potential)
@@ -131,15 +119,13 @@ class RigidBodies(AbstractLieSystem):
         a body in vacuum, origin at its centre of mass), the N bodies at once (`jax.vmap`).
         The step's report is that of the worst body: the first failing body's code, the
         most Newton iterations, the largest residual."""
-        g_next, m_next, info = jax.vmap(
-            lambda J, mass, g, m: integrator.free_body_step(J, mass, g, m, h)
-        )(self.inertia, self.mass, g, m)
-        failed = info.result != RESULTS.successful
-        result = jnp.where(jnp.any(failed), info.result[jnp.argmax(failed)], RESULTS.successful)
-        report = type(info)(
-            result.astype(jnp.int32), jnp.max(info.iterations), jnp.max(info.residual)
+        return each_body(
+            lambda J, mass, g, m: integrator.free_body_step(J, mass, g, m, h),
+            self.inertia,
+            self.mass,
+            g,
+            m,
         )
-        return g_next, m_next, report
 
     def lagrangian(self, xi: Float[Array, "N 6"]) -> Scalar:
         return jnp.sum(xi * self.legendre(xi)) / 2
