@@ -513,3 +513,39 @@ def test_control_per_body_in_a_batch_of_systems():
         lievi.simulate_batch(
             system, integrator, g0, m0s, h=h, n_steps=n, forcing=lievi.Control(u[:1])
         )
+
+
+@pytest.mark.parametrize(
+    "integrator",
+    [lievi.DEP(chart="cayley"), lievi.Composition(lievi.LiePoissonSplitting(), order=4)],
+    ids=["dep", "splitting-4"],
+)
+def test_coupling_evaluated_once_per_step(integrator):
+    """The loop carries the end kick's force to the next step's first kick: a step given
+    the force at its start (`cached_step`) evaluates the coupling once (`step`, which
+    computes both kicks' forces, twice), and the run equals `step` applied step by step
+    to round-off."""
+    system, g0, m0 = molecules_problem()
+    calls = []
+
+    def counted(g):
+        calls.append(None)
+        return system.potential(g)
+
+    counted_system = lievi.RigidBodies(system.inertia, system.mass, potential=counted)
+    h, n = 0.01, 40
+    cache = integrator.step_cache(system, g0)
+    calls.clear()  # the system's construction checks the potential once
+    jax.make_jaxpr(lambda g, m, c: integrator.cached_step(counted_system, g, m, h, c))(
+        g0, m0, cache
+    )
+    assert len(calls) == 1
+    jax.make_jaxpr(lambda g, m: integrator.step(counted_system, g, m, h))(g0, m0)
+    assert len(calls) == 3
+    sol = lievi.simulate(system, integrator, g0, m0, h=h, n_steps=n)
+    step = jax.jit(lambda g, m: integrator.step(system, g, m, h)[:2])
+    g, m = g0, m0
+    for _ in range(n):
+        g, m = step(g, m)
+    assert float(jnp.max(jnp.abs(sol.m[-1] - m))) <= 10 * ROUNDOFF
+    assert float(jnp.max(jnp.abs(sol.g[-1] - g))) <= 10 * ROUNDOFF

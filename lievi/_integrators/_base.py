@@ -160,7 +160,7 @@ class AbstractKickIntegrator(AbstractIntegrator):
 
     The step is `m⁺ = m_k + (h/2) M(g_k)`, `(g_{k+1}, m⁻) = free_step(g_k, m⁺)`,
     `m_{k+1} = m⁻ + (h/2) M(g_{k+1})` with `M` the system's generalised force
-    (`AbstractLieSystem.kick`). For a variational method with discrete Lagrangian
+    (`AbstractLieSystem.force`). For a variational method with discrete Lagrangian
     `L_d − (h/2)(V(g_k) + V(g_{k+1}))` this *is* its discrete Euler–Lagrange equation in
     momentum form (the discrete Legendre transforms `∓D_{1,2}L_d` pick up `∓(h/2)dV`); for
     a splitting it is the symmetric Strang composition with the exact flow of `V`. Either
@@ -171,6 +171,9 @@ class AbstractKickIntegrator(AbstractIntegrator):
     Lagrange–d'Alembert forces to these kicks: `f_k⁻ = (h/2) f(t_k, g_k, m_k)` to the
     first, `f_k⁺ = (h/2) f(t_{k+1}, g_{k+1}, m_{k+1})` to the last (implicit if `f`
     depends on `m`; see `lievi/_forcing.py`). The step stays symmetric and second order.
+
+    A run evaluates `M` once per step: `M(g_{k+1})` of one step's last kick is carried to
+    the next step's first (`step_cache`, `cached_step`).
     """
 
     @abc.abstractmethod

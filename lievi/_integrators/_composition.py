@@ -237,7 +237,5 @@ class Composition(AbstractIntegrator):
         )
         # A `scan` over the stages, not a Python loop: the inner step (a Newton solve for
         # the implicit methods) is traced and compiled once instead of up to nine times.
-        (g, m, cache, result, iterations, residual), _ = jax.lax.scan(
-            stage, init, (gammas, starts)
-        )
+        (g, m, cache, result, iterations, residual), _ = jax.lax.scan(stage, init, (gammas, starts))
         return g, m, StepInfo(result, iterations, residual), cache

@@ -15,7 +15,8 @@ steps them as kick (all bodies) – free step of each body – kick (all bodies)
 of the product is the product of the free steps, so it is each body's own step, run on the
 N bodies at once (`free_flow`: `jax.vmap` of the method's step over the bodies, which on
 SE(3) runs the structure-of-arrays kernel of `lievi/_kernels/_se3.py` with the N bodies as
-its batch). The coupling is evaluated once per kick.
+its batch). The coupling is evaluated once per step: the loop carries the end kick's force
+to the next step's first kick (`AbstractKickIntegrator.step_cache`).
 
 Symmetry: a potential of the relative poses, `V(h g_1, …, h g_N) = V(g_1, …, g_N)` for
 every `h ∈ SE(3)`, leaves the Lagrangian invariant under the diagonal action of SE(3);
