@@ -55,8 +55,9 @@ def simulate_with_neighbor_list(
 
     - `system`, `integrator`, `g0`, `m0`, `h`, `n_steps`, `save_every`, `throw`: as
       `simulate` (`g0` `(N, 4, 4)`, `m0` `(N, 6)` for `lievi.RigidBodies`).
-    - `rebuild_every`: steps per segment; a multiple of `save_every` that divides
-      `n_steps`.
+    - `rebuild_every`: steps per segment, dividing `n_steps`. Each segment runs with
+      every step saved (for the displacement check), thinned to every `save_every`-th
+      step of the run as it finishes: memory of one segment's steps plus the saves.
     - `builder`: `lievi.BruteForceNeighbors(skin)` (no dependency, `O((N k)²)` per build)
       or `lievi.JaxMDNeighbors(skin)` (jax-md's cell list, `O(N k)`), with the list's
       `capacity` (`None`: sized on the first build, then kept).
@@ -78,10 +79,12 @@ def simulate_with_neighbor_list(
     n_steps = check_integer("n_steps", n_steps, 1)
     save_every = check_integer("save_every", save_every, 1)
     rebuild_every = check_integer("rebuild_every", rebuild_every, 1)
-    if rebuild_every % save_every or n_steps % rebuild_every:
+    if n_steps % save_every:
+        raise ValueError(f"`save_every` ({save_every}) must divide `n_steps` ({n_steps}).")
+    if n_steps % rebuild_every:
         raise ValueError(
-            f"`rebuild_every` ({rebuild_every}) must be a multiple of `save_every` "
-            f"({save_every}) that divides `n_steps` ({n_steps}): a rebuild falls on a save."
+            f"`rebuild_every` ({rebuild_every}) must divide `n_steps` ({n_steps}): the "
+            "segments between rebuilds are of equal length (one compiled step)."
         )
     if not isinstance(builder, AbstractNeighborBuilder):
         raise TypeError(
@@ -92,12 +95,11 @@ def simulate_with_neighbor_list(
     g, m = jnp.asarray(g0), jnp.asarray(m0)
     positions = jax.jit(jax.vmap(potential.flat_positions))
     h_value = float(h)
-    per_segment = rebuild_every // save_every
     n_sites = potential.sites.shape[0] * potential.sites.shape[1]
     pieces, builds, most_pairs, largest = [], 0, 0, 0.0
-    failure = None
+    failure, state = None, None
     for segment in range(n_steps // rebuild_every):
-        pairs = builder(potential, g)
+        pairs, state = builder.build(potential, g, state)
         if builder.capacity is None:  # sized on the first build, then fixed (one compile)
             builder = dataclasses.replace(builder, capacity=pairs.shape[0])
         builds += 1
@@ -117,7 +119,7 @@ def simulate_with_neighbor_list(
         )
         if int(sol.result) != RESULTS.successful:
             failure = (int(sol.result), start + int(sol.stats["failed_step"]))
-            pieces.append(_thinned(sol, save_every, per_segment, first=segment == 0))
+            pieces.append(_kept(sol, start, save_every))
             break
         moved = np.asarray(positions(sol.g)) - np.asarray(potential.flat_positions(g))[None]
         displacement = float(np.sqrt(np.max(np.sum(moved * moved, axis=-1))))
@@ -129,7 +131,7 @@ def simulate_with_neighbor_list(
                 f"skin ({builder.skin / 2:.3g}), so a pair within the cut-off may be missing. "
                 "Pass a smaller `rebuild_every` or a larger `skin` to the builder."
             )
-        pieces.append(_thinned(sol, save_every, per_segment, first=segment == 0))
+        pieces.append(_kept(sol, start, save_every))
         g, m = sol.g[-1], sol.m[-1]
     joined = _join(pieces, h, n_steps, save_every, failure)
     stats = dict(
@@ -142,22 +144,15 @@ def simulate_with_neighbor_list(
     return eqx.tree_at(lambda s: s.stats, joined, stats)
 
 
-def _thinned(sol: Solution, save_every: int, per_segment: int, first: bool) -> Solution:
-    """A segment saved at every step, thinned to every `save_every`-th save (its first
-    save, the previous segment's last, dropped after the first segment); the per-step
-    statistics reduced over each `save_every` steps as `simulate` reduces them."""
-    keep = slice(0 if first else save_every, None, save_every)
-
-    def most(x):
-        return jnp.max(x.reshape(per_segment, save_every), axis=1)
-
-    stats = dict(
-        sol.stats,
-        newton_iterations=most(sol.stats["newton_iterations"]),
-        residual=most(sol.stats["residual"]),
-    )
+def _kept(sol: Solution, start: int, save_every: int) -> Solution:
+    """A segment from step `start`, saved at every step: its saves at the run's save
+    times (steps that are multiples of `save_every`; the segment's first state is the
+    previous segment's last, kept only for the first segment), and its per-step
+    statistics whole (`_join` reduces them over each `save_every` steps)."""
+    steps = start + np.arange(sol.ts.shape[0])
+    keep = np.flatnonzero((steps % save_every == 0) & ((steps > start) | (start == 0)))
     advected = None if sol.advected is None else sol.advected[keep]
-    return Solution(sol.ts[keep], sol.g[keep], sol.m[keep], sol.result, stats, advected)
+    return Solution(sol.ts[keep], sol.g[keep], sol.m[keep], sol.result, sol.stats, advected)
 
 
 def _join(pieces, h, n_steps: int, save_every: int, failure) -> Solution:
@@ -175,9 +170,11 @@ def _join(pieces, h, n_steps: int, save_every: int, failure) -> Solution:
         return jnp.concatenate([whole, pad])
 
     def stat(name):
+        """Per step, over the steps run (zero-padded), then the most over each interval
+        between saves, as `simulate` reports it."""
         whole = jnp.concatenate([p.stats[name] for p in pieces])
-        pad = jnp.zeros((n_saves - 1 - whole.shape[0],), whole.dtype)
-        return jnp.concatenate([whole, pad])
+        whole = jnp.concatenate([whole, jnp.zeros((n_steps - whole.shape[0],), whole.dtype)])
+        return jnp.max(whole.reshape(n_saves - 1, save_every), axis=1)
 
     m = joined("m")
     result, failed_step = (RESULTS.successful, -1) if failure is None else failure

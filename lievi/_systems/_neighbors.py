@@ -28,6 +28,7 @@ Builders run outside the compiled step (between segments), on concrete positions
 from __future__ import annotations
 
 import abc
+import functools
 import math
 
 import equinox as eqx
@@ -44,10 +45,15 @@ def minimum_image(d, box):
 
 def shifted_force(energy, r, cutoff, *args):
     """`e(r) − e(r_c) − (r − r_c) e'(r_c)`: the energy-and-force shifted pair energy, its
-    value and slope zero at `r_c` (`e'` by forward-mode autodiff, per pair, so that
-    parameter tables by site type are shifted pair by pair)."""
-    at_cutoff = jnp.full_like(r, cutoff)
-    e_c, slope_c = jax.jvp(lambda s: energy(s, *args), (at_cutoff,), (jnp.ones_like(r),))
+    value and slope zero at `r_c` (`e'` by forward-mode autodiff). Per pair where the
+    energy has parameter tables by site type or reads charges; else one number for all
+    pairs (half the work of a pair's energy)."""
+    if energy.tables() or energy.needs_charges():
+        at_cutoff, tangent, at_args = jnp.full_like(r, cutoff), jnp.ones_like(r), args
+    else:
+        at_cutoff, tangent = jnp.asarray(cutoff, r.dtype), jnp.ones((), r.dtype)
+        at_args = (0, 0, 0.0, 0.0)
+    e_c, slope_c = jax.jvp(lambda s: energy(s, *at_args), (at_cutoff,), (tangent,))
     return energy(r, *args) - e_c - (r - at_cutoff) * slope_c
 
 
@@ -94,17 +100,24 @@ class AbstractNeighborBuilder(eqx.Module):
         `(n, 3)` on different bodies (`body` `(n,)`) closer than `radius` (the minimum
         image in `box` `(3,)`, or free space where `box` is `None`), each pair once."""
 
+    def build(self, potential, g, state=None):
+        """`(pairs, state)`: the list at poses `g` and what a later build may reuse
+        (`state`, passed back in by `lievi.simulate_with_neighbor_list`; `None` the
+        first time). The default builds from scratch by `candidates`."""
+        x, body, radius, box = _inputs(potential, g, self.skin)
+        i, j = self.candidates(x, body, radius, box)
+        capacity = self.sized(len(i))
+        order = np.lexsort((j, i))
+        pairs = np.full((capacity, 2), fill_index(len(x)), dtype=np.int32)
+        pairs[: len(i), 0], pairs[: len(i), 1] = i[order], j[order]
+        return jnp.asarray(pairs), None
+
     def __call__(self, potential, g):
-        if potential.cutoff is None:
-            raise ValueError(
-                "A neighbour list needs a cut-off: build the potential with "
-                "`SitePotential(..., cutoff=r_c)`."
-            )
-        x = np.asarray(potential.flat_positions(jnp.asarray(g)))
-        n_sites, k = x.shape[0], potential.sites.shape[1]
-        box = None if potential.box is None else np.asarray(potential.box)
-        i, j = self.candidates(x, np.arange(n_sites) // k, float(potential.cutoff) + self.skin, box)
-        count = len(i)
+        return self.build(potential, g)[0]
+
+    def sized(self, count: int) -> int:
+        """The list's capacity for `count` pairs: `capacity`, or `capacity_factor ×
+        count` where it is `None`; a `ValueError` naming `capacity` if it is too small."""
         capacity = self.capacity
         if capacity is None:
             capacity = max(1, math.ceil(count * self.capacity_factor))
@@ -115,10 +128,48 @@ class AbstractNeighborBuilder(eqx.Module):
                 f"{math.ceil(count * self.capacity_factor)}), or leave it None to size it "
                 "on the first build."
             )
-        order = np.lexsort((j, i))
-        pairs = np.full((capacity, 2), fill_index(n_sites), dtype=np.int32)
-        pairs[:count, 0], pairs[:count, 1] = i[order], j[order]
-        return jnp.asarray(pairs)
+        return capacity
+
+
+def _inputs(potential, g, skin):
+    """`(x, body, radius, box)`: the flat site positions (NumPy), each site's body, the
+    list radius `cutoff + skin` and the box sides (or `None`)."""
+    if potential.cutoff is None:
+        raise ValueError(
+            "A neighbour list needs a cut-off: build the potential with "
+            "`SitePotential(..., cutoff=r_c)`."
+        )
+    x = np.asarray(potential.flat_positions(jnp.asarray(g)))
+    body = np.arange(x.shape[0]) // potential.sites.shape[1]
+    box = None if potential.box is None else np.asarray(potential.box)
+    return x, body, float(potential.cutoff) + skin, box
+
+
+@jax.jit
+def _kept_pairs(idx, body):
+    """jax-md's ordered sparse pairs `(2, C)` as `(low, high, keep)`: real pairs of sites
+    on different bodies (jax-md pads with the index `n`)."""
+    n = body.shape[0]
+    i, j = idx[0], idx[1]
+    keep = (i < n) & (j < n)
+    keep &= body[jnp.where(keep, i, 0)] != body[jnp.where(keep, j, 0)]
+    return jnp.minimum(i, j), jnp.maximum(i, j), keep
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _compacted(low_high_keep, n, capacity):
+    """The kept pairs, sorted, in the first rows of a `(capacity, 2)` list padded with
+    `fill_index(n)`."""
+    low, high, keep = low_high_keep
+    fill = fill_index(n)
+    low, high = jnp.where(keep, low, fill), jnp.where(keep, high, fill)
+    short = max(0, capacity - low.shape[0])  # jax-md's buffer may be the shorter
+    low, high = (
+        jnp.pad(low, (0, short), constant_values=fill),
+        jnp.pad(high, (0, short), constant_values=fill),
+    )
+    order = jnp.lexsort((high, low))[:capacity]
+    return jnp.stack([low[order], high[order]], axis=1).astype(jnp.int32)
 
 
 class BruteForceNeighbors(AbstractNeighborBuilder):
@@ -156,6 +207,19 @@ class JaxMDNeighbors(AbstractNeighborBuilder):
     """
 
     def candidates(self, x, body, radius, box):
+        pairs, _ = self._from_jax_md(x, body, radius, box, None)
+        real = np.asarray(pairs)
+        real = real[real[:, 1] < len(x)]
+        return real[:, 0], real[:, 1]
+
+    def build(self, potential, g, state=None):
+        """Allocates jax-md's list on the first build (or after jax-md reports an
+        overflow of its own buffers, or in free space a site left the bounding box);
+        later builds are jax-md's compiled `update` from the previous list."""
+        x, body, radius, box = _inputs(potential, g, self.skin)
+        return self._from_jax_md(x, body, radius, box, state)
+
+    def _from_jax_md(self, x, body, radius, box, state):
         try:
             from jax_md import partition, space
         except ImportError as error:
@@ -163,26 +227,43 @@ class JaxMDNeighbors(AbstractNeighborBuilder):
                 'JaxMDNeighbors builds the list with jax-md: pip install "lievi[jaxmd]", '
                 "or use lievi.BruteForceNeighbors (no extra dependency)."
             ) from error
-        n = x.shape[0]
-        if box is None:
-            x = x - x.min(axis=0) + radius
-            side = x.max(axis=0) + radius
-            displacement, _ = space.free()
-        else:
-            side = np.broadcast_to(box, (3,))
-            x = np.mod(x, side)
-            displacement, _ = space.periodic(jnp.asarray(side))
-        neighbor_fn = partition.neighbor_list(
-            displacement,
-            jnp.asarray(side),
-            radius,
-            dr_threshold=0.0,
-            capacity_multiplier=1.0,
-            format=partition.OrderedSparse,
-        )
-        i, j = np.asarray(neighbor_fn.allocate(jnp.asarray(x)).idx)
-        present = (i < n) & (j < n)
-        i, j = i[present], j[present]
-        keep = body[i] != body[j]
-        i, j = i[keep], j[keep]
-        return np.minimum(i, j), np.maximum(i, j)
+        if state is not None:
+            update, neighbors, origin, side = state
+            shifted = _into_box(x, origin, side, box)
+            if shifted is not None:
+                neighbors = update(jnp.asarray(shifted), neighbors)
+                if bool(neighbors.did_buffer_overflow):
+                    state = None
+            else:
+                state = None
+        if state is None:
+            if box is None:  # a bounding box with a margin, the sites shifted into it
+                origin = x.min(axis=0) - 2 * radius
+                side = x.max(axis=0) - origin + 2 * radius
+                displacement, _ = space.free()
+            else:
+                origin, side = np.zeros(3), np.broadcast_to(box, (3,))
+                displacement, _ = space.periodic(jnp.asarray(side))
+            neighbor_fn = partition.neighbor_list(
+                displacement,
+                jnp.asarray(side),
+                radius,
+                dr_threshold=0.0,
+                capacity_multiplier=1.25,
+                format=partition.OrderedSparse,
+            )
+            neighbors = neighbor_fn.allocate(jnp.asarray(_into_box(x, origin, side, box)))
+            update = jax.jit(neighbor_fn.update)
+        kept = _kept_pairs(neighbors.idx, jnp.asarray(body))
+        capacity = self.sized(int(jnp.sum(kept[2])))
+        pairs = _compacted(kept, len(x), capacity)
+        return pairs, (update, neighbors, origin, side)
+
+
+def _into_box(x, origin, side, box):
+    """The sites in jax-md's box: wrapped into a periodic box; in free space shifted by
+    `origin`, or `None` where one left the bounding box `[0, side)`."""
+    if box is not None:
+        return np.mod(x, side)
+    shifted = x - origin
+    return shifted if bool(np.all((shifted >= 0) & (shifted < side))) else None
