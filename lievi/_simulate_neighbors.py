@@ -30,6 +30,12 @@ from ._solution import Solution
 from ._systems._neighbors import AbstractNeighborBuilder
 
 
+@eqx.filter_jit
+def _positions(potential, g):
+    """The flat site positions at each of the poses `g` `(T, N, 4, 4)`."""
+    return jax.vmap(potential.flat_positions)(g)
+
+
 def _default_where(system):
     return system.potential
 
@@ -93,7 +99,6 @@ def simulate_with_neighbor_list(
         )
     potential = where(system)
     g, m = jnp.asarray(g0), jnp.asarray(m0)
-    positions = jax.jit(jax.vmap(potential.flat_positions))
     h_value = float(h)
     n_sites = potential.sites.shape[0] * potential.sites.shape[1]
     pieces, builds, most_pairs, largest = [], 0, 0, 0.0
@@ -121,7 +126,9 @@ def simulate_with_neighbor_list(
             failure = (int(sol.result), start + int(sol.stats["failed_step"]))
             pieces.append(_kept(sol, start, save_every))
             break
-        moved = np.asarray(positions(sol.g)) - np.asarray(potential.flat_positions(g))[None]
+        moved = (
+            np.asarray(_positions(potential, sol.g)) - np.asarray(potential.flat_positions(g))[None]
+        )
         displacement = float(np.sqrt(np.max(np.sum(moved * moved, axis=-1))))
         largest = max(largest, displacement)
         if displacement >= builder.skin / 2:

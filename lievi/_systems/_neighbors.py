@@ -125,8 +125,9 @@ class AbstractNeighborBuilder(eqx.Module):
             raise ValueError(
                 f"The neighbour list needs {count} pairs, more than its `capacity` "
                 f"({capacity}): pass a larger `capacity` to the builder (e.g. "
-                f"{math.ceil(count * self.capacity_factor)}), or leave it None to size it "
-                "on the first build."
+                f"{math.ceil(count * self.capacity_factor)}), or a larger "
+                "`capacity_factor` (an automatic capacity is that times the first build's "
+                "pairs)."
             )
         return capacity
 
@@ -158,18 +159,14 @@ def _kept_pairs(idx, body):
 
 @functools.partial(jax.jit, static_argnums=2)
 def _compacted(low_high_keep, n, capacity):
-    """The kept pairs, sorted, in the first rows of a `(capacity, 2)` list padded with
-    `fill_index(n)`."""
+    """The kept pairs, in jax-md's order (by first site), in the first rows of a
+    `(capacity, 2)` list padded with `fill_index(n)`."""
     low, high, keep = low_high_keep
     fill = fill_index(n)
-    low, high = jnp.where(keep, low, fill), jnp.where(keep, high, fill)
-    short = max(0, capacity - low.shape[0])  # jax-md's buffer may be the shorter
-    low, high = (
-        jnp.pad(low, (0, short), constant_values=fill),
-        jnp.pad(high, (0, short), constant_values=fill),
-    )
-    order = jnp.lexsort((high, low))[:capacity]
-    return jnp.stack([low[order], high[order]], axis=1).astype(jnp.int32)
+    (rows,) = jnp.nonzero(keep, size=capacity, fill_value=low.shape[0])
+    low = jnp.append(low, fill)[rows]
+    high = jnp.append(high, fill)[rows]
+    return jnp.stack([low, high], axis=1).astype(jnp.int32)
 
 
 class BruteForceNeighbors(AbstractNeighborBuilder):
@@ -240,24 +237,33 @@ class JaxMDNeighbors(AbstractNeighborBuilder):
             if box is None:  # a bounding box with a margin, the sites shifted into it
                 origin = x.min(axis=0) - 2 * radius
                 side = x.max(axis=0) - origin + 2 * radius
-                displacement, _ = space.free()
             else:
                 origin, side = np.zeros(3), np.broadcast_to(box, (3,))
-                displacement, _ = space.periodic(jnp.asarray(side))
-            neighbor_fn = partition.neighbor_list(
-                displacement,
-                jnp.asarray(side),
-                radius,
-                dr_threshold=0.0,
-                capacity_multiplier=1.25,
-                format=partition.OrderedSparse,
+            allocate, update = _jax_md_list(
+                partition, space, tuple(map(float, side)), radius, box is not None
             )
-            neighbors = neighbor_fn.allocate(jnp.asarray(_into_box(x, origin, side, box)))
-            update = jax.jit(neighbor_fn.update)
+            neighbors = allocate(jnp.asarray(_into_box(x, origin, side, box)))
         kept = _kept_pairs(neighbors.idx, jnp.asarray(body))
         capacity = self.sized(int(jnp.sum(kept[2])))
         pairs = _compacted(kept, len(x), capacity)
         return pairs, (update, neighbors, origin, side)
+
+
+@functools.lru_cache(maxsize=8)
+def _jax_md_list(partition, space, side: tuple, radius: float, periodic: bool):
+    """jax-md's `(allocate, jitted update)` for a box and radius, kept across builds and
+    runs so that `update` compiles once."""
+    box = jnp.asarray(side)
+    displacement, _ = space.periodic(box) if periodic else space.free()
+    neighbor_fn = partition.neighbor_list(
+        displacement,
+        box,
+        radius,
+        dr_threshold=0.0,
+        capacity_multiplier=1.25,
+        format=partition.OrderedSparse,
+    )
+    return neighbor_fn.allocate, jax.jit(neighbor_fn.update)
 
 
 def _into_box(x, origin, side, box):
