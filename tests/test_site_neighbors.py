@@ -254,6 +254,23 @@ def test_stale_list_is_reported():
         )
 
 
+def test_failed_step_ends_the_run(segmented):
+    """Coincident sites at the start, `throw=False`: `RESULTS.nonfinite` at step 0, the
+    saves after it NaN, the shape that of the whole horizon."""
+    system, g0, m0, _ = segmented
+    g0 = g0.at[1].set(g0[0])
+    builder = lievi.BruteForceNeighbors(SKIN, capacity=CAPACITY)
+    sol = lievi.simulate_with_neighbor_list(
+        system, METHOD, g0, m0, h=H, n_steps=40, rebuild_every=10, builder=builder, throw=False
+    )
+    assert int(sol.result) == lievi.RESULTS.nonfinite and int(sol.stats["failed_step"]) == 0
+    assert sol.g.shape[0] == 41 and bool(jnp.all(jnp.isnan(sol.m[1:])))
+    with pytest.raises(Exception, match="NaN or inf"):
+        lievi.simulate_with_neighbor_list(
+            system, METHOD, g0, m0, h=H, n_steps=40, rebuild_every=10, builder=builder
+        )
+
+
 def test_capacity_overflow_is_reported():
     system, g0, _ = box_problem()
     with pytest.raises(ValueError, match="`capacity`"):
