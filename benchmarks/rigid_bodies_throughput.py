@@ -11,6 +11,13 @@ Rows, all in one run, float64, `--steps` steps of size 0.01, final state only:
   kick; `2·B` body-steps per step;
 - "one system of N bodies": one `simulate` of `N` single-site Lennard-Jones bodies (all
   `N(N−1)/2` pairs: no neighbour list), `N` body-steps per step;
+- "one system of N bodies, neighbour list": one `simulate_with_neighbor_list` of
+  `--neighbor-bodies` (default 10⁴) single-site Lennard-Jones bodies at liquid density
+  (`ρσ³ = 0.8`, temperature 0.7) in a periodic box, cut-off 2.5σ, skin 0.6σ, the list
+  rebuilt every 10 steps (jax-md's cell list where jax-md is installed, else the
+  brute-force builder), `h = 0.005`; the rebuilds and validity checks are inside the
+  timed run. Timed alone too: one build from scratch (jax-md's `allocate`), one rebuild
+  (its compiled `update`), and the same steps on one fixed list ("steps only");
 - the cost of a gradient: `jax.grad` with respect to the gravitational constant `G` of a
   function of the final state of one binary, against the same run forward.
 
@@ -20,9 +27,11 @@ figures move with it, the ratios (same run) less.
 
     python benchmarks/rigid_bodies_throughput.py [--systems 1000] [--bodies 1000]
                                                  [--steps 100] [--out rigid_bodies_throughput]
-                                                 [--gradient-only]
+                                                 [--neighbor-bodies 10000]
+                                                 [--gradient-only] [--neighbors-only]
 
-`--gradient-only` runs the gradient rows alone. The gradient and the forward run are timed
+`--gradient-only` runs the gradient rows alone; `--neighbors-only` the baseline and the
+neighbour-list rows alone. The gradient and the forward run are timed
 in interleaved rounds (7), each the best of its rounds, in wall-clock and in process CPU
 time (less sensitive to other jobs on the machine).
 
@@ -36,6 +45,7 @@ import json
 import os
 import pathlib
 import platform
+import sys
 import time
 
 import equinox as eqx
@@ -50,6 +60,7 @@ import lievi  # noqa: E402
 
 H = 0.01
 RESULTS = pathlib.Path(__file__).parent / "results"
+SKIN = 0.6  # the neighbour-list row's
 METHODS = {"DEP Cayley": lievi.DEP(chart="cayley"), "splitting": lievi.LiePoissonSplitting()}
 
 
@@ -99,13 +110,120 @@ def lennard_jones_cloud(n_bodies, rng):
     return system, g0, m0
 
 
+def lennard_jones_liquid(n_bodies, rng, density=0.8, temperature=0.7):
+    """`n_bodies` one-site bodies at number density `density` in a periodic cube, cut-off
+    2.5σ: a jittered simple-cubic lattice, Maxwell momenta of zero total."""
+    box = (n_bodies / density) ** (1 / 3)
+    side = int(np.ceil(n_bodies ** (1 / 3)))
+    grid = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    positions = (grid[:n_bodies] + 0.5) * box / side + rng.uniform(-0.02, 0.02, (n_bodies, 3))
+    sites = jnp.zeros((n_bodies, 1, 3)).at[:, 0, 0].set(0.05)  # off the centre: torques
+    potential = lievi.SitePotential(sites, lievi.LennardJones(1.0, 1.0), cutoff=2.5, box=box)
+    system = lievi.RigidBodies(jnp.ones((n_bodies, 3)), jnp.ones(n_bodies), potential=potential)
+    g0 = jnp.broadcast_to(jnp.eye(4), (n_bodies, 4, 4)).at[:, :3, 3].set(jnp.asarray(positions))
+    m0 = rng.normal(size=(n_bodies, 6)) * np.sqrt(temperature)
+    m0[:, 3:] -= m0[:, 3:].mean(axis=0)
+    return system, g0, jnp.asarray(m0)
+
+
+def neighbor_rows(args, rng, baseline):
+    """The neighbour-list row of each method: body-steps per second of the whole run."""
+    try:
+        import jax_md  # noqa: F401
+
+        builder = lievi.JaxMDNeighbors(skin=SKIN)
+    except ImportError:
+        builder = lievi.BruteForceNeighbors(skin=SKIN)
+    system, g0, m0 = lennard_jones_liquid(args.neighbor_bodies, rng)
+    jax.block_until_ready(builder(system.potential, g0))  # compile the builder's pieces
+    start = time.perf_counter()
+    pairs, state = jax.block_until_ready(builder.build(system.potential, g0))
+    build_s = time.perf_counter() - start
+    jax.block_until_ready(builder.build(system.potential, g0, state)[0])
+    start = time.perf_counter()
+    jax.block_until_ready(builder.build(system.potential, g0, state)[0])
+    rebuild_s = time.perf_counter() - start
+    n_pairs = int(jnp.sum(pairs[:, 1] < args.neighbor_bodies))
+    print(
+        f"{type(builder).__name__}: {n_pairs} pairs within {2.5 + SKIN:.2g}σ, one build "
+        f"{build_s:.3g} s, one rebuild {rebuild_s:.3g} s, box side "
+        f"{float(system.potential.box[0]):.4g}σ"
+    )
+    listed = eqx.tree_at(lambda s: s.potential, system, system.potential.with_neighbors(pairs))
+    rows = []
+    for name, method in METHODS.items():
+        label = f"one system of {args.neighbor_bodies} LJ bodies, neighbour list"
+
+        def run(method=method):
+            return lievi.simulate_with_neighbor_list(
+                system,
+                method,
+                g0,
+                m0,
+                h=0.005,
+                n_steps=args.steps,
+                rebuild_every=10,
+                save_every=args.steps,
+                builder=builder,
+            )
+
+        # One warm-up run (compiles), one timed: each run is minutes at 10⁴ bodies.
+        start = time.perf_counter()
+        jax.block_until_ready(run())
+        first = time.perf_counter() - start
+        start = time.perf_counter()
+        sol = jax.block_until_ready(run())
+        seconds = time.perf_counter() - start
+        compile_s = max(first - seconds, 0.0)
+        assert int(sol.result) == lievi.RESULTS.successful
+        steps_only, _ = _timed(
+            lambda method=method: lievi.simulate(
+                listed, method, g0, m0, h=0.005, n_steps=args.steps, save_every=args.steps
+            ),
+            rounds=1,
+        )
+        rate = args.neighbor_bodies * args.steps / seconds
+        rows.append(
+            {
+                "method": name,
+                "case": label,
+                "body_steps_per_s": rate,
+                "seconds": seconds,
+                "compile_s": compile_s,
+                "ratio_to_free_fast_path": rate / baseline,
+                "builder": type(builder).__name__,
+                "pairs_at_start": n_pairs,
+                "list_capacity": int(sol.stats["neighbor_capacity"]),
+                "builds_per_run": int(sol.stats["neighbor_builds"]),
+                "one_build_s": build_s,
+                "one_rebuild_s": rebuild_s,
+                "steps_only_body_steps_per_s": args.neighbor_bodies * args.steps / steps_only,
+                "max_site_displacement": float(sol.stats["neighbor_max_displacement"]),
+                "h": 0.005,
+                "rebuild_every": 10,
+                "skin": SKIN,
+                "cutoff": 2.5,
+                "density": 0.8,
+            }
+        )
+        print(
+            f"{name:11s} {label:52s} {rate:10.3g} body-steps/s ({rate / baseline:.3g}× the "
+            f"baseline), compile {compile_s:.1f} s, {rows[-1]['builds_per_run']} builds/run; "
+            f"steps only {rows[-1]['steps_only_body_steps_per_s']:.3g} body-steps/s; largest "
+            f"site displacement {rows[-1]['max_site_displacement']:.3g} (skin/2 = {SKIN / 2})"
+        )
+    return rows
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--systems", type=int, default=1000)
     parser.add_argument("--bodies", type=int, default=1000)
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--out", default="rigid_bodies_throughput")
+    parser.add_argument("--neighbor-bodies", type=int, default=10_000)
     parser.add_argument("--gradient-only", action="store_true")
+    parser.add_argument("--neighbors-only", action="store_true")
     args = parser.parse_args()
     rng = np.random.default_rng(0)
     load = os.getloadavg()[0]
@@ -139,6 +257,8 @@ def main():
             }
         )
         print(f"{'DEP Cayley':11s} {rows[-1]['case']:52s} {baseline:10.3g} body-steps/s")
+        rows += neighbor_rows(args, rng, baseline)
+    if not (args.gradient_only or args.neighbors_only):
         for name, method in METHODS.items():
             cases = (
                 (
@@ -179,7 +299,7 @@ def main():
     system, g0, m0 = systems, g_bin[0], m_bin[0]
     one = jax.tree.map(lambda x: x[0], system)
     n_steps = 10 * args.steps
-    for name, method in METHODS.items():
+    for name, method in METHODS.items() if not args.neighbors_only else ():
 
         def final(G, method=method):
             coupled = eqx.tree_at(lambda s: s.potential.G, one, G)
@@ -219,6 +339,7 @@ def main():
         )
 
     document = {
+        "command": "python benchmarks/rigid_bodies_throughput.py " + " ".join(sys.argv[1:]),
         "steps": args.steps,
         "h": H,
         "dtype": "float64",

@@ -63,6 +63,7 @@ from ._sharding import shard_process_batch as shard_process_batch
 from ._simulate import simulate as simulate
 from ._simulate_batch import has_fast_path as has_fast_path
 from ._simulate_batch import simulate_batch as simulate_batch
+from ._simulate_neighbors import simulate_with_neighbor_list as simulate_with_neighbor_list
 from ._solution import Solution as Solution
 from ._stream import stream_batch as stream_batch
 from ._stream_writer import AbstractStreamWriter as AbstractStreamWriter
@@ -79,6 +80,10 @@ from ._systems._couplings import gravitating_bodies as gravitating_bodies
 from ._systems._dipoles import DipoleCoupling as DipoleCoupling
 from ._systems._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
 from ._systems._lie_lagrangian import LieLagrangian as LieLagrangian
+from ._systems._neighbors import AbstractNeighborBuilder as AbstractNeighborBuilder
+from ._systems._neighbors import BruteForceNeighbors as BruteForceNeighbors
+from ._systems._neighbors import JaxMDNeighbors as JaxMDNeighbors
+from ._systems._neighbors import minimum_image as minimum_image
 from ._systems._neural_potential import NeuralPotential as NeuralPotential
 from ._systems._pair_energies import AbstractPairEnergy as AbstractPairEnergy
 from ._systems._pair_energies import Coulomb as Coulomb

@@ -32,7 +32,17 @@ LAYERS = (
             "_simulate",
         ),
     ),
-    ("batches", ("_simulate_vmap", "_simulate_batch", "_sharding", "_stream", "_stream_writer")),
+    (
+        "batches",
+        (
+            "_simulate_vmap",
+            "_simulate_batch",
+            "_sharding",
+            "_stream",
+            "_stream_writer",
+            "_simulate_neighbors",
+        ),
+    ),
     (
         "applications",
         (

@@ -8,7 +8,9 @@ so the total linear and angular momentum are conserved (`lievi.RigidBodies`). Pa
 sites on one body are excluded (their distance is fixed: a constant energy).
 
 - `SitePotential`: a pair energy (`lievi.LennardJones`, `lievi.Coulomb`, `lievi.Morse`,
-  or several summed) over every pair of sites on different bodies — rigid molecules;
+  or several summed) over every pair of sites on different bodies — rigid molecules —
+  optionally with a cut-off, in a periodic box, over a neighbour list (`_neighbors.py`;
+  a box keeps the total linear momentum, not the angular);
 - `SiteSprings`: springs between named sites — formations, tethers;
 - `MutualGravity`: Newtonian gravity between point-mass sets — the full body problem of
   extended bodies modelled as point masses (`gravitating_bodies` builds the system).
@@ -27,6 +29,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._checks import is_concrete
+from ._neighbors import fill_index, minimum_image, shifted_force
 from ._pair_energies import AbstractPairEnergy
 from ._potential import AbstractPotential
 from ._rigid_bodies import RigidBodies
@@ -81,22 +84,48 @@ class SitePotential(AbstractPotential):
     - `types`: integer site types `(N, k)` (default all 0), indexing the `(T, T)`
       parameter tables of the pair energies.
     - `charges`: site charges `(N, k)`, for `lievi.Coulomb`.
+    - `cutoff`: `r_c > 0`, or `None` (default: no cut-off). Pairs farther than `r_c`
+      contribute nothing, and each pair energy is energy-and-force shifted,
+      `e(r) − e(r_c) − (r − r_c) e'(r_c)`, so that energy and force vanish continuously at
+      `r_c` and the integrator's energy error stays bounded (a plain truncation makes
+      them jump whenever a pair crosses `r_c`).
+    - `box`: the sides of an orthorhombic periodic box, a scalar or `(3,)`, `> 0`, or
+      `None` (default: free space). Separations are taken to the nearest periodic image
+      (`d − L·round(d/L)`), which needs `cutoff ≤ L/2` (then it is the only image within
+      reach). Bodies' centres are not wrapped: poses move freely through the box walls,
+      only the separations are imaged. The energy is invariant under translations (the
+      total linear momentum is conserved) but not under rotations: the box has axes, and
+      the total angular momentum is not conserved.
+    - `neighbors`: a pair list `(P, 2)` of flat site indices (body-major, `body·k + site`),
+      rows with an index `N·k` padding (contributing nothing), or `None` (default: every
+      pair of sites on different bodies). Needs `cutoff`. Built by
+      `lievi.BruteForceNeighbors` or `lievi.JaxMDNeighbors` with a skin, valid while no
+      site has moved more than half the skin; `lievi.simulate_with_neighbor_list` rebuilds
+      and checks it during a run.
 
-    Cost: one evaluation of `e` per pair, `N k (N − 1) k / 2` pairs (all pairs, no
-    cut-off or neighbour list).
+    Cost: one evaluation of `e` per pair, `N k (N − 1) k / 2` pairs without a neighbour
+    list (twice that with a cut-off: `e(r_c)`, `e'(r_c)` per pair), `P` with one.
     """
 
     sites: Float[Array, "N k 3"]
     pair: tuple[AbstractPairEnergy, ...]
     types: Int[Array, "N k"]
     charges: Float[Array, "N k"] | None
+    cutoff: Float[Array, ""] | None
+    box: Float[Array, " 3"] | None
+    neighbors: Int[Array, "P 2"] | None
 
-    def __init__(self, sites, pair, types=None, charges=None):
+    def __init__(
+        self, sites, pair, types=None, charges=None, *, cutoff=None, box=None, neighbors=None
+    ):
         self.sites = jnp.asarray(sites, float)
         self.pair = tuple(pair) if isinstance(pair, (tuple, list)) else (pair,)
         shape = jnp.shape(self.sites)[:2]
         self.types = jnp.zeros(shape, int) if types is None else jnp.asarray(types)
         self.charges = None if charges is None else jnp.asarray(charges, float)
+        self.cutoff = None if cutoff is None else jnp.asarray(cutoff, float)
+        self.box = None if box is None else jnp.broadcast_to(jnp.asarray(box, float), (3,))
+        self.neighbors = None if neighbors is None else jnp.asarray(neighbors)
 
     def __check_init__(self):
         _check_sites(self.sites, {"types": self.types, "charges": self.charges})
@@ -124,6 +153,54 @@ class SitePotential(AbstractPotential):
                             f"{largest}: give a ({largest + 1}, {largest + 1}) table or fix "
                             "`types`."
                         )
+        self._check_box_and_neighbors()
+
+    def _check_box_and_neighbors(self):
+        if self.cutoff is not None and jnp.ndim(self.cutoff) != 0:
+            raise ValueError(f"`cutoff` must be a scalar, got shape {jnp.shape(self.cutoff)}.")
+        if self.box is not None and self.cutoff is None:
+            raise ValueError(
+                "A periodic `box` needs a `cutoff` ≤ half the box: the minimum-image energy "
+                "without one jumps where a pair crosses half the box."
+            )
+        if self.neighbors is not None and self.cutoff is None:
+            raise ValueError("`neighbors` needs a `cutoff` (the list holds the pairs within it).")
+        concrete = is_concrete(self.cutoff, self.box)
+        if self.cutoff is not None and concrete and not float(self.cutoff) > 0:
+            raise ValueError(f"`cutoff` must be > 0, got {float(self.cutoff)}.")
+        if self.box is not None and concrete:
+            if not bool(jnp.all(self.box > 0)):
+                raise ValueError(f"`box` sides must all be > 0, got {self.box.tolist()}.")
+            if float(self.cutoff) > float(jnp.min(self.box)) / 2:
+                raise ValueError(
+                    f"`cutoff` ({float(self.cutoff)}) must be at most half the smallest side "
+                    f"of `box` ({float(jnp.min(self.box))}): beyond, a site would reach two "
+                    "images of another. Use a larger box or a shorter cut-off."
+                )
+        if self.neighbors is not None:
+            self._check_neighbors()
+
+    def _check_neighbors(self):
+        pairs = self.neighbors
+        if pairs.ndim != 2 or pairs.shape[1] != 2 or not jnp.issubdtype(pairs.dtype, jnp.integer):
+            raise ValueError(
+                "`neighbors` must be integers of shape (P, 2), flat site indices, got shape "
+                f"{pairs.shape} and dtype {pairs.dtype}."
+            )
+        if is_concrete(pairs) and pairs.size:
+            n, k = jnp.shape(self.sites)[:2]
+            p = np.asarray(pairs)
+            if p.min() < 0 or p.max() > fill_index(n * k):
+                raise ValueError(
+                    f"`neighbors` holds indices outside [0, {n * k}] (the {n * k} flat sites "
+                    f"and the padding index {fill_index(n * k)})."
+                )
+            real = (p < n * k).all(axis=1)
+            if (p[real, 0] // k == p[real, 1] // k).any():
+                raise ValueError(
+                    "`neighbors` pairs two sites of one body (their distance is fixed): list "
+                    "only sites of different bodies, as the builders do."
+                )
 
     def parameter_conditions(self):
         conditions = super().parameter_conditions()
@@ -131,13 +208,53 @@ class SitePotential(AbstractPotential):
             conditions = conditions + energy.parameter_conditions()
         return conditions
 
+    def flat_positions(self, g):
+        """The world positions of the sites, flattened body-major, `(N·k, 3)`."""
+        n, k = jnp.shape(self.sites)[:2]
+        return site_positions(g, jnp.asarray(self.sites, g.dtype)).reshape(n * k, 3)
+
+    def with_neighbors(self, neighbors):
+        """This potential summing over the pair list `neighbors` `(P, 2)` (from a
+        builder, `lievi.BruteForceNeighbors` or `lievi.JaxMDNeighbors`)."""
+        return SitePotential(
+            self.sites,
+            self.pair,
+            self.types,
+            self.charges,
+            cutoff=self.cutoff,
+            box=self.box,
+            neighbors=neighbors,
+        )
+
     def __call__(self, g):
-        r, i, j = _distances(g, self.sites)
+        x = self.flat_positions(g)
+        n_sites = x.shape[0]
+        if self.neighbors is None:
+            i, j = cross_body_pairs(*jnp.shape(self.sites)[:2])
+            listed = True
+        else:
+            listed = self.neighbors[:, 1] < n_sites
+            i = jnp.where(listed, self.neighbors[:, 0], 0)
+            j = jnp.where(listed, self.neighbors[:, 1], 0)
+        d = x[i] - x[j]
+        if self.box is not None:
+            d = minimum_image(d, self.box.astype(d.dtype))
+        squared = jnp.sum(d * d, axis=-1)
         types = self.types.reshape(-1)
         charges = (
             jnp.zeros(types.shape, g.dtype) if self.charges is None else self.charges.reshape(-1)
         )
-        return sum(jnp.sum(e(r, types[i], types[j], charges[i], charges[j])) for e in self.pair)
+        args = (types[i], types[j], charges[i], charges[j])
+        if self.cutoff is None:
+            r = jnp.sqrt(squared)
+            return sum(jnp.sum(e(r, *args)) for e in self.pair)
+        cutoff = self.cutoff.astype(squared.dtype)
+        inside = listed & (squared < cutoff * cutoff)
+        # Outside (and for padding rows, whose distance is 0) r is set to r_c before the
+        # square root: both branches of `where` are differentiated.
+        r = jnp.sqrt(jnp.where(inside, squared, cutoff * cutoff))
+        total = sum(shifted_force(e, r, cutoff, *args) for e in self.pair)
+        return jnp.sum(jnp.where(inside, total, 0.0))
 
 
 class SiteSprings(AbstractPotential):

@@ -1,0 +1,202 @@
+"""`simulate_with_neighbor_list`: one run of a system whose site potential sums over a
+neighbour list, in segments with a rebuild of the list between them.
+
+A neighbour list built with a skin holds every pair within the cut-off only while no site
+has moved more than half the skin (`lievi/_systems/_neighbors.py`), so a long run is cut
+into segments of `rebuild_every` steps, each one `simulate` call from the state the last
+ended in, on the potential with a list built at that state. The list is data of the
+potential (a fixed-shape int array), so every segment runs the same compiled step. After
+each segment the largest site displacement since the build is checked against `skin/2`
+at every step of the segment: a list that went stale is an error naming the fix, never
+a silently wrong force. A segment boundary is a save, where `simulate` changes nothing in
+float64 (as for `lievi.stream_batch`), so the run equals one `simulate` call on the
+all-pairs cut-off potential to round-off.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._checks import check_integer
+from ._results import RESULTS
+from ._simulate import simulate
+from ._solution import Solution
+from ._systems._neighbors import AbstractNeighborBuilder
+
+
+@eqx.filter_jit
+def _positions(potential, g):
+    """The flat site positions at each of the poses `g` `(T, N, 4, 4)`."""
+    return jax.vmap(potential.flat_positions)(g)
+
+
+def _default_where(system):
+    return system.potential
+
+
+def simulate_with_neighbor_list(
+    system,
+    integrator,
+    g0,
+    m0,
+    *,
+    h,
+    n_steps: int,
+    rebuild_every: int,
+    builder: AbstractNeighborBuilder,
+    save_every: int = 1,
+    where: Callable = _default_where,
+    throw: bool = True,
+) -> Solution:
+    """`simulate` with the neighbour list of a `lievi.SitePotential` rebuilt every
+    `rebuild_every` steps and checked.
+
+    **Arguments:**
+
+    - `system`, `integrator`, `g0`, `m0`, `h`, `n_steps`, `save_every`, `throw`: as
+      `simulate` (`g0` `(N, 4, 4)`, `m0` `(N, 6)` for `lievi.RigidBodies`).
+    - `rebuild_every`: steps per segment, dividing `n_steps`. Each segment runs with
+      every step saved (for the displacement check), thinned to every `save_every`-th
+      step of the run as it finishes: memory of one segment's steps plus the saves.
+    - `builder`: `lievi.BruteForceNeighbors(skin)` (no dependency, `O((N k)²)` per build)
+      or `lievi.JaxMDNeighbors(skin)` (jax-md's cell list, `O(N k)`), with the list's
+      `capacity` (`None`: sized on the first build, then kept).
+    - `where`: where the `SitePotential` sits in `system` (default
+      `lambda system: system.potential`), for `eqx.tree_at`; the potential needs a
+      `cutoff` (and may have a `box`); its own `neighbors` are replaced.
+
+    **Returns:** a `Solution` over the whole horizon, as one `simulate` call gives it,
+    with `stats` adding `neighbor_builds` (the lists built), `neighbor_pairs` (the most
+    pairs a list held), `neighbor_capacity` and `neighbor_max_displacement` (the largest
+    site displacement from a list's build, to compare with `skin/2`).
+
+    **Raises:** `RuntimeError` if a site moved `skin/2` or more within a segment (the
+    list may have missed a pair: pass a smaller `rebuild_every` or a larger `skin`);
+    `ValueError` (from the builder) if a rebuilt list has more pairs than its
+    `capacity`. With `throw=False` a failed step (`RESULTS`) ends the run: the result
+    and `failed_step` are reported and the later saves are NaN, as in `simulate`.
+    """
+    n_steps = check_integer("n_steps", n_steps, 1)
+    save_every = check_integer("save_every", save_every, 1)
+    rebuild_every = check_integer("rebuild_every", rebuild_every, 1)
+    if n_steps % save_every:
+        raise ValueError(f"`save_every` ({save_every}) must divide `n_steps` ({n_steps}).")
+    if n_steps % rebuild_every:
+        raise ValueError(
+            f"`rebuild_every` ({rebuild_every}) must divide `n_steps` ({n_steps}): the "
+            "segments between rebuilds are of equal length (one compiled step)."
+        )
+    if not isinstance(builder, AbstractNeighborBuilder):
+        raise TypeError(
+            "`builder` must be a neighbour-list builder (lievi.BruteForceNeighbors(skin) or "
+            f"lievi.JaxMDNeighbors(skin)), got {type(builder).__name__}."
+        )
+    potential = where(system)
+    g, m = jnp.asarray(g0), jnp.asarray(m0)
+    h_value = float(h)
+    n_sites = potential.sites.shape[0] * potential.sites.shape[1]
+    pieces, builds, most_pairs, largest = [], 0, 0, 0.0
+    failure, state = None, None
+    for segment in range(n_steps // rebuild_every):
+        pairs, state = builder.build(potential, g, state)
+        if builder.capacity is None:  # sized on the first build, then fixed (one compile)
+            builder = dataclasses.replace(builder, capacity=pairs.shape[0])
+        builds += 1
+        most_pairs = max(most_pairs, int(np.sum(np.asarray(pairs[:, 1]) < n_sites)))
+        listed = eqx.tree_at(where, system, potential.with_neighbors(pairs))
+        start = segment * rebuild_every
+        sol = simulate(
+            listed,
+            integrator,
+            g,
+            m,
+            h=h,
+            n_steps=rebuild_every,
+            save_every=1,
+            t0=start * h_value,
+            throw=throw,
+        )
+        if int(sol.result) != RESULTS.successful:
+            failure = (int(sol.result), start + int(sol.stats["failed_step"]))
+            pieces.append(_kept(sol, start, save_every))
+            break
+        moved = (
+            np.asarray(_positions(potential, sol.g)) - np.asarray(potential.flat_positions(g))[None]
+        )
+        displacement = float(np.sqrt(np.max(np.sum(moved * moved, axis=-1))))
+        largest = max(largest, displacement)
+        if displacement >= builder.skin / 2:
+            raise RuntimeError(
+                f"The neighbour list went stale in steps {start}–{start + rebuild_every}: a "
+                f"site moved {displacement:.3g} since the list was built, at least half the "
+                f"skin ({builder.skin / 2:.3g}), so a pair within the cut-off may be missing. "
+                "Pass a smaller `rebuild_every` or a larger `skin` to the builder."
+            )
+        pieces.append(_kept(sol, start, save_every))
+        g, m = sol.g[-1], sol.m[-1]
+    joined = _join(pieces, h, n_steps, save_every, failure)
+    stats = dict(
+        joined.stats,
+        neighbor_builds=jnp.asarray(builds),
+        neighbor_pairs=jnp.asarray(most_pairs),
+        neighbor_capacity=jnp.asarray(builder.capacity),
+        neighbor_max_displacement=jnp.asarray(largest),
+    )
+    return eqx.tree_at(lambda s: s.stats, joined, stats)
+
+
+def _kept(sol: Solution, start: int, save_every: int) -> Solution:
+    """A segment from step `start`, saved at every step: its saves at the run's save
+    times (steps that are multiples of `save_every`; the segment's first state is the
+    previous segment's last, kept only for the first segment), and its per-step
+    statistics whole (`_join` reduces them over each `save_every` steps)."""
+    steps = start + np.arange(sol.ts.shape[0])
+    keep = np.flatnonzero((steps % save_every == 0) & ((steps > start) | (start == 0)))
+    advected = None if sol.advected is None else sol.advected[keep]
+    return Solution(sol.ts[keep], sol.g[keep], sol.m[keep], sol.result, sol.stats, advected)
+
+
+def _join(pieces, h, n_steps: int, save_every: int, failure) -> Solution:
+    """One `Solution` over the horizon from the segments' (NaN-padded after a failure
+    that ended the run early)."""
+    n_saves = n_steps // save_every + 1
+
+    def joined(field):
+        parts = [getattr(p, field) for p in pieces]
+        if parts[0] is None:
+            return None
+        whole = jnp.concatenate(parts)
+        missing = n_saves - whole.shape[0]
+        pad = jnp.full((missing, *whole.shape[1:]), jnp.nan, whole.dtype)
+        return jnp.concatenate([whole, pad])
+
+    def stat(name):
+        """Per step, over the steps run (zero-padded), then the most over each interval
+        between saves, as `simulate` reports it."""
+        whole = jnp.concatenate([p.stats[name] for p in pieces])
+        whole = jnp.concatenate([whole, jnp.zeros((n_steps - whole.shape[0],), whole.dtype)])
+        return jnp.max(whole.reshape(n_saves - 1, save_every), axis=1)
+
+    m = joined("m")
+    result, failed_step = (RESULTS.successful, -1) if failure is None else failure
+    stats = {
+        "newton_iterations": stat("newton_iterations"),
+        "residual": stat("residual"),
+        "failed_step": jnp.asarray(failed_step, jnp.int32),
+        "total_newton_iterations": sum(p.stats["total_newton_iterations"] for p in pieces),
+        "num_steps": jnp.asarray(n_steps),
+    }
+    return Solution(
+        ts=h * save_every * jnp.arange(n_saves, dtype=m.dtype),
+        g=joined("g"),
+        m=m,
+        result=jnp.asarray(result, jnp.int32),
+        stats=stats,
+        advected=joined("advected"),
+    )

@@ -1,0 +1,275 @@
+"""Periodic boxes, cut-offs and neighbour lists of site potentials (`lievi.SitePotential`).
+
+- **Minimum image.** In an orthorhombic periodic box of sides `L` a site interacts with
+  the nearest periodic image of every other site: the separation `d` is replaced by
+  `d − L·round(d/L)` (`minimum_image`; jax-md's `space.periodic` takes the same
+  convention). With a cut-off `r_c ≤ L/2` that image is the only one within reach, so
+  the energy is the sum over all images, truncated at `r_c`.
+- **Cut-off** (`shifted_force`): the pair energy is replaced by the energy-and-force
+  shifted one, `e(r) − e(r_c) − (r − r_c) e'(r_c)` for `r < r_c` and 0 beyond, whose
+  value and derivative both vanish at `r_c`. A plain truncation makes the energy jump as a
+  pair crosses `r_c`, a shift of the energy alone leaves the force jumping; either kicks
+  the discrete energy by an amount of order the jump at every crossing, and the errors
+  random-walk. The shifted-force energy is C¹, the force continuous, and a symplectic
+  method's energy error stays bounded (measured in `tests/test_site_neighbors.py`).
+- **Neighbour lists** (Verlet lists): the candidate pairs of sites on different bodies
+  within `r_c + skin`, built at one configuration. The list holds every pair within
+  `r_c` for as long as no site has moved more than `skin/2` since it was built (two
+  sites then approach by less than `skin`). A builder (`BruteForceNeighbors`,
+  `JaxMDNeighbors`) returns the pairs as an int array `(capacity, 2)` of flat site
+  indices (body-major, `i < j`), padded with the fill index `N·k` (one past the last
+  site), which the potential reads as "no pair": the array's shape stays fixed from one
+  build to the next, so the compiled step is reused. `lievi.simulate_with_neighbor_list`
+  rebuilds the list between segments of a run and checks both conditions.
+
+Builders run outside the compiled step (between segments), on concrete positions.
+"""
+
+from __future__ import annotations
+
+import abc
+import functools
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def minimum_image(d, box):
+    """The separation `d` (`(..., 3)`) to the nearest periodic image in an orthorhombic
+    box of sides `box` (`(3,)`): `d − L·round(d/L)`, each component in `[−L/2, L/2]`."""
+    return d - box * jnp.round(d / box)
+
+
+def shifted_force(energy, r, cutoff, *args):
+    """`e(r) − e(r_c) − (r − r_c) e'(r_c)`: the energy-and-force shifted pair energy, its
+    value and slope zero at `r_c` (`e'` by forward-mode autodiff). Per pair where the
+    energy has parameter tables by site type or reads charges; else one number for all
+    pairs (half the work of a pair's energy)."""
+    if energy.tables() or energy.needs_charges():
+        at_cutoff, tangent, at_args = jnp.full_like(r, cutoff), jnp.ones_like(r), args
+    else:
+        at_cutoff, tangent = jnp.asarray(cutoff, r.dtype), jnp.ones((), r.dtype)
+        at_args = (0, 0, 0.0, 0.0)
+    e_c, slope_c = jax.jvp(lambda s: energy(s, *at_args), (at_cutoff,), (tangent,))
+    return energy(r, *args) - e_c - (r - at_cutoff) * slope_c
+
+
+def fill_index(n_sites: int) -> int:
+    """The padding index of a pair list: one past the last flat site."""
+    return n_sites
+
+
+class AbstractNeighborBuilder(eqx.Module):
+    """Builds the neighbour list of a `lievi.SitePotential` with a cut-off at poses `g`.
+
+    **Arguments:**
+
+    - `skin`: the list holds the pairs within `cutoff + skin` (`> 0`). It stays valid while
+      every site moves less than `skin/2`; a larger skin allows rarer rebuilds at the price
+      of more candidate pairs (their number grows as `(cutoff + skin)³`).
+    - `capacity`: the fixed number of rows of the list (`None`: on the first build,
+      `capacity_factor` times the pairs found, rounded up). A build that finds more pairs
+      raises a `ValueError` naming `capacity`.
+    - `capacity_factor`: the headroom of an automatic capacity (default 1.2), for the
+      pair count's growth between builds.
+
+    Calling the builder, `builder(potential, g)`, returns the pairs `(capacity, 2)`;
+    `potential.with_neighbors(pairs)` is the potential that sums over them.
+    """
+
+    skin: float = eqx.field(static=True)
+    capacity: int | None = eqx.field(static=True, default=None)
+    capacity_factor: float = eqx.field(static=True, default=1.2)
+
+    def __check_init__(self):
+        if not (isinstance(self.skin, (int, float)) and self.skin > 0):
+            raise ValueError(f"`skin` must be a number > 0, got {self.skin!r}.")
+        if self.capacity is not None and not (
+            isinstance(self.capacity, int) and self.capacity >= 1
+        ):
+            raise ValueError(f"`capacity` must be an integer ≥ 1 or None, got {self.capacity!r}.")
+        if not self.capacity_factor >= 1:
+            raise ValueError(f"`capacity_factor` must be ≥ 1, got {self.capacity_factor!r}.")
+
+    @abc.abstractmethod
+    def candidates(self, x, body, radius: float, box):
+        """`(i, j)`, NumPy integer arrays, `i < j`: every pair of the flat sites `x`
+        `(n, 3)` on different bodies (`body` `(n,)`) closer than `radius` (the minimum
+        image in `box` `(3,)`, or free space where `box` is `None`), each pair once."""
+
+    def build(self, potential, g, state=None):
+        """`(pairs, state)`: the list at poses `g` and what a later build may reuse
+        (`state`, passed back in by `lievi.simulate_with_neighbor_list`; `None` the
+        first time). The default builds from scratch by `candidates`."""
+        x, body, radius, box = _inputs(potential, g, self.skin)
+        i, j = self.candidates(x, body, radius, box)
+        capacity = self.sized(len(i))
+        order = np.lexsort((j, i))
+        pairs = np.full((capacity, 2), fill_index(len(x)), dtype=np.int32)
+        pairs[: len(i), 0], pairs[: len(i), 1] = i[order], j[order]
+        return jnp.asarray(pairs), None
+
+    def __call__(self, potential, g):
+        return self.build(potential, g)[0]
+
+    def sized(self, count: int) -> int:
+        """The list's capacity for `count` pairs: `capacity`, or `capacity_factor ×
+        count` where it is `None`; a `ValueError` naming `capacity` if it is too small."""
+        capacity = self.capacity
+        if capacity is None:
+            capacity = max(1, math.ceil(count * self.capacity_factor))
+        if count > capacity:
+            raise ValueError(
+                f"The neighbour list needs {count} pairs, more than its `capacity` "
+                f"({capacity}): pass a larger `capacity` to the builder (e.g. "
+                f"{math.ceil(count * self.capacity_factor)}), or a larger "
+                "`capacity_factor` (an automatic capacity is that times the first build's "
+                "pairs)."
+            )
+        return capacity
+
+
+def _inputs(potential, g, skin):
+    """`(x, body, radius, box)`: the flat site positions (NumPy), each site's body, the
+    list radius `cutoff + skin` and the box sides (or `None`)."""
+    if potential.cutoff is None:
+        raise ValueError(
+            "A neighbour list needs a cut-off: build the potential with "
+            "`SitePotential(..., cutoff=r_c)`."
+        )
+    x = np.asarray(potential.flat_positions(jnp.asarray(g)))
+    body = np.arange(x.shape[0]) // potential.sites.shape[1]
+    box = None if potential.box is None else np.asarray(potential.box)
+    return x, body, float(potential.cutoff) + skin, box
+
+
+@jax.jit
+def _kept_pairs(idx, body):
+    """jax-md's ordered sparse pairs `(2, C)` as `(low, high, keep)`: real pairs of sites
+    on different bodies (jax-md pads with the index `n`)."""
+    n = body.shape[0]
+    i, j = idx[0], idx[1]
+    keep = (i < n) & (j < n)
+    keep &= body[jnp.where(keep, i, 0)] != body[jnp.where(keep, j, 0)]
+    return jnp.minimum(i, j), jnp.maximum(i, j), keep
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _compacted(low_high_keep, n, capacity):
+    """The kept pairs, in jax-md's order (by first site), in the first rows of a
+    `(capacity, 2)` list padded with `fill_index(n)`."""
+    low, high, keep = low_high_keep
+    fill = fill_index(n)
+    (rows,) = jnp.nonzero(keep, size=capacity, fill_value=low.shape[0])
+    low = jnp.append(low, fill)[rows]
+    high = jnp.append(high, fill)[rows]
+    return jnp.stack([low, high], axis=1).astype(jnp.int32)
+
+
+class BruteForceNeighbors(AbstractNeighborBuilder):
+    """The neighbour list by testing every pair of sites: `O((N k)²)` time per build, in
+    blocks of rows (memory `O(N k)` per block); NumPy, no extra dependency. Fine up to a
+    few thousand sites; beyond, `JaxMDNeighbors` (a cell list, `O(N k)`)."""
+
+    def candidates(self, x, body, radius, box):
+        n = x.shape[0]
+        rows_per_block = max(1, 1_000_000 // max(n, 1))
+        found_i, found_j = [], []
+        columns = np.arange(n)
+        for start in range(0, n, rows_per_block):
+            rows = np.arange(start, min(n, start + rows_per_block))
+            d = x[rows, None, :] - x[None, :, :]
+            if box is not None:
+                d = d - box * np.round(d / box)
+            near = np.einsum("rcx,rcx->rc", d, d) < radius * radius
+            near &= columns[None, :] > rows[:, None]
+            near &= body[None, :] != body[rows][:, None]
+            a, b = np.nonzero(near)
+            found_i.append(rows[a])
+            found_j.append(b)
+        return np.concatenate(found_i), np.concatenate(found_j)
+
+
+class JaxMDNeighbors(AbstractNeighborBuilder):
+    """The neighbour list by jax-md's `partition.neighbor_list` (a cell list: `O(N k)`
+    per build), in its ordered sparse format; pairs within one body are dropped after.
+
+    Needs the optional dependency jax-md (`pip install "lievi[jaxmd]"`), imported when a
+    list is built, never by `import lievi`. In a periodic box the sites are wrapped into
+    the box for jax-md (the minimum-image separations, hence the pairs, are unchanged);
+    in free space they are shifted into a bounding box with a margin of the list radius.
+    """
+
+    def candidates(self, x, body, radius, box):
+        pairs, _ = self._from_jax_md(x, body, radius, box, None)
+        real = np.asarray(pairs)
+        real = real[real[:, 1] < len(x)]
+        return real[:, 0], real[:, 1]
+
+    def build(self, potential, g, state=None):
+        """Allocates jax-md's list on the first build (or after jax-md reports an
+        overflow of its own buffers, or in free space a site left the bounding box);
+        later builds are jax-md's compiled `update` from the previous list."""
+        x, body, radius, box = _inputs(potential, g, self.skin)
+        return self._from_jax_md(x, body, radius, box, state)
+
+    def _from_jax_md(self, x, body, radius, box, state):
+        try:
+            from jax_md import partition, space
+        except ImportError as error:
+            raise ImportError(
+                'JaxMDNeighbors builds the list with jax-md: pip install "lievi[jaxmd]", '
+                "or use lievi.BruteForceNeighbors (no extra dependency)."
+            ) from error
+        if state is not None:
+            update, neighbors, origin, side = state
+            shifted = _into_box(x, origin, side, box)
+            if shifted is not None:
+                neighbors = update(jnp.asarray(shifted), neighbors)
+                if bool(neighbors.did_buffer_overflow):
+                    state = None
+            else:
+                state = None
+        if state is None:
+            if box is None:  # a bounding box with a margin, the sites shifted into it
+                origin = x.min(axis=0) - 2 * radius
+                side = x.max(axis=0) - origin + 2 * radius
+            else:
+                origin, side = np.zeros(3), np.broadcast_to(box, (3,))
+            allocate, update = _jax_md_list(
+                partition, space, tuple(map(float, side)), radius, box is not None
+            )
+            neighbors = allocate(jnp.asarray(_into_box(x, origin, side, box)))
+        kept = _kept_pairs(neighbors.idx, jnp.asarray(body))
+        capacity = self.sized(int(jnp.sum(kept[2])))
+        pairs = _compacted(kept, len(x), capacity)
+        return pairs, (update, neighbors, origin, side)
+
+
+@functools.lru_cache(maxsize=8)
+def _jax_md_list(partition, space, side: tuple, radius: float, periodic: bool):
+    """jax-md's `(allocate, jitted update)` for a box and radius, kept across builds and
+    runs so that `update` compiles once."""
+    box = jnp.asarray(side)
+    displacement, _ = space.periodic(box) if periodic else space.free()
+    neighbor_fn = partition.neighbor_list(
+        displacement,
+        box,
+        radius,
+        dr_threshold=0.0,
+        capacity_multiplier=1.25,
+        format=partition.OrderedSparse,
+    )
+    return neighbor_fn.allocate, jax.jit(neighbor_fn.update)
+
+
+def _into_box(x, origin, side, box):
+    """The sites in jax-md's box: wrapped into a periodic box; in free space shifted by
+    `origin`, or `None` where one left the bounding box `[0, side)`."""
+    if box is not None:
+        return np.mod(x, side)
+    shifted = x - origin
+    return shifted if bool(np.all((shifted >= 0) & (shifted < side))) else None
