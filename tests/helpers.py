@@ -4,6 +4,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.integrate import solve_ivp
 
 import lievi
 
@@ -52,3 +53,18 @@ def final_state(system, integrator, g0, m0, h, n):
         return g, m, ok & (info.result == lievi.RESULTS.successful)
 
     return jax.lax.fori_loop(0, n, body, (g0, m0, jnp.asarray(True)))
+
+
+def dop853_final(rhs, y0, T):
+    """The state at `T` of `y' = rhs(y)` (a JAX function of a flat state) from `y0`, by
+    SciPy's DOP853 at rtol = atol = 1e-13: the reference of the order tests."""
+    sol = solve_ivp(
+        lambda t, y: np.asarray(rhs(jnp.asarray(y))),
+        (0.0, T),
+        np.asarray(y0),
+        method="DOP853",
+        rtol=1e-13,
+        atol=1e-13,
+    )
+    assert sol.success
+    return jnp.asarray(sol.y[:, -1])

@@ -15,10 +15,9 @@ import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
 
 import lievi
-from helpers import ROUNDOFF, final_state
+from helpers import ROUNDOFF, dop853_final, final_state
 from lievi import diagnostics as dg
 
 SE3, SO3 = lievi.SE3, lievi.SO3
@@ -118,16 +117,7 @@ def newton_euler_reference(system, g0, m0, T):
     w0 = jnp.linalg.solve(J, m0[:, :3, None])[..., 0]
     v0 = jnp.einsum("nij,nj->ni", R0, m0[:, 3:]) / mass[:, None]
     y0 = np.concatenate([np.ravel(x0), np.ravel(v0), np.ravel(R0), np.ravel(w0)])
-    sol = solve_ivp(
-        lambda t, y: np.asarray(rhs(jnp.asarray(y))),
-        (0.0, T),
-        y0,
-        method="DOP853",
-        rtol=1e-13,
-        atol=1e-13,
-    )
-    assert sol.success
-    y = jnp.asarray(sol.y[:, -1])
+    y = dop853_final(rhs, y0, T)
     x, v = y[: 3 * n].reshape(n, 3), y[3 * n : 6 * n].reshape(n, 3)
     R, w = y[6 * n : 15 * n].reshape(n, 3, 3), y[15 * n :].reshape(n, 3)
     m = jnp.concatenate(

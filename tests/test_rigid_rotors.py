@@ -14,10 +14,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
 
 import lievi
-from helpers import ROUNDOFF, final_state
+from helpers import ROUNDOFF, dop853_final, final_state
 from lievi import diagnostics as dg
 
 SO3 = lievi.SO3
@@ -101,16 +100,7 @@ def euler_reference(problem, T):
 
     w0 = jnp.linalg.solve(J, m0[..., None])[..., 0]
     y0 = np.concatenate([np.ravel(g0), np.ravel(w0)])
-    sol = solve_ivp(
-        lambda t, y: np.asarray(rhs(jnp.asarray(y))),
-        (0.0, T),
-        y0,
-        method="DOP853",
-        rtol=1e-13,
-        atol=1e-13,
-    )
-    assert sol.success
-    y = jnp.asarray(sol.y[:, -1])
+    y = dop853_final(rhs, y0, T)
     R, w = y[: 9 * n].reshape(n, 3, 3), y[9 * n :].reshape(n, 3)
     return R, jnp.einsum("nij,nj->ni", J, w)
 
