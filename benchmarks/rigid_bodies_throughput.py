@@ -19,7 +19,9 @@ Rows, all in one run, float64, `--steps` steps of size 0.01, final state only:
   timed run. Timed alone too: one build from scratch (jax-md's `allocate`), one rebuild
   (its compiled `update`), and the same steps on one fixed list ("steps only");
 - the cost of a gradient: `jax.grad` with respect to the gravitational constant `G` of a
-  function of the final state of one binary, against the same run forward.
+  function of the final state of one binary (10·`--steps` steps), and with respect to the
+  Lennard-Jones `ε` of one system of `--gradient-bodies` (default 64) single-site bodies
+  (all pairs, `--steps` steps), each against the same run forward.
 
 Compile time is reported apart (first call minus the best of the timed calls). The load
 average (`os.getloadavg`) is printed and saved with the figures: on a shared machine the
@@ -28,6 +30,7 @@ figures move with it, the ratios (same run) less.
     python benchmarks/rigid_bodies_throughput.py [--systems 1000] [--bodies 1000]
                                                  [--steps 100] [--out rigid_bodies_throughput]
                                                  [--neighbor-bodies 10000]
+                                                 [--gradient-bodies 64]
                                                  [--gradient-only] [--neighbors-only]
 
 `--gradient-only` runs the gradient rows alone; `--neighbors-only` the baseline and the
@@ -127,7 +130,10 @@ def lennard_jones_liquid(n_bodies, rng, density=0.8, temperature=0.7):
 
 
 def neighbor_rows(args, rng, baseline):
-    """The neighbour-list row of each method: body-steps per second of the whole run."""
+    """The neighbour-list row of each method: body-steps per second of the whole run
+    (none with `--neighbor-bodies 0`)."""
+    if args.neighbor_bodies < 1:
+        return []
     try:
         import jax_md  # noqa: F401
 
@@ -215,6 +221,38 @@ def neighbor_rows(args, rng, baseline):
     return rows
 
 
+def gradient_row(name, label, final, x):
+    """`jax.grad(final)` at `x` against `final` itself, both compiled, in 7 interleaved
+    rounds, each the best of its rounds (wall clock and process CPU time)."""
+    forward, gradient = jax.jit(final), jax.jit(jax.grad(final))
+    fns = {"forward": forward, "gradient": gradient}
+    for fn in fns.values():
+        jax.block_until_ready(fn(x))
+    wall = {label: [] for label in fns}
+    cpu = {label: [] for label in fns}
+    for _ in range(7):
+        for key, fn in fns.items():
+            start, start_cpu = time.perf_counter(), time.process_time()
+            jax.block_until_ready(fn(x))
+            wall[key].append(time.perf_counter() - start)
+            cpu[key].append(time.process_time() - start_cpu)
+    times = {key: min(wall[key]) for key in fns}
+    cpu_ratio = min(cpu["gradient"]) / min(cpu["forward"])
+    ratio = times["gradient"] / times["forward"]
+    print(
+        f"{name:11s} {label}: forward {times['forward']:.3g} s, gradient "
+        f"{times['gradient']:.3g} s ({ratio:.2f}×; CPU time {cpu_ratio:.2f}×)"
+    )
+    return {
+        "method": name,
+        "case": label,
+        "forward_s": times["forward"],
+        "gradient_s": times["gradient"],
+        "gradient_over_forward": ratio,
+        "gradient_over_forward_cpu_time": cpu_ratio,
+    }
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--systems", type=int, default=1000)
@@ -223,6 +261,7 @@ def main():
     parser.add_argument("--out", default="rigid_bodies_throughput")
     parser.add_argument("--neighbor-bodies", type=int, default=10_000)
     parser.add_argument("--gradient-only", action="store_true")
+    parser.add_argument("--gradient-bodies", type=int, default=64)
     parser.add_argument("--neighbors-only", action="store_true")
     args = parser.parse_args()
     rng = np.random.default_rng(0)
@@ -295,48 +334,37 @@ def main():
                 )
 
     # Gradient cost: d/dG of a function of the final state of one binary asteroid,
-    # `--steps` × 10 steps, against the forward run (the same compiled run without `grad`).
+    # `--steps` × 10 steps, and d/dε of one system of `--gradient-bodies` Lennard-Jones
+    # bodies (all pairs), `--steps` steps, each against its forward run (the same compiled
+    # run without `grad`).
     system, g0, m0 = systems, g_bin[0], m_bin[0]
     one = jax.tree.map(lambda x: x[0], system)
     n_steps = 10 * args.steps
+    cloud, g_cloud, m_cloud = lennard_jones_cloud(args.gradient_bodies, rng)
     for name, method in METHODS.items() if not args.neighbors_only else ():
 
-        def final(G, method=method):
+        def binary_final(G, method=method):
             coupled = eqx.tree_at(lambda s: s.potential.G, one, G)
             sol = lievi.simulate(coupled, method, g0, m0, h=H, n_steps=n_steps, save_every=n_steps)
             return jnp.sum(sol.m[-1] ** 2) + jnp.sum(sol.g[-1, :, :3, 3] ** 2)
 
-        forward, gradient = jax.jit(final), jax.jit(jax.grad(final))
-        G = jnp.asarray(1.0)
-        fns = {"forward": forward, "gradient": gradient}
-        for fn in fns.values():
-            jax.block_until_ready(fn(G))
-        wall = {label: [] for label in fns}
-        cpu = {label: [] for label in fns}
-        for _ in range(7):
-            for label, fn in fns.items():
-                start, start_cpu = time.perf_counter(), time.process_time()
-                jax.block_until_ready(fn(G))
-                wall[label].append(time.perf_counter() - start)
-                cpu[label].append(time.process_time() - start_cpu)
-        times = {label: min(wall[label]) for label in fns}
-        cpu_ratio = min(cpu["gradient"]) / min(cpu["forward"])
-        ratio = times["gradient"] / times["forward"]
-        rows.append(
-            {
-                "method": name,
-                "case": f"gradient d/dG, one binary, {n_steps} steps",
-                "forward_s": times["forward"],
-                "gradient_s": times["gradient"],
-                "gradient_over_forward": ratio,
-                "gradient_over_forward_cpu_time": cpu_ratio,
-            }
+        def cloud_final(epsilon, method=method):
+            coupled = eqx.tree_at(lambda s: s.potential.pair[0].epsilon, cloud, epsilon)
+            sol = lievi.simulate(
+                coupled, method, g_cloud, m_cloud, h=H, n_steps=args.steps, save_every=args.steps
+            )
+            return jnp.sum(sol.m[-1] ** 2) + jnp.sum(sol.g[-1, :, :3, 3] ** 2)
+
+        cases = (
+            (f"gradient d/dG, one binary, {n_steps} steps", binary_final),
+            (
+                f"gradient d/dε, {args.gradient_bodies} Lennard-Jones bodies (all pairs), "
+                f"{args.steps} steps",
+                cloud_final,
+            ),
         )
-        print(
-            f"{name:11s} gradient d/dG of one binary, {n_steps} steps: forward "
-            f"{times['forward']:.3g} s, gradient {times['gradient']:.3g} s ({ratio:.2f}×; CPU "
-            f"time {cpu_ratio:.2f}×)"
-        )
+        for label, final in cases:
+            rows.append(gradient_row(name, label, final, jnp.asarray(1.0)))
 
     document = {
         "command": "python benchmarks/rigid_bodies_throughput.py " + " ".join(sys.argv[1:]),
