@@ -87,6 +87,8 @@ HEAVY = frozenset(
         "tests/test_properties.py::test_fast_path_equals_generic_path",  # 9 s
         "tests/test_properties.py::test_scale_invariance_float64",  # 11 s
         "tests/test_reliability.py::test_overridden_step_is_run_on_every_path",  # 8 s
+        "tests/test_rigid_bodies.py::test_control_per_body_equals_each_body_alone",  # 14 s
+        "tests/test_rigid_bodies.py::test_coupling_evaluated_once_per_step[dep]",  # 25 s
         "tests/test_rigid_bodies.py::test_damping_force_law_per_body",  # 8 s
         "tests/test_rigid_bodies.py::test_gradient_of_coupling_parameter[integrator0]",  # 10 s
         "tests/test_rigid_bodies.py::test_one_body_equals_rigid_body_se3[exp]",  # 30 s
