@@ -129,6 +129,18 @@ def lennard_jones_liquid(n_bodies, rng, density=0.8, temperature=0.7):
     return system, g0, jnp.asarray(m0)
 
 
+def throughput_row(name, label, rate, seconds, compile_s, baseline):
+    """One row of the JSON: body-steps/s of a case and its ratio to the baseline."""
+    return {
+        "method": name,
+        "case": label,
+        "body_steps_per_s": rate,
+        "seconds": seconds,
+        "compile_s": compile_s,
+        "ratio_to_free_fast_path": rate / baseline,
+    }
+
+
 def neighbor_rows(args, rng, baseline):
     """The neighbour-list row of each method: body-steps per second of the whole run
     (none with `--neighbor-bodies 0`)."""
@@ -191,12 +203,7 @@ def neighbor_rows(args, rng, baseline):
         rate = args.neighbor_bodies * args.steps / seconds
         rows.append(
             {
-                "method": name,
-                "case": label,
-                "body_steps_per_s": rate,
-                "seconds": seconds,
-                "compile_s": compile_s,
-                "ratio_to_free_fast_path": rate / baseline,
+                **throughput_row(name, label, rate, seconds, compile_s, baseline),
                 "builder": type(builder).__name__,
                 "pairs_at_start": n_pairs,
                 "list_capacity": int(sol.stats["neighbor_capacity"]),
@@ -318,16 +325,7 @@ def main():
             for label, bodies, run in cases:
                 seconds, compile_s = _timed(run)
                 rate = bodies * args.steps / seconds
-                rows.append(
-                    {
-                        "method": name,
-                        "case": label,
-                        "body_steps_per_s": rate,
-                        "seconds": seconds,
-                        "compile_s": compile_s,
-                        "ratio_to_free_fast_path": rate / baseline,
-                    }
-                )
+                rows.append(throughput_row(name, label, rate, seconds, compile_s, baseline))
                 print(
                     f"{name:11s} {label:52s} {rate:10.3g} body-steps/s ({rate / baseline:.3g}× the "
                     f"baseline), compile {compile_s:.1f} s"
