@@ -114,6 +114,36 @@ def test_neighbor_list_equals_all_pairs(box):
         assert jnp.max(jnp.abs(grad_list - grad_all)) <= 1e-12 * jnp.max(jnp.abs(grad_all))
 
 
+@pytest.mark.parametrize("box", [BOX, None], ids=["periodic", "free"])
+def test_brute_force_list_equals_a_double_loop(box, monkeypatch):
+    """The builder's pairs are exactly those of a plain double loop over all sites (the
+    minimum image by `round`, as `minimum_image`), in row-major order, padded with the
+    fill index; with blocks of 3 rows (`_BLOCK_PAIRS`), so that a block boundary and a
+    padded last block are exercised."""
+    from lievi._systems import _neighbors
+
+    system, g0, _ = box_problem()
+    potential = lievi.SitePotential(
+        system.potential.sites, system.potential.pair, cutoff=CUTOFF, box=box
+    )
+    x = np.asarray(potential.flat_positions(g0))
+    n, radius = len(x), CUTOFF + SKIN
+    expected = []
+    for i in range(n):
+        for j in range(i + 1, n):
+            d = x[i] - x[j]
+            if box is not None:
+                d = d - box * np.round(d / box)
+            if i // 2 != j // 2 and d @ d < radius * radius:
+                expected.append((i, j))
+    monkeypatch.setattr(_neighbors, "_BLOCK_PAIRS", 3 * n)
+    jax.clear_caches()  # `_near_pairs` reads the block size when traced
+    pairs = np.asarray(lievi.BruteForceNeighbors(SKIN, capacity=CAPACITY)(potential, g0))
+    assert 0 < len(expected) < CAPACITY and n % 3 != 0
+    assert [tuple(p) for p in pairs[: len(expected)]] == expected
+    assert np.all(pairs[len(expected) :] == n)
+
+
 def test_energy_vanishes_smoothly_at_the_cutoff():
     """Energy and force of a pair go to zero at r_c: continuous, so the integrator's
     energy error is not kicked when a pair crosses it."""

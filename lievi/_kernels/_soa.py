@@ -72,7 +72,13 @@ def solve3(J, r, divide_each: bool = False):
 
 
 def max_abs(x):
-    return jnp.maximum(jnp.maximum(jnp.abs(x[0]), jnp.abs(x[1])), jnp.abs(x[2]))
+    """`‖x‖_∞` per body over every component of `x` (a tuple of arrays, any length: 3 on
+    SO(3), 6 on SE(3) — a norm of the first three alone would let an SE(3) step's
+    tolerance and convergence test ignore the linear momentum and its residual)."""
+    norm = jnp.abs(x[0])
+    for e in x[1:]:
+        norm = jnp.maximum(norm, jnp.abs(e))
+    return norm
 
 
 def inverse3(M):
