@@ -82,30 +82,10 @@ def _timed(run, rounds=3):
     return min(times), max(first - min(times), 0.0), failed
 
 
-def _slender(masses, points, ratio=0.05):
-    """Bodies (point masses `(…, 3)` at `points` `(…, 3, 3)`) whose smallest principal
-    moment about the centre of mass is under `ratio` times the largest."""
-    centre = np.einsum("...k,...kx->...x", masses, points) / masses.sum(-1)[..., None]
-    r = points - centre[..., None, :]
-    inertia = np.einsum("...k,...kx,...ky->...xy", masses, r, r)
-    inertia = np.trace(inertia, axis1=-2, axis2=-1)[..., None, None] * np.eye(3) - inertia
-    moments = np.linalg.eigvalsh(inertia)
-    return moments[..., 0] < ratio * moments[..., -1]
-
-
 def binaries(n_systems, rng):
-    """`n_systems` binary asteroids: random point masses and shapes, near-circular orbits.
-
-    A body whose three points are nearly collinear has a near-zero principal moment: the
-    tidal torque then spins it up about that axis until no step of size `H` resolves it
-    (one of 2·10⁵ uniform draws did, and its Newton solve was reported unconverged). Such
-    shapes (smallest moment under 5 % of the largest) are drawn again, from a separate
-    generator so that the other draws are those of the uniform ones."""
+    """`n_systems` binary asteroids: random point masses and shapes, near-circular orbits."""
     masses = rng.uniform(0.3, 1.0, size=(n_systems, 2, 3))
     points = rng.uniform(-0.12, 0.12, size=(n_systems, 2, 3, 3))
-    redraw = np.random.default_rng(1)
-    while np.any(slender := _slender(masses, points)):
-        points[slender] = redraw.uniform(-0.12, 0.12, size=(int(slender.sum()), 3, 3))
     systems = jax.vmap(lambda m, p: lievi.gravitating_bodies(1.0, m, p))(
         jnp.asarray(masses), jnp.asarray(points)
     )
