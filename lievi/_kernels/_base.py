@@ -87,10 +87,14 @@ def compacted_tail(need, run, state, args, fraction: int = 8):
     the others unchanged; nothing when no body needs it.
 
     `state` and `args` are pytrees of per-body arrays `(B,)` (or scalars shared by the
-    batch). When at most `B // fraction` bodies need it (a few stragglers, the usual case),
-    they are gathered into arrays of that size, run there and scattered back: the loop
-    then costs a fraction of a step, where on the whole batch, masked, one iteration costs
-    about as much as a Newton iteration of every body. Otherwise the whole batch runs.
+    batch). The bodies that need it are gathered, `B // fraction` at a time, into arrays
+    of that size, run there and scattered back, in rounds until none is left: for a few
+    stragglers (the usual case) one round, a fraction of a step, where on the whole
+    batch, masked, one iteration would cost about a Newton iteration of every body.
+    `run` is traced once, for the gathered size: a second copy for the whole batch (a
+    branch for "more than `B // fraction` need it") doubled the compile time of the
+    tail, the largest part of the SE(3) step's. Each body's values are computed
+    elementwise, so they do not depend on which bodies share its round.
     `run` must leave alone the bodies whose `args` mark them inactive: the gathered
     padding is passed with `args[-1]` (the `alive` mask) false.
     """
@@ -98,10 +102,10 @@ def compacted_tail(need, run, state, args, fraction: int = 8):
     size = batch // fraction
     if size < 1:
         return jax.lax.cond(jnp.any(need), run, lambda s, _: s, state, args)
-    count = jnp.sum(need.astype(jnp.int32))
 
-    def gathered(state, args):
-        index = jnp.nonzero(need, size=size, fill_value=batch)[0]
+    def one_round(carry):
+        state, left = carry
+        index = jnp.nonzero(left, size=size, fill_value=batch)[0]
 
         def take(y):
             return jnp.take(y, index, mode="clip") if jnp.ndim(y) else y
@@ -109,10 +113,11 @@ def compacted_tail(need, run, state, args, fraction: int = 8):
         sub_state, sub_args = jax.tree.map(take, (state, args))
         sub_args = (*sub_args[:-1], sub_args[-1] & (index < batch))
         out = run(sub_state, sub_args)
-        return jax.tree.map(lambda y, s: y.at[index].set(s, mode="drop"), state, out)
+        state = jax.tree.map(lambda y, s: y.at[index].set(s, mode="drop"), state, out)
+        return state, left.at[index].set(False, mode="drop")
 
-    branch = jnp.where(count == 0, 0, jnp.where(count <= size, 1, 2))
-    return jax.lax.switch(branch, (lambda s, _: s, gathered, run), state, args)
+    state, _ = jax.lax.while_loop(lambda carry: jnp.any(carry[1]), one_round, (state, need))
+    return state
 
 
 class AbstractBatchKernel(eqx.Module):
