@@ -21,7 +21,7 @@ and no potential, written for throughput over many bodies:
   (`_chord_step`: the Jacobian at `ξ = 0`, constant per run, in place of the Jacobian at
   the iterate: half a Newton step's cost, and it saves one), one residual check, and a
   `while_loop` only for the bodies still above tolerance, up to `max_steps`, run on those
-  bodies gathered into a small batch when they are few (`compacted_tail`); a body that
+  bodies gathered into a small batch, in rounds when they are many (`compacted_tail`); a body that
   does not converge gets `RESULTS.newton_not_converged`;
 - **implicit differentiation**: the converged root `ξ` passes through
   `_implicit.differentiable_root`, whose derivative is the implicit function theorem's `dξ = −J⁻¹(∂r/∂m dm + ∂r/∂A dA)` with the
