@@ -119,6 +119,12 @@ class AbstractForcing(eqx.Module):
     def check_batch(self, system, batch: int) -> None:
         """Raise `ValueError` if per-member data does not have `batch` rows."""
 
+    def steps(self, start: int, n: int) -> AbstractForcing:
+        """The forcing over steps `start, …, start + n − 1` of a run, for a run cut into
+        segments (each a `simulate` call from its own `t0`): unchanged by default, since
+        a force law reads the time; data indexed by step is sliced."""
+        return self
+
 
 class Control(AbstractForcing):
     """A control sequence held constant over each step (zero-order hold).
@@ -168,6 +174,10 @@ class Control(AbstractForcing):
                 f"`forcing`: a control per member of the batch must have shape ({shape}) "
                 f"with batch = {batch}, got {jnp.shape(self.u)}."
             )
+
+    def steps(self, start, n):
+        # One run's rows (a batch of sequences is not cut into segments).
+        return Control(self.u[start : start + n])
 
     def check(self, system, n_steps, dtype, args):
         momentum = system.momentum_shape()
@@ -284,6 +294,9 @@ class ForcingSum(AbstractForcing):
     def check_batch(self, system, batch):
         for term in self.terms:
             term.check_batch(system, batch)
+
+    def steps(self, start, n):
+        return ForcingSum(tuple(term.steps(start, n) for term in self.terms))
 
 
 def as_forcing(forcing) -> AbstractForcing | None:

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._checks import check_integer
+from ._forcing import as_forcing
 from ._results import RESULTS
 from ._simulate import simulate
 from ._solution import Solution
@@ -53,14 +54,18 @@ def simulate_with_neighbor_list(
     save_every: int = 1,
     where: Callable = _default_where,
     throw: bool = True,
+    forcing=None,
+    args=None,
 ) -> Solution:
     """`simulate` with the neighbour list of a `lievi.SitePotential` rebuilt every
     `rebuild_every` steps and checked.
 
     **Arguments:**
 
-    - `system`, `integrator`, `g0`, `m0`, `h`, `n_steps`, `save_every`, `throw`: as
-      `simulate` (`g0` `(N, 4, 4)`, `m0` `(N, 6)` for `lievi.RigidBodies`).
+    - `system`, `integrator`, `g0`, `m0`, `h`, `n_steps`, `save_every`, `throw`,
+      `forcing`, `args`: as `simulate` (`g0` `(N, 4, 4)`, `m0` `(N, 6)` for
+      `lievi.RigidBodies`; a `lievi.Control` has the whole run's `n_steps` rows, each
+      segment runs on its own, `AbstractForcing.steps`).
     - `rebuild_every`: steps per segment, dividing `n_steps`. Each segment runs with
       every step saved (for the displacement check), thinned to every `save_every`-th
       step of the run as it finishes: memory of one segment's steps plus the saves.
@@ -97,6 +102,9 @@ def simulate_with_neighbor_list(
             "`builder` must be a neighbour-list builder (lievi.BruteForceNeighbors(skin) or "
             f"lievi.JaxMDNeighbors(skin)), got {type(builder).__name__}."
         )
+    forcing = as_forcing(forcing)
+    if forcing is not None:  # the whole run's data, once (each segment checks its own)
+        forcing.check(system, n_steps, jnp.result_type(m0), args)
     potential = where(system)
     g, m = jnp.asarray(g0), jnp.asarray(m0)
     h_value = float(h)
@@ -121,6 +129,8 @@ def simulate_with_neighbor_list(
             save_every=1,
             t0=start * h_value,
             throw=throw,
+            forcing=None if forcing is None else forcing.steps(start, rebuild_every),
+            args=args,
         )
         if int(sol.result) != RESULTS.successful:
             failure = (int(sol.result), start + int(sol.stats["failed_step"]))

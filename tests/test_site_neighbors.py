@@ -251,6 +251,42 @@ def test_segmented_run_equals_all_pairs_run(segmented):
     assert jnp.any(jnp.abs(sol.g[:, :, :3, 3]) > BOX) or jnp.any(sol.g[:, :, :3, 3] < 0)
 
 
+def test_segmented_run_with_forcing(segmented):
+    """A control per body over the whole run (each segment reads its own rows) plus a
+    time-dependent damping law (each segment starts at its own time): the saves equal
+    one forced `simulate` on the all-pairs cut-off potential to 1e-12. The control is
+    not constant in time, so a segment that read the first rows again would differ."""
+    system, g0, m0, _ = segmented
+    n_steps = 40
+    u = 0.05 * jnp.sin(jnp.arange(n_steps)[:, None, None] * 0.3 + jnp.arange(6.0))
+    u = jnp.broadcast_to(u, (n_steps, 8, 6))
+    damping = lievi.ForceLaw(lambda t, g, m, c: -c * (1 + t) * m)
+    forcing = (lievi.Control(u), damping)
+    builder = lievi.BruteForceNeighbors(SKIN, capacity=CAPACITY)
+    kwargs = dict(h=H, n_steps=n_steps, save_every=10, forcing=forcing, args=0.1)
+    sol = lievi.simulate_with_neighbor_list(
+        system, METHOD, g0, m0, rebuild_every=10, builder=builder, **kwargs
+    )
+    reference = lievi.simulate(system, METHOD, g0, m0, **kwargs)
+    unforced = lievi.simulate(system, METHOD, g0, m0, h=H, n_steps=n_steps, save_every=10)
+    assert int(sol.result) == 0 and int(sol.stats["neighbor_builds"]) == 4
+    assert jnp.max(jnp.abs(sol.g - reference.g)) < 1e-12
+    assert jnp.max(jnp.abs(sol.m - reference.m)) < 1e-12
+    assert jnp.max(jnp.abs(sol.m - unforced.m)) > 1e-3  # the forcing acts
+    with pytest.raises(ValueError, match="forcing"):
+        lievi.simulate_with_neighbor_list(
+            system,
+            METHOD,
+            g0,
+            m0,
+            h=H,
+            n_steps=n_steps,
+            rebuild_every=10,
+            builder=builder,
+            forcing=lievi.Control(u[:-1]),
+        )
+
+
 def test_jax_md_segmented_run_equals_brute_force(segmented):
     """The same run with jax-md's list (allocated once, then its compiled `update` at
     each rebuild): the same saves to 1e-12."""
