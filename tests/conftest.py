@@ -25,6 +25,7 @@ def _fresh_compilation_caches():
 # and the two-process run.
 HEAVY = frozenset(
     {
+        "tests/test_site_neighbors.py::test_batch_of_systems_with_their_own_lists",  # 11 s
         "tests/test_batch.py::test_failures_are_per_body[exp]",  # 11 s
         "tests/test_batch.py::test_fast_equals_generic[dep-exp]",  # 8 s
         "tests/test_batch.py::test_fast_path_gradient_finite_when_a_body_fails",  # 12 s

@@ -13,6 +13,7 @@ segments of every run reuse one compiled step.
 import subprocess
 import sys
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -285,6 +286,32 @@ def test_segmented_run_with_forcing(segmented):
             builder=builder,
             forcing=lievi.Control(u[:-1]),
         )
+
+
+def test_batch_of_systems_with_their_own_lists():
+    """`simulate_batch` over boxes that each carry their own list (built at each one's
+    initial poses, one capacity): each system equals its own all-pairs `simulate` to
+    1e-12 over a horizon shorter than the list's validity."""
+    problems = [box_problem(seed=seed) for seed in range(3)]
+    builder = lievi.BruteForceNeighbors(SKIN, capacity=CAPACITY)
+    listed = [
+        eqx.tree_at(
+            lambda s: s.potential,
+            system,
+            system.potential.with_neighbors(builder(system.potential, g0)),
+        )
+        for system, g0, _ in problems
+    ]
+    batch = jax.tree.map(lambda *leaves: jnp.stack(leaves), *listed)
+    g0 = jnp.stack([g for _, g, _ in problems])
+    m0 = jnp.stack([m for _, _, m in problems])
+    kwargs = dict(h=H, n_steps=10, save_every=10)
+    sol = lievi.simulate_batch(batch, METHOD, g0, m0, system_axis=0, **kwargs)
+    for i, (system, g, m) in enumerate(problems):
+        reference = lievi.simulate(system, METHOD, g, m, **kwargs)
+        assert jnp.max(jnp.abs(sol.g[i] - reference.g)) < 1e-12
+        assert jnp.max(jnp.abs(sol.m[i] - reference.m)) < 1e-12
+    assert jnp.max(jnp.abs(sol.m[0] - sol.m[1])) > 1e-2  # the systems differ
 
 
 def test_jax_md_segmented_run_equals_brute_force(segmented):
