@@ -32,9 +32,23 @@ from ._systems._neighbors import AbstractNeighborBuilder
 
 
 @eqx.filter_jit
-def _positions(potential, g):
-    """The flat site positions at each of the poses `g` `(T, N, 4, 4)`."""
-    return jax.vmap(potential.flat_positions)(g)
+def _largest_displacement(potential, g, g_built):
+    """The largest distance a site moved, over the poses `g` `(T, N, 4, 4)`, from where it
+    was at `g_built` (the list's build): on the device, one number back to the host."""
+    moved = jax.vmap(potential.flat_positions)(g) - potential.flat_positions(g_built)[None]
+    return jnp.sqrt(jnp.max(jnp.sum(moved * moved, axis=-1)))
+
+
+@jax.jit
+def _listed_pairs(pairs, n_sites):
+    """How many rows of a list are pairs (the rest is padding)."""
+    return jnp.sum(pairs[:, 1] < n_sites)
+
+
+@jax.jit
+def _take(arrays, index):
+    """The saves `index` of each array (one program for all, not one gather each)."""
+    return jax.tree.map(lambda x: x[index], arrays)
 
 
 def _default_where(system):
@@ -109,14 +123,16 @@ def simulate_with_neighbor_list(
     g, m = jnp.asarray(g0), jnp.asarray(m0)
     h_value = float(h)
     n_sites = potential.sites.shape[0] * potential.sites.shape[1]
-    pieces, builds, most_pairs, largest = [], 0, 0, 0.0
+    # Counts and displacements stay on the device until the end: a segment's only
+    # transfers to the host are its result code and its largest displacement.
+    pieces, builds, pair_counts, largest = [], 0, [], 0.0
     failure, state = None, None
     for segment in range(n_steps // rebuild_every):
         pairs, state = builder.build(potential, g, state)
         if builder.capacity is None:  # sized on the first build, then fixed (one compile)
             builder = dataclasses.replace(builder, capacity=pairs.shape[0])
         builds += 1
-        most_pairs = max(most_pairs, int(np.sum(np.asarray(pairs[:, 1]) < n_sites)))
+        pair_counts.append(_listed_pairs(pairs, n_sites))
         listed = eqx.tree_at(where, system, potential.with_neighbors(pairs))
         start = segment * rebuild_every
         sol = simulate(
@@ -136,10 +152,7 @@ def simulate_with_neighbor_list(
             failure = (int(sol.result), start + int(sol.stats["failed_step"]))
             pieces.append(_kept(sol, start, save_every))
             break
-        moved = (
-            np.asarray(_positions(potential, sol.g)) - np.asarray(potential.flat_positions(g))[None]
-        )
-        displacement = float(np.sqrt(np.max(np.sum(moved * moved, axis=-1))))
+        displacement = float(_largest_displacement(potential, sol.g, g))
         largest = max(largest, displacement)
         if displacement >= builder.skin / 2:
             raise RuntimeError(
@@ -154,7 +167,7 @@ def simulate_with_neighbor_list(
     stats = dict(
         joined.stats,
         neighbor_builds=jnp.asarray(builds),
-        neighbor_pairs=jnp.asarray(most_pairs),
+        neighbor_pairs=jnp.max(jnp.stack(pair_counts)),
         neighbor_capacity=jnp.asarray(builder.capacity),
         neighbor_max_displacement=jnp.asarray(largest),
     )
@@ -168,8 +181,8 @@ def _kept(sol: Solution, start: int, save_every: int) -> Solution:
     statistics whole (`_join` reduces them over each `save_every` steps)."""
     steps = start + np.arange(sol.ts.shape[0])
     keep = np.flatnonzero((steps % save_every == 0) & ((steps > start) | (start == 0)))
-    advected = None if sol.advected is None else sol.advected[keep]
-    return Solution(sol.ts[keep], sol.g[keep], sol.m[keep], sol.result, sol.stats, advected)
+    ts, g, m, advected = _take((sol.ts, sol.g, sol.m, sol.advected), jnp.asarray(keep))
+    return Solution(ts, g, m, sol.result, sol.stats, advected)
 
 
 def _join(pieces, h, n_steps: int, save_every: int, failure) -> Solution:
