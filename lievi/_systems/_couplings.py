@@ -23,6 +23,8 @@ coincide gives an infinite energy (or a non-finite force), which `simulate` repo
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -189,14 +191,15 @@ class SitePotential(AbstractPotential):
             )
         if is_concrete(pairs) and pairs.size:
             n, k = jnp.shape(self.sites)[:2]
-            p = np.asarray(pairs)
-            if p.min() < 0 or p.max() > fill_index(n * k):
+            # Reduced where the list lives (on a GPU, a run with rebuilds checks every new
+            # list): two booleans come back, not the list.
+            in_range, within_one_body = (bool(x) for x in _pair_list_defects(pairs, n * k, k))
+            if not in_range:
                 raise ValueError(
                     f"`neighbors` holds indices outside [0, {n * k}] (the {n * k} flat sites "
                     f"and the padding index {fill_index(n * k)})."
                 )
-            real = (p < n * k).all(axis=1)
-            if (p[real, 0] // k == p[real, 1] // k).any():
+            if within_one_body:
                 raise ValueError(
                     "`neighbors` pairs two sites of one body (their distance is fixed): list "
                     "only sites of different bodies, as the builders do."
@@ -390,3 +393,12 @@ def gravitating_bodies(G, masses, points, extra_inertia=None) -> RigidBodies:
         inertia = inertia + jnp.asarray(extra_inertia)
     potential = MutualGravity(G, masses, centered)
     return RigidBodies(inertia, mass, potential=potential)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _pair_list_defects(pairs, n_sites: int, k: int):
+    """`(every index in [0, n_sites], some real pair within one body)` for a pair list of
+    flat site indices (`k` sites a body, `n_sites` the padding index)."""
+    in_range = (jnp.min(pairs) >= 0) & (jnp.max(pairs) <= fill_index(n_sites))
+    real = jnp.all(pairs < n_sites, axis=1)
+    return in_range, jnp.any(real & (pairs[:, 0] // k == pairs[:, 1] // k))
