@@ -196,19 +196,12 @@ class Composition(AbstractIntegrator):
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
         return self._stages(system, g, m, h, self.method.step_cache(system, g), force, t)[:3]
 
-    def step_cache(self, system: AbstractLieSystem, g):
+    def _start_cache(self, system: AbstractLieSystem, g):
         # Each stage ends where the next begins: the inner method's cache passes through
         # the stages and from one step to the next (for a kick method, its force).
-        if self._overridden_below("cached_step", ("step",)):
-            return None
         return self.method.step_cache(system, g)
 
-    def cached_step(
-        self, system: AbstractLieSystem, g, m, h: Scalar, cache, force=None, t: Scalar = 0.0
-    ):
-        if self._overridden_below("cached_step", ("step",)):
-            # A subclass's own step runs as it is written (`AbstractIntegrator`'s default).
-            return super().cached_step(system, g, m, h, cache, force, t)
+    def _step_from_cache(self, system, g, m, h, cache, force, t):
         return self._stages(system, g, m, h, cache, force, t)
 
     def _stages(self, system, g, m, h, cache, force, t):
