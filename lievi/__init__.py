@@ -47,6 +47,9 @@ from ._integrators._moser_veselov import MoserVeselov as MoserVeselov
 from ._integrators._preprocessed_dmv import PreprocessedMoserVeselov as PreprocessedMoserVeselov
 from ._integrators._rk4 import RK4 as RK4
 from ._integrators._rkmk import RKMK4 as RKMK4
+from ._integrators._rkmk import RKMK5 as RKMK5
+from ._integrators._rkmk import RKMK8 as RKMK8
+from ._integrators._rkmk import AbstractRKMK as AbstractRKMK
 from ._integrators._splitting import LiePoissonSplitting as LiePoissonSplitting
 from ._optimal_control import OptimalControlSolution as OptimalControlSolution
 from ._optimal_control import solve_optimal_control as solve_optimal_control

@@ -26,6 +26,13 @@ def _fresh_compilation_caches():
 HEAVY = frozenset(
     {
         "tests/test_site_neighbors.py::test_batch_of_systems_with_their_own_lists",  # 11 s
+        # The order-5 and order-8 Lie-group Runge–Kutta methods: the tableau-driven step they
+        # share with RKMK4 runs by default (RKMK4's tests, the step-bound test, RKMK8 on the
+        # group); their own orders and parity under -m slow.
+        "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[rkmk8-heavy-top]",  # 38 s
+        "tests/test_kernel_parity.py::test_batch_equals_reference[rkmk8-heavy-top]",  # 14 s
+        "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[rkmk5]",  # 13 s
+        "tests/test_rkmk.py::test_order_of_the_tableau[rkmk8]",  # 15 s
         "tests/test_batch.py::test_failures_are_per_body[exp]",  # 11 s
         "tests/test_batch.py::test_fast_equals_generic[dep-exp]",  # 8 s
         "tests/test_batch.py::test_fast_path_gradient_finite_when_a_body_fails",  # 12 s

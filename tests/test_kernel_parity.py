@@ -60,9 +60,9 @@ REGISTRY = [
         "SplittingKernel",
     ),
     ("rk4", lievi.RK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RK4Kernel"),
-    ("rkmk4", lievi.RKMK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RKMK4Kernel"),
-    ("rkmk4-heavy-top", lievi.RKMK4(), _heavy_top, INERTIA, jnp.eye(3), M0, "RKMK4Kernel"),
-    ("rkmk4-se3", lievi.RKMK4(), _se3, SE3_TENSOR, jnp.eye(4), SE3_M0, "RKMK4SE3Kernel"),
+    ("rkmk4", lievi.RKMK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
+    ("rkmk4-heavy-top", lievi.RKMK4(), _heavy_top, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
+    ("rkmk4-se3", lievi.RKMK4(), _se3, SE3_TENSOR, jnp.eye(4), SE3_M0, "RKMKSE3Kernel"),
     (
         "rkmk4-se3-gravity",
         lievi.RKMK4(),
@@ -70,7 +70,31 @@ REGISTRY = [
         SE3_TENSOR,
         lievi.SE3.exp(jnp.array([0.3, -0.2, 0.1, 0.5, 0.0, -0.4])),
         SE3_M0,
-        "RKMK4SE3Kernel",
+        "RKMKSE3Kernel",
+    ),
+    ("rkmk5", lievi.RKMK5(), _rigid_body, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
+    ("rkmk5-heavy-top", lievi.RKMK5(), _heavy_top, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
+    ("rkmk5-se3", lievi.RKMK5(), _se3, SE3_TENSOR, jnp.eye(4), SE3_M0, "RKMKSE3Kernel"),
+    (
+        "rkmk5-se3-gravity",
+        lievi.RKMK5(),
+        _se3_gravity,
+        SE3_TENSOR,
+        lievi.SE3.exp(jnp.array([0.3, -0.2, 0.1, 0.5, 0.0, -0.4])),
+        SE3_M0,
+        "RKMKSE3Kernel",
+    ),
+    ("rkmk8", lievi.RKMK8(), _rigid_body, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
+    ("rkmk8-heavy-top", lievi.RKMK8(), _heavy_top, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
+    ("rkmk8-se3", lievi.RKMK8(), _se3, SE3_TENSOR, jnp.eye(4), SE3_M0, "RKMKSE3Kernel"),
+    (
+        "rkmk8-se3-gravity",
+        lievi.RKMK8(),
+        _se3_gravity,
+        SE3_TENSOR,
+        lievi.SE3.exp(jnp.array([0.3, -0.2, 0.1, 0.5, 0.0, -0.4])),
+        SE3_M0,
+        "RKMKSE3Kernel",
     ),
     (
         "composition-splitting-6",
@@ -149,6 +173,7 @@ BATCH_DEFAULT = (
     "dep-exp-heavy-top",
     "dep-exp-se3",
     "rkmk4-se3-gravity",
+    "rkmk8-heavy-top",
     "composition-splitting-6",
 )
 BATCHED = [
@@ -180,7 +205,8 @@ def test_kernel_runs(entry):
 
 
 ONE_BODY = [
-    # The slowest compilations under -m slow (RKMK4 in gravity is also checked against
+    # The slowest compilations under -m slow (the RKMK methods share one tableau-driven
+    # step, so one order-5 and one order-8 entry stay in the default suite; RKMK4 in gravity is also checked against
     # DOP853 by its order test, through the kernel, in the default suite, and on SE(3)
     # batched against the generic path's gradients, `tests/test_rkmk.py`; the SE(3)
     # composition stays: its negative stage exercises the SE(3) kernel at h < 0; the
@@ -191,6 +217,12 @@ ONE_BODY = [
         "dep-cayley-se3",
         "rkmk4-heavy-top",
         "rkmk4-se3-gravity",
+        "rkmk5-heavy-top",
+        "rkmk5-se3",
+        "rkmk5-se3-gravity",
+        "rkmk8",
+        "rkmk8-se3",
+        "rkmk8-se3-gravity",
         "composition-dep-4-heavy-top",
         "composition-splitting-6",
     )
@@ -251,6 +283,8 @@ def test_every_kernel_is_registered():
         lievi.LiePoissonSplitting(),
         lievi.RK4(),
         lievi.RKMK4(),
+        lievi.RKMK5(),
+        lievi.RKMK8(),
         lievi.Composition(lievi.DEP(), order=4),
         lievi.PreprocessedMoserVeselov(),
     ]

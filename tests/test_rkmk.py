@@ -1,6 +1,6 @@
-"""RKMK4, the Lie-group Runge–Kutta method: fourth order in `g` and `m` on either side,
-with a potential and with forcing, and `g` on the group to round-off (where the embedded
-`RK4` drifts off it)."""
+"""The Lie-group Runge–Kutta methods (RKMK4, RKMK5, RKMK8): the order of their tableau in
+`g` and `m` on either side, with a potential and with forcing, and `g` on the group to
+round-off (where the embedded `RK4` drifts off it)."""
 
 import jax
 import jax.numpy as jnp
@@ -22,15 +22,16 @@ def final_errors(system, g0, m0, T, hs, integrator=RKMK4, forcing=None):
     for h in hs:
         n = int(round(T / h))
         sol = lievi.simulate(system, integrator, g0, m0, h=h, n_steps=n, forcing=forcing)
+        assert int(sol.result) == lievi.RESULTS.successful, h
         errors.append(
             max(np.max(np.abs(sol.m[-1] - m_ref[-1])), np.max(np.abs(sol.g[-1] - g_ref[-1])))
         )
     return errors
 
 
-def observed_order(system, g0, m0, T, hs, forcing=None):
+def observed_order(system, g0, m0, T, hs, forcing=None, integrator=RKMK4):
     """The slope of log error against log h, and the errors."""
-    errors = final_errors(system, g0, m0, T, hs, forcing=forcing)
+    errors = final_errors(system, g0, m0, T, hs, integrator, forcing)
     return np.polyfit(np.log(hs), np.log(errors), 1)[0], errors
 
 
@@ -59,13 +60,69 @@ def test_fourth_order_heavy_top_with_control():
     assert abs(order - 4) <= ORDER_TOLERANCE, (order, errors)
 
 
-def test_stays_on_the_group_where_rk4_drifts():
+def _heavy_top_with_control():
+    top = lievi.heavy_top(jnp.array([2.0, 1.0, 2 / 3]), 1.0, jnp.array([0.1, 0.05, 0.4]), 1.0)
+    g0 = lievi.SO3.exp(jnp.array([0.3, -0.2, 0.1]))
+    forcing = lievi.ForceLaw(lambda t, g, m, args: 0.1 * jnp.array([jnp.sin(t), 0.0, jnp.cos(t)]))
+    return top, g0, jnp.array([0.4, -0.2, 1.1]), forcing
+
+
+# (integrator, steps for HLW's free body, steps for the forced heavy top): each range is
+# where the error is past its pre-asymptotic part and above round-off (measured slopes
+# between halvings: RKMK5 5.11, 5.03 and 5.05, 4.94; RKMK8 7.88, 7.99 and 7.95, 8.03).
+HIGHER_ORDERS = [
+    (lievi.RKMK5(), [0.1, 0.05, 0.025], [0.05, 0.025, 0.0125]),
+    (lievi.RKMK8(), [1.0, 0.5, 0.25], [0.5, 0.25, 0.125]),
+]
+
+
+@pytest.mark.parametrize("integrator, free_hs, forced_hs", HIGHER_ORDERS, ids=["rkmk5", "rkmk8"])
+def test_order_of_the_tableau(integrator, free_hs, forced_hs):
+    """RKMK5 and RKMK8 have the order of their tableau (± 0.1) in `g` and `m` together,
+    T = 2, against DOP853 at 1e-13: on HLW's free rigid body (the kernel, through
+    `simulate`) and on a heavy top driven by a time-varying torque (the generic step with
+    forcing, the stage times `t + c_i h`). A tableau whose nodes or weights were off would
+    drop to order ≤ 4."""
+    assert integrator.order() in (5, 8)
+    body, g0, m0 = hlw_problem()
+    order, errors = observed_order(body, g0, m0, 2.0, free_hs, integrator=integrator)
+    assert abs(order - integrator.order()) <= ORDER_TOLERANCE, (order, errors)
+    top, g0, m0, forcing = _heavy_top_with_control()
+    order, errors = observed_order(top, g0, m0, 2.0, forced_hs, forcing, integrator)
+    assert abs(order - integrator.order()) <= ORDER_TOLERANCE, (order, errors)
+
+
+@pytest.mark.parametrize("integrator", [lievi.RKMK4(), lievi.RKMK5(), lievi.RKMK8()], ids=str)
+def test_step_bound_is_the_tableaus_stability(integrator):
+    """`step_bound` is where the tableau's stability polynomial `R(iy)` (computed here from
+    its coefficients) stops having `|R| ≤ 1` on the imaginary axis, or the chart's bound 3
+    (`|u| < π`). RKMK8 is capped by the chart (DOP853's `|R(iy)| ≤ 1` reaches 5.96)."""
+    tableau = integrator.tableau()
+    s = len(tableau.b)
+    A = np.zeros((s, s))
+    for i, row in enumerate(tableau.a):
+        A[i, : len(row)] = row
+    np.testing.assert_allclose(A.sum(axis=1), tableau.c, atol=1e-15)  # c = row sums
+
+    def amplification(y):
+        return abs(
+            1 + 1j * y * np.asarray(tableau.b) @ np.linalg.solve(np.eye(s) - 1j * y * A, np.ones(s))
+        )
+
+    ys = np.linspace(0, tableau.imaginary_stability, 2001)
+    assert max(amplification(y) for y in ys) <= 1 + 1e-12
+    assert amplification(tableau.imaginary_stability + 0.05) > 1
+    assert integrator.step_bound() == min(tableau.imaginary_stability, 3.0)
+
+
+@pytest.mark.parametrize("integrator", [lievi.RKMK4(), lievi.RKMK8()], ids=str)
+def test_stays_on_the_group_where_rk4_drifts(integrator):
     """Heavy top, h = 0.1, 1e4 steps: ‖gᵀg − I‖ stays at round-off (the attitude moves only
     by exponentials), while the embedded RK4's drifts by orders of magnitude more."""
     top = lievi.heavy_top(jnp.array([2.0, 1.0, 2 / 3]), 1.0, jnp.array([0.1, 0.05, 0.4]), 1.0)
     g0, m0 = jnp.eye(3), jnp.array([0.4, -0.2, 1.1])
     kwargs = dict(h=0.1, n_steps=10_000, save_every=10_000)
-    sol = lievi.simulate(top, RKMK4, g0, m0, **kwargs)
+    sol = lievi.simulate(top, integrator, g0, m0, **kwargs)
     assert int(sol.result) == lievi.RESULTS.successful
     assert dg.orthogonality_defect(top, sol.g[-1]) <= ROUNDOFF
     embedded = lievi.simulate(top, lievi.RK4(), g0, m0, **kwargs)
@@ -124,7 +181,7 @@ def test_fourth_order_on_se3_through_the_kernel(gravity):
     """`simulate_batch` on SE(3) (the structure-of-arrays kernel): order 4.0 ± 0.1 in `g`
     and in `m` separately, T = 1, h = 0.1 … 0.025, against DOP853 at 1e-13."""
     body = _se3_body(np.random.default_rng(1), gravity)
-    assert type(RKMK4.batch_kernel(body)).__name__ == "RKMK4SE3Kernel"
+    assert type(RKMK4.batch_kernel(body)).__name__ == "RKMKSE3Kernel"
     g_ref, m_ref = lievi.reference_solution(body, SE3_G0, SE3_M0, [0.0, 1.0])
     errors = []
     for h in HS_SE3:

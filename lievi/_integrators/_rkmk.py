@@ -1,4 +1,4 @@
-"""A Lie-group Runge–Kutta method of order 4: Runge–Kutta–Munthe-Kaas (RKMK4).
+"""Lie-group Runge–Kutta methods of order 4, 5 and 8: Runge–Kutta–Munthe-Kaas (RKMK).
 
 The Euler–Poincaré equations with reconstruction (`_rk4.py`),
 
@@ -13,13 +13,19 @@ vector space, and satisfies
     u̇ = dexp⁻¹_{−u}(ξ)   (left),      u̇ = dexp⁻¹_{u}(ξ)   (right),
 
 with `dexp⁻¹` the inverse of the right-trivialised derivative of `exp`
-(`MatrixLieGroup.dexpinv`). Classical RK4 on `(u, m)` from `u = 0`, and
+(`MatrixLieGroup.dexpinv`). An explicit Runge–Kutta method on `(u, m)` from `u = 0`, and
 `g_{k+1} = g_k exp(u_{k+1})`: the method of Munthe-Kaas (Hairer–Lubich–Wanner, *Geometric
-Numerical Integration*, §IV.8.2). It is order 4 in `g` and `m` (`dexp⁻¹` is used exactly,
-not truncated) and `g` stays on the group to round-off, because it only ever moves by
-exponentials — unlike classical RK4 in the matrix embedding (`lievi.RK4`), whose `g` drifts
-off the group. It is neither symplectic nor Lie–Poisson: the Casimirs and the energy drift
-at O(h⁴) per unit time, as RK4's do.
+Numerical Integration*, §IV.8.2). With `dexp⁻¹` used exactly (closed forms, not a
+truncated commutator series) it has the order of the underlying tableau in `g` and `m`:
+
+- `RKMK4`: classical RK4 (4 stages);
+- `RKMK5`: the order-5 solution of Dormand–Prince 5(4) (6 stages);
+- `RKMK8`: the order-8 solution of DOP853 (12 stages)
+
+(tableaux in `lievi/_kernels/_runge_kutta.py`). `g` stays on the group to round-off,
+because it only ever moves by exponentials — unlike classical RK4 in the matrix embedding
+(`lievi.RK4`), whose `g` drifts off the group. They are neither symplectic nor
+Lie–Poisson: the Casimirs and the energy drift at O(h^p) per unit time.
 
 Chosen over Crouch–Grossman and commutator-free methods because it needs only the group's
 `exp` and `dexpinv` (closed forms on SO(3) and SE(3), generic ones on any matrix group),
@@ -31,41 +37,58 @@ SE(3) (`RigidBodySE3`), free or in a potential linear in `g` (uniform gravity).
 
 from __future__ import annotations
 
+import abc
 import dataclasses
-import math
 
 import jax.numpy as jnp
 from jaxtyping import Scalar
 
 from .._checks import check_shape
 from .._kernels._base import kernels_enabled
-from .._kernels._rkmk import RKMK4Kernel
-from .._kernels._rkmk_se3 import RKMK4SE3Kernel
+from .._kernels._rkmk import RKMKKernel
+from .._kernels._rkmk_se3 import RKMKSE3Kernel
+from .._kernels._runge_kutta import (
+    CLASSICAL_RK4,
+    DOP853,
+    DORMAND_PRINCE5,
+    ButcherTableau,
+    rk_in_the_chart,
+)
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from ._base import AbstractIntegrator, StepInfo
 from ._rk4 import momentum_rate
 
+# `u` must stay inside the exponential's injectivity ball `|u| < π` (and the kernels'
+# power series are accurate to round-off there): a step turns by at most this angle, with
+# a margin for the stages, whatever the tableau's stability would allow.
+CHART_BOUND = 3.0
 
-class RKMK4(AbstractIntegrator):
-    """Runge–Kutta–Munthe-Kaas of order 4: classical RK4 in the exponential chart of the
-    group about each step's start (module docstring). Works for any `AbstractLieSystem`
-    (either side, potentials, forcing); `g` stays on the group to round-off. Explicit, no
-    arguments. Not symplectic: energy and Casimirs drift at O(h⁴) per unit time.
+
+class AbstractRKMK(AbstractIntegrator):
+    """Runge–Kutta–Munthe-Kaas: an explicit Runge–Kutta method in the exponential chart of
+    the group about each step's start (module docstring). A subclass names its tableau
+    (`tableau`); everything else is shared. Works for any `AbstractLieSystem` (either
+    side, potentials, forcing); `g` stays on the group to round-off. Explicit, no
+    arguments. Not symplectic: energy and Casimirs drift at O(h^p) per unit time.
     """
 
+    @abc.abstractmethod
+    def tableau(self) -> ButcherTableau:
+        """The explicit Runge–Kutta tableau run in the chart."""
+
     def order(self) -> int:
-        return 4
+        return self.tableau().order
 
     def step_bound(self) -> float:
-        # RK4's stability on the imaginary axis (rotation at rate |Ω|): |R(iy)| ≤ 1 iff
-        # y ≤ 2√2 (< π, so `u` also stays inside the exponential's injectivity radius).
-        return 2 * math.sqrt(2)
+        # The tableau's stability on the imaginary axis (rotation at rate |Ω| turns by
+        # h|Ω| a step), and the chart's own bound.
+        return min(self.tableau().imaginary_stability, CHART_BOUND)
 
     def kernels(self):
         # Closed forms for the rigid body with principal moments (`_kernels/_rkmk.py`) and
-        # for any body on SE(3) (`_kernels/_rkmk_se3.py`).
-        return RKMK4Kernel(), RKMK4SE3Kernel()
+        # for any body on SE(3) (`_kernels/_rkmk_se3.py`), each running this tableau.
+        return RKMKKernel(self.tableau()), RKMKSE3Kernel(self.tableau())
 
     def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
         # With a potential linear in `g` (gravity) the same kernels take its wrench per stage.
@@ -90,23 +113,47 @@ class RKMK4(AbstractIntegrator):
             g_next, m_next, result, iterations, residual = kernel.one_body_step(system, g, m, h)
             return g_next, m_next, StepInfo(result, iterations, residual)
 
-        def f(s, u, mm):
-            # The chart about g_k: g = g_k exp(u) (left) or exp(u) g_k (right).
+        def stage(u, mm, c):
+            # `(h u̇, h ṁ)` in the chart about g_k: g = g_k exp(u) (left) or exp(u) g_k
+            # (right); `u = None` is the chart's origin.
+            u = jnp.zeros(d, m.dtype) if u is None else u
             gg = side.compose(group, g, group.exp(u))
             xi = system.velocity(mm)
             u_dot = group.dexpinv(-side.sign * u) @ xi
-            return u_dot, momentum_rate(system, gg, mm, xi, force, s)
+            return h * u_dot, h * momentum_rate(system, gg, mm, xi, force, t + c * h)
 
-        u0 = jnp.zeros(d, m.dtype)
-        k1 = f(t, u0, m)
-        k2 = f(t + h / 2, h / 2 * k1[0], m + h / 2 * k1[1])
-        k3 = f(t + h / 2, h / 2 * k2[0], m + h / 2 * k2[1])
-        k4 = f(t + h, h * k3[0], m + h * k3[1])
-        u, m_next = (
-            y + h / 6 * (a + 2 * b + 2 * c + e) for y, a, b, c, e in zip((u0, m), k1, k2, k3, k4)
-        )
+        u, m_next = rk_in_the_chart(self.tableau(), stage, m)
         g_next = side.compose(group, g, group.exp(u))
         finite = jnp.all(jnp.isfinite(m_next)) & jnp.all(jnp.isfinite(g_next))
         result = jnp.where(finite, RESULTS.successful, RESULTS.nonfinite)
         zero = jnp.zeros((), m_next.dtype)
         return g_next, m_next, StepInfo(result, jnp.zeros((), jnp.int32), zero)
+
+
+class RKMK4(AbstractRKMK):
+    """Runge–Kutta–Munthe-Kaas of order 4: classical RK4 in the exponential chart (4
+    stages a step). The default Lie-group Runge–Kutta method: the cheapest per step, and
+    stable for rotation up to `h|ω| ≤ 2√2`."""
+
+    def tableau(self) -> ButcherTableau:
+        return CLASSICAL_RK4
+
+
+class RKMK5(AbstractRKMK):
+    """Runge–Kutta–Munthe-Kaas of order 5: the order-5 solution of Dormand–Prince 5(4) in
+    the exponential chart (6 stages a step). Its stability reaches only `h|ω| ≤ 0.99` on
+    the imaginary axis (rotation), so it pays where accuracy, not stability, limits the
+    step."""
+
+    def tableau(self) -> ButcherTableau:
+        return DORMAND_PRINCE5
+
+
+class RKMK8(AbstractRKMK):
+    """Runge–Kutta–Munthe-Kaas of order 8: the order-8 solution of DOP853 in the
+    exponential chart (12 stages a step). For tight tolerances (errors below about 1e-7),
+    where its large steps beat the stages it costs; stable for rotation up to the chart's
+    bound `h|ω| ≤ 3`."""
+
+    def tableau(self) -> ButcherTableau:
+        return DOP853

@@ -1,8 +1,9 @@
-"""The fast batched step of `RKMK4` for the rigid body with principal moments, free or with
+"""The fast batched step of the Lie-group Runge–Kutta methods (`RKMK4`, `RKMK5`, `RKMK8`)
+for the rigid body with principal moments, free or with
 a potential linear in `g` (`V = aᵀ g b`, e.g. uniform gravity: the heavy top).
 
-The structure-of-arrays counterpart of `lievi/_integrators/_rkmk.py` (classical RK4 on
-`(u, Π)` with `g = g_k exp(u)`), as `_explicit.py` is for `RK4`: every component its own
+The structure-of-arrays counterpart of `lievi/_integrators/_rkmk.py` (an explicit
+Runge–Kutta method on `(u, Π)` with `g = g_k exp(u)`), as `_explicit.py` is for `RK4`: every component its own
 `(B,)` array, closed forms, and the same iterates as the generic step to round-off (the
 kernel parity test). Differentiated by JAX's autodiff of these elementwise operations.
 
@@ -22,9 +23,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from ._base import AbstractBatchKernel
+from ._base import AbstractBatchKernel, materialise
 from ._explicit import explicit_info, finite_result
 from ._kick import advected_rows, coupling_torque, rigid_body_coupling
+from ._runge_kutta import CLASSICAL_RK4, ButcherTableau, rk_in_the_chart
 from ._soa import C_SERIES, P_SERIES, S_SERIES, cross, dot, horner, rotate_rows
 
 
@@ -81,39 +83,38 @@ def scaled_coupling(potential, h):
     return a, h[..., None] * b if jnp.ndim(h) else h * b
 
 
-def rk4_in_the_chart(stage, m):
-    """Classical RK4 on `(u, m)` from `u = 0` (`_integrators/_rkmk.py`), the stages
-    `stage(u, m) = (h u̇, h ṁ)` (`u = None` at `u = 0`) on tuples of components. Returns
-    `(u_{k+1}, m_{k+1})`."""
+def stored_stages(x):
+    """The `store` of `rk_in_the_chart` for the kernels: each stage's increments kept
+    (`_base.materialise`), read by the later stages rather than recomputed in each."""
+    one = x * 0 + 1
 
-    def axpy(a, x, y):
-        return tuple(y[i] + a * x[i] for i in range(len(y)))
+    def store(du, dm):
+        values = materialise(tuple(du) + tuple(dm), one)
+        return values[: len(du)], values[len(du) :]
 
-    du1, dm1 = stage(None, m)
-    du2, dm2 = stage(tuple(x / 2 for x in du1), axpy(0.5, dm1, m))
-    du3, dm3 = stage(tuple(x / 2 for x in du2), axpy(0.5, dm2, m))
-    du4, dm4 = stage(du3, axpy(1.0, dm3, m))
-    u = tuple((du1[i] + 2 * du2[i] + 2 * du3[i] + du4[i]) / 6 for i in range(len(du1)))
-    m_next = tuple(m[i] + (dm1[i] + 2 * dm2[i] + 2 * dm3[i] + dm4[i]) / 6 for i in range(len(m)))
-    return u, m_next
+    return store
 
 
-def rkmk4_step(g, m, rate, coupling=None):
-    """One `RKMK4` step: `g`: 9 arrays (row-major), `m`: 3 arrays, `rate`: `h/I_p`, 3
-    arrays or scalars; `coupling`: `None` (free) or `(a, h b)` of `V = aᵀ g b`. Returns
-    `(g_next, m_next, result)`."""
+def rkmk_step(tableau, g, m, rate, coupling=None):
+    """One RKMK step with `tableau`: `g`: 9 arrays (row-major), `m`: 3 arrays, `rate`:
+    `h/I_p`, 3 arrays or scalars; `coupling`: `None` (free) or `(a, h b)` of `V = aᵀ g b`.
+    Returns `(g_next, m_next, result)`."""
     if coupling is not None:
         coupling = (advected_rows(coupling[0], g), coupling[1])
-    u, m_next = rk4_in_the_chart(lambda u, m: _stage(u, m, rate, coupling), m)
+    u, m_next = rk_in_the_chart(
+        tableau, lambda u, m, c: _stage(u, m, rate, coupling), m, stored_stages(m[0])
+    )
     # g exp(u), Rodrigues' coefficients.
     g_next = rotate_rows(g, u, *_rotation_coefficients(dot(u, u)))
     return g_next, m_next, finite_result(m_next, g_next)
 
 
-class RKMK4Kernel(AbstractBatchKernel):
-    """`rkmk4_step` for `RKMK4`: the rigid body with principal moments, free (`potential`
-    `None`) or in a potential linear in `g` (`AbstractPotential.linear_coupling`)."""
+class RKMKKernel(AbstractBatchKernel):
+    """`rkmk_step` for the Lie-group Runge–Kutta methods (`RKMK4`, `RKMK5`, `RKMK8`: the
+    `tableau`): the rigid body with principal moments, free (`potential` `None`) or in a
+    potential linear in `g` (`AbstractPotential.linear_coupling`)."""
 
+    tableau: ButcherTableau = eqx.field(static=True, default=CLASSICAL_RK4)
     potential: eqx.Module | None = None
 
     def physics(self, system, batched: bool = False):
@@ -127,5 +128,5 @@ class RKMK4Kernel(AbstractBatchKernel):
         return tuple(h / moment for moment in inertia), scaled_coupling(self.potential, h)
 
     def step(self, params, g, m, alive):
-        g_next, m_next, result = rkmk4_step(g, m, *params)
+        g_next, m_next, result = rkmk_step(self.tableau, g, m, *params)
         return (g_next, m_next, result, *explicit_info(m))

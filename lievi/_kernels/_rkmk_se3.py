@@ -1,8 +1,9 @@
-"""The fast batched step of `RKMK4` for a body on SE(3) (`RigidBodySE3`, any 6×6 kinetic
+"""The fast batched step of the Lie-group Runge–Kutta methods (`RKMK4`, `RKMK5`, `RKMK8`)
+for a body on SE(3) (`RigidBodySE3`, any 6×6 kinetic
 tensor `M`), free or with a potential linear in the pose (`V = aᵀ g b`, e.g.
 `UniformGravitySE3`).
 
-The SE(3) counterpart of `_kernels/_rkmk.py`: classical RK4 on `(u, m)` in the exponential
+The SE(3) counterpart of `_kernels/_rkmk.py`: an explicit Runge–Kutta method on `(u, m)` in the exponential
 chart about the step's start, `g = g_k exp(u)` (`lievi/_integrators/_rkmk.py`), on structure
 of arrays — the pose as the 12 entries of `[R | p]`, the momentum `m = (Π, P)` as 6, the
 per-run constants the 36 entries of `h M⁻¹` — with the same iterates as the generic step
@@ -35,7 +36,8 @@ import jax.numpy as jnp
 
 from ._explicit import explicit_info, finite_result
 from ._kick import coupling_torque
-from ._rkmk import advected_at, left_dexpinv, rk4_in_the_chart, scaled_coupling
+from ._rkmk import advected_at, left_dexpinv, scaled_coupling, stored_stages
+from ._runge_kutta import CLASSICAL_RK4, ButcherTableau, rk_in_the_chart
 from ._se3 import SE3Kernel, compose_increment, increment
 from ._se3_residual import exp_series, ones
 from ._soa import cross, dot, entries
@@ -77,8 +79,8 @@ def _stage(u, m, rate, coupling):
     return du_o + du_v, dPi + dP
 
 
-def rkmk4_se3_step(g, m, rate, coupling=None):
-    """One `RKMK4` step on SE(3): `g`: 12 arrays (the rows of `[R | p]`), `m`: 6, `rate`:
+def rkmk_se3_step(tableau, g, m, rate, coupling=None):
+    """One RKMK step with `tableau` on SE(3): `g`: 12 arrays (the rows of `[R | p]`), `m`: 6, `rate`:
     `h M⁻¹`, 6×6 nested arrays or scalars; `coupling`: `None` (free) or `(a, h b)` of
     `V = aᵀ g b` (4-vectors, a batch axis first allowed). Returns `(g_next, m_next, result)`."""
     if coupling is not None:
@@ -86,16 +88,20 @@ def rkmk4_se3_step(g, m, rate, coupling=None):
         a = jnp.asarray(a, g[0].dtype)
         Gamma = tuple(sum(a[..., i] * g[4 * i + j] for i in range(3)) for j in range(3))
         coupling = (Gamma, hb[..., :3], hb[..., 3])
-    u, m_next = rk4_in_the_chart(lambda u, m: _stage(u, m, rate, coupling), m)
+    u, m_next = rk_in_the_chart(
+        tableau, lambda u, m, c: _stage(u, m, rate, coupling), m, stored_stages(m[0])
+    )
     one = ones(m[0])
     g_next = compose_increment(g, *increment("exp", u[:3], u[3:], one), one)
     return g_next, m_next, finite_result(m_next, g_next)
 
 
-class RKMK4SE3Kernel(SE3Kernel):
-    """`rkmk4_se3_step` for `RKMK4`: `RigidBodySE3`, free (`potential` `None`) or in a
-    potential linear in the pose (`AbstractPotential.linear_coupling`, 4-vectors)."""
+class RKMKSE3Kernel(SE3Kernel):
+    """`rkmk_se3_step` for the Lie-group Runge–Kutta methods (the `tableau`):
+    `RigidBodySE3`, free (`potential` `None`) or in a potential linear in the pose
+    (`AbstractPotential.linear_coupling`, 4-vectors)."""
 
+    tableau: ButcherTableau = eqx.field(static=True, default=CLASSICAL_RK4)
     potential: eqx.Module | None = None
 
     def physics(self, system, batched: bool = False):
@@ -116,5 +122,5 @@ class RKMK4SE3Kernel(SE3Kernel):
         return rate, scaled_coupling(self.potential, h)
 
     def step(self, params, g, m, alive):
-        g_next, m_next, result = rkmk4_se3_step(g, m, *params)
+        g_next, m_next, result = rkmk_se3_step(self.tableau, g, m, *params)
         return (g_next, m_next, result, *explicit_info(m))
