@@ -45,6 +45,36 @@ def _se3_gravity(tensor):
     return lievi.RigidBodySE3(tensor=tensor, potential=gravity)
 
 
+def _rkmk_entries(name, integrator):
+    """The four systems with a Lie-group Runge–Kutta kernel: free and heavy-top SO(3),
+    free and gravity SE(3)."""
+    se3_g0 = lievi.SE3.exp(jnp.array([0.3, -0.2, 0.1, 0.5, 0.0, -0.4]))
+    return [
+        (name, integrator, _rigid_body, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
+        (f"{name}-heavy-top", integrator, _heavy_top, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
+        (f"{name}-se3", integrator, _se3, SE3_TENSOR, jnp.eye(4), SE3_M0, "RKMKSE3Kernel"),
+        (
+            f"{name}-se3-gravity",
+            integrator,
+            _se3_gravity,
+            SE3_TENSOR,
+            se3_g0,
+            SE3_M0,
+            "RKMKSE3Kernel",
+        ),
+    ]
+
+
+RKMK_ENTRIES = [
+    entry
+    for name, integrator in (
+        ("rkmk4", lievi.RKMK4()),
+        ("rkmk5", lievi.RKMK5()),
+        ("rkmk8", lievi.RKMK8()),
+    )
+    for entry in _rkmk_entries(name, integrator)
+]
+
 # (name, integrator, system builder from its parameter, parameter, g0, m0, kernel class)
 REGISTRY = [
     ("dep-exp", lievi.DEP(), _rigid_body, INERTIA, jnp.eye(3), M0, "NewtonKernel"),
@@ -60,42 +90,7 @@ REGISTRY = [
         "SplittingKernel",
     ),
     ("rk4", lievi.RK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RK4Kernel"),
-    ("rkmk4", lievi.RKMK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
-    ("rkmk4-heavy-top", lievi.RKMK4(), _heavy_top, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
-    ("rkmk4-se3", lievi.RKMK4(), _se3, SE3_TENSOR, jnp.eye(4), SE3_M0, "RKMKSE3Kernel"),
-    (
-        "rkmk4-se3-gravity",
-        lievi.RKMK4(),
-        _se3_gravity,
-        SE3_TENSOR,
-        lievi.SE3.exp(jnp.array([0.3, -0.2, 0.1, 0.5, 0.0, -0.4])),
-        SE3_M0,
-        "RKMKSE3Kernel",
-    ),
-    ("rkmk5", lievi.RKMK5(), _rigid_body, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
-    ("rkmk5-heavy-top", lievi.RKMK5(), _heavy_top, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
-    ("rkmk5-se3", lievi.RKMK5(), _se3, SE3_TENSOR, jnp.eye(4), SE3_M0, "RKMKSE3Kernel"),
-    (
-        "rkmk5-se3-gravity",
-        lievi.RKMK5(),
-        _se3_gravity,
-        SE3_TENSOR,
-        lievi.SE3.exp(jnp.array([0.3, -0.2, 0.1, 0.5, 0.0, -0.4])),
-        SE3_M0,
-        "RKMKSE3Kernel",
-    ),
-    ("rkmk8", lievi.RKMK8(), _rigid_body, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
-    ("rkmk8-heavy-top", lievi.RKMK8(), _heavy_top, INERTIA, jnp.eye(3), M0, "RKMKKernel"),
-    ("rkmk8-se3", lievi.RKMK8(), _se3, SE3_TENSOR, jnp.eye(4), SE3_M0, "RKMKSE3Kernel"),
-    (
-        "rkmk8-se3-gravity",
-        lievi.RKMK8(),
-        _se3_gravity,
-        SE3_TENSOR,
-        lievi.SE3.exp(jnp.array([0.3, -0.2, 0.1, 0.5, 0.0, -0.4])),
-        SE3_M0,
-        "RKMKSE3Kernel",
-    ),
+    *RKMK_ENTRIES,
     (
         "composition-splitting-6",
         lievi.Composition(lievi.LiePoissonSplitting(), order=6),
