@@ -18,6 +18,7 @@ times: a figure of a few milliseconds is "nothing compiled", within the scatter 
 machine's load (printed with the results).
 
     python benchmarks/compile_time.py [--quick] [--steps 100] [--batch 64] [--out compile_time]
+                                      [--integrators RKMK5 RKMK8]
     python benchmarks/compile_time.py --throughput [--out compile_time_throughput]
 
 Writes `benchmarks/results/<out>.json` (after each pair, so that a run cut short keeps
@@ -85,6 +86,8 @@ def integrators():
         "LiePoissonSplitting": lievi.LiePoissonSplitting(),
         "RK4": lievi.RK4(),
         "RKMK4": lievi.RKMK4(),
+        "RKMK5": lievi.RKMK5(),
+        "RKMK8": lievi.RKMK8(),
         "Composition(DEP exp, 4)": lievi.Composition(lievi.DEP(chart="exp"), order=4),
         "PreprocessedMoserVeselov": lievi.PreprocessedMoserVeselov(),
     }
@@ -192,6 +195,9 @@ def main():
     parser.add_argument("--batch", type=int, default=64)
     parser.add_argument("--throughput", action="store_true")
     parser.add_argument("--out", default=None)
+    parser.add_argument(
+        "--integrators", nargs="+", choices=list(integrators()), help="only these (default: all)"
+    )
     options = parser.parse_args()
     options.out = options.out or (
         "compile_time_throughput" if options.throughput else "compile_time"
@@ -215,6 +221,8 @@ def main():
     for system_name, (system, g0, m0) in systems().items():
         for name, integrator in integrators().items():
             if options.quick and (system_name, name) not in QUICK:
+                continue
+            if options.integrators and name not in options.integrators:
                 continue
             jax.clear_caches()
             row = {"system": system_name, "integrator": name}

@@ -428,6 +428,8 @@ def methods(steps: int):
         ("splitting", "LiePoissonSplitting"),
         ("RK4", "RK4"),
         ("RKMK4", "RKMK4"),
+        ("RKMK5", "RKMK5"),
+        ("RKMK8", "RKMK8"),
     ):
         if hasattr(lievi, cls):
             rows[name] = lievi_runner(getattr(lievi, cls)(), steps)
@@ -457,6 +459,8 @@ def check_against_generic(name, fn, dtype, steps: int):
         ("splitting", "LiePoissonSplitting"),
         ("RK4", "RK4"),
         ("RKMK4", "RKMK4"),
+        ("RKMK5", "RKMK5"),
+        ("RKMK8", "RKMK8"),
     ):
         if name == label:
             integrator = getattr(lievi, cls)()
@@ -592,6 +596,9 @@ HEAVY_TOP_METHODS = {
     "DEP cayley": lambda: lievi.DEP(chart="cayley"),
     "Moser-Veselov": lambda: lievi.MoserVeselov(),
     "splitting": lambda: lievi.LiePoissonSplitting(),
+    "RKMK4": lambda: lievi.RKMK4(),
+    "RKMK5": lambda: lievi.RKMK5(),
+    "RKMK8": lambda: lievi.RKMK8(),
 }
 # The methods timed by default (DEP's Cayley chart with --methods).
 HEAVY_TOP_DEFAULT = ("DEP exp", "Moser-Veselov", "splitting")

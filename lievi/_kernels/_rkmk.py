@@ -129,6 +129,12 @@ class RKMKKernel(AbstractBatchKernel):
     def prepare(self, inertia, h):
         return tuple(h / moment for moment in inertia), scaled_coupling(self.potential, h)
 
+    def advected(self, state):
+        # `Γ = gᵀa` of `V = aᵀ g b` from the carried `g` (`save=("m", "advected")`).
+        if self.potential is None:
+            return None
+        return advected_rows(self.potential.linear_coupling()[0], state)
+
     def step(self, params, g, m, alive):
         g_next, m_next, result = rkmk_step(self.tableau, g, m, *params)
         return (g_next, m_next, result, *explicit_info(m))
