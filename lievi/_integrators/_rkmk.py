@@ -152,8 +152,9 @@ class RKMK5(AbstractRKMK):
 
 class RKMK8(AbstractRKMK):
     """Runge–Kutta–Munthe-Kaas of order 8: the order-8 solution of DOP853 in the
-    exponential chart (12 stages a step). For tight tolerances (errors below about 1e-7),
-    where its large steps beat the stages it costs; stable for rotation up to the chart's
+    exponential chart (12 stages a step). Its large steps more than pay for its stages: in
+    the work–precision comparison (free body and heavy top, final errors 1e-2 … 1e-10) it
+    is the cheapest lievi method at every target. Stable for rotation up to the chart's
     bound `h|ω| ≤ 3`."""
 
     def tableau(self) -> ButcherTableau:
