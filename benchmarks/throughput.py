@@ -412,6 +412,17 @@ COMPOSITIONS = {
 }
 
 
+# Rows named differently from their lievi class (row name, class), no arguments.
+NAMED_METHODS = (
+    ("Moser-Veselov", "MoserVeselov"),
+    ("splitting", "LiePoissonSplitting"),
+    ("RK4", "RK4"),
+    ("RKMK4", "RKMK4"),
+    ("RKMK5", "RKMK5"),
+    ("RKMK8", "RKMK8"),
+)
+
+
 def methods(steps: int):
     rows = {
         "DEP exp": lievi_runner(lievi.DEP(chart="exp"), steps),
@@ -423,14 +434,7 @@ def methods(steps: int):
             lievi.DEP(chart="exp", max_steps=3), steps, unroll=4
         ),
     }
-    for name, cls in (
-        ("Moser-Veselov", "MoserVeselov"),
-        ("splitting", "LiePoissonSplitting"),
-        ("RK4", "RK4"),
-        ("RKMK4", "RKMK4"),
-        ("RKMK5", "RKMK5"),
-        ("RKMK8", "RKMK8"),
-    ):
+    for name, cls in NAMED_METHODS:
         if hasattr(lievi, cls):
             rows[name] = lievi_runner(getattr(lievi, cls)(), steps)
     for name, integrator in COMPOSITIONS.items():
@@ -454,14 +458,7 @@ def check_against_generic(name, fn, dtype, steps: int):
     integrator = {"DEP cayley": lievi.DEP(chart="cayley"), **COMPOSITIONS}.get(
         name, lievi.DEP(chart="exp")
     )
-    for label, cls in (
-        ("Moser-Veselov", "MoserVeselov"),
-        ("splitting", "LiePoissonSplitting"),
-        ("RK4", "RK4"),
-        ("RKMK4", "RKMK4"),
-        ("RKMK5", "RKMK5"),
-        ("RKMK8", "RKMK8"),
-    ):
+    for label, cls in NAMED_METHODS:
         if name == label:
             integrator = getattr(lievi, cls)()
     fast = fn(*inputs)

@@ -54,6 +54,11 @@ def reference_path():
         jax.clear_caches()
 
 
+def ones(x):
+    """An array of ones computed at run time, `x·0 + 1` (the `one` of `materialise`)."""
+    return x * 0 + 1
+
+
 def materialise(values, one, stack: bool = True):
     """`values / one` with `one` an array of ones computed at run time: forces XLA to store
     `values` instead of recomputing them in every consumer.

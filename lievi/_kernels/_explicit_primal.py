@@ -16,7 +16,7 @@ import math
 
 import jax.numpy as jnp
 
-from ._base import materialise
+from ._base import materialise, ones
 
 _HALF_PI = decimal.Decimal("3.14159265358979323846264338327950288419716939937510582097494") / 2
 
@@ -171,7 +171,7 @@ def splitting_primal(g, m, rate):
     the rotations, the momenta before and after each sub-flow (`j = 0…5`, sequentially
     rotated) and the composed increment `F = F_1⋯F_5` (9 arrays); `g_next = g F`,
     `Π_next = Fᵀ Π`."""
-    one = m[0] * 0 + 1
+    one = ones(m[0])
     factors, rotations, momenta = [], [], [tuple(m)]
     for p, fraction in SUBFLOWS:
         # The half angle α/2 = (f/2)·Π_p·(h/I_p): a product. As a quotient by I_p/h it

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
-from ._base import ROOT_NAME, materialise
+from ._base import ROOT_NAME, materialise, ones
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -37,7 +37,7 @@ def _at_root_jvp(equation, primals, tangents):
     # every cotangent of `m` and `A` needs; stored once rather than the solve (with `J`)
     # re-evaluated inside each of their fused loops (measured on SO(3): the gradient of a
     # batch of 1e5 exp-chart bodies 16 % faster).
-    dr = materialise(dr, x[0] * 0 + 1)
+    dr = materialise(dr, ones(x[0]))
     delta = equation.solve(J, dr)
     return x, tuple(-d for d in delta)
 

@@ -23,7 +23,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from ._base import AbstractBatchKernel, materialise
+from ._base import AbstractBatchKernel, materialise, ones
 from ._explicit import explicit_info, finite_result
 from ._kick import advected_rows, coupling_torque, rigid_body_coupling
 from ._runge_kutta import CLASSICAL_RK4, ButcherTableau, rk_in_the_chart
@@ -88,7 +88,7 @@ def stored_stages(x):
     increments kept (`_base.materialise`), read where needed rather than recomputed in
     each reader (measured: 1.7–1.8× the body-steps/s of `RKMK4`, and the order-8
     method's gradient compiled in 13 s where it had not finished in 10 minutes)."""
-    one = x * 0 + 1
+    one = ones(x)
 
     def store(du, dm):
         values = materialise(tuple(du) + tuple(dm), one)

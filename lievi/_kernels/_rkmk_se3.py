@@ -34,12 +34,13 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
+from ._base import ones
 from ._explicit import explicit_info, finite_result
 from ._kick import coupling_torque
 from ._rkmk import advected_at, left_dexpinv, scaled_coupling, stored_stages
 from ._runge_kutta import CLASSICAL_RK4, ButcherTableau, rk_in_the_chart
 from ._se3 import SE3Kernel, compose_increment, increment
-from ._se3_residual import exp_series, ones
+from ._se3_residual import exp_series
 from ._soa import cross, dot, entries
 
 

@@ -29,15 +29,17 @@ import jax
 @dataclasses.dataclass(frozen=True)
 class ButcherTableau:
     """An explicit tableau: `a[i]` the `i` coefficients of stage `i` (row 0 empty), `b` the
-    weights, `c` the nodes (`c[i] = Σ a[i]`). Hashable (kernels hold it as a static
-    field)."""
+    weights. Hashable (kernels hold it as a static field)."""
 
-    name: str
     order: int
     a: tuple[tuple[float, ...], ...]
     b: tuple[float, ...]
-    c: tuple[float, ...]
     imaginary_stability: float
+
+    @property
+    def c(self) -> tuple[float, ...]:
+        """The nodes, `c[i] = Σ_j a[i][j]` (the stage times `t_k + c_i h`)."""
+        return tuple(float(sum(row)) for row in self.a)
 
 
 def _combine(y, coefficients, increments):
@@ -60,7 +62,7 @@ def rk_in_the_chart(tableau: ButcherTableau, stage, m, store=None):
     `stage(u, m, c) = (h u̇, h ṁ)` at the stage `(u, m)` at time `t_k + c h` (`u = None`
     at the first stage, where `u = 0`); `u` and `m` any pytrees (a vector as an array, or
     a tuple of component arrays). `store`, if given, is applied to each stage's
-    increments before later stages read them (the kernels pass `materialise`: every later
+    inputs and increments before anything reads them (the kernels pass `materialise`: every later
     stage reads every earlier one, and XLA's CPU fusion would otherwise recompute each
     stage inside each of its readers — exponential in the number of stages, measured as a
     compile that does not finish for DOP853's 12). Returns `(u_{k+1}, m_{k+1})`.
@@ -82,16 +84,13 @@ def rk_in_the_chart(tableau: ButcherTableau, stage, m, store=None):
 
 
 CLASSICAL_RK4 = ButcherTableau(
-    name="classical RK4",
     order=4,
     a=((), (0.5,), (0.0, 0.5), (0.0, 0.0, 1.0)),
     b=(1 / 6, 1 / 3, 1 / 3, 1 / 6),
-    c=(0.0, 0.5, 0.5, 1.0),
     imaginary_stability=2.8284271247461903,  # 2√2
 )
 
 DORMAND_PRINCE5 = ButcherTableau(
-    name="Dormand–Prince 5",
     order=5,
     a=(
         (),
@@ -102,14 +101,12 @@ DORMAND_PRINCE5 = ButcherTableau(
         (9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656),
     ),
     b=(35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84),
-    c=(0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0),
     # |R(iy)| ≤ 1 only to y ≈ 0.997: the pair was tuned for its error estimate, not for
     # rotation; beyond it a rotating mode grows slowly (0.3 % a step at y = 1.5).
     imaginary_stability=0.99,
 )
 
 DOP853 = ButcherTableau(
-    name="DOP853",
     order=8,
     a=(
         (),
@@ -206,20 +203,6 @@ DOP853 = ButcherTableau(
         -1.52160949662516078556178806805e-1,
         2.01365400804030348374776537501e-1,
         4.47106157277725905176885569043e-2,
-    ),
-    c=(
-        0.0,
-        0.526001519587677318785587544488e-01,
-        0.789002279381515978178381316732e-01,
-        0.118350341907227396726757197510,
-        0.281649658092772603273242802490,
-        0.333333333333333333333333333333,
-        0.25,
-        0.307692307692307692307692307692,
-        0.651282051282051282051282051282,
-        0.6,
-        0.857142857142857142857142857142,
-        1.0,
     ),
     imaginary_stability=5.96,
 )

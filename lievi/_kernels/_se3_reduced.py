@@ -8,8 +8,8 @@ coefficients as in `_se3_residual.py`.
 
 from __future__ import annotations
 
-from ._base import materialise
-from ._se3_residual import e_blocks, exp_series, mv, ones, operator
+from ._base import materialise, ones
+from ._se3_residual import e_blocks, exp_series, mv, operator
 from ._soa import cross, dot, matmul
 
 

@@ -37,7 +37,7 @@ import math
 import equinox as eqx
 import jax.numpy as jnp
 
-from ._base import materialise
+from ._base import materialise, ones
 from ._soa import P_SERIES, S_SERIES, dot, flat, horner, inverse3, nested
 
 # (θ − sin θ)/θ³ = Σ (−1)ᵏ tᵏ/(2k + 3)!, t = θ²: 13 terms reach round-off at θ = π.
@@ -132,11 +132,6 @@ def operator(chart, w, v, coefficients=None):
     K, L = tuple(K), tuple(L)
     Kp = K if chart == "exp" else tuple(Kp)
     return K, L, Kp, coefficients
-
-
-def ones(x):
-    """An array of ones computed at run time (see `materialise`)."""
-    return x * 0 + 1
 
 
 def residual(chart, x, m, A, with_jacobian: bool):
