@@ -66,7 +66,7 @@ def _setup(kernel, constants, step_bound, g0, m0, h, valid, n_steps, progress):
     batch, dtype = g0.shape[0], m0.dtype
     constants = jax.tree.map(lambda x: jnp.asarray(x, dtype), constants)
     # Structure of arrays: component-major, batch minor; the kernel owns the layout.
-    constants = kernel.constants(constants, batch)
+    constants = kernel.constants(constants)
     params = kernel.prepare(constants, h)
     # The kernel's carried entries of `g` (on SO(3) all 9, or the advected parameter
     # alone on the reduced path).

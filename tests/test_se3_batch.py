@@ -172,7 +172,7 @@ def test_reduced_jacobian(chart):
     h = 0.1
     kernel = _se3.SE3NewtonKernel(chart, None, None, 20)
     # A tensor shared by the batch: per-run constants are scalars.
-    A, _, C = kernel.prepare(kernel.constants(tensor, 1), h)
+    A, _, C = kernel.prepare(kernel.constants(tensor), h)
 
     @jax.jit
     @jax.vmap

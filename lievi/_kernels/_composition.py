@@ -31,8 +31,8 @@ class CompositionKernel(AbstractBatchKernel):
     def physics(self, system, batched: bool = False):
         return self.inner.physics(system, batched)
 
-    def constants(self, values, batch):
-        return self.inner.constants(values, batch)
+    def constants(self, values):
+        return self.inner.constants(values)
 
     def prepare(self, constants, h):
         # Each stage's constants for its own step `γ_i h`, once per run, stacked along a

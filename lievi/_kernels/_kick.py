@@ -68,8 +68,8 @@ class KickKernel(AbstractBatchKernel):
             return None
         return self.free.physics(system, batched)
 
-    def constants(self, values, batch):
-        return self.free.constants(values, batch)
+    def constants(self, values):
+        return self.free.constants(values)
 
     def turn_rates(self, constants, h):
         return self.free.turn_rates(constants, h)

@@ -106,8 +106,12 @@ def rkmk_step(tableau, g, m, rate, coupling=None):
     u, m_next = rk_in_the_chart(
         tableau, lambda u, m, c: _stage(u, m, rate, coupling), m, stored_stages(m[0])
     )
-    # g exp(u), Rodrigues' coefficients.
-    g_next = rotate_rows(g, u, *_rotation_coefficients(dot(u, u)))
+    # g exp(u), Rodrigues' coefficients. `u = Σ b_j k_j` and the coefficients are stored
+    # once: each of the 9 entries of `g_{k+1}` reads them, and would otherwise recompute
+    # the sum and the series (measured: 1.2–1.3× the body-steps/s of `RKMK8`).
+    one = ones(m[0])
+    *u, a, b = materialise((*u, *_rotation_coefficients(dot(u, u))), one)
+    g_next = rotate_rows(g, u, a, b)
     return g_next, m_next, finite_result(m_next, g_next)
 
 

@@ -112,7 +112,7 @@ class RKMKSE3Kernel(SE3Kernel):
             return None
         return super().physics(system, batched)
 
-    def constants(self, tensor, batch):
+    def constants(self, tensor):
         # M⁻¹ is differentiated (the velocity `M⁻¹m`); of the symmetric part of `M`, as the
         # generic path's `spd_solve`, so that the derivative in `M` is the symmetric one.
         symmetric = (tensor + jnp.swapaxes(tensor, -1, -2)) / 2

@@ -347,7 +347,7 @@ class SE3NewtonKernel(SE3Kernel):
     max_steps: int = eqx.field(static=True)
     fixed_iterations: int | None = eqx.field(default=None, static=True)
 
-    def constants(self, tensor, batch):
+    def constants(self, tensor):
         # The 36 entries of M, and those of M⁻¹ (not differentiated: the Newton guess and
         # the step bound), one 6×6 inverse per body, once per run. A tensor shared by the
         # batch stays one set of scalars: broadcast inside the step's loops, 108 per-run
