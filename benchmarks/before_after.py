@@ -7,8 +7,14 @@ directory; each round times both trees, alternately, each in a fresh process (be
 `DEP` (exp chart, the fast path), `h = 0.1`, float64, `throw=True` (the default), keeping
 the final state only, and keeping every 10th step of `(g, m)`.
 
+With `--fast-paths`, every fast path of one system shared by the batch instead: the free
+rigid body and the heavy top (the problems of `work_precision.py`), each with the
+splitting, DEP (exp), `RKMK4`, `RKMK8`, the order-4 composition of the splitting and (free
+body) Moser–Veselov, at batches 4096 and 65536, 50 steps of 0.05, keeping the final
+attitude; each tree times all of them in one process per round (best of `--repeats`).
+
     python benchmarks/before_after.py --before REV [--batch 100000] [--steps 100]
-                                      [--rounds 3] [--out NAME]
+                                      [--rounds 3] [--fast-paths] [--out NAME]
 
 Writes `benchmarks/results/<out>.json` (default `before_after`).
 """
@@ -53,12 +59,58 @@ print(json.dumps({"seconds": min(times), "cpu_seconds": min(cpu), "lievi": lievi
 """
 
 
-def time_tree(path, batch, steps, save_every, repeats) -> tuple[float, float]:
-    """`(wall, CPU)` seconds of the best call; on a loaded machine the CPU time (all the
-    process's threads) is the steadier measure of the work done."""
+FAST_PATHS_TIMER = r"""
+import json, sys, time
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp, numpy as np
+import lievi
+repeats, steps = int(sys.argv[1]), 50
+moments = jnp.asarray([0.6, 0.8, 1.0])
+problems = {
+    "free body": (lievi.RigidBody(moments), np.array([1.8, 0.4, -0.9])),
+    "heavy top": (lievi.heavy_top(moments, 1.0, jnp.asarray([0.0, 0.0, 0.5]), 1.0),
+                  np.array([0.5, 0.3, 1.2])),
+}
+methods = {
+    "splitting": lievi.LiePoissonSplitting(), "DEP exp": lievi.DEP(), "RKMK4": lievi.RKMK4(),
+    "RKMK8": lievi.RKMK8(), "splitting o 4": lievi.Composition(lievi.LiePoissonSplitting(), order=4),
+    "Moser-Veselov": lievi.MoserVeselov(),
+}
+out = {}
+for problem, (system, m_mean) in problems.items():
+    for name, method in methods.items():
+        if name == "Moser-Veselov" and system.potential is not None:
+            continue
+        for batch in (4096, 65536):
+            rng = np.random.default_rng(0)
+            m0 = jnp.asarray(m_mean * (1 + 0.05 * rng.normal(size=(batch, 3))))
+            @jax.jit
+            def run(m0):
+                sol = lievi.simulate_batch(system, method, jnp.eye(3), m0, h=0.05,
+                                           n_steps=steps, save=("g",), throw=False)
+                return sol.g[:, -1]
+            jax.block_until_ready(run(m0))
+            best = np.inf
+            for _ in range(repeats):
+                start = time.perf_counter()
+                jax.block_until_ready(run(m0))
+                best = min(best, time.perf_counter() - start)
+            out[f"{problem}, {name}, batch {batch}"] = batch * steps / best
+print(json.dumps({"body_steps_per_second": out, "lievi": lievi.__file__}))
+"""
+
+
+def fast_paths(path, repeats) -> dict[str, float]:
+    """Body-steps/s of every fast path of `FAST_PATHS_TIMER` in the tree at `path`."""
+    return _run_timer(path, FAST_PATHS_TIMER, [str(repeats)])["body_steps_per_second"]
+
+
+def _run_timer(path, timer, argv) -> dict:
+    """The last line of `timer`'s output (JSON) when run with the `lievi` of `path`."""
     env = dict(os.environ, PYTHONPATH=str(path), JAX_PLATFORMS="cpu")
     done = subprocess.run(
-        [sys.executable, "-c", TIMER, str(batch), str(steps), str(save_every), str(repeats)],
+        [sys.executable, "-c", timer, *argv],
         env=env,
         cwd=path,  # `python -c` puts the working directory first on the path
         capture_output=True,
@@ -67,6 +119,13 @@ def time_tree(path, batch, steps, save_every, repeats) -> tuple[float, float]:
     )
     record = json.loads(done.stdout.strip().splitlines()[-1])
     assert record["lievi"].startswith(str(path)), record  # the tree meant, not another
+    return record
+
+
+def time_tree(path, batch, steps, save_every, repeats) -> tuple[float, float]:
+    """`(wall, CPU)` seconds of the best call; on a loaded machine the CPU time (all the
+    process's threads) is the steadier measure of the work done."""
+    record = _run_timer(path, TIMER, [str(x) for x in (batch, steps, save_every, repeats)])
     return record["seconds"], record["cpu_seconds"]
 
 
@@ -77,6 +136,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--fast-paths", action="store_true", help="every shared-system fast path")
     parser.add_argument("--out", default="before_after")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as before:
@@ -87,6 +147,8 @@ def main() -> None:
         ).stdout
         subprocess.run(["tar", "-x", "-C", before], input=archive, check=True)
         trees = {"before": pathlib.Path(before), "after": ROOT}
+        if args.fast_paths:
+            return compare_fast_paths(trees, args)
         cases = {"final state only": args.steps, "every 10th step of (g, m)": 10}
         times = {case: {tree: [] for tree in trees} for case in cases}
         cpu = {case: {tree: [] for tree in trees} for case in cases}
@@ -125,6 +187,31 @@ def main() -> None:
     print(json.dumps(report["cases"], indent=2))
     print(load)
     RESULTS.mkdir(exist_ok=True)
+    out = RESULTS / f"{args.out}.json"
+    out.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"wrote {out}")
+
+
+def compare_fast_paths(trees, args) -> None:
+    """`--fast-paths`: both trees, alternately, `--rounds` times; the best of each case."""
+    best = {tree: {} for tree in trees}
+    for _ in range(args.rounds):
+        for tree, path in trees.items():
+            for case, rate in fast_paths(path, args.repeats).items():
+                best[tree][case] = max(best[tree].get(case, 0.0), rate)
+    ratios = {case: best["after"][case] / best["before"][case] for case in best["after"]}
+    for case, ratio in ratios.items():
+        print(f"{case:42s} {best['before'][case]:.3e} -> {best['after'][case]:.3e}  {ratio:.2f}x")
+    report = {
+        "before": args.before,
+        "after": subprocess.run(
+            ["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True
+        ).stdout.strip(),
+        "rounds": args.rounds,
+        "uptime": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip(),
+        "body_steps_per_second": best,
+        "after_over_before": ratios,
+    }
     out = RESULTS / f"{args.out}.json"
     out.write_text(json.dumps(report, indent=2) + "\n")
     print(f"wrote {out}")

@@ -51,7 +51,7 @@ import jax.numpy as jnp
 
 from .._newton import newton_tolerance
 from .._results import RESULTS
-from ._base import AbstractBatchKernel
+from ._base import AbstractBatchKernel, materialise, ones
 from ._implicit import differentiable_root
 from ._so3_equations import AbstractSO3Equation, explicit_euler_guess, moser_veselov_on_branch
 from ._soa import (
@@ -159,7 +159,9 @@ def dep_step(equation, g, m, A, tolerance, fixed_iterations: int, max_steps: int
         equation, m, A, tolerance, fixed_iterations, max_steps, alive
     )
     t = dot(xi, xi)
-    a, b = equation.increment_coefficients(t)
+    # Stored once: each of the 12 entries of `g_{k+1}` and `Π_{k+1}` reads them (the exp
+    # chart's are power series, else recomputed in each).
+    a, b = materialise(equation.increment_coefficients(t), ones(t))
     off_branch = equation.off_branch(jax.lax.stop_gradient(xi), m, A, t, converged)
     g_next = rotate_rows(g, xi, a, b)
     xp = cross(xi, m)
