@@ -17,6 +17,7 @@ import math
 import jax.numpy as jnp
 
 from ._base import materialise, ones
+from ._soa import times_increment
 
 _HALF_PI = decimal.Decimal("3.14159265358979323846264338327950288419716939937510582097494") / 2
 
@@ -136,19 +137,19 @@ def _quaternion_product(a, b):
     )
 
 
-def _rotation_of_quaternion(quaternion):
-    """`R(q)` for a unit quaternion `q = (w, x, y, z)`: 9 arrays, row-major."""
+def _rotation_minus_identity(quaternion):
+    """`R(q) − 1` for a unit quaternion `q = (w, x, y, z)`: 9 arrays, row-major."""
     w, x, y, z = quaternion
     return (
-        1 - 2 * (y * y + z * z),
+        -2 * (y * y + z * z),
         2 * (x * y - w * z),
         2 * (x * z + w * y),
         2 * (x * y + w * z),
-        1 - 2 * (x * x + z * z),
+        -2 * (x * x + z * z),
         2 * (y * z - w * x),
         2 * (x * z - w * y),
         2 * (y * z + w * x),
-        1 - 2 * (x * x + y * y),
+        -2 * (x * x + y * y),
     )
 
 
@@ -190,11 +191,12 @@ def splitting_primal(g, m, rate):
     quaternion = _quaternion_product(_quaternion_product(q12, factors[2]), q45)
     # Four numbers a body stored, and `F` rebuilt from them where it is read: 9 stored
     # entries of `F` cost more memory traffic than the few products that rebuild them.
-    F = _rotation_of_quaternion(materialise(quaternion, one))
+    D = _rotation_minus_identity(materialise(quaternion, one))
+    F = tuple(d + 1 if i % 4 == 0 else d for i, d in enumerate(D))
     # Π_{k+1} = Fᵀ Π_k (as a row, Π_kᵀ F): equal to the sequential rotations to round-off
     # (`momenta[-1]`), and its loops read the 4 stored quaternion components instead of
     # the 10 sines and cosines.
-    return matmul3(g, F), matmul3(momenta[0], F), rotations, momenta, F
+    return times_increment(g, D), matmul3(momenta[0], F), rotations, momenta, F
 
 
 def rk4_field(g, m, w):

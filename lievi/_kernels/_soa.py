@@ -122,13 +122,18 @@ def rotate_rows(g, x, a, b):
     of its rows (3 a row, e.g. the advected `Γᵀ = e₃ᵀg`)."""
     t = dot(x, x)
     X = (0, -x[2], x[1], x[2], 0, -x[0], -x[1], x[0], 0)
-    # `D = F − 1`, and `g F = g + g D`: the identity's share is added last and exactly,
-    # so a step rounds `g` by about one ulp where the three products of `g F` round it by
-    # about three (the drift of `gᵀg` off the identity over many steps is this rounding's
-    # random walk).
     D = [a * X[3 * i + j] + b * x[i] * x[j] for i in range(3) for j in range(3)]
     for i in range(3):
         D[4 * i] = D[4 * i] - b * t
+    return times_increment(g, D)
+
+
+def times_increment(g, D):
+    """`g F` for a step's increment `F = 1 + D` given as `D` (9 entries, row-major), as
+    `g + g D`: the identity's share is added last and exactly, so a step rounds `g` by
+    about one ulp where the three products of `g F` round it by about three (the drift of
+    `gᵀg` off the identity over many steps is this rounding's random walk: measured
+    1.0–1.1e-13 → 5.3–6.4e-14 after 10⁵ steps). `g` as in `rotate_rows`."""
     return tuple(
         g[3 * i + j] + (g[3 * i] * D[j] + g[3 * i + 1] * D[3 + j] + g[3 * i + 2] * D[6 + j])
         for i in range(len(g) // 3)
