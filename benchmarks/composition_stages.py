@@ -7,7 +7,12 @@ inside `jax.jit`, the final attitude only. Compile time is the first call less t
 of 5 timed calls; run time is the best of 5. Run it on two trees (e.g. with
 `PYTHONPATH=<other checkout>`) one after the other to compare them.
 
-    python benchmarks/composition_stages.py [--out composition_stages]
+With `--per-stage`, the cost of a composition's step against its stages: the inner method
+alone and each composition on the batch (free body and the heavy top `I = (1, 2, 3)`,
+`ρ = (0, 0, 0.5)`, in gravity), and `run / (stages × the inner method's run)` per
+composition (`over_stages_times_base` in the JSON; 1 is the cost of its stages exactly).
+
+    python benchmarks/composition_stages.py [--per-stage] [--out composition_stages]
 
 Writes `benchmarks/results/<out>.json`.
 """
@@ -40,7 +45,10 @@ def _timed(f) -> float:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="composition_stages")
+    parser.add_argument("--per-stage", action="store_true", help="stages against the base")
     options = parser.parse_args()
+    if options.per_stage:
+        return per_stage(options.out)
     body = lievi.RigidBody(jnp.array([1.0, 2.0, 3.0]))
     m0 = jnp.array([0.3, -0.2, 0.5])
     momenta = jax.random.normal(jax.random.PRNGKey(0), (10_000, 3))
@@ -66,15 +74,65 @@ def main():
             print(
                 f"{case:36s} compile {first - best:6.2f} s   run {1e3 * best:8.2f} ms", flush=True
             )
+    write(
+        options.out,
+        rows,
+        "compile: first call less the best of 5; run: best of 5 (jit, final attitude)",
+    )
+
+
+def per_stage(out):
+    """`--per-stage`: each composition's batched run over (stages × its inner method's)."""
+    moments = jnp.array([1.0, 2.0, 3.0])
+    systems = {
+        "free body": lievi.RigidBody(moments),
+        "heavy top": lievi.heavy_top(moments, 1.0, jnp.array([0.0, 0.0, 0.5]), 1.0),
+    }
+    momenta = jax.random.normal(jax.random.PRNGKey(0), (65_536, 3))
+    rows = []
+    for problem, system in systems.items():
+        for label, inner, orders in (
+            ("splitting", lievi.LiePoissonSplitting(), (4, 6, 8)),
+            ("DEP", lievi.DEP(), (4, 6)),
+        ):
+            base = None
+            for order in (None, *orders):
+                method = inner if order is None else lievi.Composition(inner, order=order)
+                stages = 1 if order is None else len(method.coefficients)
+
+                def many(momenta, method=method, system=system):
+                    sol = lievi.simulate_batch(
+                        system, method, jnp.eye(3), momenta, h=0.05, n_steps=50
+                    )
+                    return sol.g[:, -1]
+
+                f = jax.jit(many)
+                _timed(lambda f=f: f(momenta))
+                best = min(_timed(lambda f=f: f(momenta)) for _ in range(7))
+                base = best if order is None else base
+                case = f"{problem}, {label}" + ("" if order is None else f" ∘ {order}")
+                ratio = best / (stages * base)
+                rows.append(
+                    {"case": case, "stages": stages, "run_s": best, "over_stages_times_base": ratio}
+                )
+                print(
+                    f"{case:32s} {stages:3d} stages  run {1e3 * best:8.2f} ms  "
+                    f"over stages × base {ratio:.2f}",
+                    flush=True,
+                )
+    write(out, rows, "run: best of 7 (jit, 65536 bodies x 50 steps, final attitude)")
+
+
+def write(name, rows, timing):
     out = {
         "lievi": lievi.__file__,
         "jax": jax.__version__,
         "load_average": os.getloadavg(),
-        "timing": "compile: first call less the best of 5; run: best of 5 (jit, final attitude)",
+        "timing": timing,
         "rows": rows,
     }
     RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / f"{options.out}.json"
+    path = RESULTS / f"{name}.json"
     path.write_text(json.dumps(out, indent=1))
     print(f"wrote {path}")
 
