@@ -244,12 +244,43 @@ def test_segmented_run_equals_all_pairs_run(segmented):
     assert jnp.max(jnp.abs(sol.g - reference.g)) < 1e-12
     assert jnp.max(jnp.abs(sol.m - reference.m)) < 1e-12
     assert int(sol.stats["neighbor_builds"]) == 20 and int(sol.result) == 0
+    assert int(sol.stats["neighbor_reruns"]) == 0
     assert 0 < float(sol.stats["neighbor_max_displacement"]) < SKIN / 2
     assert int(sol.stats["total_newton_iterations"]) == int(
         reference.stats["total_newton_iterations"]
     )
     # Some body crossed a wall of the box (unwrapped positions).
     assert jnp.any(jnp.abs(sol.g[:, :, :3, 3]) > BOX) or jnp.any(sol.g[:, :, :3, 3] < 0)
+
+
+@pytest.mark.parametrize("rebuild_after", [0.25, 0.5])
+def test_reused_lists_equal_all_pairs_run(segmented, rebuild_after):
+    """`rebuild_after`: a list is kept across segments until a site has moved that
+    fraction of the skin, and a segment in which it went stale is run again with a fresh
+    list. Segments of 2 steps over 200: fewer builds than segments, reruns at 1/2 (a list
+    is kept until it fails) and none at 1/4 here, and the same saves as the all-pairs run
+    to 1e-12 (absolute; the state is of order 1)."""
+    system, g0, m0, _ = segmented
+    builder = lievi.BruteForceNeighbors(SKIN, capacity=CAPACITY)
+    sol = lievi.simulate_with_neighbor_list(
+        system,
+        METHOD,
+        g0,
+        m0,
+        h=H,
+        n_steps=200,
+        rebuild_every=2,
+        save_every=10,
+        builder=builder,
+        rebuild_after=rebuild_after,
+    )
+    reference = lievi.simulate(system, METHOD, g0, m0, h=H, n_steps=200, save_every=10)
+    builds, reruns = int(sol.stats["neighbor_builds"]), int(sol.stats["neighbor_reruns"])
+    assert int(sol.result) == 0 and builds < 50
+    assert (reruns >= 1) if rebuild_after == 0.5 else (reruns == 0)
+    assert 0 < float(sol.stats["neighbor_max_displacement"]) < SKIN / 2
+    assert jnp.max(jnp.abs(sol.g - reference.g)) < 1e-12
+    assert jnp.max(jnp.abs(sol.m - reference.m)) < 1e-12
 
 
 def test_segmented_run_with_forcing(segmented):
@@ -338,12 +369,23 @@ def test_linear_momentum_conserved_in_a_box(segmented):
     assert jnp.max(jnp.abs(total[:, :3] - total[0, :3])) > 1e-6
 
 
-def test_stale_list_is_reported():
+@pytest.mark.parametrize("rebuild_after", [None, 0.5])
+def test_stale_list_is_reported(rebuild_after):
+    """A list built at a segment's start that goes stale within it is an error, also when
+    lists are reused (the rerun with a fresh list goes stale too)."""
     system, g0, m0 = box_problem()
     builder = lievi.BruteForceNeighbors(0.01, capacity=CAPACITY)
     with pytest.raises(RuntimeError, match="smaller `rebuild_every` or a larger `skin`"):
         lievi.simulate_with_neighbor_list(
-            system, METHOD, g0, m0, h=H, n_steps=40, rebuild_every=40, builder=builder
+            system,
+            METHOD,
+            g0,
+            m0,
+            h=H,
+            n_steps=40,
+            rebuild_every=20,
+            builder=builder,
+            rebuild_after=rebuild_after,
         )
 
 
@@ -399,6 +441,19 @@ def test_bad_input():
         lievi.simulate_with_neighbor_list(
             system, METHOD, g0, m0, h=H, n_steps=30, rebuild_every=20, builder=None
         )
+    for fraction in (0.0, 0.7):
+        with pytest.raises(ValueError, match="`rebuild_after`"):
+            lievi.simulate_with_neighbor_list(
+                system,
+                METHOD,
+                g0,
+                m0,
+                h=H,
+                n_steps=20,
+                rebuild_every=10,
+                builder=None,
+                rebuild_after=fraction,
+            )
 
 
 def test_jax_md_is_optional(monkeypatch):
