@@ -74,7 +74,8 @@ problems = {
 }
 methods = {
     "splitting": lievi.LiePoissonSplitting(), "DEP exp": lievi.DEP(), "RKMK4": lievi.RKMK4(),
-    "RKMK8": lievi.RKMK8(), "splitting o 4": lievi.Composition(lievi.LiePoissonSplitting(), order=4),
+    "RKMK8": lievi.RKMK8(),
+    "splitting o 4": lievi.Composition(lievi.LiePoissonSplitting(), order=4),
     "Moser-Veselov": lievi.MoserVeselov(),
 }
 out = {}
@@ -164,15 +165,10 @@ def main() -> None:
                         f"{case:28s} {tree:6s} {seconds:.4f} s wall, {cpu_seconds:.4f} s CPU",
                         flush=True,
                     )
-    load = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     report = {
-        "before": args.before,
-        "after": subprocess.run(
-            ["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True
-        ).stdout.strip(),
+        **_revisions_and_load(args.before),
         "batch": args.batch,
         "steps": args.steps,
-        "uptime": load,
         "cases": {
             case: {
                 "best_seconds": {tree: min(t) for tree, t in by_tree.items()},
@@ -185,11 +181,21 @@ def main() -> None:
         },
     }
     print(json.dumps(report["cases"], indent=2))
-    print(load)
+    print(report["uptime"])
     RESULTS.mkdir(exist_ok=True)
     out = RESULTS / f"{args.out}.json"
     out.write_text(json.dumps(report, indent=2) + "\n")
     print(f"wrote {out}")
+
+
+def _revisions_and_load(before: str) -> dict[str, str]:
+    """The report's header: both revisions and the machine's load (`uptime`) at the end."""
+    head = ["git", "-C", str(ROOT), "rev-parse", "HEAD"]
+    return {
+        "before": before,
+        "after": subprocess.run(head, capture_output=True, text=True).stdout.strip(),
+        "uptime": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip(),
+    }
 
 
 def compare_fast_paths(trees, args) -> None:
@@ -203,12 +209,8 @@ def compare_fast_paths(trees, args) -> None:
     for case, ratio in ratios.items():
         print(f"{case:42s} {best['before'][case]:.3e} -> {best['after'][case]:.3e}  {ratio:.2f}x")
     report = {
-        "before": args.before,
-        "after": subprocess.run(
-            ["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True
-        ).stdout.strip(),
+        **_revisions_and_load(args.before),
         "rounds": args.rounds,
-        "uptime": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip(),
         "body_steps_per_second": best,
         "after_over_before": ratios,
     }

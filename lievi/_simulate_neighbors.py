@@ -10,9 +10,9 @@ each segment the largest site displacement since the build is checked against `s
 at every step of the segment: a list that went stale is an error naming the fix, never
 a silently wrong force. With `rebuild_after` a list is kept across segments until a site
 has moved that fraction of the skin, and a segment in which it went stale is run again
-with a list built at its start. A segment boundary is a save, where `simulate` changes nothing in
-float64 (as for `lievi.stream_batch`), so the run equals one `simulate` call on the
-all-pairs cut-off potential to round-off.
+with a list built at its start. A segment boundary is a save, where `simulate` changes
+nothing in float64 (as for `lievi.stream_batch`), so the run equals one `simulate` call
+on the all-pairs cut-off potential to round-off.
 """
 
 from __future__ import annotations
@@ -108,7 +108,8 @@ def simulate_with_neighbor_list(
     `neighbor_reruns` (segments run again with a fresh list, `rebuild_after`).
 
     **Raises:** `RuntimeError` if a site moved `skin/2` or more within a segment from a
-    list built at its start (the list may have missed a pair: pass a smaller `rebuild_every` or a larger `skin`);
+    list built at its start (the list may have missed a pair: pass a smaller
+    `rebuild_every` or a larger `skin`);
     `ValueError` (from the builder) if a rebuilt list has more pairs than its
     `capacity`. With `throw=False` a failed step (`RESULTS`) ends the run: the result
     and `failed_step` are reported and the later saves are NaN, as in `simulate`.
@@ -147,7 +148,8 @@ def simulate_with_neighbor_list(
     for segment in range(n_steps // rebuild_every):
         start = segment * rebuild_every
         while True:
-            if listed is None or built_step != start and rebuild_after is None:
+            # A new list: the first, after a stale or used-up one, or every segment.
+            if listed is None or (rebuild_after is None and built_step != start):
                 pairs, state = builder.build(potential, g, state)
                 if builder.capacity is None:  # sized on the first build, then fixed
                     builder = dataclasses.replace(builder, capacity=pairs.shape[0])
