@@ -2,9 +2,11 @@
 
 The Lie-group Runge–Kutta methods (`lievi/_integrators/_rkmk.py`) run a classical
 explicit method on `(u, m)`, `u` the Lie-algebra coordinate of the exponential chart about
-the step's start. The generic step (arrays) and the fast kernels (tuples of `(B,)`
-arrays) share `rk_in_the_chart`: the tableau is the only thing that differs between the
-methods of order 4, 5 and 8, and it is used once, here.
+the step's start. The tableau is the only thing that differs between the methods of
+order 4, 5 and 8, and it is used here only: by `rk_in_the_chart` (the stages unrolled, for
+the fast kernels on tuples of `(B,)` arrays, whose stages XLA fuses) and by
+`rk_in_the_chart_looped` (the stages in a loop, for the generic step on arrays, whose
+stage is compiled once).
 
 The coefficients are the published ones:
 - `CLASSICAL_RK4`: Kutta's classical method (order 4, 4 stages);
@@ -24,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,6 +84,38 @@ def rk_in_the_chart(tableau: ButcherTableau, stage, m, store=None):
         du.append(k_u)
         dm.append(k_m)
     return _combine(None, tableau.b, du), _combine(m, tableau.b, dm)
+
+
+def rk_in_the_chart_looped(tableau: ButcherTableau, stage, u0, m):
+    """`rk_in_the_chart` (`u0` the chart's origin, zeros of `u`'s shape; `m` one array; no
+    `store`) with its stages in a
+    `lax.fori_loop`: the stage is traced and compiled once, not once per stage. For the
+    generic step, whose stage holds a whole group's `exp` and `dexpinv` (on SO(n) matrix
+    exponentials): an unrolled 12-stage step compiled for seconds. The kernels keep the
+    unrolled form, whose stages XLA fuses. The first stage gets `u0`, not `None`.
+
+    The increments are kept in an array `(stages, …)`, zero where not yet computed, and a
+    stage's input is its row of `a` (zero-padded) against all of them: the zero terms
+    are exact, so the iterates are those of `rk_in_the_chart` up to the summation order.
+    """
+    s = len(tableau.a)
+    dtype = m.dtype
+    a = jnp.asarray([list(row) + [0.0] * (s - len(row)) for row in tableau.a], dtype)
+    c = jnp.asarray(tableau.c, dtype)
+    b = jnp.asarray(tableau.b, dtype)
+    k_u0, k_m0 = jax.eval_shape(stage, u0, m, c[0])
+    ku = jnp.zeros((s, *k_u0.shape), k_u0.dtype)
+    km = jnp.zeros((s, *k_m0.shape), k_m0.dtype)
+
+    def one_stage(i, increments):
+        ku, km = increments
+        u_i = u0 + jnp.tensordot(a[i], ku, axes=1)
+        m_i = m + jnp.tensordot(a[i], km, axes=1)
+        k_u, k_m = stage(u_i, m_i, c[i])
+        return ku.at[i].set(k_u), km.at[i].set(k_m)
+
+    ku, km = jax.lax.fori_loop(0, s, one_stage, (ku, km))
+    return u0 + jnp.tensordot(b, ku, axes=1), m + jnp.tensordot(b, km, axes=1)
 
 
 CLASSICAL_RK4 = ButcherTableau(
