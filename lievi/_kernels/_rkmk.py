@@ -83,12 +83,12 @@ def scaled_coupling(potential, h):
     return a, h[..., None] * b if jnp.ndim(h) else h * b
 
 
-def stored_stages(x):
+def stored_stages(one):
     """The `store` of `rk_in_the_chart` for the kernels: each stage's inputs and
-    increments kept (`_base.materialise`), read where needed rather than recomputed in
-    each reader (measured: 1.7–1.8× the body-steps/s of `RKMK4`, and the order-8
-    method's gradient compiled in 13 s where it had not finished in 10 minutes)."""
-    one = ones(x)
+    increments kept (`_base.materialise` with its run-time `one`), read where needed
+    rather than recomputed in each reader (measured: 1.7–1.8× the body-steps/s of
+    `RKMK4`, and the order-8 method's gradient compiled in 13 s where it had not finished
+    in 10 minutes)."""
 
     def store(du, dm):
         values = materialise(tuple(du) + tuple(dm), one)
@@ -103,13 +103,13 @@ def rkmk_step(tableau, g, m, rate, coupling=None):
     Returns `(g_next, m_next, result)`."""
     if coupling is not None:
         coupling = (advected_rows(coupling[0], g), coupling[1])
+    one = ones(m[0])
     u, m_next = rk_in_the_chart(
-        tableau, lambda u, m, c: _stage(u, m, rate, coupling), m, stored_stages(m[0])
+        tableau, lambda u, m, c: _stage(u, m, rate, coupling), m, stored_stages(one)
     )
     # g exp(u), Rodrigues' coefficients. `u = Σ b_j k_j` and the coefficients are stored
     # once: each of the 9 entries of `g_{k+1}` reads them, and would otherwise recompute
     # the sum and the series (measured: 1.2–1.3× the body-steps/s of `RKMK8`).
-    one = ones(m[0])
     *u, a, b = materialise((*u, *_rotation_coefficients(dot(u, u))), one)
     g_next = rotate_rows(g, u, a, b)
     return g_next, m_next, finite_result(m_next, g_next)

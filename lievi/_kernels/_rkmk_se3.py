@@ -89,10 +89,10 @@ def rkmk_se3_step(tableau, g, m, rate, coupling=None):
         a = jnp.asarray(a, g[0].dtype)
         Gamma = tuple(sum(a[..., i] * g[4 * i + j] for i in range(3)) for j in range(3))
         coupling = (Gamma, hb[..., :3], hb[..., 3])
-    u, m_next = rk_in_the_chart(
-        tableau, lambda u, m, c: _stage(u, m, rate, coupling), m, stored_stages(m[0])
-    )
     one = ones(m[0])
+    u, m_next = rk_in_the_chart(
+        tableau, lambda u, m, c: _stage(u, m, rate, coupling), m, stored_stages(one)
+    )
     g_next = compose_increment(g, *increment("exp", u[:3], u[3:], one), one)
     return g_next, m_next, finite_result(m_next, g_next)
 

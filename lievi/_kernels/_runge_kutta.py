@@ -88,24 +88,24 @@ def rk_in_the_chart(tableau: ButcherTableau, stage, m, store=None):
 
 def rk_in_the_chart_looped(tableau: ButcherTableau, stage, u0, m):
     """`rk_in_the_chart` (`u0` the chart's origin, zeros of `u`'s shape; `m` one array; no
-    `store`) with its stages in a
-    `lax.fori_loop`: the stage is traced and compiled once, not once per stage. For the
-    generic step, whose stage holds a whole group's `exp` and `dexpinv` (on SO(n) matrix
-    exponentials): an unrolled 12-stage step compiled for seconds. The kernels keep the
-    unrolled form, whose stages XLA fuses. The first stage gets `u0`, not `None`.
+    `store`) with its stages in a `lax.fori_loop`: the stage is traced and compiled once,
+    not once per stage. For the generic step, whose stage holds a whole group's `exp` and
+    `dexpinv` (on SO(n) matrix exponentials): an unrolled 12-stage step compiled for
+    seconds. The kernels keep the unrolled form, whose stages XLA fuses. The first stage
+    gets `u0`, not `None`.
 
-    The increments are kept in an array `(stages, …)`, zero where not yet computed, and a
-    stage's input is its row of `a` (zero-padded) against all of them: the zero terms
-    are exact, so the iterates are those of `rk_in_the_chart` up to the summation order.
+    The increments (of the shapes of `u0` and `m`) are kept in arrays `(stages, …)`, zero
+    where not yet computed, and a stage's input is its row of `a` (zero-padded) against
+    all of them: the zero terms are exact, so the iterates are those of `rk_in_the_chart`
+    up to the summation order.
     """
     s = len(tableau.a)
     dtype = m.dtype
     a = jnp.asarray([list(row) + [0.0] * (s - len(row)) for row in tableau.a], dtype)
     c = jnp.asarray(tableau.c, dtype)
     b = jnp.asarray(tableau.b, dtype)
-    k_u0, k_m0 = jax.eval_shape(stage, u0, m, c[0])
-    ku = jnp.zeros((s, *k_u0.shape), k_u0.dtype)
-    km = jnp.zeros((s, *k_m0.shape), k_m0.dtype)
+    ku = jnp.zeros((s, *u0.shape), u0.dtype)
+    km = jnp.zeros((s, *m.shape), dtype)
 
     def one_stage(i, increments):
         ku, km = increments
