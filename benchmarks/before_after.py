@@ -7,6 +7,10 @@ directory; each round times both trees, alternately, each in a fresh process (be
 `DEP` (exp chart, the fast path), `h = 0.1`, float64, `throw=True` (the default), keeping
 the final state only, and keeping every 10th step of `(g, m)`.
 
+With `--se3`, the SE(3) DEP kernels of a free rigid body shared by the batch: DEP (exp,
+Cayley) and its order-4 composition, at batches 4096 and 65536 as `--fast-paths`, and one
+body through `simulate` (1000 steps, every step saved).
+
 With `--fast-paths`, every fast path of one system shared by the batch instead: the free
 rigid body and the heavy top (the problems of `work_precision.py`), each with the
 splitting, DEP (exp), `RKMK4`, `RKMK8`, the order-4 composition of the splitting and (free
@@ -14,7 +18,7 @@ body) Moser–Veselov, at batches 4096 and 65536, 50 steps of 0.05, keeping the 
 attitude; each tree times all of them in one process per round (best of `--repeats`).
 
     python benchmarks/before_after.py --before REV [--batch 100000] [--steps 100]
-                                      [--rounds 3] [--fast-paths] [--out NAME]
+                                      [--rounds 3] [--fast-paths | --se3] [--out NAME]
 
 Writes `benchmarks/results/<out>.json` (default `before_after`).
 """
@@ -102,9 +106,49 @@ print(json.dumps({"body_steps_per_second": out, "lievi": lievi.__file__}))
 """
 
 
-def fast_paths(path, repeats) -> dict[str, float]:
-    """Body-steps/s of every fast path of `FAST_PATHS_TIMER` in the tree at `path`."""
-    return _run_timer(path, FAST_PATHS_TIMER, [str(repeats)])["body_steps_per_second"]
+SE3_TIMER = r"""
+import json, sys, time
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp, numpy as np
+import lievi
+repeats, steps = int(sys.argv[1]), 50
+system = lievi.RigidBodySE3(jnp.asarray([0.6, 0.8, 1.0]), 2.0)
+m_mean = np.array([1.8, 0.4, -0.9, 0.5, -0.3, 0.2])
+methods = {"DEP exp": lievi.DEP(), "DEP cayley": lievi.DEP(chart="cayley"),
+           "DEP exp o 4": lievi.Composition(lievi.DEP(), order=4)}
+def best_of(run, *args):
+    jax.block_until_ready(run(*args))
+    best = np.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(run(*args))
+        best = min(best, time.perf_counter() - start)
+    return best
+out = {}
+for name, method in methods.items():
+    for batch in (4096, 65536):
+        rng = np.random.default_rng(0)
+        m0 = jnp.asarray(m_mean * (1 + 0.05 * rng.normal(size=(batch, 6))))
+        @jax.jit
+        def run(m0):
+            sol = lievi.simulate_batch(system, method, jnp.eye(4), m0, h=0.05,
+                                       n_steps=steps, save=("g",), throw=False)
+            return sol.g[:, -1]
+        out[f"SE(3), {name}, batch {batch}"] = batch * steps / best_of(run, m0)
+    # One body, eagerly (`simulate`'s blocks), every step saved: 1000 steps.
+    def one():
+        return lievi.simulate(system, method, jnp.eye(4), jnp.asarray(m_mean), h=0.05,
+                              n_steps=1000)
+    out[f"SE(3), {name}, one body"] = 1000 / best_of(one)
+print(json.dumps({"body_steps_per_second": out, "lievi": lievi.__file__}))
+"""
+
+
+def fast_paths(path, repeats, timer=FAST_PATHS_TIMER) -> dict[str, float]:
+    """Body-steps/s of every case of `timer` (default `FAST_PATHS_TIMER`) in the tree at
+    `path`."""
+    return _run_timer(path, timer, [str(repeats)])["body_steps_per_second"]
 
 
 def _run_timer(path, timer, argv) -> dict:
@@ -138,6 +182,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--fast-paths", action="store_true", help="every shared-system fast path")
+    parser.add_argument("--se3", action="store_true", help="the SE(3) DEP kernels instead")
     parser.add_argument("--out", default="before_after")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as before:
@@ -148,8 +193,8 @@ def main() -> None:
         ).stdout
         subprocess.run(["tar", "-x", "-C", before], input=archive, check=True)
         trees = {"before": pathlib.Path(before), "after": ROOT}
-        if args.fast_paths:
-            return compare_fast_paths(trees, args)
+        if args.fast_paths or args.se3:
+            return compare_fast_paths(trees, args, SE3_TIMER if args.se3 else FAST_PATHS_TIMER)
         cases = {"final state only": args.steps, "every 10th step of (g, m)": 10}
         times = {case: {tree: [] for tree in trees} for case in cases}
         cpu = {case: {tree: [] for tree in trees} for case in cases}
@@ -198,12 +243,13 @@ def _revisions_and_load(before: str) -> dict[str, str]:
     }
 
 
-def compare_fast_paths(trees, args) -> None:
-    """`--fast-paths`: both trees, alternately, `--rounds` times; the best of each case."""
+def compare_fast_paths(trees, args, timer) -> None:
+    """`--fast-paths` (or `--se3`): both trees, alternately, `--rounds` times; the best of
+    each case."""
     best = {tree: {} for tree in trees}
     for _ in range(args.rounds):
         for tree, path in trees.items():
-            for case, rate in fast_paths(path, args.repeats).items():
+            for case, rate in fast_paths(path, args.repeats, timer).items():
                 best[tree][case] = max(best[tree].get(case, 0.0), rate)
     ratios = {case: best["after"][case] / best["before"][case] for case in best["after"]}
     for case, ratio in ratios.items():

@@ -72,14 +72,15 @@ from ._se3_residual import (
 from ._soa import (
     C_SERIES,
     S_SERIES,
-    block,
+    component_major,
+    cramer_inverse,
     cross,
+    det3,
     dot,
     entries,
     flat,
     horner,
-    inverse3,
-    matmul,
+    matrix,
     max_abs,
     nested,
     solve3,
@@ -98,10 +99,21 @@ def _chord_step(chart, w, m, C):
     return tuple(w[i] - delta[i] for i in range(3))
 
 
-def _newton_step(chart, w, m, C):
-    rho, J, _ = reduced_residual(chart, w, m, C, True)
-    delta = solve3(J, rho, divide_each=True)
-    return tuple(w[i] - delta[i] for i in range(3))
+def _newton_steps(chart, w, m, C, count: int):
+    """`count` Newton steps from `w`, and `det(∂ρ/∂ω)` at the last iterate (the branch
+    rule's, `_off_branch`): `count + 1` evaluations of `(ρ, J)` in one `fori_loop`, the
+    update of the last discarded. The evaluation is most of the step's code, and XLA's
+    compile time grows with the code: looped, it is compiled once instead of once per
+    iteration and once more for the rule."""
+
+    def body(k, carry):
+        w, _ = carry
+        rho, J, _ = reduced_residual(chart, w, m, C, True)
+        delta = solve3(J, rho, divide_each=True)
+        last = k == count
+        return tuple(jnp.where(last, w[i], w[i] - delta[i]) for i in range(3)), det3(J)
+
+    return jax.lax.fori_loop(0, count + 1, body, (w, jnp.zeros_like(w[0])))
 
 
 def _full_residual(chart, w, m, A, C):
@@ -111,16 +123,7 @@ def _full_residual(chart, w, m, A, C):
     return x, max_abs(residual(chart, x, m, A, False)[0])
 
 
-def _full_newton_step(chart, x, m, A):
-    """A Newton step on the six-component residual with its closed-form 6×6 Jacobian
-    (`residual`, a block solve): the generic path's iteration. Returns `(ξ, ‖r(ξ)‖_∞)`."""
-    r, J = residual(chart, x, m, A, True)
-    delta = solve6(factor(J), r)
-    x = tuple(x[i] - delta[i] for i in range(6))
-    return x, max_abs(residual(chart, x, m, A, False)[0])
-
-
-def _off_branch(chart, x, m, C):
+def _off_branch(chart, w, det, C):
     """`DEP.on_branch`'s rule, negated: `det J` not of the sign of `det A > 0` (the root was
     reached across a fold of the branch continued from `h → 0`), or the chart's own rule
     (exp: a rotation angle of π or more).
@@ -131,11 +134,8 @@ def _off_branch(chart, x, m, C):
     either sign of `h` (6 dimensions): so the rule is `sign(h)·det(∂ρ/∂ω) > 0`, with
     `sign(h)` that of the Schur complement's `S₁₁` (`S = (M/M₂₂)/h`, `M/M₂₂` positive
     definite). Negative steps occur inside compositions (`lievi.Composition`).
+    `det`: `det(∂ρ/∂ω)` at `ω = w` (`_newton_steps`).
     """
-    w = x[:3]
-    _, J, _ = reduced_residual(chart, w, m, C, True)
-    (a, b, c), (d, e, f), (g, h, i) = J
-    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
     S = C[0]
     return ~(det * S[0][0] > 0) | chart.beyond_branch(dot(w, w), math.pi)
 
@@ -143,7 +143,8 @@ def _off_branch(chart, x, m, C):
 def _newton_tail(chart, max_steps, state, args):
     """The generic path's Newton, for the bodies of `state = (ξ, ‖r‖_∞, iterations,
     off_branch)` not yet on a root of the branch: each restarts from the explicit-Euler
-    guess and takes up to `max_steps` steps on the full 6×6 system (`_full_newton_step`);
+    guess and takes up to `max_steps` Newton steps on the full 6×6 system with its closed-form
+    Jacobian (`residual`, the block solve `solve6`);
     `args = (m, A, C, guess, tolerance, alive)`.
 
     Why not more reduced steps: eliminating `v` makes `ρ(ω)` far more nonlinear than the
@@ -157,27 +158,43 @@ def _newton_tail(chart, max_steps, state, args):
     m, A, C, guess, tolerance, alive = args
     x, norm, fixed, off_branch = state
     restart = alive & (~(norm <= tolerance) | off_branch)
-    guess_norm = max_abs(residual(chart, guess, m, A, False)[0])
     x = tuple(jnp.where(restart, x0, y) for x0, y in zip(guess, x))
-    norm = jnp.where(restart, guess_norm, norm)
 
-    def active(norm, iterations):
-        return restart & (norm > tolerance) & jnp.isfinite(norm) & (iterations < max_steps)
+    def active(started, norm, iterations):
+        going = (norm > tolerance) & jnp.isfinite(norm) & (iterations < max_steps)
+        return restart & (~started | going)
 
     def cond(carry):
-        _, norm, iterations = carry
-        return jnp.any(active(norm, iterations))
+        *_, started, norm, iterations = carry
+        return jnp.any(active(started, norm, iterations))
 
     def body(carry):
-        x, norm, iterations = carry
-        on = active(norm, iterations)
-        stepped, stepped_norm = _full_newton_step(chart, x, m, A)
-        x = tuple(jnp.where(on, s, y) for s, y in zip(stepped, x))
-        norm = jnp.where(on, stepped_norm, norm)
-        return x, norm, iterations + on.astype(jnp.int32)
+        # Each pass takes the step found in the previous one (none in the first, which
+        # evaluates the guess), then evaluates `r` and `J` at the new iterate: the norm
+        # for the test, the next step, and `det J` for the branch rule. One evaluation
+        # of `(r, J)` a pass, the loop's only copy of it (compile time grows with the
+        # code, `_newton_steps`).
+        x, delta, inv_det, started, norm, iterations = carry
+        on = active(started, norm, iterations)
+        stepping = on & started
+        x = tuple(jnp.where(stepping, y - d, y) for y, d in zip(x, delta))
+        r, J = residual(chart, x, m, A, True)
+        factors = factor(J)
+        # det J = det(P) det(S − R P⁻¹Q) (the block elimination of `factor`).
+        inverse_det = det3(factors[0]) * det3(factors[3])
+        delta = solve6(factors, r)
+        norm = jnp.where(on, max_abs(r), norm)
+        inv_det = jnp.where(on, inverse_det, inv_det)
+        iterations = iterations + stepping.astype(jnp.int32)
+        return x, delta, inv_det, jnp.asarray(True), norm, iterations
 
-    x, norm, iterations = jax.lax.while_loop(cond, body, (x, norm, jnp.zeros_like(fixed)))
-    off_branch = jnp.where(restart, _off_branch(chart, x, m, C), off_branch)
+    zero = jnp.zeros_like(norm)
+    carry = (x, (zero,) * 6, zero, jnp.asarray(False), norm, jnp.zeros_like(fixed))
+    x, _, inv_det, _, norm, iterations = jax.lax.while_loop(cond, body, carry)
+    # `DEP.on_branch`'s rule on the 6×6 Jacobian, the generic path's: `det J > 0`, of
+    # the sign of `det A > 0`; `1/det J = det P⁻¹ · det (S − R P⁻¹Q)⁻¹` has its sign.
+    off = ~(inv_det > 0) | chart.beyond_branch(dot(x[:3], x[:3]), math.pi)
+    off_branch = jnp.where(restart, off, off_branch)
     return x, norm, fixed + iterations, off_branch
 
 
@@ -191,10 +208,11 @@ def solve_increment(chart, m, A, C, guess, tolerance, fixed: int, max_steps: int
     chord step (`_chord_step`). Not differentiable (see `_implicit.differentiable_root`)."""
     fixed = min(fixed, max_steps)
     w = guess[:3]
-    for k in range(fixed):
-        w = _chord_step(chart, w, m, C) if k == 0 else _newton_step(chart, w, m, C)
+    if fixed > 0:
+        w = _chord_step(chart, w, m, C)
+    w, det = _newton_steps(chart, w, m, C, max(fixed - 1, 0))
     x, norm = _full_residual(chart, w, m, A, C)
-    off_branch = _off_branch(chart, x, m, C)
+    off_branch = _off_branch(chart, w, det, C)
     iterations = jnp.full(norm.shape, fixed, jnp.int32)
     if max_steps > fixed:
         x, norm, iterations, off_branch = compacted_tail(
@@ -316,9 +334,10 @@ class SE3Kernel(AbstractBatchKernel):
         return tensor if jnp.shape(tensor)[batched:] == (6, 6) else None
 
     def turn_rates(self, constants, h):
-        # |h| times the rotation rows of M⁻¹ (`SE3.exp_norm`: the rotation part of M⁻¹m).
-        Minv = constants[1]
-        return tuple(tuple(jnp.abs(h) * Minv[i][j] for j in range(6)) for i in range(3))
+        # |h| times the rotation rows of M⁻¹ (`SE3.exp_norm`: the rotation part of M⁻¹m),
+        # one operation on the whole block (`component_major`).
+        Minv = matrix(constants[1])[..., :3, :]
+        return component_major(jnp.abs(jnp.asarray(h))[..., None, None] * Minv)
 
     def turn_squared(self, rates, m):
         omega = tuple(sum(rates[i][j] * m[j] for j in range(6)) for i in range(3))
@@ -356,23 +375,29 @@ class SE3NewtonKernel(SE3Kernel):
         return entries(tensor), entries(inverse)
 
     def prepare(self, constants, h):
-        M, Minv = constants
-        A = tuple(tuple(e / h for e in row) for row in M)
+        # Computed on `(…, 6, 6)` arrays, each product one operation on the whole matrix:
+        # written entry by entry (as the step is), the few hundred scalar operations were
+        # over a hundred kernels in XLA's program, each compiled on its own.
+        M, Minv = (matrix(X) for X in constants)
+        h = jnp.asarray(h)[..., None, None]
+        A = M / h
         # What the reduced Newton iteration reads (`reduced_residual`): the Schur
         # complement S = A₁₁ − A₁₂A₂₂⁻¹A₂₁, Z = A₁₂A₂₂⁻¹, A₂₂⁻¹ (Cramer), T = A₂₂⁻¹A₂₁,
         # and S⁻¹ (the chord step's matrix, `_chord_step`).
         # Not differentiated (Newton only; the root's derivative is `_implicit.differentiable_root`'s).
         blocks = jax.lax.stop_gradient(A)
-        A11, A12, A21 = block(blocks, 0, 0), block(blocks, 0, 1), block(blocks, 1, 0)
-        A22inv = inverse3(block(blocks, 1, 1))
-        Z, T = matmul(A12, A22inv), matmul(A22inv, A21)
-        ZA21 = matmul(Z, A21)
-        S = tuple(tuple(A11[i][j] - ZA21[i][j] for j in range(3)) for i in range(3))
-        C = (S, Z, A22inv, T, inverse3(S))
-        return A, tuple(tuple(h * e for e in row) for row in Minv), C
+        A11, A12 = blocks[..., :3, :3], blocks[..., :3, 3:]
+        A21, A22 = blocks[..., 3:, :3], blocks[..., 3:, 3:]
+        A22inv = cramer_inverse(A22)
+        Z, T = A12 @ A22inv, A22inv @ A21
+        S = A11 - Z @ A21
+        C = tuple(component_major(X) for X in (S, Z, A22inv, T, cramer_inverse(S)))
+        return component_major(A), component_major(h * Minv), C
 
     def step(self, params, g, m, alive):
-        A, Ainv, C = params
+        # Nested tuples of `(B,)` arrays or scalars, as the step's code reads them (the
+        # entries are slices, which fuse into the code that reads them).
+        A, Ainv, C = jax.tree.map(lambda X: entries(X, component_major=True), params)
         fixed = self.fixed_iterations
         fixed = DEFAULT_FIXED_ITERATIONS[self.chart] if fixed is None else fixed
         tolerance = newton_tolerance(max_abs(m), m[0].dtype, self.rtol, self.atol)

@@ -45,6 +45,12 @@ def dot(x, y):
     return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
 
+def det3(J):
+    """`det J` for a 3×3 matrix given as nested tuples of arrays."""
+    (a, b, c), (d, e, f), (g, h, i) = J
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+
+
 def solve3(J, r, divide_each: bool = False):
     """`J⁻¹ r` for a 3×3 matrix given as nested tuples of arrays (Cramer's rule).
 
@@ -111,9 +117,34 @@ def block(A, i, j):
     return tuple(tuple(A[3 * i + k][3 * j + l] for l in range(3)) for k in range(3))
 
 
-def entries(X):
-    """A `(…, 6, 6)` array as a 6×6 nested tuple of `(…)` arrays (`(B,)` or scalars)."""
-    return tuple(tuple(X[..., i, j] for j in range(6)) for i in range(6))
+def entries(X, component_major: bool = False):
+    """A `(…, n, n)` array (`(n, n, …)` if `component_major`) as an n×n nested tuple of
+    `(…)` arrays (`(B,)` or scalars)."""
+    n = X.shape[0 if component_major else -1]
+    if component_major:
+        return tuple(tuple(X[i, j] for j in range(n)) for i in range(n))
+    return tuple(tuple(X[..., i, j] for j in range(n)) for i in range(n))
+
+
+def matrix(X):
+    """`entries`' inverse: an n×n nested tuple of `(…)` arrays as a `(…, n, n)` array."""
+    return jnp.stack([jnp.stack(row, -1) for row in X], -2)
+
+
+def component_major(X):
+    """A `(…, n, n)` array as `(n, n, …)`: `X[i][j]` is then entry `(i, j)`, as in a nested
+    tuple, a contiguous `(B,)` array (or a scalar) read where it is used (slices fuse into
+    their consumers; sliced out once, each was a kernel of its own in XLA's program)."""
+    return jnp.moveaxis(X, (-2, -1), (0, 1))
+
+
+def cramer_inverse(X):
+    """The inverse of `(…, 3, 3)` arrays by Cramer's rule (`inverse3`'s), as whole-array
+    operations: the adjugate's columns are cross products of the rows."""
+    r0, r1, r2 = X[..., 0, :], X[..., 1, :], X[..., 2, :]
+    adjugate = jnp.stack([jnp.cross(r1, r2), jnp.cross(r2, r0), jnp.cross(r0, r1)], -1)
+    det = jnp.sum(r0 * adjugate[..., :, 0], -1)
+    return adjugate / det[..., None, None]
 
 
 def rotate_rows(g, x, a, b):
