@@ -67,7 +67,7 @@ def _setup(kernel, constants, step_bound, g0, m0, h, valid, n_steps, progress):
     constants = jax.tree.map(lambda x: jnp.asarray(x, dtype), constants)
     # Structure of arrays: component-major, batch minor; the kernel owns the layout.
     constants = kernel.constants(constants)
-    params = _packed(kernel.prepare(constants, h))
+    params = kernel.prepare(constants, h)
     # The kernel's carried entries of `g` (on SO(3) all 9, or the advected parameter
     # alone on the reduced path).
     g = kernel.carried(g0)
@@ -96,7 +96,7 @@ def _setup(kernel, constants, step_bound, g0, m0, h, valid, n_steps, progress):
     def one_step(carry, _):
         (g, m, result, failed_step, k), (total, most, worst) = carry
         alive = result == RESULTS.successful
-        g_next, m_next, step_result, iterations, residual = kernel.step(params(), g, m, alive)
+        g_next, m_next, step_result, iterations, residual = kernel.step(params, g, m, alive)
         step_result = _checked_step_result(g_next, m_next, m, step_result)
         result, failed_step, ok = RESULTS.record(result, failed_step, k, step_result)
         # Saved for the backward pass (one byte a body-step): the mask is all the backward
@@ -118,31 +118,6 @@ def _setup(kernel, constants, step_bound, g0, m0, h, valid, n_steps, progress):
     result0, failed_step0 = (jnp.broadcast_to(x, (batch,)) for x in RESULTS.initial(valid))
     init = (g, m, result0, failed_step0, jnp.asarray(0, jnp.int32))
     return one_step, init
-
-
-def _packed(tree):
-    """`tree` (per-run constants, dozens to hundreds of scalars or `(B,)` arrays) as one
-    stacked array per shape and dtype, and a function that reads the tree back from them
-    (inside the loop, where each entry is a slice that fuses into its consumers).
-
-    Computed one by one, each constant was a kernel of its own in XLA's CPU program
-    (over a hundred for the SE(3) step), each compiled on its own: a third of the
-    step's compile time for a few hundred flops a run."""
-    leaves, treedef = jax.tree.flatten(tree)
-    groups = {}
-    for i, leaf in enumerate(leaves):
-        leaf = jnp.asarray(leaf)
-        groups.setdefault((leaf.shape, leaf.dtype), []).append((i, leaf))
-    stacks = [jnp.stack([leaf for _, leaf in group]) for group in groups.values()]
-
-    def read():
-        out = [None] * len(leaves)
-        for stack, group in zip(stacks, groups.values()):
-            for j, (i, _) in enumerate(group):
-                out[i] = stack[j]
-        return jax.tree.unflatten(treedef, out)
-
-    return read
 
 
 def _zero_counters(batch, dtype):

@@ -119,6 +119,23 @@ HEAVY = frozenset(
         "tests/test_suggest.py::test_suggested_step_reaches_the_tolerance[1e-08]",  # 30 s
         "tests/test_simulate.py::test_mixed_precision_promotes[dep]",  # 18 s
         "tests/test_stream.py::test_save_m_only_and_progress",  # 14 s
+        # The exp-chart variant of checks whose Cayley (or other) variants stay in the
+        # default suite (`pytest --durations`, on a 2-core machine about 1.7× slower than
+        # the one of the figures above):
+        "tests/test_dep.py::test_dlp_map_is_poisson[dep-exp]",  # 20 s
+        "tests/test_dep.py::test_start_from_two_configurations[dep-exp]",  # 14 s
+        "tests/test_dep.py::test_del_residual_hlw[dep-exp]",  # 11 s
+        "tests/test_dep.py::test_del_residual_generalized_rigid_body[dep-cayley-4]",  # 9 s
+        "tests/test_contracts.py::test_damping_is_unit_invariant[integrator0]",  # 15 s
+        "tests/test_forcing.py::test_zero_forcing_is_the_unforced_run[free-splitting]",  # 13 s
+        "tests/test_forcing.py::test_zero_forcing_is_the_unforced_run[heavy-top-splitting]",  # 9 s
+        "tests/test_forcing.py::test_order_with_a_force_law_and_a_potential[dep-exp]",  # 12 s
+        "tests/test_forcing.py::test_damping_decays_to_rest_with_the_work_balance[dep-exp]",  # 10 s
+        "tests/test_gradients.py::test_checkpointing_changes_nothing[exp-True]",  # 13 s
+        "tests/test_gradients.py::test_gradient_finite_at_zero_momentum_float32[exp]",  # 11 s
+        "tests/test_horizon.py::test_simulate_eager_equals_jit[DEP-9-1]",  # 12 s
+        "tests/test_horizon.py::test_simulate_eager_equals_jit[DEP-5-5]",  # 10 s
+        "tests/test_convergence.py::test_second_order_on_hlw[dep-exp]",  # 8 s
     }
 )
 
