@@ -63,13 +63,39 @@ print(json.dumps({"seconds": min(times), "cpu_seconds": min(cpu), "lievi": lievi
 """
 
 
-FAST_PATHS_TIMER = r"""
+# What the timers of `--fast-paths` and `--se3` share: `best_of(run, *args)`, the best of
+# `repeats` calls after one that compiles, and `batch_rate`, the body-steps/s of
+# `simulate_batch` (`steps` steps of 0.05, momenta within 5 % of `m_mean`, the final `g`).
+BEST_OF = r"""
 import json, sys, time
 import jax
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp, numpy as np
 import lievi
 repeats, steps = int(sys.argv[1]), 50
+def best_of(run, *args):
+    jax.block_until_ready(run(*args))
+    best = np.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(run(*args))
+        best = min(best, time.perf_counter() - start)
+    return best
+def batch_rate(system, method, g0, m_mean, batch):
+    rng = np.random.default_rng(0)
+    m0 = jnp.asarray(m_mean * (1 + 0.05 * rng.normal(size=(batch, len(m_mean)))))
+    @jax.jit
+    def run(m0):
+        sol = lievi.simulate_batch(system, method, g0, m0, h=0.05, n_steps=steps,
+                                   save=("g",), throw=False)
+        return sol.g[:, -1]
+    return batch * steps / best_of(run, m0)
+"""
+
+
+FAST_PATHS_TIMER = (
+    BEST_OF
+    + r"""
 moments = jnp.asarray([0.6, 0.8, 1.0])
 problems = {
     "free body": (lievi.RigidBody(moments), np.array([1.8, 0.4, -0.9])),
@@ -88,54 +114,24 @@ for problem, (system, m_mean) in problems.items():
         if name == "Moser-Veselov" and system.potential is not None:
             continue
         for batch in (4096, 65536):
-            rng = np.random.default_rng(0)
-            m0 = jnp.asarray(m_mean * (1 + 0.05 * rng.normal(size=(batch, 3))))
-            @jax.jit
-            def run(m0):
-                sol = lievi.simulate_batch(system, method, jnp.eye(3), m0, h=0.05,
-                                           n_steps=steps, save=("g",), throw=False)
-                return sol.g[:, -1]
-            jax.block_until_ready(run(m0))
-            best = np.inf
-            for _ in range(repeats):
-                start = time.perf_counter()
-                jax.block_until_ready(run(m0))
-                best = min(best, time.perf_counter() - start)
-            out[f"{problem}, {name}, batch {batch}"] = batch * steps / best
+            rate = batch_rate(system, method, jnp.eye(3), m_mean, batch)
+            out[f"{problem}, {name}, batch {batch}"] = rate
 print(json.dumps({"body_steps_per_second": out, "lievi": lievi.__file__}))
 """
+)
 
 
-SE3_TIMER = r"""
-import json, sys, time
-import jax
-jax.config.update("jax_enable_x64", True)
-import jax.numpy as jnp, numpy as np
-import lievi
-repeats, steps = int(sys.argv[1]), 50
+SE3_TIMER = (
+    BEST_OF
+    + r"""
 system = lievi.RigidBodySE3(jnp.asarray([0.6, 0.8, 1.0]), 2.0)
 m_mean = np.array([1.8, 0.4, -0.9, 0.5, -0.3, 0.2])
 methods = {"DEP exp": lievi.DEP(), "DEP cayley": lievi.DEP(chart="cayley"),
            "DEP exp o 4": lievi.Composition(lievi.DEP(), order=4)}
-def best_of(run, *args):
-    jax.block_until_ready(run(*args))
-    best = np.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(run(*args))
-        best = min(best, time.perf_counter() - start)
-    return best
 out = {}
 for name, method in methods.items():
     for batch in (4096, 65536):
-        rng = np.random.default_rng(0)
-        m0 = jnp.asarray(m_mean * (1 + 0.05 * rng.normal(size=(batch, 6))))
-        @jax.jit
-        def run(m0):
-            sol = lievi.simulate_batch(system, method, jnp.eye(4), m0, h=0.05,
-                                       n_steps=steps, save=("g",), throw=False)
-            return sol.g[:, -1]
-        out[f"SE(3), {name}, batch {batch}"] = batch * steps / best_of(run, m0)
+        out[f"SE(3), {name}, batch {batch}"] = batch_rate(system, method, jnp.eye(4), m_mean, batch)
     # One body, eagerly (`simulate`'s blocks), every step saved: 1000 steps.
     def one():
         return lievi.simulate(system, method, jnp.eye(4), jnp.asarray(m_mean), h=0.05,
@@ -143,6 +139,7 @@ for name, method in methods.items():
     out[f"SE(3), {name}, one body"] = 1000 / best_of(one)
 print(json.dumps({"body_steps_per_second": out, "lievi": lievi.__file__}))
 """
+)
 
 
 def fast_paths(path, repeats, timer=FAST_PATHS_TIMER) -> dict[str, float]:
