@@ -119,9 +119,9 @@ HEAVY = frozenset(
         "tests/test_suggest.py::test_suggested_step_reaches_the_tolerance[1e-08]",  # 30 s
         "tests/test_simulate.py::test_mixed_precision_promotes[dep]",  # 18 s
         "tests/test_stream.py::test_save_m_only_and_progress",  # 14 s
-        # The exp-chart variant of checks whose Cayley (or other) variants stay in the
-        # default suite (`pytest --durations`, on a 2-core machine about 1.7× slower than
-        # the one of the figures above):
+        # The exp-chart (or one duplicate) variant of checks whose other variants stay in
+        # the default suite (`pytest --durations`, on a 2-core machine about 1.7× slower
+        # than the one of the figures above):
         "tests/test_dep.py::test_dlp_map_is_poisson[dep-exp]",  # 20 s
         "tests/test_dep.py::test_start_from_two_configurations[dep-exp]",  # 14 s
         "tests/test_dep.py::test_del_residual_hlw[dep-exp]",  # 11 s
@@ -136,6 +136,11 @@ HEAVY = frozenset(
         "tests/test_horizon.py::test_simulate_eager_equals_jit[DEP-9-1]",  # 12 s
         "tests/test_horizon.py::test_simulate_eager_equals_jit[DEP-5-5]",  # 10 s
         "tests/test_convergence.py::test_second_order_on_hlw[dep-exp]",  # 8 s
+        "tests/test_se3_batch.py::test_linear_momentum_sets_the_tolerance[exp]",  # 39 s
+        "tests/test_se3_body.py::test_kirchhoff_conservation[exp]",  # 23 s
+        "tests/test_se3_body.py::test_del_residual[cayley-satellite]",  # 18 s
+        "tests/test_simulate.py::test_newton_converges_fast_for_moderate_steps[dep-exp]",  # 13 s
+        "tests/test_dep.py::test_batched_equals_per_body[dep-exp]",  # 14 s
     }
 )
 
