@@ -10,11 +10,21 @@
 #     TAG=h100 bash benchmarks/device_sweep.sh
 #     TAG=h100 PARTS=bodies bash benchmarks/device_sweep.sh           # interacting bodies only
 #     BATCHES="100 1000" STEPS=10 bash benchmarks/device_sweep.sh   # a smoke run
+#
+# SWEEP_METHODS and GRAD_METHODS ('|'-separated row names) narrow the sweep and the
+# gradients; BODY_ARGS is added to rigid_bodies_throughput.py's arguments (e.g.
+# "--gradient-only"); PART_TIMEOUT (seconds) ends any one part that runs longer, so that
+# the parts after it still run inside a lease.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PY="${PYTHON:-python3}" OUT="${OUT:-benchmarks/results}" TAG="${TAG:-gpu}" STEPS="${STEPS:-100}"
 BATCHES="${BATCHES:-100000 1000000 10000000}" GRAD_BODIES="${GRAD_BODIES:-1000000}"
 PARTS="${PARTS:-sweep gradients bodies}" SYSTEMS="${SYSTEMS:-100000}" NBODIES="${NBODIES:-10000}"
+SWEEP_METHODS="${SWEEP_METHODS:-DEP exp|DEP cayley|Moser-Veselov|splitting|RK4|RKMK4|splitting ∘ 4|splitting ∘ 6|diffrax Tsit5|DEP exp, vmap(simulate)}"
+GRAD_METHODS="${GRAD_METHODS:-DEP exp|splitting|RKMK4|splitting ∘ 4}" BODY_ARGS="${BODY_ARGS:-}"
+IFS='|' read -r -a sweep_methods <<<"$SWEEP_METHODS"
+IFS='|' read -r -a grad_methods <<<"$GRAD_METHODS"
+limit=(timeout "${PART_TIMEOUT:-0}")  # timeout 0: no limit
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 log="$OUT/device_sweep_$TAG.log"
 mkdir -p "$OUT"
@@ -25,19 +35,19 @@ mkdir -p "$OUT"
     for dtype in float32 float64; do
       # --budget 10: a method's larger batches are skipped once one run takes over 1 s.
       # shellcheck disable=SC2086
-      "$PY" benchmarks/throughput.py --batches $BATCHES --steps "$STEPS" --dtypes "$dtype" \
-        --budget 10 --outdir "$OUT" --out "throughput_${TAG}_$dtype" \
-        --methods "DEP exp" "DEP cayley" "Moser-Veselov" splitting RK4 RKMK4 \
-        "splitting ∘ 4" "splitting ∘ 6" "diffrax Tsit5" "DEP exp, vmap(simulate)"
+      "${limit[@]}" "$PY" benchmarks/throughput.py --batches $BATCHES --steps "$STEPS" \
+        --dtypes "$dtype" --budget 10 --outdir "$OUT" --out "throughput_${TAG}_$dtype" \
+        --methods "${sweep_methods[@]}"
     done
   fi
   if [[ " $PARTS " == *" gradients "* ]]; then
-    "$PY" benchmarks/gradients.py --batch --bodies "$GRAD_BODIES" --steps "$STEPS" \
-      --outdir "$OUT" --out "gradients_batch_$TAG"
+    "${limit[@]}" "$PY" benchmarks/gradients.py --batch --bodies "$GRAD_BODIES" \
+      --steps "$STEPS" --methods "${grad_methods[@]}" --outdir "$OUT" --out "gradients_batch_$TAG"
   fi
   if [[ " $PARTS " == *" bodies "* ]]; then
-    "$PY" benchmarks/rigid_bodies_throughput.py --systems "$SYSTEMS" --bodies "$NBODIES" \
-      --neighbor-bodies "$NBODIES" --gradient-bodies 1000 --steps "$STEPS" \
-      --out "rigid_bodies_throughput_$TAG" --outdir "$OUT"
+    # shellcheck disable=SC2086
+    "${limit[@]}" "$PY" benchmarks/rigid_bodies_throughput.py --systems "$SYSTEMS" \
+      --bodies "$NBODIES" --neighbor-bodies "$NBODIES" --gradient-bodies 1000 \
+      --steps "$STEPS" --out "rigid_bodies_throughput_$TAG" --outdir "$OUT" $BODY_ARGS
   fi
-} 2>&1 | tee "$log"
+} 2>&1 | tee -a "$log"

@@ -12,6 +12,8 @@ message that names the parameter (`Conditions`). `raise_if_violated` is its eage
 
 from __future__ import annotations
 
+import contextlib
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -29,6 +31,24 @@ def is_concrete(*xs) -> bool:
         isinstance(x, jax.core.Tracer) or (isinstance(x, jax.Array) and not x.is_fully_addressable)
         for x in xs
     )
+
+
+def tracing() -> bool:
+    """Whether a JAX transformation (`jit`, `vmap`, `grad`, a loop's body) is tracing the
+    caller: JAX's own test, private, hence guarded (without it, assume so)."""
+    try:
+        from jax._src.core import trace_state_clean
+    except ImportError:
+        return True
+    return not trace_state_clean()
+
+
+def evaluated_now():
+    """A context in which a jit-compiled check on concrete arrays runs now and returns
+    concrete values, also inside an outer `jit` that captured the arrays from outside.
+    Outside any transformation it is a plain call: `jax.ensure_compile_time_eval` there
+    would also run the check's constant-only operations one small program at a time."""
+    return jax.ensure_compile_time_eval() if tracing() else contextlib.nullcontext()
 
 
 def check_shape(name: str, x, shape: tuple[int, ...], what: str = "") -> None:
@@ -84,7 +104,7 @@ def check_spd(name: str, matrix) -> None:
     """Symmetric positive definite (`spd_conditions`), for a concrete (k, k) array (the
     dtype is checked for traced arrays too; their values are checked by `input_valid`)."""
     check_real_dtype(name, matrix)
-    raise_if_violated(lambda: spd_conditions(name, matrix), matrix)
+    raise_if_violated(spd_conditions, name, matrix)
 
 
 def finite_conditions(tree, name: str | None = None) -> Conditions:
@@ -112,17 +132,36 @@ def all_hold(conditions: Conditions):
     return valid
 
 
-def raise_if_violated(conditions, *values) -> None:
-    """The eager form: when `values` (the arrays the conditions are computed from) are
-    concrete, evaluate `conditions()` now — also inside an outer `jit` — and raise the
-    first failed condition's message. Traced values are left to `all_hold`."""
-    arrays = [x for x in jax.tree.leaves(values) if eqx.is_array(x)]
-    if not is_concrete(*arrays):
+def raise_if_violated(conditions, *args) -> None:
+    """The eager form of `conditions(*args)` (e.g. a module's bound `parameter_conditions`,
+    whose module is part of it): when every array in them is concrete, evaluate the
+    conditions now — also inside an outer `jit` — and raise the first failed condition's
+    message. Traced values are left to `all_hold`.
+
+    The conditions are evaluated as one compiled program (`_holds`): operation by
+    operation, each operation would be a small program compiled at its first call (about
+    half a second of a first `RigidBodySE3(…)` on the 2-core reference machine). Python
+    floats among the values are passed as arrays, so that a new value is not a new
+    program. The messages are read only when a condition fails."""
+    conditions, args = jax.tree.map(_float_as_array, (conditions, args))
+    if not is_concrete(*[x for x in jax.tree.leaves((conditions, args)) if eqx.is_array(x)]):
         return
+    with evaluated_now():
+        if bool(_holds(conditions, *args)):
+            return
     with jax.ensure_compile_time_eval():
-        for holds, message in conditions():
+        for holds, message in conditions(*args):
             if not bool(jnp.all(holds)):
                 raise ValueError(message)
+
+
+def _float_as_array(x):
+    return jnp.asarray(x) if type(x) is float else x
+
+
+@eqx.filter_jit
+def _holds(conditions, *args):
+    return all_hold(conditions(*args))
 
 
 def membership_tolerance(dtype) -> float:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ._checks import is_concrete
+from ._checks import is_concrete, tracing
 
 # Saves per block: a block's output buffers are `block_saves(...)` saves long whatever the
 # horizon, so a block must be short enough to be cheap when few saves are used and long
@@ -37,13 +37,8 @@ BLOCK_BYTES = 1 << 22
 def horizon_traced(*trees) -> bool:
     """Whether a run may take the traced horizon: called eagerly (no `jit`, `grad`, `vmap`
     or other transformation is tracing the caller, so nothing can differentiate through the
-    loop; JAX's own test, private, hence guarded) with concrete inputs."""
-    try:
-        from jax._src.core import trace_state_clean
-    except ImportError:  # a JAX without it: the static scan, always correct
-        return False
-    leaves = jax.tree.leaves(trees)
-    return trace_state_clean() and is_concrete(*leaves)
+    loop; without JAX's test, the static scan, always correct) with concrete inputs."""
+    return not tracing() and is_concrete(*jax.tree.leaves(trees))
 
 
 def block_saves(bytes_per_save: int) -> int:

@@ -25,6 +25,7 @@ from .._checks import (
     all_hold,
     check_finite,
     check_shape,
+    evaluated_now,
     finite_conditions,
     is_concrete,
     membership_tolerance,
@@ -49,7 +50,7 @@ class AbstractLieSystem(eqx.Module):
 
     def __check_init__(self):
         # After the subclass's own checks (shapes, dtypes): the parameter values, eagerly.
-        raise_if_violated(self.parameter_conditions, self)
+        raise_if_violated(self.parameter_conditions)
         if self.potential is None:
             return
         shape = self.element_shape()
@@ -171,8 +172,8 @@ class AbstractLieSystem(eqx.Module):
             # concrete `g` captured from outside.
             g = jnp.asarray(g)
             bound = membership_tolerance(g.dtype)
-            with jax.ensure_compile_time_eval():
-                defect = float(jnp.max(self.group.membership_defect(jnp.asarray(g, float))))
+            with evaluated_now():
+                defect = float(_largest_defect(self.group, g))
             if defect > bound:
                 raise ValueError(
                     f"`{name}` is not in the group: membership defect {defect:.3g} > "
@@ -211,3 +212,10 @@ class AbstractLieSystem(eqx.Module):
         d = self.group.algebra_dim
         check_shape(name, m, self.momentum_shape(), f"momentum coordinates of dimension {d}")
         check_finite(name, m)
+
+
+@eqx.filter_jit
+def _largest_defect(group: MatrixLieGroup, g):
+    """`check_element`'s eager membership defect as one compiled program, not one small
+    program per operation compiled at its first call."""
+    return jnp.max(group.membership_defect(jnp.asarray(g, float)))

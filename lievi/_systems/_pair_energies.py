@@ -56,7 +56,7 @@ class AbstractPairEnergy(eqx.Module):
                     f"{jnp.shape(value)}."
                 )
         # After the shapes: the parameter values, eagerly (traced ones in `parameters_valid`).
-        raise_if_violated(self.parameter_conditions, self)
+        raise_if_violated(self.parameter_conditions)
 
     def parameter_conditions(self) -> Conditions:
         return finite_conditions(self)

@@ -36,7 +36,7 @@ class AbstractPotential(eqx.Module):
 
     def __check_init__(self):
         # After the subclass's own checks (shapes, dtypes): the parameter values, eagerly.
-        raise_if_violated(self.parameter_conditions, self)
+        raise_if_violated(self.parameter_conditions)
 
     @abc.abstractmethod
     def __call__(self, g: Float[Array, "n n"]) -> Scalar:

@@ -23,6 +23,7 @@ force; `AbstractLieSystem.force`) to the right-hand side (paper §7): uniform gr
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
@@ -32,16 +33,6 @@ from .._groups._se3 import SE3
 from ._base import AbstractLieSystem
 from ._potential import AbstractPotential, as_potential
 from ._side import Side
-
-
-def _inertia_matrix(inertia):
-    inertia = jnp.asarray(inertia)
-    if inertia.shape not in ((3,), (3, 3)):
-        raise ValueError(
-            f"`inertia` must be principal moments of shape (3,) or a tensor of shape (3, 3), "
-            f"got shape {inertia.shape}."
-        )
-    return jnp.diag(inertia) if inertia.ndim == 1 else inertia
 
 
 def spd_solve(M: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " k"]:
@@ -70,19 +61,33 @@ def spd_solve(M: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " k
 
 def rigid_body_tensor(inertia, mass) -> Float[Array, "6 6"]:
     """`diag(J, m I)`: the 6×6 kinetic tensor of a body with its origin at the centre of mass."""
-    J = _inertia_matrix(inertia)
+    inertia = jnp.asarray(inertia)
+    if inertia.shape not in ((3,), (3, 3)):
+        raise ValueError(
+            f"`inertia` must be principal moments of shape (3,) or a tensor of shape (3, 3), "
+            f"got shape {inertia.shape}."
+        )
     if jnp.ndim(mass) != 0:
         raise ValueError(f"`mass` must be a scalar, got shape {jnp.shape(mass)}.")
     if is_concrete(mass):
         check_finite("mass", mass)
         if not float(mass) > 0:
             raise ValueError(f"`mass` must be > 0, got {float(mass)}.")
+    J, tensor = _assembled(inertia, mass)
     check_spd("inertia", J)
+    return tensor
+
+
+@jax.jit
+def _assembled(inertia, mass):
+    """`(J, diag(J, m I))`, one compiled program (eagerly, each operation would be a small
+    program of its own, compiled at its first call)."""
+    J = jnp.diag(inertia) if inertia.ndim == 1 else inertia
     dtype = jnp.result_type(J, mass, float)
     zero = jnp.zeros((3, 3), dtype)
     top = jnp.concatenate([J.astype(dtype), zero], axis=1)
     bottom = jnp.concatenate([zero, jnp.asarray(mass, dtype) * jnp.eye(3, dtype=dtype)], axis=1)
-    return jnp.concatenate([top, bottom], axis=0)
+    return J, jnp.concatenate([top, bottom], axis=0)
 
 
 class RigidBodySE3(AbstractLieSystem):
