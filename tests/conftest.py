@@ -141,11 +141,33 @@ HEAVY = frozenset(
         "tests/test_se3_body.py::test_del_residual[cayley-satellite]",  # 18 s
         "tests/test_simulate.py::test_newton_converges_fast_for_moderate_steps[dep-exp]",  # 13 s
         "tests/test_dep.py::test_batched_equals_per_body[dep-exp]",  # 14 s
+        # More variants of checks whose other variants stay in the default suite (the
+        # same machine, `pytest --durations=200`):
+        "tests/test_horizon.py::test_simulate_eager_equals_jit[preprocessed-5-5]",  # 11 s
+        "tests/test_horizon.py::test_simulate_eager_equals_jit[SE3-RK4-12-3]",  # 10 s
+        "tests/test_horizon.py::test_simulate_eager_equals_jit[SE3-RK4-5-5]",  # 9 s
+        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[h-per-body-save0-fast]",  # 13 s
+        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[shared-h-save1-fast]",  # 12 s
+        "tests/test_potentials.py::test_zero_potential_is_the_free_body[dep-exp-zero-mass]",  # 12 s
+        "tests/test_potentials.py::test_zero_potential_is_the_free_body[moser-veselov-zero-mass]",  # 9 s
+        "tests/test_potentials.py::test_second_order_heavy_top[dep-exp]",  # 10 s
+        "tests/test_reliability.py::test_tolerance_is_relative_scaled_body_gives_same_trajectory[1e-13-dep-cayley]",  # 5 s
+        "tests/test_reliability.py::test_tolerance_is_relative_scaled_body_gives_same_trajectory[1e-13-preprocessed]",  # 5 s
+        "tests/test_reliability.py::test_tolerance_is_relative_scaled_body_gives_same_trajectory[1e-13-composition]",  # 4 s
+        "tests/test_rkmk.py::test_saves_the_advected_parameter[RKMK8()]",  # 15 s
+        "tests/test_rkmk.py::test_stays_on_the_group_where_rk4_drifts[RKMK8()]",  # 8 s
+        "tests/test_rkmk.py::test_fourth_order_and_more_accurate_than_embedded_rk4[right]",  # 8 s
+        "tests/test_progress.py::test_batch_meter_updates_one_line[False]",  # 13 s
+        "tests/test_equivalences.py::test_moser_veselov_iterates_satisfy_5_4[4]",  # 6 s
     }
 )
+# SO(n) for n = 5, 6, 7: the generic operators compile once per n (6–9 s each on this
+# machine); n = 2, 3, 4 and 8 stay in the default suite, the smallest cases and the largest.
+HEAVY_SON = ("[5]", "[6]", "[7]")
 
 
 def pytest_collection_modifyitems(config, items):
     for item in items:
-        if item.nodeid in HEAVY:
+        son = item.nodeid.startswith("tests/test_son.py::") and item.nodeid.endswith(HEAVY_SON)
+        if item.nodeid in HEAVY or son:
             item.add_marker(pytest.mark.slow)
