@@ -7,7 +7,10 @@
 - `poisson_defect`: `‖D B(m_k) Dᵀ − B(m_{k+1})‖` for the Jacobian `D` of the DLP map
   (Proposition 3.1: the DLP map is Poisson).
 
-All functions take arrays with leading batch/time axes unless stated otherwise.
+All functions take arrays with leading batch/time axes unless stated otherwise. Each is
+one jit-compiled program (`eqx.filter_jit`, cached per system class and shapes): called
+eagerly on a trajectory, JAX would otherwise compile and dispatch each of its operations
+as a small program of its own.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ def _batched(fn, core_ndim: int, x):
     return fn(x)
 
 
+@eqx.filter_jit
 def energy(
     system: AbstractLieSystem,
     m: Float[Array, "*batch d"],
@@ -49,6 +53,7 @@ def energy(
     return kinetic + _batched(system.potential_energy, len(system.element_shape()), g)
 
 
+@eqx.filter_jit
 def casimirs(system: AbstractLieSystem, m: Float[Array, "*batch d"]) -> Float[Array, "*batch k"]:
     """Casimir functions of the Lie–Poisson structure on `g*` (the group's `casimirs`).
 
@@ -58,6 +63,7 @@ def casimirs(system: AbstractLieSystem, m: Float[Array, "*batch d"]) -> Float[Ar
     return system.group.casimirs(m)
 
 
+@eqx.filter_jit
 def spatial_momentum(
     system: AbstractLieSystem, g: Float[Array, "*batch n n"], m: Float[Array, "*batch d"]
 ) -> Float[Array, "*batch d"]:
@@ -69,6 +75,7 @@ def spatial_momentum(
     return system.side.noether_momentum(system.group, g, m)
 
 
+@eqx.filter_jit
 def total_momentum(
     system: AbstractLieSystem, g: Float[Array, "*batch n n"], m: Float[Array, "*batch d"]
 ) -> Float[Array, "*batch d"]:
@@ -87,11 +94,13 @@ def total_momentum(
     return jnp.sum(each, axis=tuple(range(-1 - bodies, -1)))
 
 
+@eqx.filter_jit
 def orthogonality_defect(system: AbstractLieSystem, g: Float[Array, "*batch n n"]):
     """Distance of `g` from the group (`‖gᵀg − I‖_F + |det g − 1|` on SO(n))."""
     return system.group.membership_defect(g)
 
 
+@eqx.filter_jit
 def relative_drift(values: Float[Array, "T ..."]) -> Scalar:
     """`max_k |v_k − v_0| / |v_0|` over the first axis (∞-norm over the rest)."""
     v0 = values[0]
