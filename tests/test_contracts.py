@@ -264,3 +264,15 @@ def test_integer_potential_is_a_clear_error():
     inside JAX's gradient."""
     with pytest.raises(ValueError, match="real floating-point"):
         lievi.RigidBody(jnp.array([2.0, 1.0, 2 / 3]), potential=lambda g: 0)
+
+
+def test_energy_of_a_system_with_a_potential_needs_g():
+    """`diagnostics.energy` is jit-compiled; its argument check still raises a `ValueError`
+    that names `g` (raised while tracing, before anything is compiled)."""
+    top = lievi.RigidBody(jnp.ones(3), lievi.UniformGravity(1.0, jnp.ones(3)))
+    with pytest.raises(ValueError, match="pass `g`"):
+        lievi.diagnostics.energy(top, jnp.ones((5, 3)))
+    energy = lievi.diagnostics.energy(
+        top, jnp.ones((5, 3)), jnp.broadcast_to(jnp.eye(3), (5, 3, 3))
+    )
+    assert energy.shape == (5,)
