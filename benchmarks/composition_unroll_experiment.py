@@ -22,12 +22,10 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import lievi  # noqa: E402
 from lievi._kernels import _composition  # noqa: E402
-from lievi._results import RESULTS  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import gradients  # noqa: E402
@@ -38,17 +36,7 @@ LOOP = _composition.CompositionKernel.step
 
 def unrolled(self, params, g, m, alive):
     """`CompositionKernel.step` with the stages unrolled (`unroll=True`)."""
-
-    def stage(carry, stage_params):
-        g, m, result, iterations, residual = carry
-        g, m, code, its, res = self.inner.step(stage_params, g, m, alive)
-        result = RESULTS.first_failure(result, code)
-        return (g, m, result, iterations + its, jnp.maximum(residual, res)), None
-
-    zeros = jnp.zeros(jnp.shape(m[0]), jnp.int32)
-    init = (g, m, zeros + RESULTS.successful, zeros, jnp.zeros_like(m[0]))
-    (g, m, result, iterations, residual), _ = jax.lax.scan(stage, init, params, unroll=True)
-    return g, m, result, iterations, residual
+    return self.stages(params, g, m, alive, unroll=True)
 
 
 def timed(fn, args):

@@ -44,6 +44,12 @@ class CompositionKernel(AbstractBatchKernel):
         # A loop over the stages, not the stages written out: one stage's code is compiled.
         # Written out, the 9- and 17-stage compositions compiled 4–17× the inner step's
         # code, and on a GPU ran at a half to a quarter of the rate their stage count predicts.
+        return self.stages(params, g, m, alive)
+
+    def stages(self, params, g, m, alive, unroll: int | bool = 1):
+        """The stages in one `lax.scan` (`unroll` is the scan's; `step` keeps the loop, and
+        `benchmarks/composition_unroll_experiment.py` times it against `unroll=True`)."""
+
         def stage(carry, stage_params):
             g, m, result, iterations, residual = carry
             g, m, code, its, res = self.inner.step(stage_params, g, m, alive)
@@ -52,7 +58,7 @@ class CompositionKernel(AbstractBatchKernel):
 
         zeros = jnp.zeros(jnp.shape(m[0]), jnp.int32)
         init = (g, m, zeros + RESULTS.successful, zeros, jnp.zeros_like(m[0]))
-        (g, m, result, iterations, residual), _ = jax.lax.scan(stage, init, params)
+        (g, m, result, iterations, residual), _ = jax.lax.scan(stage, init, params, unroll=unroll)
         return g, m, result, iterations, residual
 
     # The step bound is the integrator's (`Composition.step_bound`), on the full step.
