@@ -234,9 +234,16 @@ def test_total_momentum_and_energy(problem, integrator):
 @pytest.mark.slow
 @pytest.mark.parametrize("integrator", (lievi.DEP(chart="cayley"), lievi.LiePoissonSplitting()))
 def test_total_momentum_1e5(integrator):
+    """Total momentum to round-off and the energy error bounded over 1e5 steps.
+
+    No drift check here: the mean energy error is modulated over longer than this run
+    (the splitting's, in means over 5e4 steps of a 1e6-step run: 1.45e-6 in the first,
+    2.1–4.4e-6 in each of the 19 others, with no trend), so the two halves of 1e5 steps
+    differ by 1.8× without any drift. `test_energy_bounded_1e6` checks the drift over a
+    run that spans the modulation."""
     system, sol = _run("binary", integrator, 100_000, save_every=100)
     # DEP Cayley's energy error reaches 2.8e-4 here (measured), the splitting's 8e-6.
-    _check_conservation(system, sol, 1e-3, drift_check=True)
+    _check_conservation(system, sol, 1e-3)
 
 
 @pytest.mark.slow
