@@ -19,6 +19,7 @@ machine's load (printed with the results).
 
     python benchmarks/compile_time.py [--quick] [--steps 100] [--batch 64] [--out compile_time]
                                       [--integrators RKMK5 RKMK8]
+                                      [--systems "RigidBodySE3 (free)"]
     python benchmarks/compile_time.py --throughput [--out compile_time_throughput]
 
 Writes `benchmarks/results/<out>.json` (after each pair, so that a run cut short keeps
@@ -198,6 +199,7 @@ def main():
     parser.add_argument(
         "--integrators", nargs="+", choices=list(integrators()), help="only these (default: all)"
     )
+    parser.add_argument("--systems", nargs="+", help="only these (default: all)")
     options = parser.parse_args()
     options.out = options.out or (
         "compile_time_throughput" if options.throughput else "compile_time"
@@ -223,6 +225,8 @@ def main():
             if options.quick and (system_name, name) not in QUICK:
                 continue
             if options.integrators and name not in options.integrators:
+                continue
+            if options.systems and system_name not in options.systems:
                 continue
             jax.clear_caches()
             row = {"system": system_name, "integrator": name}

@@ -63,11 +63,9 @@ from ._se3_reduced import reduced_residual, velocity_part
 from ._se3_residual import (
     SINC3,
     SE3Equation,
-    factor,
     mv,
     ones,
     residual,
-    solve6,
 )
 from ._soa import (
     C_SERIES,
@@ -138,11 +136,30 @@ def _off_branch(chart, w, det, C):
     return ~(det * S[0][0] > 0) | chart.beyond_branch(dot(w, w), math.pi)
 
 
+def _stacked_residual(chart, x, m, A):
+    """The DEP residual `dφ⁻¹(ξ)ᵀ Aξ − m` of one body (4.8), `x`, `m` of shape `(6,)` and
+    `A = M/h` `(6, 6)`, with the chart's `dφ⁻¹` as `lievi.SE3` writes it: the generic
+    path's residual (`DEP.residual`), as whole-array operations."""
+    return chart.dinverse(SE3, x).T @ (A @ x) - m
+
+
+def _residual_and_jacobian(chart, x, m, A):
+    """`(r, ∂r/∂ξ)` for stacked bodies, `x`, `m` `(…, 6)` and `A` `(…, 6, 6)` (one
+    shared by the batch, or one per body): `jax.jacfwd` of `_stacked_residual`, as the
+    generic path differentiates it."""
+
+    def one(x, m, A):
+        residual = functools.partial(_stacked_residual, chart, m=m, A=A)
+        return residual(x), jax.jacfwd(residual)(x)
+
+    return jnp.vectorize(one, signature="(n),(n),(n,n)->(n),(n,n)")(x, m, A)
+
+
 def _newton_tail(chart, max_steps, state, args):
     """The generic path's Newton, for the bodies of `state = (ξ, ‖r‖_∞, iterations,
     off_branch)` not yet on a root of the branch: each restarts from the explicit-Euler
-    guess and takes up to `max_steps` Newton steps on the full 6×6 system with its closed-form
-    Jacobian (`residual`, the block solve `solve6`);
+    guess and takes up to `max_steps` Newton steps on the full 6×6 system, its residual
+    and Jacobian those of the generic path (`_residual_and_jacobian`);
     `args = (m, A, C, guess, tolerance, alive)`.
 
     Why not more reduced steps: eliminating `v` makes `ρ(ω)` far more nonlinear than the
@@ -152,11 +169,17 @@ def _newton_tail(chart, max_steps, state, args):
     or lands on a root across a fold, where Newton on the full system converges in a few
     steps. Restarting from the guess with the generic path's iteration and budget, a body
     converges here whenever it converges there, to the same root.
+
+    Why whole-array operations (`(…, 6)` and `(…, 6, 6)` arrays, a batched LU) and not
+    the closed forms of the fixed iterations: the tail runs for a few bodies in ten
+    thousand, so its speed hardly counts, while its code is compiled into every run;
+    written entry by entry it was about 40 % of the SE(3) step's compile time.
     """
     m, A, C, guess, tolerance, alive = args
     x, norm, fixed, off_branch = state
     restart = alive & (~(norm <= tolerance) | off_branch)
-    x = tuple(jnp.where(restart, x0, y) for x0, y in zip(guess, x))
+    x = jnp.stack([jnp.where(restart, x0, y) for x0, y in zip(guess, x)], -1)
+    m, A = jnp.stack(m, -1), matrix(A)
 
     def active(started, norm, iterations):
         going = (norm > tolerance) & jnp.isfinite(norm) & (iterations < max_steps)
@@ -170,30 +193,27 @@ def _newton_tail(chart, max_steps, state, args):
         # Each pass takes the step found in the previous one (none in the first, which
         # evaluates the guess), then evaluates `r` and `J` at the new iterate: the norm
         # for the test, the next step, and `det J` for the branch rule. One evaluation
-        # of `(r, J)` a pass, the loop's only copy of it (compile time grows with the
-        # code, `_newton_steps`).
-        x, delta, inv_det, started, norm, iterations = carry
+        # of `(r, J)` a pass, the loop's only copy of it.
+        x, delta, det, started, norm, iterations = carry
         on = active(started, norm, iterations)
         stepping = on & started
-        x = tuple(jnp.where(stepping, y - d, y) for y, d in zip(x, delta))
-        r, J = residual(chart, x, m, A, True)
-        factors = factor(J)
-        # det J = det(P) det(S − R P⁻¹Q) (the block elimination of `factor`).
-        inverse_det = det3(factors[0]) * det3(factors[3])
-        delta = solve6(factors, r)
-        norm = jnp.where(on, max_abs(r), norm)
-        inv_det = jnp.where(on, inverse_det, inv_det)
+        x = jnp.where(stepping[..., None], x - delta, x)
+        r, J = _residual_and_jacobian(chart, x, m, A)
+        delta = jnp.linalg.solve(J, r[..., None])[..., 0]
+        norm = jnp.where(on, jnp.max(jnp.abs(r), -1), norm)
+        det = jnp.where(on, jnp.linalg.det(J), det)
         iterations = iterations + stepping.astype(jnp.int32)
-        return x, delta, inv_det, jnp.asarray(True), norm, iterations
+        return x, delta, det, jnp.asarray(True), norm, iterations
 
     zero = jnp.zeros_like(norm)
-    carry = (x, (zero,) * 6, zero, jnp.asarray(False), norm, jnp.zeros_like(fixed))
-    x, _, inv_det, _, norm, iterations = jax.lax.while_loop(cond, body, carry)
+    carry = (x, jnp.zeros_like(x), zero, jnp.asarray(False), norm, jnp.zeros_like(fixed))
+    x, _, det, _, norm, iterations = jax.lax.while_loop(cond, body, carry)
     # `DEP.on_branch`'s rule on the 6×6 Jacobian, the generic path's: `det J > 0`, of
-    # the sign of `det A > 0`; `1/det J = det P⁻¹ · det (S − R P⁻¹Q)⁻¹` has its sign.
-    off = ~(inv_det > 0) | chart.beyond_branch(dot(x[:3], x[:3]), math.pi)
+    # the sign of `det A > 0`.
+    w = tuple(x[..., i] for i in range(3))
+    off = ~(det > 0) | chart.beyond_branch(dot(w, w), math.pi)
     off_branch = jnp.where(restart, off, off_branch)
-    return x, norm, fixed + iterations, off_branch
+    return tuple(x[..., i] for i in range(6)), norm, fixed + iterations, off_branch
 
 
 def solve_increment(chart, m, A, C, guess, tolerance, fixed: int, max_steps: int, alive=True):
