@@ -192,26 +192,27 @@ def _newton_tail(chart, max_steps, state, args):
     def body(carry):
         # Each pass takes the step found in the previous one (none in the first, which
         # evaluates the guess), then evaluates `r` and `J` at the new iterate: the norm
-        # for the test, the next step, and `det J` for the branch rule. One evaluation
-        # of `(r, J)` a pass, the loop's only copy of it.
-        x, delta, det, started, norm, iterations = carry
+        # for the test, the next step, and the sign of `det J` for the branch rule (from
+        # `slogdet`: `det J` itself is a product of six factors of the size of `M/h`,
+        # which can leave float32's range). One evaluation of `(r, J)` a pass.
+        x, delta, sign, started, norm, iterations = carry
         on = active(started, norm, iterations)
         stepping = on & started
         x = jnp.where(stepping[..., None], x - delta, x)
         r, J = _residual_and_jacobian(chart, x, m, A)
         delta = jnp.linalg.solve(J, r[..., None])[..., 0]
         norm = jnp.where(on, jnp.max(jnp.abs(r), -1), norm)
-        det = jnp.where(on, jnp.linalg.det(J), det)
+        sign = jnp.where(on, jnp.linalg.slogdet(J)[0], sign)
         iterations = iterations + stepping.astype(jnp.int32)
-        return x, delta, det, jnp.asarray(True), norm, iterations
+        return x, delta, sign, jnp.asarray(True), norm, iterations
 
     zero = jnp.zeros_like(norm)
     carry = (x, jnp.zeros_like(x), zero, jnp.asarray(False), norm, jnp.zeros_like(fixed))
-    x, _, det, _, norm, iterations = jax.lax.while_loop(cond, body, carry)
+    x, _, sign, _, norm, iterations = jax.lax.while_loop(cond, body, carry)
     # `DEP.on_branch`'s rule on the 6×6 Jacobian, the generic path's: `det J > 0`, of
     # the sign of `det A > 0`.
     w = tuple(x[..., i] for i in range(3))
-    off = ~(det > 0) | chart.beyond_branch(dot(w, w), math.pi)
+    off = ~(sign > 0) | chart.beyond_branch(dot(w, w), math.pi)
     off_branch = jnp.where(restart, off, off_branch)
     return tuple(x[..., i] for i in range(6)), norm, fixed + iterations, off_branch
 
