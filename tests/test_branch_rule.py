@@ -110,3 +110,18 @@ def _chart_map(integrator):
     if isinstance(integrator, lievi.MoserVeselov):
         return lievi.SO3.cay
     return lievi.SO3.exp if integrator.chart == "exp" else lievi.SO3.cay
+
+
+def test_branch_rule_reads_the_sign_of_a_tiny_determinant():
+    """The rule's determinant when it is tiny: `det J` of SO(4)'s 6×6 Jacobian with
+    moments 1e-3…4e-3 and h = 1e5 is about 1.3e-44, below float32's normal range, and
+    `jnp.linalg.det` returns 0 for it in float32. A small step (h|ξ| ≈ 0.01) is on the
+    branch; read from `det J` itself, float32 reported it `step_too_large`."""
+    dtype = jnp.float32
+    n = 4
+    body = lievi.GeneralizedRigidBody(1e-3 * jnp.arange(1.0, n + 1, dtype=dtype))
+    m0 = 1e-10 * jnp.linspace(-1, 1, n * (n - 1) // 2, dtype=dtype)
+    integrator = lievi.DEP(chart="cayley")
+    sol = lievi.simulate(body, integrator, jnp.eye(n, dtype=dtype), m0, h=1e5, n_steps=3)
+    assert sol.result == lievi.RESULTS.successful
+    assert sol.m.dtype == dtype
