@@ -160,7 +160,7 @@ def _newton_tail(chart, max_steps, state, args):
     off_branch)` not yet on a root of the branch: each restarts from the explicit-Euler
     guess and takes up to `max_steps` Newton steps on the full 6×6 system, its residual
     and Jacobian those of the generic path (`_residual_and_jacobian`);
-    `args = (m, A, C, guess, tolerance, alive)`.
+    `args = (m, A, guess, tolerance, alive)`.
 
     Why not more reduced steps: eliminating `v` makes `ρ(ω)` far more nonlinear than the
     six-component residual when the translation per step is large (`v(ω)` carries
@@ -175,7 +175,7 @@ def _newton_tail(chart, max_steps, state, args):
     thousand, so its speed hardly counts, while its code is compiled into every run;
     written entry by entry it was about 40 % of the SE(3) step's compile time.
     """
-    m, A, C, guess, tolerance, alive = args
+    m, A, guess, tolerance, alive = args
     x, norm, fixed, off_branch = state
     restart = alive & (~(norm <= tolerance) | off_branch)
     x = jnp.stack([jnp.where(restart, x0, y) for x0, y in zip(guess, x)], -1)
@@ -211,8 +211,7 @@ def _newton_tail(chart, max_steps, state, args):
     x, _, sign, _, norm, iterations = jax.lax.while_loop(cond, body, carry)
     # `DEP.on_branch`'s rule on the 6×6 Jacobian, the generic path's: `det J > 0`, of
     # the sign of `det A > 0`.
-    w = tuple(x[..., i] for i in range(3))
-    off = ~(sign > 0) | chart.beyond_branch(dot(w, w), math.pi)
+    off = ~(sign > 0) | chart.beyond_branch(jnp.sum(x[..., :3] ** 2, -1), math.pi)
     off_branch = jnp.where(restart, off, off_branch)
     return tuple(x[..., i] for i in range(6)), norm, fixed + iterations, off_branch
 
@@ -238,7 +237,7 @@ def solve_increment(chart, m, A, C, guess, tolerance, fixed: int, max_steps: int
             alive & (~(norm <= tolerance) | off_branch),
             functools.partial(_newton_tail, chart, max_steps),
             (x, norm, iterations, off_branch),
-            (m, A, C, guess, tolerance, alive),
+            (m, A, guess, tolerance, alive),
         )
     return x, iterations, norm, norm <= tolerance, off_branch
 
