@@ -8,8 +8,11 @@ directory; each round times both trees, alternately, each in a fresh process (be
 the final state only, and keeping every 10th step of `(g, m)`.
 
 With `--se3`, the SE(3) DEP kernels of a free rigid body shared by the batch: DEP (exp,
-Cayley) and its order-4 composition, at batches 4096 and 65536 as `--fast-paths`, and one
-body through `simulate` (1000 steps, every step saved).
+Cayley) and its order-4 composition, at batches 4096 and 65536 as `--fast-paths` (or
+`--se3-batches`), and one body through `simulate` (1000 steps, every step saved).
+
+`--before-tree DIR` takes the earlier `lievi/` from a directory instead of git (a machine
+with a copy of the tree but not its history); `--platform cuda` times on an NVIDIA GPU.
 
 With `--fast-paths`, every fast path of one system shared by the batch instead: the free
 rigid body and the heavy top (the problems of `work_precision.py`), each with the
@@ -19,6 +22,7 @@ attitude; each tree times all of them in one process per round (best of `--repea
 
     python benchmarks/before_after.py --before REV [--batch 100000] [--steps 100]
                                       [--rounds 3] [--fast-paths | --se3] [--out NAME]
+                                      [--before-tree DIR] [--platform cpu|cuda]
 
 Writes `benchmarks/results/<out>.json` (default `before_after`).
 """
@@ -73,6 +77,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp, numpy as np
 import lievi
 repeats, steps = int(sys.argv[1]), 50
+batches = [int(b) for b in sys.argv[2:]] or [4096, 65536]
 def best_of(run, *args):
     jax.block_until_ready(run(*args))
     best = np.inf
@@ -113,7 +118,7 @@ for problem, (system, m_mean) in problems.items():
     for name, method in methods.items():
         if name == "Moser-Veselov" and system.potential is not None:
             continue
-        for batch in (4096, 65536):
+        for batch in batches:
             rate = batch_rate(system, method, jnp.eye(3), m_mean, batch)
             out[f"{problem}, {name}, batch {batch}"] = rate
 print(json.dumps({"body_steps_per_second": out, "lievi": lievi.__file__}))
@@ -130,7 +135,7 @@ methods = {"DEP exp": lievi.DEP(), "DEP cayley": lievi.DEP(chart="cayley"),
            "DEP exp o 4": lievi.Composition(lievi.DEP(), order=4)}
 out = {}
 for name, method in methods.items():
-    for batch in (4096, 65536):
+    for batch in batches:
         out[f"SE(3), {name}, batch {batch}"] = batch_rate(system, method, jnp.eye(4), m_mean, batch)
     # One body, eagerly (`simulate`'s blocks), every step saved: 1000 steps.
     def one():
@@ -142,23 +147,27 @@ print(json.dumps({"body_steps_per_second": out, "lievi": lievi.__file__}))
 )
 
 
-def fast_paths(path, repeats, timer=FAST_PATHS_TIMER) -> dict[str, float]:
+def fast_paths(
+    path, repeats, timer=FAST_PATHS_TIMER, batches=(), platform="cpu"
+) -> dict[str, float]:
     """Body-steps/s of every case of `timer` (default `FAST_PATHS_TIMER`) in the tree at
-    `path`."""
-    return _run_timer(path, timer, [str(repeats)])["body_steps_per_second"]
+    `path`, on `platform`."""
+    argv = [str(repeats), *(str(b) for b in batches)]
+    return _run_timer(path, timer, argv, platform)["body_steps_per_second"]
 
 
-def _run_timer(path, timer, argv) -> dict:
+def _run_timer(path, timer, argv, platform="cpu") -> dict:
     """The last line of `timer`'s output (JSON) when run with the `lievi` of `path`."""
-    env = dict(os.environ, PYTHONPATH=str(path), JAX_PLATFORMS="cpu")
+    env = dict(os.environ, PYTHONPATH=str(path), JAX_PLATFORMS=platform)
     done = subprocess.run(
         [sys.executable, "-c", timer, *argv],
         env=env,
         cwd=path,  # `python -c` puts the working directory first on the path
         capture_output=True,
         text=True,
-        check=True,
     )
+    if done.returncode:
+        sys.exit(f"the timer failed in {path}:\n{done.stderr}")
     record = json.loads(done.stdout.strip().splitlines()[-1])
     assert record["lievi"].startswith(str(path)), record  # the tree meant, not another
     return record
@@ -181,15 +190,19 @@ def main() -> None:
     parser.add_argument("--fast-paths", action="store_true", help="every shared-system fast path")
     parser.add_argument("--se3", action="store_true", help="the SE(3) DEP kernels instead")
     parser.add_argument("--out", default="before_after")
+    parser.add_argument("--before-tree", type=pathlib.Path, help="a directory with it, not git")
+    parser.add_argument("--se3-batches", type=int, nargs="+", default=(), help="with --se3")
+    parser.add_argument("--platform", default="cpu", choices=("cpu", "cuda"))
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as before:
-        archive = subprocess.run(
-            ["git", "-C", str(ROOT), "archive", args.before, "lievi"],
-            capture_output=True,
-            check=True,
-        ).stdout
-        subprocess.run(["tar", "-x", "-C", before], input=archive, check=True)
-        trees = {"before": pathlib.Path(before), "after": ROOT}
+        if args.before_tree is None:
+            archive = subprocess.run(
+                ["git", "-C", str(ROOT), "archive", args.before, "lievi"],
+                capture_output=True,
+                check=True,
+            ).stdout
+            subprocess.run(["tar", "-x", "-C", before], input=archive, check=True)
+        trees = {"before": (args.before_tree or pathlib.Path(before)).resolve(), "after": ROOT}
         if args.fast_paths or args.se3:
             return compare_fast_paths(trees, args, SE3_TIMER if args.se3 else FAST_PATHS_TIMER)
         cases = {"final state only": args.steps, "every 10th step of (g, m)": 10}
@@ -242,11 +255,14 @@ def _revisions_and_load(before: str) -> dict[str, str]:
 
 def compare_fast_paths(trees, args, timer) -> None:
     """`--fast-paths` (or `--se3`): both trees, alternately, `--rounds` times; the best of
-    each case."""
+    each case. Each tree's rates are printed as they come, so that a run stopped by a time
+    limit still shows what it measured."""
     best = {tree: {} for tree in trees}
     for _ in range(args.rounds):
         for tree, path in trees.items():
-            for case, rate in fast_paths(path, args.repeats, timer).items():
+            rates = fast_paths(path, args.repeats, timer, args.se3_batches, args.platform)
+            print(f"{tree}: " + json.dumps(rates), flush=True)
+            for case, rate in rates.items():
                 best[tree][case] = max(best[tree].get(case, 0.0), rate)
     ratios = {case: best["after"][case] / best["before"][case] for case in best["after"]}
     for case, ratio in ratios.items():
@@ -254,6 +270,7 @@ def compare_fast_paths(trees, args, timer) -> None:
     report = {
         **_revisions_and_load(args.before),
         "rounds": args.rounds,
+        "platform": args.platform,
         "body_steps_per_second": best,
         "after_over_before": ratios,
     }

@@ -32,9 +32,10 @@ figures move with it, the ratios (same run) less.
                                                  [--neighbor-bodies 10000]
                                                  [--gradient-bodies 64]
                                                  [--gradient-only] [--neighbors-only]
+                                                 [--methods "DEP Cayley" splitting]
 
 `--gradient-only` runs the gradient rows alone; `--neighbors-only` the baseline and the
-neighbour-list rows alone. The gradient and the forward run are timed
+neighbour-list rows alone; `--methods` limits the methods. The gradient and the forward run are timed
 in interleaved rounds (7), each the best of its rounds, in wall-clock and in process CPU
 time (less sensitive to other jobs on the machine).
 
@@ -170,7 +171,8 @@ def neighbor_rows(args, rng, baseline):
     )
     listed = eqx.tree_at(lambda s: s.potential, system, system.potential.with_neighbors(pairs))
     rows = []
-    for name, method in METHODS.items():
+    for name in args.methods:
+        method = METHODS[name]
         label = f"one system of {args.neighbor_bodies} LJ bodies, neighbour list"
 
         def run(method=method):
@@ -283,7 +285,9 @@ def main():
         default=None,
         help="`simulate_with_neighbor_list(rebuild_after=)`: keep lists across segments",
     )
+    parser.add_argument("--methods", nargs="+", choices=tuple(METHODS), default=tuple(METHODS))
     args = parser.parse_args()
+    methods = {name: METHODS[name] for name in args.methods}
     rng = np.random.default_rng(0)
     load = os.getloadavg()[0]
     print(
@@ -321,7 +325,7 @@ def main():
         print(f"{'DEP Cayley':11s} {rows[-1]['case']:52s} {baseline:10.3g} body-steps/s")
         rows += neighbor_rows(args, rng, baseline)
     if not (args.gradient_only or args.neighbors_only):
-        for name, method in METHODS.items():
+        for name, method in methods.items():
             cases = (
                 (
                     f"{args.systems} two-body systems (simulate_batch)",
@@ -357,7 +361,7 @@ def main():
     one = jax.tree.map(lambda x: x[0], system)
     n_steps = 10 * args.steps
     cloud, g_cloud, m_cloud = lennard_jones_cloud(args.gradient_bodies, rng)
-    for name, method in METHODS.items() if not args.neighbors_only else ():
+    for name, method in methods.items() if not args.neighbors_only else ():
 
         def binary_final(G, method=method):
             coupled = eqx.tree_at(lambda s: s.potential.G, one, G)
