@@ -19,7 +19,9 @@ Rows, all in one run, float64, `--steps` steps of size 0.01, final state only:
   timed run. Timed alone too: one build from scratch (jax-md's `allocate`), one rebuild
   (its compiled `update`), and the same steps on one fixed list ("steps only");
 - the cost of a gradient: `jax.grad` with respect to the gravitational constant `G` of a
-  function of the final state of one binary (10·`--steps` steps), and with respect to the
+  function of the final state of one binary (10·`--steps` steps), of
+  `--gradient-systems` (default 256) binaries sharing one `G` (`simulate_batch`,
+  `--steps` steps), and with respect to the
   Lennard-Jones `ε` of one system of `--gradient-bodies` (default 64) single-site bodies
   (all pairs, `--steps` steps), each against the same run forward.
 
@@ -31,6 +33,7 @@ figures move with it, the ratios (same run) less.
                                                  [--steps 100] [--out rigid_bodies_throughput]
                                                  [--neighbor-bodies 10000]
                                                  [--gradient-bodies 64]
+                                                 [--gradient-systems 256]
                                                  [--gradient-only] [--neighbors-only]
                                                  [--methods "DEP Cayley" splitting]
 
@@ -277,6 +280,7 @@ def main():
     parser.add_argument("--neighbor-bodies", type=int, default=10_000)
     parser.add_argument("--gradient-only", action="store_true")
     parser.add_argument("--gradient-bodies", type=int, default=64)
+    parser.add_argument("--gradient-systems", type=int, default=256)
     parser.add_argument("--neighbors-only", action="store_true")
     parser.add_argument("--rebuild-every", type=int, default=10, help="steps per segment")
     parser.add_argument(
@@ -361,6 +365,7 @@ def main():
     one = jax.tree.map(lambda x: x[0], system)
     n_steps = 10 * args.steps
     cloud, g_cloud, m_cloud = lennard_jones_cloud(args.gradient_bodies, rng)
+    batch, g_batch, m_batch = binaries(args.gradient_systems, rng)
     for name, method in methods.items() if not args.neighbors_only else ():
 
         def binary_final(G, method=method):
@@ -375,8 +380,28 @@ def main():
             )
             return jnp.sum(sol.m[-1] ** 2) + jnp.sum(sol.g[-1, :, :3, 3] ** 2)
 
+        def binaries_final(G, method=method):
+            # One `G` for the whole ensemble (a parameter fitted from many observed systems).
+            shared = jnp.full(batch.potential.G.shape, G)
+            coupled = eqx.tree_at(lambda s: s.potential.G, batch, shared)
+            sol = lievi.simulate_batch(
+                coupled,
+                method,
+                g_batch,
+                m_batch,
+                h=H,
+                n_steps=args.steps,
+                save_every=args.steps,
+            )
+            return jnp.sum(sol.m[:, -1] ** 2) + jnp.sum(sol.g[:, -1, :, :3, 3] ** 2)
+
         cases = (
             (f"gradient d/dG, one binary, {n_steps} steps", binary_final),
+            (
+                f"gradient d/dG, {args.gradient_systems} binaries (simulate_batch), "
+                f"{args.steps} steps",
+                binaries_final,
+            ),
             (
                 f"gradient d/dε, {args.gradient_bodies} Lennard-Jones bodies (all pairs), "
                 f"{args.steps} steps",
