@@ -8,8 +8,9 @@ directory; each round times both trees, alternately, each in a fresh process (be
 the final state only, and keeping every 10th step of `(g, m)`.
 
 With `--se3`, the SE(3) DEP kernels of a free rigid body shared by the batch: DEP (exp,
-Cayley) and its order-4 composition, at batches 4096 and 65536 as `--fast-paths` (or
-`--se3-batches`), and one body through `simulate` (1000 steps, every step saved).
+Cayley) and its order-4 composition, at batches 4096 and 65536 as `--fast-paths`, and one
+body through `simulate` (1000 steps, every step saved). `--batches` sets other batch sizes
+for both.
 
 `--before-tree DIR` takes the earlier `lievi/` from a directory instead of git (a machine
 with a copy of the tree but not its history); `--platform cuda` times on an NVIDIA GPU.
@@ -22,7 +23,8 @@ attitude; each tree times all of them in one process per round (best of `--repea
 
     python benchmarks/before_after.py --before REV [--batch 100000] [--steps 100]
                                       [--rounds 3] [--fast-paths | --se3] [--out NAME]
-                                      [--before-tree DIR] [--platform cpu|cuda]
+                                      [--batches B ...] [--before-tree DIR]
+                                      [--platform cpu|cuda]
 
 Writes `benchmarks/results/<out>.json` (default `before_after`).
 """
@@ -190,8 +192,12 @@ def main() -> None:
     parser.add_argument("--fast-paths", action="store_true", help="every shared-system fast path")
     parser.add_argument("--se3", action="store_true", help="the SE(3) DEP kernels instead")
     parser.add_argument("--out", default="before_after")
-    parser.add_argument("--before-tree", type=pathlib.Path, help="a directory with it, not git")
-    parser.add_argument("--se3-batches", type=int, nargs="+", default=(), help="with --se3")
+    parser.add_argument(
+        "--before-tree",
+        type=pathlib.Path,
+        help="a directory holding the earlier lievi/ (instead of git)",
+    )
+    parser.add_argument("--batches", type=int, nargs="+", default=(), help="of --se3, --fast-paths")
     parser.add_argument("--platform", default="cpu", choices=("cpu", "cuda"))
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as before:
@@ -260,7 +266,7 @@ def compare_fast_paths(trees, args, timer) -> None:
     best = {tree: {} for tree in trees}
     for _ in range(args.rounds):
         for tree, path in trees.items():
-            rates = fast_paths(path, args.repeats, timer, args.se3_batches, args.platform)
+            rates = fast_paths(path, args.repeats, timer, args.batches, args.platform)
             print(f"{tree}: " + json.dumps(rates), flush=True)
             for case, rate in rates.items():
                 best[tree][case] = max(best[tree].get(case, 0.0), rate)

@@ -38,9 +38,9 @@ figures move with it, the ratios (same run) less.
                                                  [--methods "DEP Cayley" splitting]
 
 `--gradient-only` runs the gradient rows alone; `--neighbors-only` the baseline and the
-neighbour-list rows alone; `--methods` limits the methods. The gradient and the forward run are timed
-in interleaved rounds (7), each the best of its rounds, in wall-clock and in process CPU
-time (less sensitive to other jobs on the machine).
+neighbour-list rows alone; `--methods` limits the methods. The gradient and the forward
+run are timed in interleaved rounds (7), each the best of its rounds, in wall-clock and in
+process CPU time (less sensitive to other jobs on the machine).
 
 Writes `<outdir>/<out>.json` (`--outdir`, default `benchmarks/results`).
 """
