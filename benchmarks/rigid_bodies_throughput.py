@@ -146,7 +146,7 @@ def throughput_row(name, label, rate, seconds, compile_s, baseline):
     }
 
 
-def neighbor_rows(args, rng, baseline):
+def neighbor_rows(args, methods, rng, baseline):
     """The neighbour-list row of each method: body-steps per second of the whole run
     (none with `--neighbor-bodies 0`)."""
     if args.neighbor_bodies < 1:
@@ -174,8 +174,7 @@ def neighbor_rows(args, rng, baseline):
     )
     listed = eqx.tree_at(lambda s: s.potential, system, system.potential.with_neighbors(pairs))
     rows = []
-    for name in args.methods:
-        method = METHODS[name]
+    for name, method in methods.items():
         label = f"one system of {args.neighbor_bodies} LJ bodies, neighbour list"
 
         def run(method=method):
@@ -327,7 +326,7 @@ def main():
             }
         )
         print(f"{'DEP Cayley':11s} {rows[-1]['case']:52s} {baseline:10.3g} body-steps/s")
-        rows += neighbor_rows(args, rng, baseline)
+        rows += neighbor_rows(args, methods, rng, baseline)
     if not (args.gradient_only or args.neighbors_only):
         for name, method in methods.items():
             cases = (
