@@ -114,6 +114,54 @@ def test_full_inertia_tensor_equals_rotated_diagonal_run():
     np.testing.assert_allclose(b.m @ Q, a.m, rtol=0, atol=ROUNDOFF)
 
 
+def test_principal_planes_of_a_full_tensor():
+    """`RigidBody.principal_planes`: the moments in ascending order and a proper rotation
+    `Q` with `Q diag(moments) Qᵀ = I`; principal moments are returned as given."""
+    moments = jnp.array([2.0 / 3.0, 1.0, 2.0])
+    Q0 = random_rotation(np.random.default_rng(1), 3)
+    full = lievi.RigidBody(Q0 @ jnp.diag(moments) @ Q0.T)
+    found, Q = full.principal_planes()
+    np.testing.assert_allclose(found, moments, rtol=1e-14)
+    np.testing.assert_allclose(Q @ jnp.diag(found) @ Q.T, full.inertia, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(jnp.linalg.det(Q), 1.0, rtol=1e-14)
+    found, Q = lievi.RigidBody(moments).principal_planes()
+    assert Q is None
+    np.testing.assert_array_equal(found, moments)
+
+
+def test_a_system_is_a_rigid_body_by_its_methods():
+    """The rigid-body methods ask the system for its `Λ` and plane moments, not its class:
+    a new system that has them runs (here the generalized body on SO(3) re-declared), and
+    one that has none is rejected."""
+
+    class Spinner(lievi.LieLagrangian):
+        Lambda: jax.Array
+        moments: jax.Array
+
+        def __init__(self, Lambda, moments, l):
+            super().__init__(lievi.SOn(3), l)
+            self.Lambda, self.moments = Lambda, moments
+
+        def lambda_matrix(self):
+            return jnp.diag(self.Lambda)
+
+        def principal_planes(self):
+            return self.moments, None
+
+    reference = lievi.GeneralizedRigidBody(jnp.array([0.5, 0.8, 1.1]))
+    spinner = Spinner(reference.Lambda, reference.plane_inertia, reference.lagrangian)
+    g0, m0 = jnp.eye(3), jnp.array([0.3, -0.2, 0.5])
+    generic = lievi.LieLagrangian(lievi.SOn(3), reference.lagrangian)
+    for method in (SPLIT, lievi.MoserVeselov()):
+        with pytest.raises(ValueError, match="free rigid body only"):
+            lievi.simulate(generic, method, g0, m0, h=H, n_steps=2)
+    for method in (SPLIT, lievi.MoserVeselov()):
+        a = lievi.simulate(reference, method, g0, m0, h=H, n_steps=20)
+        b = lievi.simulate(spinner, method, g0, m0, h=H, n_steps=20)
+        np.testing.assert_allclose(b.m, a.m, rtol=0, atol=ROUNDOFF)
+        np.testing.assert_allclose(b.g, a.g, rtol=0, atol=ROUNDOFF)
+
+
 def test_bad_input():
     body, g0, m0 = hlw_problem()
     with pytest.raises(ValueError, match="free rigid body only"):

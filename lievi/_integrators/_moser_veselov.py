@@ -51,15 +51,14 @@ from .._kernels._so3_equations import MoserVeselovEquation
 from .._newton import check_newton_options, newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
-from .._systems._generalized_rigid_body import GeneralizedRigidBody
-from .._systems._rigid_body import RigidBody
 from ._base import AbstractVariationalIntegrator, StepInfo
 from ._drift import rotation_and_drift
 
 
 def check_rigid_body(method: str, system: AbstractLieSystem) -> None:
-    """Raise `ValueError` unless `system` is a rigid body the method supports."""
-    if not isinstance(system, (RigidBody, GeneralizedRigidBody)):
+    """Raise `ValueError` unless `system` is a rigid body the method supports: one with
+    an inertia operator `J(ξ̂) = Λξ̂ + ξ̂Λ` (`AbstractLieSystem.lambda_matrix`)."""
+    if system.lambda_matrix() is None:
         raise ValueError(
             f"{method} integrates the free rigid body only: pass a `lievi.RigidBody` or a "
             f"`lievi.GeneralizedRigidBody`, got {type(system).__name__}. For any other "
@@ -69,39 +68,21 @@ def check_rigid_body(method: str, system: AbstractLieSystem) -> None:
         raise ValueError(f"{method}: the rigid body must be left-invariant (side='left').")
 
 
-def moser_veselov_Lambda(system: RigidBody | GeneralizedRigidBody) -> Float[Array, "n n"]:
-    """The symmetric matrix `Λ` with `J(ξ̂) = Λξ̂ + ξ̂Λ` the system's inertia operator.
-
-    `diag(Λ)` for `GeneralizedRigidBody`; `½ tr(I)·Id − I` for `RigidBody` (any symmetric
-    inertia tensor `I`; for principal moments `Λᵢ = ½(I₁ + I₂ + I₃) − Iᵢ`).
-    """
-    if isinstance(system, GeneralizedRigidBody):
-        return jnp.diag(jnp.asarray(system.Lambda))
-    inertia = system.inertia_tensor
-    return jnp.trace(inertia) / 2 * jnp.eye(3, dtype=inertia.dtype) - inertia
-
-
-def check_pair_sums(method: str, system) -> None:
-    """Eagerly reject `Λᵢ + Λⱼ ≤ 0` (a system built around its own checks, e.g. by tree_at)."""
-    if isinstance(system, GeneralizedRigidBody):
-        if is_concrete(system.Lambda):
-            # Evaluated now even inside a trace that closed over a concrete system.
-            with jax.ensure_compile_time_eval():
-                pair_sums = np.asarray(system.plane_inertia)
-            if np.any(pair_sums <= 0):
-                raise ValueError(
-                    f"{method}: `Lambda` must satisfy Λᵢ + Λⱼ > 0 for all i ≠ j; smallest "
-                    f"pair sum is {pair_sums.min():.3g}."
-                )
-    elif is_concrete(system.inertia):
-        with jax.ensure_compile_time_eval():
-            inertia_tensor = np.asarray(system.inertia_tensor, float)
-        eigenvalues = np.linalg.eigvalsh(inertia_tensor)
-        if np.any(eigenvalues <= 0):
-            raise ValueError(
-                f"{method}: the inertia must be positive definite (Λᵢ + Λⱼ > 0); got "
-                f"eigenvalues {eigenvalues}."
-            )
+def check_pair_sums(method: str, system: AbstractLieSystem) -> None:
+    """Eagerly reject `Λᵢ + Λⱼ ≤ 0` for some plane (`principal_planes`), where the system's
+    parameters are concrete: a system built around its own checks (e.g. by `tree_at`)."""
+    with jax.ensure_compile_time_eval():
+        # Evaluated now even inside a trace that closed over a concrete system.
+        moments = system.principal_planes()[0]
+    if not is_concrete(moments):
+        return
+    moments = np.asarray(moments, float)
+    if np.any(moments <= 0):
+        raise ValueError(
+            f"{method}: the inertia operator must be positive definite, Λᵢ + Λⱼ > 0 for "
+            f"every plane; got plane moments {moments} (for a `RigidBody`, the principal "
+            "moments)."
+        )
 
 
 class MoserVeselov(AbstractVariationalIntegrator):
@@ -148,7 +129,7 @@ class MoserVeselov(AbstractVariationalIntegrator):
     def kinetic_discrete_lagrangian(self, system: AbstractLieSystem, g0, g1, h: Scalar) -> Scalar:
         """`tr((I − g₀ᵀg₁)Λ)/h`, Moser–Veselov's `tr(g_k Λ g_{k+1}ᵀ)` up to scale and shift."""
         check_rigid_body("MoserVeselov", system)
-        Lambda = moser_veselov_Lambda(system)
+        Lambda = system.lambda_matrix()
         increment = system.group.inverse(g0) @ g1
         eye = jnp.eye(increment.shape[-1], dtype=increment.dtype)
         return jnp.trace((eye - increment) @ Lambda) / h

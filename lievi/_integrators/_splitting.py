@@ -45,23 +45,9 @@ from .._groups._son import planes
 from .._kernels._explicit import SplittingKernel
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
-from .._systems._generalized_rigid_body import GeneralizedRigidBody
 from ._base import AbstractKickIntegrator, StepInfo
 from ._drift import rotation_and_drift
 from ._moser_veselov import check_pair_sums, check_rigid_body
-
-
-def _principal_frame(system):
-    """`(moments per plane, Q)`: `Q` rotates into the principal frame (None: already there)."""
-    if isinstance(system, GeneralizedRigidBody):
-        return system.plane_inertia, None
-    inertia = jnp.asarray(system.inertia)
-    if inertia.ndim == 1:
-        return inertia, None
-    moments, Q = jnp.linalg.eigh(inertia)
-    # A proper rotation: flip the last axis if eigh returned a reflection.
-    Q = Q.at[:, -1].multiply(jnp.sign(jnp.linalg.det(Q)))
-    return moments, Q
 
 
 def _sub_flow(carry, x):
@@ -123,7 +109,7 @@ class LiePoissonSplitting(AbstractKickIntegrator):
         fast = self.kernel_step(system, g, m, h)
         if fast is not None:  # closed forms on components (the rigid body, principal moments)
             return fast
-        moments, Q = _principal_frame(system)
+        moments, Q = system.principal_planes()
         if Q is not None:
             g, m = g @ Q, Q.T @ m
         i, j, sign = planes(n)

@@ -149,6 +149,20 @@ class AbstractLieSystem(eqx.Module):
             return m
         return m + dt * self.force(g)
 
+    def lambda_matrix(self):
+        """The symmetric `n × n` matrix `Λ` of a free rigid body on SO(n) whose inertia
+        operator is `J(ξ̂) = Λξ̂ + ξ̂Λ` (paper §5), or `None` (the default): the methods of
+        the rigid body alone (`lievi.MoserVeselov`, `lievi.LiePoissonSplitting`) run the
+        systems that have one and reject the others."""
+        return None
+
+    def principal_planes(self):
+        """`(moments, Q)` of a system with a `lambda_matrix`: the moment `Λᵢ + Λⱼ` of each
+        coordinate plane of `so(n)` in the principal frame of `Λ` (in the group's coordinate
+        order) and the rotation `Q` into that frame (`None`: the coordinates are principal
+        already). `None` where `lambda_matrix` is."""
+        return None
+
     def kinetic_tensor(self):
         """The tensor `M` of a quadratic reduced Lagrangian `l(ξ) = ½ ξᵀMξ` in the algebra
         basis — a vector where `M` is diagonal (a rigid body's principal moments) — or

@@ -59,6 +59,14 @@ class GeneralizedRigidBody(AbstractLieSystem):
         Lambda = jnp.asarray(self.Lambda)
         return Lambda[i] + Lambda[j]
 
+    def lambda_matrix(self) -> Float[Array, "n n"]:
+        """`diag(Λ)`."""
+        return jnp.diag(jnp.asarray(self.Lambda))
+
+    def principal_planes(self):
+        """`(Λᵢ + Λⱼ per plane, None)`: `Λ` is diagonal, the coordinates principal."""
+        return self.plane_inertia, None
+
     def lagrangian(self, xi: Float[Array, " d"]) -> Scalar:
         return jnp.dot(xi, self.plane_inertia * xi) / 2
 

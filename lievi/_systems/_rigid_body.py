@@ -63,6 +63,22 @@ class RigidBody(AbstractLieSystem):
         inertia = jnp.asarray(self.inertia)
         return jnp.diag(inertia) if inertia.ndim == 1 else inertia
 
+    def lambda_matrix(self) -> Float[Array, "3 3"]:
+        """`Λ = ½ tr(I)·1 − I` (principal moments: `Λᵢ = ½(I₁ + I₂ + I₃) − Iᵢ`, so that
+        `Λⱼ + Λₖ = Iᵢ`): `J(ξ̂) = Λξ̂ + ξ̂Λ` is `hat(I ξ)` for any symmetric `I`."""
+        inertia = self.inertia_tensor
+        return jnp.trace(inertia) / 2 * jnp.eye(3, dtype=inertia.dtype) - inertia
+
+    def principal_planes(self):
+        """The principal moments and the rotation into their frame: `(I, None)` for
+        principal moments, the eigendecomposition of a full tensor (a proper rotation)."""
+        inertia = jnp.asarray(self.inertia)
+        if inertia.ndim == 1:
+            return inertia, None
+        moments, Q = jnp.linalg.eigh(inertia)
+        # A proper rotation: flip the last axis if eigh returned a reflection.
+        return moments, Q.at[:, -1].multiply(jnp.sign(jnp.linalg.det(Q)))
+
     def kinetic_tensor(self) -> Float[Array, 3] | Float[Array, "3 3"]:
         # Principal moments `(3,)` or the full tensor, as given.
         return self.inertia
