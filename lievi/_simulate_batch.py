@@ -29,7 +29,6 @@ from ._checks import (
     drifts_off_group,
     input_valid,
     is_concrete,
-    membership_tolerance,
     state_dtype,
 )
 from ._forcing import as_forcing
@@ -292,18 +291,9 @@ def simulate_batch(
                 f"{batch}, got leading sizes {sorted(sizes)}; build it with "
                 "`jax.vmap(lievi.RigidBody)(inertias)`."
             )
-    if is_concrete(g0):
-        # The group's own test (`check_element`'s), per body: on SE(3) a pose is not an
-        # orthogonal matrix.
-        with jax.ensure_compile_time_eval():
-            defect = np.asarray(system.group.membership_defect(jnp.asarray(g0, float)))
-            defect = defect.reshape(defect.shape[0], -1).max(axis=1)  # the worst of each state
-        worst, bound = int(np.argmax(defect)), membership_tolerance(g0.dtype)
-        if defect[worst] > bound:
-            raise ValueError(
-                f"`g0[{worst}]` is not in the group: membership defect {defect[worst]:.3g} > "
-                f"{bound:.2g} ({system.group.membership_hint()})."
-            )
+    # The group's own test (`check_element`'s), per state: on SE(3) a pose is not an
+    # orthogonal matrix.
+    system.check_elements("g0", g0)
 
     forcing = as_forcing(forcing)
     if forcing is not None:

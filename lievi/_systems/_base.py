@@ -18,6 +18,7 @@ import abc
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Scalar
 
 from .._checks import (
@@ -187,12 +188,28 @@ class AbstractLieSystem(eqx.Module):
             g = jnp.asarray(g)
             bound = membership_tolerance(g.dtype)
             with evaluated_now():
-                defect = float(_largest_defect(self.group, g))
+                defect = float(_defects(self.group, g[None])[0])
             if defect > bound:
                 raise ValueError(
                     f"`{name}` is not in the group: membership defect {defect:.3g} > "
                     f"{bound:.2g} ({self.group.membership_hint()})."
                 )
+
+    def check_elements(self, name: str, g) -> None:
+        """`check_element`'s membership test for a batch of states `g` `(B, *element_shape)`
+        where it is concrete: raise `ValueError` naming the worst state, `name[i]`."""
+        if not is_concrete(g):
+            return
+        g = jnp.asarray(g)
+        bound = membership_tolerance(g.dtype)
+        with evaluated_now():
+            defect = np.asarray(_defects(self.group, g))
+        worst = int(np.argmax(defect))
+        if defect[worst] > bound:
+            raise ValueError(
+                f"`{name}[{worst}]` is not in the group: membership defect "
+                f"{defect[worst]:.3g} > {bound:.2g} ({self.group.membership_hint()})."
+            )
 
     def parameter_conditions(self) -> Conditions:
         """The admissible parameters, as conditions (`lievi._checks.Conditions`): here
@@ -229,7 +246,9 @@ class AbstractLieSystem(eqx.Module):
 
 
 @eqx.filter_jit
-def _largest_defect(group: MatrixLieGroup, g):
-    """`check_element`'s eager membership defect as one compiled program, not one small
-    program per operation compiled at its first call."""
-    return jnp.max(group.membership_defect(jnp.asarray(g, float)))
+def _defects(group: MatrixLieGroup, g):
+    """The membership defect of each state of `g` `(B, *element_shape)`, the worst of its
+    elements (a state of several bodies has one per body), as one compiled program: the
+    eager checks' test, not one small program per operation compiled at its first call."""
+    defect = group.membership_defect(jnp.asarray(g, float))
+    return jnp.max(defect.reshape(defect.shape[0], -1), axis=1)
