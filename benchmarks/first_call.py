@@ -4,9 +4,13 @@ compilation cache off), by wall clock.
 
 Each case runs in its own subprocess: `import lievi` (not timed), then the system's
 constructor and one `simulate` call of 2000 steps saving the final state, with
-`jax.block_until_ready` (timed). The time is tracing, lowering and compiling the run's
-program and the small programs of its checks and output, plus the run itself (a few
-milliseconds here). `--tree PATH` times another checkout of lievi (e.g. a `git worktree`
+`jax.block_until_ready` (timed); the `simulate_batch` cases make one call for 64 bodies
+(momenta within 10 % of one value), 100 steps, every step saved. The time is tracing,
+lowering and compiling the run's program and the small programs of its checks and output,
+plus the run itself (a few milliseconds here). Also reported: how many programs XLA
+compiled in the timed part and their total compile time (JAX's monitoring event
+`/jax/core/compile/backend_compile_duration`), which move far less with the machine's
+load than the wall clock. `--tree PATH` times another checkout of lievi (e.g. a `git worktree`
 of an earlier commit), so that a change can be measured before and after, alternately.
 
     python benchmarks/first_call.py [--rounds 3] [--tree PATH] [--out first_call]
@@ -31,6 +35,11 @@ import time, jax
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_compilation_cache_dir", None)
 import jax.numpy as jnp, lievi
+compiles = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, seconds, **_: compiles.append(seconds)
+    if event == "/jax/core/compile/backend_compile_duration" else None
+)
 """
 
 CASES = {
@@ -38,33 +47,66 @@ CASES = {
         "lievi.RigidBody(jnp.array([1.0, 2.0, 3.0]))",
         "jnp.eye(3)",
         "jnp.array([0.3, -0.2, 0.5])",
+        "lievi.DEP()",
     ),
     "RigidBodySE3, DEP exp": (
         "lievi.RigidBodySE3(jnp.array([1.0, 2.0, 3.0]), 2.0)",
         "jnp.eye(4)",
         "jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])",
+        "lievi.DEP()",
+    ),
+    "RigidBody (SO(3)), DEP exp, simulate_batch": (
+        "lievi.RigidBody(jnp.array([1.0, 2.0, 3.0]))",
+        "jnp.eye(3)",
+        "jnp.array([0.3, -0.2, 0.5])",
+        "lievi.DEP()",
+    ),
+    "GeneralizedRigidBody SO(4), DEP cayley, simulate_batch": (
+        "lievi.GeneralizedRigidBody(jnp.array([1.0, 1.5, 2.0, 2.5]))",
+        "jnp.eye(4)",
+        "jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])",
+        'lievi.DEP(chart="cayley")',
     ),
 }
 
 TIMED = """
 start = time.perf_counter()
 body = {system}
-sol = lievi.simulate(body, lievi.DEP(), {g0}, {m0}, h=0.05, n_steps=2000, save_every=2000)
+sol = lievi.simulate(body, {method}, {g0}, {m0}, h=0.05, n_steps=2000, save_every=2000)
 jax.block_until_ready(sol.m)
-print(time.perf_counter() - start)
+print(time.perf_counter() - start, len(compiles), sum(compiles))
 """
 
 
-def first_call(case: str, tree: str | None) -> float:
-    system, g0, m0 = CASES[case]
+TIMED_BATCH = """
+momenta = {m0} * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(0), (64,) + {m0}.shape))
+start = time.perf_counter()
+body = {system}
+sol = lievi.simulate_batch(body, {method}, {g0}, momenta, h=0.05, n_steps=100, save_every=1)
+jax.block_until_ready(sol.m)
+print(time.perf_counter() - start, len(compiles), sum(compiles))
+"""
+
+
+def first_call(case: str, tree: str | None) -> dict:
+    system, g0, m0, method = CASES[case]
     env = dict(os.environ)
-    if tree is not None:
-        env["PYTHONPATH"] = tree
-    code = SETUP + TIMED.format(system=system, g0=g0, m0=m0)
+    # `python -c` puts its working directory first on the path, ahead of `PYTHONPATH`: run
+    # in the checkout timed (`--tree`, else this one), or its `lievi` is not the one imported.
+    root = str(pathlib.Path(tree).resolve()) if tree is not None else str(RESULTS.parent.parent)
+    env["PYTHONPATH"] = root
+    template = TIMED_BATCH if case.endswith("simulate_batch") else TIMED
+    code = SETUP + template.format(system=system, g0=g0, m0=m0, method=method)
     out = subprocess.run(
-        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+        [sys.executable, "-c", code + f"\nassert lievi.__file__.startswith({root!r})"],
+        env=env,
+        cwd=root,
+        capture_output=True,
+        text=True,
+        check=True,
     )
-    return float(out.stdout.strip().splitlines()[-1])
+    seconds, programs, compile_s = out.stdout.strip().splitlines()[-1].split()
+    return {"first_call_s": float(seconds), "programs": int(programs), "xla_s": float(compile_s)}
 
 
 def main():
@@ -75,11 +117,19 @@ def main():
     args = parser.parse_args()
     rows = []
     for case in CASES:
-        times = [first_call(case, args.tree) for _ in range(args.rounds)]
-        rows.append({"case": case, "first_call_s": times})
-        print(f"{case:32s} " + "  ".join(f"{t:6.2f}" for t in times) + " s")
+        runs = [first_call(case, args.tree) for _ in range(args.rounds)]
+        row = {key: [run[key] for run in runs] for key in runs[0]}
+        rows.append({"case": case, **row})
+        print(
+            f"{case:56s} "
+            + "  ".join(f"{t:6.2f}" for t in row["first_call_s"])
+            + f" s; {row['programs'][-1]} programs compiled, XLA "
+            + "  ".join(f"{t:5.2f}" for t in row["xla_s"])
+            + " s"
+        )
     document = {
-        "what": "system constructor + first simulate (2000 steps, final state), fresh process",
+        "what": "system constructor + first simulate (2000 steps, final state), or first "
+        "simulate_batch (64 bodies, 100 steps, every step saved), fresh process",
         "tree": args.tree or "this checkout",
         "machine": f"{platform.machine()}, {os.cpu_count()} CPUs",
         "load_average": os.getloadavg(),

@@ -428,6 +428,12 @@ def test_bad_state_shapes():
     with pytest.raises(ValueError, match="g0"):
         lievi.simulate(system, lievi.DEP(), g0.at[1, 0, 0].set(2.0), m0, h=0.01, n_steps=1)
 
+    # A batch of systems: the state with a body off the group is named.
+    g0s = jnp.stack([g0, g0, g0.at[1, 0, 0].set(2.0)])
+    m0s = jnp.stack([m0, m0, m0])
+    with pytest.raises(ValueError, match=r"`g0\[2\]` is not in the group"):
+        lievi.simulate_batch(system, lievi.DEP(), g0s, m0s, h=0.01, n_steps=1)
+
 
 # ---- batches of systems ----------------------------------------------------------------------
 

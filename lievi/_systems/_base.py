@@ -188,7 +188,7 @@ class AbstractLieSystem(eqx.Module):
             g = jnp.asarray(g)
             bound = membership_tolerance(g.dtype)
             with evaluated_now():
-                defect = float(_defects(self.group, g[None])[0])
+                defect = float(_largest_defect(self.group, g))
             if defect > bound:
                 raise ValueError(
                     f"`{name}` is not in the group: membership defect {defect:.3g} > "
@@ -246,9 +246,16 @@ class AbstractLieSystem(eqx.Module):
 
 
 @eqx.filter_jit
+def _largest_defect(group: MatrixLieGroup, g):
+    """`check_element`'s eager membership defect as one compiled program, not one small
+    program per operation compiled at its first call."""
+    return jnp.max(group.membership_defect(jnp.asarray(g, float)))
+
+
+@eqx.filter_jit
 def _defects(group: MatrixLieGroup, g):
     """The membership defect of each state of `g` `(B, *element_shape)`, the worst of its
     elements (a state of several bodies has one per body), as one compiled program: the
-    eager checks' test, not one small program per operation compiled at its first call."""
+    `check_elements`' test, as `_largest_defect` is `check_element`'s."""
     defect = group.membership_defect(jnp.asarray(g, float))
     return jnp.max(defect.reshape(defect.shape[0], -1), axis=1)
