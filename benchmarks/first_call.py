@@ -55,6 +55,12 @@ CASES = {
         "jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])",
         "lievi.DEP()",
     ),
+    "RigidBodySE3, DEP cayley": (
+        "lievi.RigidBodySE3(jnp.array([1.0, 2.0, 3.0]), 2.0)",
+        "jnp.eye(4)",
+        "jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])",
+        'lievi.DEP(chart="cayley")',
+    ),
     "RigidBody (SO(3)), DEP exp, simulate_batch": (
         "lievi.RigidBody(jnp.array([1.0, 2.0, 3.0]))",
         "jnp.eye(3)",
@@ -88,15 +94,19 @@ print(time.perf_counter() - start, len(compiles), sum(compiles))
 """
 
 
-def first_call(case: str, tree: str | None) -> dict:
-    system, g0, m0, method = CASES[case]
+def run_in_checkout(code: str, tree: str | None = None, xla_flags: str | None = None) -> str:
+    """Run `code` in a fresh `python -c` on the checkout `tree` (default: this one) and
+    return the last line it printed. `xla_flags`: the process's `XLA_FLAGS` (`""`: none;
+    `None`: as in this process)."""
     env = dict(os.environ)
+    if xla_flags is not None:
+        env.pop("XLA_FLAGS", None)
+        if xla_flags:
+            env["XLA_FLAGS"] = xla_flags
     # `python -c` puts its working directory first on the path, ahead of `PYTHONPATH`: run
     # in the checkout timed (`--tree`, else this one), or its `lievi` is not the one imported.
     root = str(pathlib.Path(tree).resolve()) if tree is not None else str(RESULTS.parent.parent)
     env["PYTHONPATH"] = root
-    template = TIMED_BATCH if case.endswith("simulate_batch") else TIMED
-    code = SETUP + template.format(system=system, g0=g0, m0=m0, method=method)
     out = subprocess.run(
         [sys.executable, "-c", code + f"\nassert lievi.__file__.startswith({root!r})"],
         env=env,
@@ -105,7 +115,15 @@ def first_call(case: str, tree: str | None) -> dict:
         text=True,
         check=True,
     )
-    seconds, programs, compile_s = out.stdout.strip().splitlines()[-1].split()
+    return out.stdout.strip().splitlines()[-1]
+
+
+def first_call(case: str, tree: str | None = None, xla_flags: str | None = None) -> dict:
+    """One fresh process's first call of `case`: wall clock, programs compiled, XLA time."""
+    system, g0, m0, method = CASES[case]
+    template = TIMED_BATCH if case.endswith("simulate_batch") else TIMED
+    code = SETUP + template.format(system=system, g0=g0, m0=m0, method=method)
+    seconds, programs, compile_s = run_in_checkout(code, tree, xla_flags).split()
     return {"first_call_s": float(seconds), "programs": int(programs), "xla_s": float(compile_s)}
 
 

@@ -5,7 +5,7 @@ so each flag set runs in fresh processes. For every flag set, alternately, round
 round:
 
 - **first call**: a fresh process builds the system and makes its first `lievi.simulate`
-  call (2000 steps, the final state saved), as `benchmarks/first_call.py` does: tracing,
+  call (2000 steps, the final state saved), by `benchmarks/first_call.py`'s own code: tracing,
   compiling the run's program and those of its checks, and the run. Free rigid body on
   SO(3) and free `RigidBodySE3`, `DEP()` (exp chart) and `DEP(chart="cayley")` on SE(3);
 - **run time** after compiling (best of 3): one body, 20000 steps; a batch
@@ -27,34 +27,16 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import pathlib
 import platform
-import subprocess
 import sys
 
-RESULTS = pathlib.Path(__file__).resolve().parent / "results"
-
-SETUP = """
-import json, time, jax
-jax.config.update("jax_enable_x64", True)
-jax.config.update("jax_compilation_cache_dir", None)
-import jax.numpy as jnp, numpy as np, lievi
-"""
-
-FIRST_CALL = (
-    SETUP
-    + """
-start = time.perf_counter()
-body = {system}
-sol = lievi.simulate(body, {method}, {g0}, {m0}, h=0.05, n_steps=2000, save_every=2000)
-jax.block_until_ready(sol.m)
-print(json.dumps(time.perf_counter() - start))
-"""
-)
+from first_call import CASES, RESULTS, SETUP, first_call, run_in_checkout
 
 RUN_TIME = (
     SETUP
     + """
+import json, numpy as np
+
 def best(run, rounds=3):
     jax.block_until_ready(run())
     times = []
@@ -80,34 +62,12 @@ print(json.dumps(rates))
 """
 )
 
-SO3 = ("lievi.RigidBody(jnp.array([1.0, 2.0, 3.0]))", "jnp.eye(3)", "jnp.array([0.3, -0.2, 0.5])")
-SE3 = (
-    "lievi.RigidBodySE3(jnp.array([1.0, 2.0, 3.0]), 2.0)",
-    "jnp.eye(4)",
-    "jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])",
-)
-CASES = {
-    "RigidBody (SO(3)), DEP exp": (*SO3, "lievi.DEP()", 65536, 100),
-    "RigidBodySE3, DEP exp": (*SE3, "lievi.DEP()", 4096, 200),
-    "RigidBodySE3, DEP cayley": (*SE3, 'lievi.DEP(chart="cayley")', 4096, 200),
+# `first_call.py`'s cases timed here, with the batch and steps of their throughput runs.
+BATCHES = {
+    "RigidBody (SO(3)), DEP exp": (65536, 100),
+    "RigidBodySE3, DEP exp": (4096, 200),
+    "RigidBodySE3, DEP cayley": (4096, 200),
 }
-
-
-def _python(code: str, flags: str):
-    env = dict(os.environ)
-    env.pop("XLA_FLAGS", None)
-    if flags:
-        env["XLA_FLAGS"] = flags
-    out = subprocess.run(
-        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
-    )
-    return json.loads(out.stdout.strip().splitlines()[-1])
-
-
-def first_call(case: str, flags: str) -> float:
-    system, g0, m0, method, _, _ = CASES[case]
-    code = FIRST_CALL.format(system=system, method=method, g0=g0, m0=m0)
-    return _python(code, flags)
 
 
 def run_rates(flags: str) -> dict:
@@ -115,11 +75,12 @@ def run_rates(flags: str) -> dict:
         "["
         + ", ".join(
             f"({name!r}, {system}, {method}, {g0}, {m0}, {batch}, {steps})"
-            for name, (system, g0, m0, method, batch, steps) in CASES.items()
+            for name, (batch, steps) in BATCHES.items()
+            for system, g0, m0, method in (CASES[name],)
         )
         + "]"
     )
-    return _python(RUN_TIME.format(cases=cases), flags)
+    return json.loads(run_in_checkout(RUN_TIME.format(cases=cases), xla_flags=flags))
 
 
 def main():
@@ -133,8 +94,9 @@ def main():
     for round_ in range(args.rounds):
         for flags in args.flags:
             row = rows[flags]
-            for case in CASES:
-                row["first_call_s"].setdefault(case, []).append(first_call(case, flags))
+            for case in BATCHES:
+                seconds = first_call(case, xla_flags=flags)["first_call_s"]
+                row["first_call_s"].setdefault(case, []).append(seconds)
             for name, rate in run_rates(flags).items():
                 row["body_steps_per_s"].setdefault(name, []).append(rate)
             label = flags or "(default)"
