@@ -164,6 +164,13 @@ class AbstractLieSystem(eqx.Module):
         already). `None` where `lambda_matrix` is."""
         return None
 
+    def principal_body(self):
+        """Where `principal_planes` has a rotation `Q`: the free system in that frame (the
+        state `(g Q, Qᵀ m)`), whose inertia operator is the principal moments — what a
+        method written for principal moments steps in place of this one. `None` by
+        default."""
+        return None
+
     def kinetic_tensor(self):
         """The tensor `M` of a quadratic reduced Lagrangian `l(ξ) = ½ ξᵀMξ` in the algebra
         basis — a vector where `M` is diagonal (a rigid body's principal moments) — or

@@ -79,6 +79,10 @@ class RigidBody(AbstractLieSystem):
         # A proper rotation: flip the last axis if eigh returned a reflection.
         return moments, Q.at[:, -1].multiply(jnp.sign(jnp.linalg.det(Q)))
 
+    def principal_body(self):
+        """`RigidBody` of the principal moments (`principal_planes`), free."""
+        return RigidBody(self.principal_planes()[0])
+
     def kinetic_tensor(self) -> Float[Array, 3] | Float[Array, "3 3"]:
         # Principal moments `(3,)` or the full tensor, as given.
         return self.inertia
