@@ -197,10 +197,7 @@ class AbstractLieSystem(eqx.Module):
             with evaluated_now():
                 defect = float(_largest_defect(self.group, g))
             if defect > bound:
-                raise ValueError(
-                    f"`{name}` is not in the group: membership defect {defect:.3g} > "
-                    f"{bound:.2g} ({self.group.membership_hint()})."
-                )
+                raise _off_group(self.group, name, defect, bound)
 
     def check_elements(self, name: str, g) -> None:
         """`check_element`'s membership test for a batch of states `g` `(B, *element_shape)`
@@ -213,10 +210,7 @@ class AbstractLieSystem(eqx.Module):
             defect = np.asarray(_defects(self.group, g))
         worst = int(np.argmax(defect))
         if defect[worst] > bound:
-            raise ValueError(
-                f"`{name}[{worst}]` is not in the group: membership defect "
-                f"{defect[worst]:.3g} > {bound:.2g} ({self.group.membership_hint()})."
-            )
+            raise _off_group(self.group, f"{name}[{worst}]", defect[worst], bound)
 
     def parameter_conditions(self) -> Conditions:
         """The admissible parameters, as conditions (`lievi._checks.Conditions`): here
@@ -257,6 +251,14 @@ def _largest_defect(group: MatrixLieGroup, g):
     """`check_element`'s eager membership defect as one compiled program, not one small
     program per operation compiled at its first call."""
     return jnp.max(group.membership_defect(jnp.asarray(g, float)))
+
+
+def _off_group(group: MatrixLieGroup, name: str, defect, bound) -> ValueError:
+    """The error of `check_element` and `check_elements` for the state `name`."""
+    return ValueError(
+        f"`{name}` is not in the group: membership defect {defect:.3g} > {bound:.2g} "
+        f"({group.membership_hint()})."
+    )
 
 
 @eqx.filter_jit
