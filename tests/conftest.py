@@ -244,6 +244,7 @@ EXTENDED = frozenset(
         "tests/test_son.py::test_hat_vee_and_basis[4]",  # 9 s
         "tests/test_batch.py::test_shared_system_and_save_options",  # 9 s
         "tests/test_horizon.py::test_simulate_eager_equals_jit[SE3-RK4-9-1]",  # 9 s
+        "tests/test_dep.py::test_generalized_rigid_body_increments_that_need_scaling",  # 50 s
         # The module fixture (a batched fit, 65 s) and the three checks that read it:
         "tests/test_identification.py::test_hlw_noise_free_recovers_moments",
         "tests/test_identification.py::test_hlw_noisy_recovers_moments",

@@ -25,7 +25,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._expm import expm
+from ._expm import expm, phi1
 
 
 class MatrixLieGroup(eqx.Module):
@@ -107,14 +107,7 @@ class MatrixLieGroup(eqx.Module):
 
     def dexp(self, x: Float[Array, "*batch d"]) -> Float[Array, "*batch d d"]:
         """`Σ ad_xⁿ/(n+1)!`, the right-trivialised derivative of `exp` (paper's `iex`)."""
-        # φ₁(A) = Σ Aⁿ/(n+1)! is the top-right block of expm([[A, I], [0, 0]]).
-        A = self.ad(x)
-        d = self.algebra_dim
-        batch = A.shape[:-2]
-        eye = jnp.broadcast_to(jnp.eye(d, dtype=A.dtype), A.shape)
-        top = jnp.concatenate([A, eye], axis=-1)
-        bottom = jnp.zeros(batch + (d, 2 * d), A.dtype)
-        return expm(jnp.concatenate([top, bottom], axis=-2))[..., :d, d:]
+        return phi1(self.ad(x))
 
     def dexpinv(self, x: Float[Array, "*batch d"]) -> Float[Array, "*batch d d"]:
         """Inverse of `dexp(x)`; the paper's `χ(−ad_x)` (see (4.8))."""
