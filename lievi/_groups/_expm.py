@@ -34,8 +34,10 @@ def _scaled(X: jax.Array):
     return X / (2.0**s)[..., None, None], s
 
 
-def _unscale(step, s, carry):
-    """`step` applied `s` times to `carry` (a matrix or a pair; `s` per batch element).
+def _unscale(step, s, carry, enter=None, leave=None):
+    """`step` applied `s` times to `carry` (`s` per batch element); `enter` maps `carry`
+    to the loop's state (a matrix or a pair) and `leave` maps that back, both only when
+    the loop runs.
 
     The loop has a fixed length, masked per element, so that reverse mode differentiates
     it; it is skipped at run time when no element was scaled (`lax.cond`), as for most of
@@ -49,7 +51,9 @@ def _unscale(step, s, carry):
         return jax.tree.map(lambda new, old: jnp.where(on, new, old), step(carry), carry)
 
     def loop(carry):
-        return jax.lax.fori_loop(0, _MAX_SQUARINGS, masked, carry)
+        state = carry if enter is None else enter(carry)
+        state = jax.lax.fori_loop(0, _MAX_SQUARINGS, masked, state)
+        return state if leave is None else leave(state)
 
     return jax.lax.cond(jnp.any(s > 0), loop, lambda carry: carry, carry)
 
@@ -86,10 +90,10 @@ def phi1(A: jax.Array) -> jax.Array:
     P = eye + Y / (_PHI1_DEGREE + 1)
     for k in range(_PHI1_DEGREE, 1, -1):
         P = eye + (Y @ P) / k
-    E = eye + Y @ P
 
     def double(pair):
         E, P = pair
         return E @ E, (P + E @ P) / 2
 
-    return _unscale(double, s, (E, P))[1]
+    # `e^Y = I + Y φ₁(Y)` only where a doubling reads it.
+    return _unscale(double, s, P, enter=lambda P: (eye + Y @ P, P), leave=lambda pair: pair[1])
