@@ -8,6 +8,7 @@ below, evaluated by scipy on the host); `MatrixLieGroup.dexp` is `φ₁(ad_x)`.
 """
 
 import jax
+import jax.extend.core
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -80,3 +81,35 @@ def test_phi1_float32():
     for k in range(3):
         expected = _phi1_reference(A[k])
         np.testing.assert_allclose(actual[k], expected, rtol=0, atol=1e-5 * np.abs(expected).max())
+
+
+def _primitives(jaxpr):
+    """The names of the primitives of `jaxpr` and of every jaxpr nested in it."""
+    names = set()
+    for eqn in jaxpr.eqns:
+        names.add(eqn.primitive.name)
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            names |= _primitives(sub)
+    return names
+
+
+@pytest.mark.parametrize("f", [expm, phi1], ids=["expm", "phi1"])
+def test_the_doubling_loop_stays_a_branch_under_vmap(f):
+    """Under `jax.vmap` the test "any element scaled" is over the whole batch, so the
+    doubling loop stays behind a `cond` (skipped at run time when no element of the
+    batch needs it) instead of a `select` that runs it for every element; the values are
+    those of each element alone (the loop is masked per element), here with elements that
+    need none and elements that need six doublings in one batch."""
+    A = _matrices()
+    jaxpr = jax.make_jaxpr(jax.vmap(f))(jnp.asarray(A)).jaxpr
+    assert "cond" in _primitives(jaxpr)
+    batched = np.asarray(jax.vmap(f)(jnp.asarray(A)))
+    for a, value in zip(A, batched):
+        expected = _phi1_reference(a) if f is phi1 else scipy.linalg.expm(a)
+        _close(value, expected)
+        np.testing.assert_array_equal(value, np.asarray(f(jnp.asarray(a))))
+    # A batch in which no element needs a doubling runs the same program to the same values.
+    small = A[:2]
+    np.testing.assert_array_equal(
+        np.asarray(jax.vmap(f)(jnp.asarray(small))), np.asarray(f(jnp.asarray(small)))
+    )

@@ -34,6 +34,26 @@ def _scaled(X: jax.Array):
     return X / (2.0**s)[..., None, None], s
 
 
+@jax.custom_batching.custom_vmap
+def _any_scaled(s):
+    """Whether any element was scaled (`s > 0`): the test of `_unscale`'s `lax.cond`.
+
+    Under `jax.vmap` (`simulate_batch`'s generic path vmaps `simulate`) it is the test
+    over the whole batch, one unbatched boolean, so the `cond` stays a branch, skipped
+    when no body needs a doubling. With JAX's own batching rule the predicate would be
+    per body and the `cond` a `select` that runs the loop for every body at every call
+    (measured: `DEP()` on a batch of `SOn(4)` bodies ran at 2.7× the time per
+    body-step, `benchmarks/son_dexp.py`). The values do not change: the loop is masked
+    per element."""
+    return jnp.any(s > 0)
+
+
+@_any_scaled.def_vmap
+def _any_scaled_batched(axis_size, in_batched, s):
+    del axis_size, in_batched
+    return jnp.any(s > 0), False
+
+
 def _unscale(step, s, carry, enter=None, leave=None):
     """`step` applied `s` times to `carry` (`s` per batch element); `enter` maps `carry`
     to the loop's state (a matrix or a pair) and `leave` maps that back, both only when
@@ -42,8 +62,8 @@ def _unscale(step, s, carry, enter=None, leave=None):
     The loop has a fixed length, masked per element, so that reverse mode differentiates
     it; it is skipped at run time when no element was scaled (`lax.cond`), as for most of
     a DEP run's increments: on one body the masked loop was most of `exp`'s and `dexp`'s
-    time (about 60 % of `SOn(4).dexp`, 15 masked iterations of two 6×6 products). Under
-    `jax.vmap` the `cond` becomes a `select` and the loop always runs, as it did before.
+    time (about 60 % of `SOn(4).dexp`, 15 masked iterations of two 6×6 products). The
+    test is `_any_scaled`, which stays one boolean under `jax.vmap`.
     """
 
     def masked(i, carry):
@@ -55,7 +75,7 @@ def _unscale(step, s, carry, enter=None, leave=None):
         state = jax.lax.fori_loop(0, _MAX_SQUARINGS, masked, state)
         return state if leave is None else leave(state)
 
-    return jax.lax.cond(jnp.any(s > 0), loop, lambda carry: carry, carry)
+    return jax.lax.cond(_any_scaled(s), loop, lambda carry: carry, carry)
 
 
 def expm(X: jax.Array) -> jax.Array:
