@@ -53,13 +53,27 @@ def as_count(n: int):
     return jnp.asarray(n, jnp.int32)
 
 
-def run_blocks(block, carry, n_saves: int, size: int):
+def run_blocks(block, carry, n_saves: int, size: int, first=None, kept=None):
     """`carry` through `n_saves` saves, `block(carry, count)` running `count ≤ size` saves
     and returning `(carry, buffers)` with buffers `size` saves long. Returns the final carry
-    and the list of each block's buffers."""
+    and the list of each block's buffers.
+
+    `first`: a block of the same signature tried before `block` (a program that compiles
+    sooner and is right for most runs), kept while `kept(carry)` holds after each of its
+    blocks (a host-side test, so each of its blocks waits for the previous one). The first
+    block after which it does not hold is run again by `block` from that block's start,
+    and so is every later one: then `block` is compiled too, and the run is `block`'s."""
     outputs = []
     for start in range(0, n_saves, size):
-        carry, buffers = block(carry, as_count(min(size, n_saves - start)))
+        count = as_count(min(size, n_saves - start))
+        if first is not None:
+            tried, buffers = first(carry, count)
+            if kept(tried):
+                carry = tried
+                outputs.append(buffers)
+                continue
+            first = None
+        carry, buffers = block(carry, count)
         outputs.append(buffers)
     return carry, outputs
 

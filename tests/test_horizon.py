@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import lievi
-from lievi import _horizon
+from lievi import _horizon, _simulate_kernel
 
 COMPILED = collections.Counter()
 
@@ -157,3 +157,64 @@ def test_under_transformations_the_static_scan_is_used():
         return BODY.energy(sol.m[-1])
 
     assert np.isfinite(jax.grad(final_energy)(0.1))
+
+
+def _kernels_of_blocks(monkeypatch):
+    """The `max_steps` of the kernel of each block an eager run calls (`_block`)."""
+    seen = []
+    block = _simulate_kernel._block
+
+    def spy(kernel, *args):
+        inner = getattr(kernel, "inner", kernel)  # a composition's stages
+        seen.append(inner.max_steps)
+        return block(kernel, *args)
+
+    monkeypatch.setattr(_simulate_kernel, "_block", spy)
+    return seen
+
+
+@pytest.mark.parametrize(
+    "system, m0, h, fails",
+    [
+        (BODY, M0, 0.1, False),  # the fixed iterations converge at every step
+        (BODY, M0 * 10, 0.3, True),  # they do not: the Newton loop finishes the steps
+    ],
+    ids=["fixed-iterations-suffice", "loop-needed"],
+)
+def test_one_body_tries_the_fixed_iterations_first(small_blocks, monkeypatch, system, m0, h, fails):
+    """An eager run of one body first runs the kernel without its Newton loop
+    (`fixed_iterations_only`, compiled sooner); from the first block where that fails a
+    step, the whole kernel runs, that block again included. Either way the run is the one
+    under `jit` (the whole kernel throughout), to round-off, and every step succeeds: bit
+    for bit or a few ulps where the steps are easy, within the Newton tolerance's reach
+    (1e-12 relative; the tolerance is 64 ulps of the residual, and two programs that round
+    differently may stop an iteration apart) where they need the loop."""
+    integrator = lievi.DEP()
+    fixed = integrator.batch_kernel(system).fixed_iterations_only().max_steps
+    assert fixed < integrator.max_steps
+    seen = _kernels_of_blocks(monkeypatch)
+    kwargs = dict(h=h, n_steps=12, save_every=1)
+    eager = lievi.simulate(system, integrator, G0, m0, **kwargs)
+    assert eager.result == lievi.RESULTS.successful
+    # 12 saves in blocks of 4: three blocks, the first run twice where the loop is needed.
+    expected = [fixed, *[integrator.max_steps] * 3] if fails else [fixed] * 3
+    assert seen == expected
+    traced = eqx.filter_jit(lambda m: lievi.simulate(system, integrator, G0, m, **kwargs))(m0)
+    if not fails:
+        _same(eager, traced, exact=False)
+        return
+    np.testing.assert_array_equal(eager.result, traced.result)
+    for x, y in ((eager.g, traced.g), (eager.m, traced.m)):
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-12 * np.abs(np.asarray(y)).max())
+
+
+def test_batches_and_meters_run_the_whole_kernel(small_blocks, monkeypatch):
+    """A batch (where some body almost always needs the loop, so trying first would
+    compile twice) and a run with a progress meter (a block run again would report its
+    steps twice) take the whole kernel from the start."""
+    seen = _kernels_of_blocks(monkeypatch)
+    integrator = lievi.DEP()
+    lievi.simulate_batch(BODY, integrator, G0, MOMENTA[:2], h=0.1, n_steps=4)
+    meter = lievi.TextProgressMeter(delay=0.0)
+    lievi.simulate(BODY, integrator, G0, M0, h=0.1, n_steps=4, progress_meter=meter)
+    assert seen == [integrator.max_steps] * 2

@@ -423,3 +423,9 @@ class SE3NewtonKernel(SE3Kernel):
 
     def with_fixed_iterations(self, fixed_iterations: int):
         return dataclasses.replace(self, fixed_iterations=fixed_iterations)
+
+    def fixed_iterations_only(self):
+        fixed = self.fixed_iterations
+        fixed = DEFAULT_FIXED_ITERATIONS[self.chart] if fixed is None else fixed
+        # `solve_increment` compiles no loop when `max_steps` is the fixed iterations.
+        return dataclasses.replace(self, max_steps=fixed) if 0 < fixed < self.max_steps else None

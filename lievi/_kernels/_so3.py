@@ -203,6 +203,12 @@ class NewtonKernel(AbstractBatchKernel):
     def with_fixed_iterations(self, fixed_iterations: int):
         return dataclasses.replace(self, fixed_iterations=fixed_iterations)
 
+    def fixed_iterations_only(self):
+        fixed = self.fixed_iterations
+        fixed = self.equation.fixed_iterations() if fixed is None else fixed
+        # `solve_increment` compiles no loop when `max_steps` is the fixed iterations.
+        return dataclasses.replace(self, max_steps=fixed) if 0 < fixed < self.max_steps else None
+
     def one_body(self):
         # No fixed iterations: one body stops at convergence. An iteration here is one or
         # two fused loops, so testing after each costs little (measured for one body:
