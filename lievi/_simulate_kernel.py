@@ -16,6 +16,7 @@ import functools
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from ._horizon import as_count, block_saves, horizon_traced, run_blocks, save_buffers, store
@@ -220,9 +221,10 @@ def _kernel_blocks(
 
 
 def _all_successful(state) -> bool:
-    """Whether every body of a block's final `state` is still `RESULTS.successful` (on the
-    host: it waits for the block)."""
-    return bool(jnp.all(state[2] == RESULTS.successful))
+    """Whether every body of a block's final `state` is still `RESULTS.successful`: on the
+    host, in NumPy (it waits for the block; as JAX operations, eagerly, the test compiled
+    two small programs of its own)."""
+    return bool(np.all(np.asarray(state[2]) == int(RESULTS.successful)))
 
 
 @eqx.filter_jit
