@@ -198,11 +198,12 @@ def _kernel_blocks(
 
     One body (`simulate`) without a progress meter first runs the kernel without the Newton
     loop after its fixed iterations (`AbstractBatchKernel.fixed_iterations_only`), which
-    compiles sooner (SE(3) `DEP`: about 1.5–2 s of 7–9 s) and, at the usual step sizes,
-    takes the same steps; from the first block in which the fixed iterations fail the
-    body, the run is the whole kernel's, that block again included (`run_blocks`). In a
-    batch some body almost always needs the loop, and trying first would compile twice.
-    With a meter, a block run again would report its steps twice."""
+    compiles sooner (SE(3) `DEP`: about 1 s of 7–9 s on a 2-core CPU), runs faster, and at
+    the usual step sizes takes the same steps; from the first block in which the fixed
+    iterations fail the body, the run is the whole kernel's, that block again included
+    (`run_blocks`). A batch compiles the whole kernel at once: the more bodies, the likelier
+    that some step of one of them needs the loop and both programs are compiled. With a
+    meter, a block run again would report its steps twice."""
     args = (kernel, constants, step_bound, g0, m0, h, valid, save, group)
     init = _initial(*args)
     shapes = _save_shapes(kernel, init, save, group)

@@ -209,9 +209,9 @@ def test_one_body_tries_the_fixed_iterations_first(small_blocks, monkeypatch, sy
 
 
 def test_batches_and_meters_run_the_whole_kernel(small_blocks, monkeypatch):
-    """A batch (where some body almost always needs the loop, so trying first would
-    compile twice) and a run with a progress meter (a block run again would report its
-    steps twice) take the whole kernel from the start."""
+    """A batch (the more bodies, the likelier that trying first compiles twice) and a run
+    with a progress meter (a block run again would report its steps twice) take the whole
+    kernel from the start."""
     seen = _kernels_of_blocks(monkeypatch)
     integrator = lievi.DEP()
     lievi.simulate_batch(BODY, integrator, G0, MOMENTA[:2], h=0.1, n_steps=4)
