@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import abc
 import contextlib
+import dataclasses
 
 import equinox as eqx
 import jax
@@ -85,6 +86,13 @@ def materialise(values, one, stack: bool = True):
             out.extend(stacked[i] for i in range(stacked.shape[0]))
         return tuple(out)
     return tuple(v / one for v in values)
+
+
+def without_newton_loop(kernel, fixed: int):
+    """`kernel` (whose step is `fixed` Newton iterations, a check, then a loop up to its
+    `max_steps`) with `max_steps = fixed`, so that its step compiles no loop; `None`
+    where there is none to leave out (no fixed iterations, or no more steps allowed)."""
+    return dataclasses.replace(kernel, max_steps=fixed) if 0 < fixed < kernel.max_steps else None
 
 
 def compacted_tail(need, run, state, args, fraction: int = 8):

@@ -57,7 +57,7 @@ import jax.numpy as jnp
 from .._groups._se3 import SE3
 from .._newton import newton_tolerance
 from .._results import RESULTS
-from ._base import AbstractBatchKernel, compacted_tail, materialise
+from ._base import AbstractBatchKernel, compacted_tail, materialise, without_newton_loop
 from ._implicit import differentiable_root
 from ._se3_reduced import reduced_residual, velocity_part
 from ._se3_residual import (
@@ -416,8 +416,7 @@ class SE3NewtonKernel(SE3Kernel):
         # Nested tuples of `(B,)` arrays or scalars, as the step's code reads them (the
         # entries are slices, which fuse into the code that reads them).
         A, Ainv, C = jax.tree.map(lambda X: entries(X, component_major=True), params)
-        fixed = self.fixed_iterations
-        fixed = DEFAULT_FIXED_ITERATIONS[self.chart] if fixed is None else fixed
+        fixed = self._fixed()
         tolerance = newton_tolerance(max_abs(m), m[0].dtype, self.rtol, self.atol)
         return dep_step(self.chart, g, m, A, Ainv, C, tolerance, fixed, self.max_steps, alive)
 
@@ -425,7 +424,9 @@ class SE3NewtonKernel(SE3Kernel):
         return dataclasses.replace(self, fixed_iterations=fixed_iterations)
 
     def fixed_iterations_only(self):
+        return without_newton_loop(self, self._fixed())
+
+    def _fixed(self) -> int:
+        """The fixed Newton iterations of a step: as set, or the default."""
         fixed = self.fixed_iterations
-        fixed = DEFAULT_FIXED_ITERATIONS[self.chart] if fixed is None else fixed
-        # `solve_increment` compiles no loop when `max_steps` is the fixed iterations.
-        return dataclasses.replace(self, max_steps=fixed) if 0 < fixed < self.max_steps else None
+        return DEFAULT_FIXED_ITERATIONS[self.chart] if fixed is None else fixed

@@ -51,7 +51,7 @@ import jax.numpy as jnp
 
 from .._newton import newton_tolerance
 from .._results import RESULTS
-from ._base import AbstractBatchKernel, materialise, ones
+from ._base import AbstractBatchKernel, materialise, ones, without_newton_loop
 from ._implicit import differentiable_root
 from ._so3_equations import AbstractSO3Equation, explicit_euler_guess, moser_veselov_on_branch
 from ._soa import (
@@ -194,8 +194,7 @@ class NewtonKernel(AbstractBatchKernel):
         return tuple(moment / h for moment in inertia)
 
     def step(self, params, g, m, alive):
-        fixed = self.fixed_iterations
-        fixed = self.equation.fixed_iterations() if fixed is None else fixed
+        fixed = self._fixed()
         # The tolerance policy of every implicit step (`simulate`'s too): relative by default.
         tolerance = newton_tolerance(max_abs(m), m[0].dtype, self.rtol, self.atol)
         return dep_step(self.equation, g, m, params, tolerance, fixed, self.max_steps, alive)
@@ -204,10 +203,12 @@ class NewtonKernel(AbstractBatchKernel):
         return dataclasses.replace(self, fixed_iterations=fixed_iterations)
 
     def fixed_iterations_only(self):
+        return without_newton_loop(self, self._fixed())
+
+    def _fixed(self) -> int:
+        """The fixed Newton iterations of a step: as set, or the default."""
         fixed = self.fixed_iterations
-        fixed = self.equation.fixed_iterations() if fixed is None else fixed
-        # `solve_increment` compiles no loop when `max_steps` is the fixed iterations.
-        return dataclasses.replace(self, max_steps=fixed) if 0 < fixed < self.max_steps else None
+        return self.equation.fixed_iterations() if fixed is None else fixed
 
     def one_body(self):
         # No fixed iterations: one body stops at convergence. An iteration here is one or
