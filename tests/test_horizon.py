@@ -174,14 +174,14 @@ def _kernels_of_blocks(monkeypatch):
 
 
 @pytest.mark.parametrize(
-    "system, m0, h, fails",
+    "m0, h, fails",
     [
-        (BODY, M0, 0.1, False),  # the fixed iterations converge at every step
-        (BODY, M0 * 10, 0.3, True),  # they do not: the Newton loop finishes the steps
+        (M0, 0.1, False),  # the fixed iterations converge at every step
+        (M0 * 10, 0.3, True),  # they do not: the Newton loop finishes the steps
     ],
     ids=["fixed-iterations-suffice", "loop-needed"],
 )
-def test_one_body_tries_the_fixed_iterations_first(small_blocks, monkeypatch, system, m0, h, fails):
+def test_one_body_tries_the_fixed_iterations_first(small_blocks, monkeypatch, m0, h, fails):
     """An eager run of one body first runs the kernel without its Newton loop
     (`fixed_iterations_only`, compiled sooner); from the first block where that fails a
     step, the whole kernel runs, that block again included. Either way the run is the one
@@ -190,16 +190,16 @@ def test_one_body_tries_the_fixed_iterations_first(small_blocks, monkeypatch, sy
     (1e-12 relative; the tolerance is 64 ulps of the residual, and two programs that round
     differently may stop an iteration apart) where they need the loop."""
     integrator = lievi.DEP()
-    fixed = integrator.batch_kernel(system).fixed_iterations_only().max_steps
+    fixed = integrator.batch_kernel(BODY).fixed_iterations_only().max_steps
     assert fixed < integrator.max_steps
     seen = _kernels_of_blocks(monkeypatch)
     kwargs = dict(h=h, n_steps=12, save_every=1)
-    eager = lievi.simulate(system, integrator, G0, m0, **kwargs)
+    eager = lievi.simulate(BODY, integrator, G0, m0, **kwargs)
     assert eager.result == lievi.RESULTS.successful
     # 12 saves in blocks of 4: three blocks, the first run twice where the loop is needed.
     expected = [fixed, *[integrator.max_steps] * 3] if fails else [fixed] * 3
     assert seen == expected
-    traced = eqx.filter_jit(lambda m: lievi.simulate(system, integrator, G0, m, **kwargs))(m0)
+    traced = eqx.filter_jit(lambda m: lievi.simulate(BODY, integrator, G0, m, **kwargs))(m0)
     if not fails:
         _same(eager, traced, exact=False)
         return
