@@ -208,10 +208,47 @@ def test_one_body_tries_the_fixed_iterations_first(small_blocks, monkeypatch, m0
         np.testing.assert_allclose(x, y, rtol=0, atol=1e-12 * np.abs(np.asarray(y)).max())
 
 
-def test_batches_and_meters_run_the_whole_kernel(small_blocks, monkeypatch):
-    """A batch (the more bodies, the likelier that trying first compiles twice) and a run
-    with a progress meter (a block run again would report its steps twice) take the whole
-    kernel from the start."""
+def test_small_batches_try_the_fixed_iterations_first(small_blocks, monkeypatch):
+    """A batch of up to `FIXED_FIRST_MAX_BODIES` bodies takes the same rule as one body: the
+    kernel without its loop while every body's steps succeed, the whole kernel from the
+    first block where one body's do not (here the third body's, whose `h|Π|` is ten times
+    the others'). Both runs are the one under `jit`, as for one body."""
+    seen = _kernels_of_blocks(monkeypatch)
+    integrator = lievi.DEP()
+    fixed = integrator.batch_kernel(BODY).fixed_iterations_only().max_steps
+    kwargs = dict(h=0.3, n_steps=12, save_every=1)
+    traced = eqx.filter_jit(lambda m: lievi.simulate_batch(BODY, integrator, G0, m, **kwargs))
+    for momenta, fails in ((MOMENTA, False), (MOMENTA.at[2].multiply(10.0), True)):
+        seen.clear()
+        eager = lievi.simulate_batch(BODY, integrator, G0, momenta, **kwargs)
+        np.testing.assert_array_equal(eager.result, lievi.RESULTS.successful)
+        assert seen == ([fixed, *[integrator.max_steps] * 3] if fails else [fixed] * 3)
+        expected = traced(momenta)
+        np.testing.assert_array_equal(eager.result, expected.result)
+        for x, y in ((eager.g, expected.g), (eager.m, expected.m)):
+            scale = np.abs(np.asarray(y)).max()
+            np.testing.assert_allclose(x, y, rtol=0, atol=(1e-12 if fails else 64e-16) * scale)
+
+
+def test_a_body_that_came_in_failed_does_not_count():
+    """The host test after a tried block (`_no_new_failure`) asks for no *new* failure: a
+    body already failed at the block's start (an input found invalid) fails the same way
+    in the whole kernel, and must not make the run compile it."""
+    ok, bad = int(lievi.RESULTS.successful), int(lievi.RESULTS.nonfinite)
+
+    def state(*results):
+        return (None, None, np.array(results, np.int32))
+
+    assert _simulate_kernel._no_new_failure(state(ok, bad), state(ok, bad))
+    assert not _simulate_kernel._no_new_failure(state(ok, ok), state(ok, bad))
+    assert not _simulate_kernel._no_new_failure(state(ok, bad), state(bad, bad))
+
+
+def test_large_batches_and_meters_run_the_whole_kernel(small_blocks, monkeypatch):
+    """A batch of more than `FIXED_FIRST_MAX_BODIES` bodies (the more bodies, the likelier
+    that trying first compiles twice) and a run with a progress meter (a block run again
+    would report its steps twice) take the whole kernel from the start."""
+    monkeypatch.setattr(_simulate_kernel, "FIXED_FIRST_MAX_BODIES", 1)
     seen = _kernels_of_blocks(monkeypatch)
     integrator = lievi.DEP()
     lievi.simulate_batch(BODY, integrator, G0, MOMENTA[:2], h=0.1, n_steps=4)
