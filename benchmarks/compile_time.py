@@ -58,7 +58,8 @@ RESULTS = pathlib.Path(__file__).resolve().parent / "results"
 
 
 def systems():
-    """`name → (system, g0, m0)`: one body each, a generic momentum."""
+    """`name → (system, g0, m0)`: one body (or one system of bodies) each, a generic
+    momentum."""
     so3 = (jnp.eye(3), jnp.array([0.3, -0.2, 0.5]))
     return {
         "RigidBody (free)": (lievi.RigidBody(jnp.array([1.0, 2.0, 3.0])), *so3),
@@ -76,7 +77,28 @@ def systems():
             jnp.eye(4),
             jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4]),
         ),
+        "RigidBodies (binary)": binary(),
     }
+
+
+def binary():
+    """Two bodies of three point masses each (masses 2.4 and 1.2) in mutual gravity
+    (`lievi.gravitating_bodies`, on SE(3)², G = 1) on a circular mutual orbit 1.5 apart
+    about their barycentre at rest (a period is 122 steps of 0.05), spinning slowly."""
+    points = jnp.array(
+        [
+            [[0.12, 0.0, 0.0], [-0.1, 0.08, 0.0], [0.0, -0.06, 0.09]],
+            [[0.1, 0.0, 0.02], [-0.08, 0.07, 0.0], [0.0, -0.05, -0.08]],
+        ]
+    )
+    bodies = lievi.gravitating_bodies(1.0, jnp.array([[1.0, 0.6, 0.8], [0.5, 0.4, 0.3]]), points)
+    # Relative speed sqrt(G (m₁ + m₂)/d) = sqrt(2.4); each body's share by the other's mass.
+    x, momentum = jnp.array([-0.5, 1.0]), 2.4 * 1.2 / 3.6 * jnp.sqrt(2.4)
+    g0 = jnp.zeros((2, 4, 4)).at[:].set(jnp.eye(4)).at[:, 0, 3].set(x)
+    m0 = jnp.array(
+        [[0.003, 0.005, 0.01, 0.0, -momentum, 0.0], [0.004, -0.002, 0.001, 0.0, momentum, 0.0]]
+    )
+    return bodies, g0, m0
 
 
 def integrators():
@@ -121,7 +143,7 @@ def measure(call, steps: int) -> dict:
 
 def pair(system, integrator, g0, m0, steps: int, batch: int) -> dict:
     key = jax.random.PRNGKey(0)
-    ms = m0 * (1 + 0.1 * jax.random.normal(key, (batch, m0.shape[0]), m0.dtype))
+    ms = m0 * (1 + 0.1 * jax.random.normal(key, (batch, *m0.shape), m0.dtype))
 
     def one(n_steps, save_every):
         return lievi.simulate(
