@@ -145,6 +145,7 @@ ORDER_CASES = [
     pytest.param(lievi.Composition(lievi.DEP(chart="exp"), order=4), "molecules", 4, marks=SLOW),
     pytest.param(lievi.Composition(lievi.LiePoissonSplitting(), order=4), "binary", 4, marks=SLOW),
     pytest.param(lievi.RK4(), "molecules", 4, marks=SLOW),
+    (lievi.RKMK4(), "binary", 4),  # on the product group: each body's `exp` and `dexpinv`
 ]
 
 
@@ -158,8 +159,12 @@ def test_order(integrator, problem, expected):
 # ---- one body --------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("chart", ("exp", pytest.param("cayley", marks=SLOW)))
-def test_one_body_equals_rigid_body_se3(chart):
+@pytest.mark.parametrize(
+    "integrator",
+    (lievi.DEP(chart="exp"), pytest.param(lievi.DEP(chart="cayley"), marks=SLOW), lievi.RKMK4()),
+    ids=("DEP-exp", "DEP-cayley", "RKMK4"),
+)
+def test_one_body_equals_rigid_body_se3(integrator):
     """N = 1 is `RigidBodySE3` with the same potential, to round-off."""
     rng = np.random.default_rng(5)
     inertia, mass = jnp.array([1.0, 2.0, 3.0]), jnp.asarray(2.0)
@@ -172,7 +177,6 @@ def test_one_body_equals_rigid_body_se3(chart):
         SO3.exp(jnp.asarray(rng.normal(size=3))), jnp.array([1.0, 0, 0])
     )
     m0 = jnp.asarray(rng.normal(size=6))
-    integrator = lievi.DEP(chart=chart)
     a = lievi.simulate(many, integrator, g0[None], m0[None], h=0.02, n_steps=100)
     b = lievi.simulate(one, integrator, g0, m0, h=0.02, n_steps=100)
     assert float(jnp.max(jnp.abs(a.g[:, 0] - b.g))) <= 1e-14 * 10
