@@ -232,9 +232,9 @@ def _kernel_blocks(
 def _no_new_failure(before, after) -> bool:
     """Whether no body that was `RESULTS.successful` at a block's start (state `before`)
     failed in it (state `after`): on the host, in NumPy (it waits for the block; as JAX
-    operations, eagerly, the test compiled two small programs of its own). A body that came
-    in failed (an input found invalid) fails the same way in either kernel and does not
-    make the run the whole kernel's."""
+    operations, eagerly, the test compiled two small programs of its own). A body already
+    failed at the block's start stays failed in either kernel (its state is NaN and it is
+    not stepped), so it does not by itself make the run the whole kernel's."""
     return not np.any(
         (np.asarray(before[2]) == int(RESULTS.successful))
         & (np.asarray(after[2]) != int(RESULTS.successful))

@@ -232,8 +232,8 @@ def test_small_batches_try_the_fixed_iterations_first(small_blocks, monkeypatch)
 
 def test_a_body_that_came_in_failed_does_not_count():
     """The host test after a tried block (`_no_new_failure`) asks for no *new* failure: a
-    body already failed at the block's start (an input found invalid) fails the same way
-    in the whole kernel, and must not make the run compile it."""
+    body already failed at the block's start stays failed in the whole kernel too, and
+    must not make the run compile it."""
     ok, bad = int(lievi.RESULTS.successful), int(lievi.RESULTS.nonfinite)
 
     def state(*results):
