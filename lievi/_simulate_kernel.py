@@ -27,7 +27,7 @@ from ._scan import scan_in_segments
 from ._solution import Solution
 
 # Runs of up to this many bodies try the kernel without its Newton loop first
-# (`_kernel_blocks`). Leaving the loop out saves the same compile time (SE(3) `DEP`: 1.1–1.4 s
+# (`_kernel_blocks`). Leaving the loop out saves the same compile time (SE(3) `DEP`: 1.0–1.4 s
 # of 2.5–4 s on a 2-core CPU) at every batch size, but the chance that some step of some
 # body needs the loop, and both programs are compiled, grows with the bodies, while the
 # compile's share of a call shrinks (10⁴ SE(3) bodies run 10³ steps in about 2 s there).
