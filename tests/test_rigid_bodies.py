@@ -12,6 +12,7 @@ import functools
 import equinox as eqx
 import jax
 import jax.extend
+import jax.monitoring
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -22,6 +23,13 @@ from lievi import diagnostics as dg
 
 SE3, SO3 = lievi.SE3, lievi.SO3
 SLOW = pytest.mark.slow
+
+_COMPILED = []  # the programs XLA compiles (their names), for the test that counts them
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, duration, **kwargs: _COMPILED.append(kwargs.get("fun_name"))
+    if name == "/jax/core/compile/backend_compile_duration"
+    else None
+)
 
 
 def _poses(rng, positions):
@@ -437,6 +445,25 @@ def test_bad_state_shapes():
     m0s = jnp.stack([m0, m0, m0])
     with pytest.raises(ValueError, match=r"`g0\[2\]` is not in the group"):
         lievi.simulate_batch(system, lievi.DEP(), g0s, m0s, h=0.01, n_steps=1)
+
+
+def test_gravitating_bodies_compiles_few_programs():
+    """Building the bodies compiles a handful of programs (their point-mass sums and the
+    system's checks), not one per array operation: eagerly, each operation of the
+    per-body sums was a small program of its own, compiled at its first use (23 programs,
+    0.6 s of a first call, before)."""
+    masses = jnp.array([[1.0, 0.6, 0.8, 0.2], [0.5, 0.4, 0.3, 0.1], [0.2, 0.2, 0.3, 0.4]])
+    points = jnp.asarray(np.random.default_rng(7).uniform(-1, 1, size=(3, 4, 3)) * 0.15)
+    jax.clear_caches()
+    _COMPILED.clear()
+    system = lievi.gravitating_bodies(1.0, masses, points)
+    jax.block_until_ready(system.tensor)
+    assert len(_COMPILED) <= 6, _COMPILED
+    mass, centered, inertia = jax.vmap(lievi._systems._se3_potentials.point_mass_body)(
+        masses, points
+    )
+    np.testing.assert_allclose(system.mass, jnp.sum(masses, axis=1), rtol=1e-15)
+    np.testing.assert_allclose(system.tensor[:, :3, :3], inertia, rtol=1e-15)
 
 
 # ---- batches of systems ----------------------------------------------------------------------

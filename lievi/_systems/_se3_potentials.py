@@ -19,6 +19,7 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -120,6 +121,7 @@ class CentralGravity(AbstractPotential):
         return -self.mu * jnp.sum(jnp.asarray(self.masses) / distances)
 
 
+@jax.jit  # one compiled program: eagerly, each operation would be one, compiled at first use
 def point_mass_body(masses: Float[Array, " k"], points: Float[Array, "k 3"]):
     """`(mass, centred points, inertia)` of a rigid body made of point masses: the total
     mass, the points measured from their centre of mass, and the inertia tensor about it,
