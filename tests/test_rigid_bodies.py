@@ -26,9 +26,11 @@ SLOW = pytest.mark.slow
 
 _COMPILED = []  # the programs XLA compiles (their names), for the test that counts them
 jax.monitoring.register_event_duration_secs_listener(
-    lambda name, duration, **kwargs: _COMPILED.append(kwargs.get("fun_name"))
-    if name == "/jax/core/compile/backend_compile_duration"
-    else None
+    lambda name, duration, **kwargs: (
+        _COMPILED.append(kwargs.get("fun_name"))
+        if name == "/jax/core/compile/backend_compile_duration"
+        else None
+    )
 )
 
 
