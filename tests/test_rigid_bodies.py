@@ -408,6 +408,12 @@ def test_coincident_sites_are_nonfinite():
             ),
             "table",
         ),
+        (
+            lambda: lievi.SitePotential(
+                jnp.zeros((2, 1, 3)), lievi.LennardJones(jnp.ones((2, 2)), 1.0), types=[[0], [-1]]
+            ),
+            "≥ 0",
+        ),
         (lambda: lievi.SitePotential(jnp.zeros((2, 1, 3)), lievi.Coulomb()), "charges"),
         (lambda: lievi.LennardJones(jnp.ones((2, 3)), 1.0), "epsilon"),
         (lambda: lievi.LennardJones(1.0, -1.0), "sigma"),

@@ -144,8 +144,11 @@ class SitePotential(AbstractPotential):
                     f"{type(energy).__name__} reads the sites' charges: pass `charges` (N, k)."
                 )
             if is_concrete(self.types):
-                largest = int(jnp.max(self.types)) if self.types.size else 0
-                if int(jnp.min(self.types)) < 0:
+                # On the host, in NumPy: as JAX operations, eagerly, each reduction was a
+                # small program of its own, compiled at its first use.
+                types = np.asarray(self.types)
+                largest = int(types.max()) if types.size else 0
+                if types.size and int(types.min()) < 0:
                     raise ValueError("`types` must be ≥ 0 (indices into the pair tables).")
                 for name, table in energy.tables().items():
                     if largest >= jnp.shape(table)[0]:
@@ -171,12 +174,13 @@ class SitePotential(AbstractPotential):
         if self.cutoff is not None and concrete and not float(self.cutoff) > 0:
             raise ValueError(f"`cutoff` must be > 0, got {float(self.cutoff)}.")
         if self.box is not None and concrete:
-            if not bool(jnp.all(self.box > 0)):
-                raise ValueError(f"`box` sides must all be > 0, got {self.box.tolist()}.")
-            if float(self.cutoff) > float(jnp.min(self.box)) / 2:
+            box = np.asarray(self.box)  # on the host, as `types` above
+            if not bool(np.all(box > 0)):
+                raise ValueError(f"`box` sides must all be > 0, got {box.tolist()}.")
+            if float(self.cutoff) > float(box.min()) / 2:
                 raise ValueError(
                     f"`cutoff` ({float(self.cutoff)}) must be at most half the smallest side "
-                    f"of `box` ({float(jnp.min(self.box))}): beyond, a site would reach two "
+                    f"of `box` ({float(box.min())}): beyond, a site would reach two "
                     "images of another. Use a larger box or a shorter cut-off."
                 )
         if self.neighbors is not None:
