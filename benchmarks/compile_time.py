@@ -94,7 +94,7 @@ def binary():
     bodies = lievi.gravitating_bodies(1.0, jnp.array([[1.0, 0.6, 0.8], [0.5, 0.4, 0.3]]), points)
     # Relative speed sqrt(G (m₁ + m₂)/d) = sqrt(2.4); each body's share by the other's mass.
     x, momentum = jnp.array([-0.5, 1.0]), 2.4 * 1.2 / 3.6 * jnp.sqrt(2.4)
-    g0 = jnp.zeros((2, 4, 4)).at[:].set(jnp.eye(4)).at[:, 0, 3].set(x)
+    g0 = jnp.tile(jnp.eye(4), (2, 1, 1)).at[:, 0, 3].set(x)
     m0 = jnp.array(
         [[0.003, 0.005, 0.01, 0.0, -momentum, 0.0], [0.004, -0.002, 0.001, 0.0, momentum, 0.0]]
     )

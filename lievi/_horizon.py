@@ -61,9 +61,9 @@ def run_blocks(block, carry, n_saves: int, size: int, first=None, kept=None):
     `first`: a block of the same signature tried before `block` (a program that compiles
     sooner and is right for most runs), kept while `kept(before, after)` holds for the
     carries at the start and end of each of its blocks (a host-side test, so each of its
-    blocks waits for the previous one). The first
-    block after which it does not hold is run again by `block` from that block's start,
-    and so is every later one: then `block` is compiled too, and the run is `block`'s."""
+    blocks waits for the previous one). The first block after which it does not hold is
+    run again by `block` from that block's start, and so is every later one: then `block`
+    is compiled too, and the run is `block`'s."""
     outputs = []
     for start in range(0, n_saves, size):
         count = as_count(min(size, n_saves - start))

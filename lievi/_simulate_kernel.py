@@ -27,10 +27,11 @@ from ._scan import scan_in_segments
 from ._solution import Solution
 
 # Runs of up to this many bodies try the kernel without its Newton loop first
-# (`_kernel_blocks`). Leaving the loop out saves the same compile time (SE(3) `DEP`: 1.0–1.4 s
-# of 2.5–4 s on a 2-core CPU) at every batch size, but the chance that some step of some
-# body needs the loop, and both programs are compiled, grows with the bodies, while the
-# compile's share of a call shrinks (10⁴ SE(3) bodies run 10³ steps in about 2 s there).
+# (`_kernel_blocks`). Leaving the loop out saves about the same compile time at every batch
+# size (SE(3) `DEP`: 0.9–1.1 s of 3–4 s from 64 to 4096 bodies on a 2-core CPU,
+# `benchmarks/fixed_first.py`), but the chance that some step of some body needs the loop,
+# and both programs are compiled, grows with the bodies, while the compile's share of a
+# call shrinks (10⁴ SE(3) bodies run 10³ steps in about 1.7 s there).
 FIXED_FIRST_MAX_BODIES = 1024
 
 
@@ -206,7 +207,7 @@ def _kernel_blocks(
     A run of up to `FIXED_FIRST_MAX_BODIES` bodies without a progress meter first runs the
     kernel without the Newton loop after its fixed iterations
     (`AbstractBatchKernel.fixed_iterations_only`), which compiles sooner (SE(3) `DEP`:
-    about 1 s of 2.5–4 s on a 2-core CPU) and at the usual step sizes takes the same
+    about 1 s of 3–4 s on a 2-core CPU) and at the usual step sizes takes the same
     steps; from the first block in which the fixed iterations fail a body, the run is the
     whole kernel's, that block again included (`run_blocks`). A larger batch compiles the
     whole kernel at once: the more bodies, the likelier that some step of one of them

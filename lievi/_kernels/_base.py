@@ -226,9 +226,9 @@ class AbstractBatchKernel(eqx.Module):
         they leave above tolerance, or off the branch, is reported failed instead), or
         `None` where there is no such loop to leave out (the default: explicit kernels).
 
-        Compiled sooner (on SE(3) the loop is about 1 s of the step's 7–9 s of compiling),
-        faster for one body, and at the usual step sizes the same steps: an eager run of one
-        body tries it first (`lievi._simulate_kernel`)."""
+        Compiled sooner (on SE(3) about 1 s less, `benchmarks/fixed_first.py`) and at the
+        usual step sizes the same steps: an eager run of up to `FIXED_FIRST_MAX_BODIES`
+        bodies tries it first (`lievi._simulate_kernel`)."""
         return None
 
     def carried(self, g0):
