@@ -68,7 +68,11 @@ import lievi  # noqa: E402
 H = 0.01
 RESULTS = pathlib.Path(__file__).parent / "results"
 SKIN = 0.6  # the neighbour-list row's
-METHODS = {"DEP Cayley": lievi.DEP(chart="cayley"), "splitting": lievi.LiePoissonSplitting()}
+METHODS = {
+    "DEP exp": lievi.DEP(),
+    "DEP Cayley": lievi.DEP(chart="cayley"),
+    "splitting": lievi.LiePoissonSplitting(),
+}
 
 
 def _timed(run, rounds=3):
