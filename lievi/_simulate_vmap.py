@@ -56,8 +56,8 @@ def simulate_vmap(
     them (with a kernel, `simulate_batch`'s fast path is the one that compiles once)."""
     on_kernel = run_kernel(system, integrator, forcing, system_axis == 0) is not None
     if forcing is None and not on_kernel and horizon_traced(system, integrator, g0, m0, h):
-        axes = (system_axis, None if h.ndim == 0 else 0)
-        valid = jax.vmap(input_valid, in_axes=(system_axis, 0, 0, axes[1]))(system, g0, m0, h)
+        axes = (system.batch_axes(system_axis), None if h.ndim == 0 else 0)
+        valid = jax.vmap(input_valid, in_axes=(axes[0], 0, 0, axes[1]))(system, g0, m0, h)
         g0, t0 = jnp.asarray(g0, m0.dtype), jnp.zeros((), m0.dtype)
         run = (system, integrator, g0, m0, h, t0, n_steps, save_every, valid, progress, axes)
         return _batched(simulate_blocks(*run), g0.shape[0], n_steps, save, axes[1])
@@ -99,9 +99,8 @@ def _simulate_vmap_scan(
 
     h_axis = None if h.ndim == 0 else 0
     forcing_axes = None if forcing is None else forcing.batch_axes(system)
-    solution = jax.vmap(one, in_axes=(system_axis, 0, 0, h_axis, forcing_axes))(
-        system, g0, m0, h, forcing
-    )
+    in_axes = (system.batch_axes(system_axis), 0, 0, h_axis, forcing_axes)
+    solution = jax.vmap(one, in_axes=in_axes)(system, g0, m0, h, forcing)
     return _batched(solution, g0.shape[0], n_steps, save, h_axis)
 
 

@@ -6,6 +6,7 @@ import subprocess
 import sys
 import textwrap
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -324,6 +325,66 @@ for fast in (True,):
     np.testing.assert_array_equal(np.asarray(sharded.result), np.asarray(plain.result))
 print("SHARDED OK")
 """
+
+
+def test_repeated_call_traces_nothing_of_the_system():
+    """A second eager `simulate_batch` call with the same system traces neither its
+    potential nor its energy (the shape test of `system_axis`'s inference is cached; it
+    was traced again at every call, about 7 ms); a batch of systems built with `jax.vmap`
+    is still told apart from one system."""
+    traced = []
+
+    def potential(g):
+        traced.append(1)
+        return 0.1 * g[2, 2]
+
+    body = lievi.RigidBody(jnp.array([2.0, 1.0, 2 / 3]), potential=potential)
+    m0 = jnp.asarray(np.random.default_rng(0).normal(size=(4, 3)))
+
+    def run(system, **kwargs):
+        return lievi.simulate_batch(system, lievi.DEP(), jnp.eye(3), m0, h=0.1, n_steps=5, **kwargs)
+
+    first = run(body)
+    assert traced
+    traced.clear()
+    second = run(body)
+    assert not traced
+    np.testing.assert_array_equal(first.m, second.m)
+    # The same structure with a leading axis of four: a batch of systems, each body its own.
+    free = lievi.RigidBody(jnp.array([2.0, 1.0, 2 / 3]))
+    systems = jax.vmap(lambda s: lievi.RigidBody(jnp.array([2.0, 1.0, s])))(
+        jnp.array([0.5, 2 / 3, 0.7, 0.8])
+    )
+    shared, batched = run(free), run(systems)
+    np.testing.assert_allclose(batched.m[1], shared.m[1], rtol=0, atol=ROUNDOFF)
+    assert not np.allclose(batched.m[0], shared.m[0])
+
+
+def test_batch_of_systems_with_a_function_potential():
+    """A parameter sweep built with `equinox.filter_vmap` keeps a potential given as a
+    Python function (`jax.vmap` cannot return one): `simulate_batch` maps the systems'
+    arrays only (`AbstractLieSystem.batch_axes`), each body as `simulate` alone, to
+    round-off, with and without saving every step (the eager blocks and the traced
+    scan); this raised "not a valid JAX type"."""
+
+    def potential(g):
+        return 0.1 * g[2, 2]
+
+    moments = jnp.array([0.5, 2 / 3, 0.7, 0.8])
+    systems = eqx.filter_vmap(
+        lambda s: lievi.RigidBody(jnp.array([2.0, 1.0, s]), potential=potential)
+    )(moments)
+    m0 = jnp.asarray(np.random.default_rng(1).normal(size=(4, 3)))
+    dep = lievi.DEP()
+    batched = lievi.simulate_batch(systems, dep, jnp.eye(3), m0, h=0.1, n_steps=6, save_every=2)
+    traced = jax.jit(
+        lambda m0: lievi.simulate_batch(systems, dep, jnp.eye(3), m0, h=0.1, n_steps=6)
+    )(m0)
+    for i, s in enumerate(moments):
+        body = lievi.RigidBody(jnp.array([2.0, 1.0, s]), potential=potential)
+        alone = lievi.simulate(body, dep, jnp.eye(3), m0[i], h=0.1, n_steps=6, save_every=2)
+        np.testing.assert_allclose(batched.m[i], alone.m, rtol=0, atol=ROUNDOFF)
+        np.testing.assert_allclose(traced.m[i, -1], alone.m[-1], rtol=0, atol=ROUNDOFF)
 
 
 def test_sharded_equals_unsharded():

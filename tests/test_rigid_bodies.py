@@ -197,21 +197,21 @@ def test_one_body_equals_rigid_body_se3(integrator):
     "integrator", (lievi.DEP(chart="exp"), lievi.DEP(chart="cayley")), ids=("exp", "cayley")
 )
 def test_free_steps_of_the_kernel_equal_the_reference_path(integrator, monkeypatch):
-    """The N bodies' free steps by the SE(3) kernel (its one-body step under `jax.vmap`
-    over the bodies) against the generic path (every kernel off: the residual of (4.8)
-    from the group and the Lagrangian, its Jacobian by `jax.jacfwd`), on the binary at a
-    step where Newton takes several iterations: iterates to 1e-12 of the momentum
-    scale, the gradient with respect to `G` to 1e-10 relative (float64)."""
+    """The N bodies' free steps by the SE(3) kernel with the bodies as its batch
+    (`AbstractBatchKernel.bodies_step`) against the generic path (every kernel off: the
+    residual of (4.8) from the group and the Lagrangian, its Jacobian by `jax.jacfwd`),
+    on the binary at a step where Newton takes several iterations: iterates to 1e-12 of
+    the momentum scale, the gradient with respect to `G` to 1e-10 relative (float64)."""
     from lievi._kernels._base import AbstractBatchKernel, reference_path
 
     calls = []
-    one_body_step = AbstractBatchKernel.one_body_step
+    bodies_step = AbstractBatchKernel.bodies_step
 
     def counted(self, *args):
         calls.append(type(self).__name__)
-        return one_body_step(self, *args)
+        return bodies_step(self, *args)
 
-    monkeypatch.setattr(AbstractBatchKernel, "one_body_step", counted)
+    monkeypatch.setattr(AbstractBatchKernel, "bodies_step", counted)
     system, g0, m0 = binary_problem()
 
     def run(G):

@@ -60,6 +60,20 @@ def ones(x):
     return x * 0 + 1
 
 
+# The most bodies whose values `materialise` stores three to an array.
+STACKED_MAX = 2
+
+
+def _stacked(v) -> bool:
+    """Whether `materialise` stores `v` in a stack: a scalar, or the values of 2 to
+    `STACKED_MAX` bodies. A batch of one, `(1,)` (an eager one-body `simulate` runs the
+    batch kernel), keeps one array per value: stacked, its SO(3) DEP run of 10⁴ steps,
+    every step saved, was 1.15× slower, the SE(3) one 1.15× faster
+    (`benchmarks/compile_time.py --throughput`,
+    `benchmarks/results/s50_throughput_{before,after}_{1,2}.json`); its layout stays."""
+    return jnp.ndim(v) == 0 or (jnp.ndim(v) == 1 and 1 < jnp.size(v) <= STACKED_MAX)
+
+
 def materialise(values, one, stack: bool = True):
     """`values / one` with `one` an array of ones computed at run time: forces XLA to store
     `values` instead of recomputing them in every consumer.
@@ -76,10 +90,15 @@ def materialise(values, one, stack: bool = True):
     set the time (measured: the SE(3) step 1.4–1.6× faster than with each scalar stored
     alone). Three, because XLA fuses the computation of a short stack into one loop but
     computes each entry of a longer one (9, 12) in a loop of its own (measured: 0.98
-    against 1.10 µs a step, Cayley chart).
+    against 1.10 µs a step, Cayley chart). So are the values of up to `STACKED_MAX`
+    bodies (`(N,)` arrays): the bodies of a binary (`lievi.RigidBodies`) stepped together
+    by `bodies_step` keep the layout they had as scalars under `jax.vmap` of the
+    one-body step. Not more: a batch of 8 SE(3) bodies ran at 0.8× the body-steps/s
+    stacked (`benchmarks/before_after.py --se3 --batches 8`,
+    `benchmarks/results/before_after_s50_batch8.json`).
     `stack=False` stores them one by one (see its use in `_se3`).
     """
-    if stack and all(jnp.ndim(v) == 0 for v in values):
+    if stack and all(_stacked(v) for v in values):
         out = []
         for k in range(0, len(values), 3):
             stacked = jnp.stack(jnp.broadcast_arrays(*values[k : k + 3])) / one
@@ -110,9 +129,20 @@ def compacted_tail(need, run, state, args, fraction: int = 8):
     elementwise, so they do not depend on which bodies share its round.
     `run` must leave alone the bodies whose `args` mark them inactive: the gathered
     padding is passed with `args[-1]` (the `alive` mask) false.
+
+    A batch of fewer than `fraction` bodies (the few bodies of one system,
+    `bodies_step`) runs `run` on all of them: `run` must then also leave alone the bodies
+    that do not need it (its loop runs no iteration when none does). For them a
+    `lax.cond` on "any body needs it" cost more than that: a binary of
+    `lievi.RigidBodies` ran 1000 DEP steps in 7.3 ms with it, 6.5 ms before
+    (`benchmarks/rigid_bodies_throughput.py --gradient-only`, the forward run of one
+    binary, `benchmarks/results/s50_with_cond_rb_gradient_{before,after}.json`). One body
+    (scalars) keeps the `cond`.
     """
     batch = jnp.shape(need)[0] if jnp.ndim(need) else 0
     size = batch // fraction
+    if batch and size < 1:
+        return run(state, args)
     if size < 1:
         return jax.lax.cond(jnp.any(need), run, lambda s, _: s, state, args)
 
@@ -215,6 +245,21 @@ class AbstractBatchKernel(eqx.Module):
         g_next, m_next, *info = kernel.step(params, carried, momentum, True)
         g_next = kernel.elements(jnp.stack(g_next)[None, :, None])[0, 0]
         return (g_next, jnp.stack(m_next), *info)
+
+    def bodies_step(self, physics, g, m, h):
+        """One step of this kernel on the N bodies of one system at once (`lievi.RigidBodies`),
+        the bodies its batch: `physics` as `physics` returns it for N systems (a leading
+        body axis), `g` `(N, n, n)`, `m` `(N, d)`. Returns `(g_next, m_next, result,
+        iterations, residual)`, each with the body axis: `one_body_step` of each body, in
+        one structure-of-arrays step rather than under `jax.vmap`, whose batching of the
+        step's few hundred scalar operations took most of the tracing and made a larger
+        program (an SE(3) binary's first `DEP` call: `benchmarks/compile_time.py`)."""
+        params = self.prepare(self.constants(physics), h)
+        momentum = tuple(m[:, i] for i in range(m.shape[-1]))
+        g_next, m_next, *info = self.step(params, self.carried(g), momentum, True)
+        # The saved layout `(T, k, B)` with one save.
+        g_next = self.elements(jnp.stack(g_next)[None])[:, 0]
+        return (g_next, jnp.stack(m_next, axis=-1), *info)
 
     def with_fixed_iterations(self, fixed_iterations: int):
         """The kernel with this many Newton iterations before its convergence check

@@ -86,6 +86,15 @@ class AbstractLieSystem(eqx.Module):
         """The shape of a momentum `m`: `(d,)` (the default), or one row per body."""
         return (self.group.algebra_dim,)
 
+    def batch_axes(self, axis: int | None):
+        """`jax.vmap`'s `in_axes` for this system as a batch of systems along `axis` (`None`:
+        one system shared by the batch): `axis` for its array leaves and `None` for the
+        others — a potential given as a Python function, for one — which `jax.vmap`
+        cannot map (a batch built with `equinox.filter_vmap` keeps them)."""
+        if axis is None:
+            return None
+        return jax.tree.map(lambda x: axis if eqx.is_array(x) else None, self)
+
     def free_flow(self, integrator, g, m, h: Scalar):
         """The free step of a kick integrator (`AbstractKickIntegrator.free_step`) on this
         system: the integrator's own (the default). A system of several bodies steps each

@@ -5,8 +5,10 @@ step of a product group taken body by body.
 On a product group `Gᴺ` with a block-diagonal kinetic energy the free flow is the
 product of the bodies' free flows, and so is the free step of every kick integrator
 (its discrete Lagrangian is the sum of the bodies', paper §2 and (3.3)): the N free steps
-run at once as one `jax.vmap` of the method's step of one body. The step's report is
-that of the worst body.
+run at once as one `jax.vmap` of the method's step of one body (`each_body`), or, where
+the method has a kernel for the body, as that kernel's step with the N bodies as its
+batch (`AbstractKickIntegrator.free_bodies_step`). The step's report is that of the
+worst body.
 """
 
 from __future__ import annotations

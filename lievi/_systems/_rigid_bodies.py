@@ -13,9 +13,9 @@ force), by autodiff of `V` as for one body (`AbstractLieSystem.force`). A kick i
 (`lievi.DEP`, `lievi.LiePoissonSplitting`, `lievi.MoserVeselov`, their `Composition`)
 steps them as kick (all bodies) – free step of each body – kick (all bodies): the free step
 of the product is the product of the free steps, so it is each body's own step, run on the
-N bodies at once (`free_flow`: `jax.vmap` of the method's step over the bodies, which on
-SE(3) runs the structure-of-arrays kernel of `lievi/_kernels/_se3.py` with the N bodies as
-its batch). The coupling is evaluated once per step: the loop carries the end kick's force
+N bodies at once (`free_flow`: on SE(3), the structure-of-arrays kernel of
+`lievi/_kernels/_se3.py` with the N bodies as its batch, or `jax.vmap` of the method's
+step of one body). The coupling is evaluated once per step: the loop carries the end kick's force
 to the next step's first kick (`AbstractKickIntegrator.step_cache`).
 
 Symmetry: a potential of the relative poses, `V(h g_1, …, h g_N) = V(g_1, …, g_N)` for
@@ -38,7 +38,7 @@ from .._checks import check_real_dtype, spd_conditions
 from .._groups._base import MatrixLieGroup
 from .._groups._se3 import SE3
 from ._base import AbstractLieSystem
-from ._bodies import check_per_body_inertia, each_body
+from ._bodies import check_per_body_inertia
 from ._potential import AbstractPotential, as_potential
 from ._se3_body import rigid_body_tensor, spd_solve
 from ._side import Side
@@ -116,17 +116,11 @@ class RigidBodies(AbstractLieSystem):
         return flat.reshape(*mass.shape, 6, 6)
 
     def free_flow(self, integrator, g, m, h: Scalar):
-        """Each body's free step by `integrator` (`AbstractKickIntegrator.free_body_step`:
-        a body in vacuum, origin at its centre of mass), the N bodies at once (`jax.vmap`).
-        The step's report is that of the worst body: the first failing body's code, the
-        most Newton iterations, the largest residual."""
-        return each_body(
-            lambda J, mass, g, m: integrator.free_body_step(J, mass, g, m, h),
-            self.inertia,
-            self.mass,
-            g,
-            m,
-        )
+        """Each body's free step by `integrator`, the N bodies at once
+        (`AbstractKickIntegrator.free_bodies_step`: a body in vacuum, origin at its centre
+        of mass). The step's report is that of the worst body: the first failing body's
+        code, the most Newton iterations, the largest residual."""
+        return integrator.free_bodies_step(self.inertia, self.mass, g, m, h)
 
     def lagrangian(self, xi: Float[Array, "N 6"]) -> Scalar:
         return jnp.sum(xi * self.legendre(xi)) / 2
