@@ -23,7 +23,7 @@ from .._newton import newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from .._systems._bodies import each_body, worst_body_report
-from .._systems._se3_body import RigidBodySE3, rigid_body_tensor
+from .._systems._se3_body import RigidBodySE3
 
 
 class StepInfo(eqx.Module):
@@ -212,19 +212,21 @@ class AbstractKickIntegrator(AbstractIntegrator):
         steps the rotation and translates exactly (`_drift.rotation_and_drift`)."""
         return self.free_step(RigidBodySE3(inertia, mass), g, m, h)
 
-    def free_bodies_step(self, inertia, mass, g, m, h: Scalar):
-        """The free steps of N rigid bodies in vacuum at once (`inertia` `(N, 3)` or
-        `(N, 3, 3)`, `mass` `(N,)`, `g` `(N, 4, 4)`, `m` `(N, 6)`): what `lievi.RigidBodies`
-        runs. `free_body_step` of each body; where that is the step of this method's
-        kernel for the free body on SE(3), the kernel's step with the N bodies as its batch
-        (`AbstractBatchKernel.bodies_step`: the same code, traced once, not under
-        `jax.vmap`). The report is that of the worst body."""
-        tensors = jax.vmap(rigid_body_tensor)(inertia, mass)
+    def free_bodies_step(self, bodies, g, m, h: Scalar):
+        """The free steps of the N rigid bodies of `bodies` (`lievi.RigidBodies`, each body
+        in vacuum) at once, `g` `(N, 4, 4)`, `m` `(N, 6)`: `free_body_step` of each body;
+        where that is the step of this method's kernel for the free body on SE(3), the
+        kernel's step with the N bodies as its batch (`AbstractBatchKernel.bodies_step`:
+        the same code, traced once, not under `jax.vmap`). The report is that of the
+        worst body."""
+        tensors = bodies.tensor
         kernel = None
         if not self._overridden_below("kernels", ("free_body_step",)):
             kernel = self.free_kernel(RigidBodySE3(tensor=tensors[0]))
         if kernel is None:
-            return each_body(lambda *body: self.free_body_step(*body, h), inertia, mass, g, m)
+            return each_body(
+                lambda *body: self.free_body_step(*body, h), bodies.inertia, bodies.mass, g, m
+            )
         g_next, m_next, *info = kernel.bodies_step(tensors, g, m, h)
         return g_next, m_next, worst_body_report(StepInfo(*info))
 

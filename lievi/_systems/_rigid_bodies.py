@@ -120,7 +120,7 @@ class RigidBodies(AbstractLieSystem):
         (`AbstractKickIntegrator.free_bodies_step`: a body in vacuum, origin at its centre
         of mass). The step's report is that of the worst body: the first failing body's
         code, the most Newton iterations, the largest residual."""
-        return integrator.free_bodies_step(self.inertia, self.mass, g, m, h)
+        return integrator.free_bodies_step(self, g, m, h)
 
     def lagrangian(self, xi: Float[Array, "N 6"]) -> Scalar:
         return jnp.sum(xi * self.legendre(xi)) / 2
