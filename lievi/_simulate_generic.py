@@ -17,6 +17,7 @@ import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
 from ._checks import drifts_off_group
+from ._compile import RunProgram, bodies_of
 from ._horizon import as_count, block_saves, join_blocks, run_blocks, save_buffers, store
 from ._newton import ROOT_NAME
 from ._progress import AbstractProgressMeter, NoProgressMeter
@@ -172,9 +173,11 @@ def simulate_blocks(
     size = block_saves(bodies * ((n * n + d + 2) * m0.dtype.itemsize + 8))
     steps, every = as_count(n_steps), as_count(save_every)
 
+    program = _block.for_bodies(bodies_of(g0))
+
     def block(carry, count):
         args = (system, integrator, m0, carry, h, t0, steps, every, count, progress, size, axes)
-        return _block(*args)
+        return program(*args)
 
     final, outputs = run_blocks(block, carry, n_steps // save_every, size)
     return _join(system, g0, m0, h, t0, n_steps, save_every, final, outputs, axes)
@@ -195,7 +198,6 @@ def _per_body(fn, axes, *in_axes):
     return jax.vmap(fn, in_axes=tuple(names.get(a, a) for a in in_axes))
 
 
-@eqx.filter_jit
 def _block(system, integrator, m0, carry, h, t0, n_steps, save_every, count, progress, size, axes):
     """`count` saves of `save_every` steps each (traced), into buffers of `size` saves."""
 
@@ -236,6 +238,10 @@ def _block(system, integrator, m0, carry, h, t0, n_steps, save_every, count, pro
         return jax.lax.fori_loop(0, count, one_save, (carry, save_buffers(shapes, size)))
 
     return _per_body(run, axes, "system", 0, 0, "h")(system, m0, carry, h)
+
+
+# Compiled with the small-run options for one body or two (`_compile`).
+_block = RunProgram(_block)
 
 
 @eqx.filter_jit

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
+from ._compile import RunProgram, bodies_of
 from ._horizon import as_count, block_saves, horizon_traced, run_blocks, save_buffers, store
 from ._kernels._base import ROOT_NAME
 from ._progress import AbstractProgressMeter, NoProgressMeter
@@ -219,8 +220,10 @@ def _kernel_blocks(
     size = block_saves(sum(s.size * s.dtype.itemsize for s in jax.tree.leaves(shapes)))
     steps, every = as_count(n_steps), as_count(save_every)
 
+    program = _block.for_bodies(bodies_of(g0))
+
     def block(state, count, kernel=kernel):
-        return _block(kernel, *args[1:], progress, state, steps, every, count, shapes, size)
+        return program(kernel, *args[1:], progress, state, steps, every, count, shapes, size)
 
     light = None
     if g0.shape[0] <= FIXED_FIRST_MAX_BODIES and not progress.reports:
@@ -280,7 +283,6 @@ def _traced_save_shapes(kernel, init, save, group):
     return eqx.filter_eval_shape(one, init)
 
 
-@eqx.filter_jit
 def _block(
     kernel,
     constants,
@@ -319,6 +321,10 @@ def _block(
     # Batch-major here, once: what is compiled per horizon (`_join`) only concatenates. The
     # buffers past `count` are zeros, so the iterations sum over the block.
     return state, _layout(kernel, buffers)
+
+
+# Compiled with the small-run options for one body or two (`_compile`).
+_block = RunProgram(_block)
 
 
 @eqx.filter_jit

@@ -164,12 +164,18 @@ def _kernels_of_blocks(monkeypatch):
     seen = []
     block = _simulate_kernel._block
 
-    def spy(kernel, *args):
-        inner = getattr(kernel, "inner", kernel)  # a composition's stages
-        seen.append(inner.max_steps)
-        return block(kernel, *args)
+    class Spy:
+        def for_bodies(self, n):
+            program = block.for_bodies(n)
 
-    monkeypatch.setattr(_simulate_kernel, "_block", spy)
+            def spy(kernel, *args):
+                inner = getattr(kernel, "inner", kernel)  # a composition's stages
+                seen.append(inner.max_steps)
+                return program(kernel, *args)
+
+            return spy
+
+    monkeypatch.setattr(_simulate_kernel, "_block", Spy())
     return seen
 
 

@@ -24,6 +24,7 @@ LAYERS = (
         (
             "_scan",
             "_progress",
+            "_compile",
             "_horizon",
             "_save",
             "_solution",

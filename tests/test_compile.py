@@ -1,0 +1,77 @@
+"""The eager run's programs are compiled with XLA's small-run options for one body or two
+(`lievi/_compile.py`): the policy, and the numbers, which must not depend on it."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lievi
+from lievi import _compile, _simulate_generic, _simulate_kernel
+
+
+@pytest.fixture(params=["kernel", "generic"])
+def program(request):
+    return {"kernel": _simulate_kernel._block, "generic": _simulate_generic._block}[request.param]
+
+
+def test_small_runs_take_the_small_run_options(program):
+    # On this CPU, with the installed XLA, the options are accepted (if a new XLA drops
+    # them, every program keeps XLA's defaults and this test says so).
+    assert _compile.small_run_options_apply()
+    assert program.for_bodies(1) is program.small
+    assert program.for_bodies(_compile.SMALL_RUN_BODIES) is program.small
+    assert program.for_bodies(_compile.SMALL_RUN_BODIES + 1) is program.default
+    assert program.small is not program.default
+
+
+def test_without_the_options_every_run_takes_the_defaults(program, monkeypatch):
+    monkeypatch.setattr(_compile, "small_run_options_apply", lambda: False)
+    assert program.for_bodies(1) is program.default
+
+
+def test_bodies_of_a_run():
+    assert _compile.bodies_of(jnp.eye(4)) == 1
+    assert _compile.bodies_of(jnp.zeros((2, 4, 4))) == 2  # a system of two bodies
+    assert _compile.bodies_of(jnp.zeros((5, 2, 4, 4))) == 10  # a batch of five of them
+
+
+def _binary():
+    """Two bodies of three point masses each in mutual gravity, 1.5 apart, spinning."""
+    masses = jnp.array([[1.0, 0.6, 0.8], [0.5, 0.4, 0.3]])
+    points = jnp.array(
+        [
+            [[0.12, 0.0, 0.0], [-0.1, 0.08, 0.0], [0.0, -0.06, 0.09]],
+            [[0.1, 0.0, 0.02], [-0.08, 0.07, 0.0], [0.0, -0.05, -0.08]],
+        ]
+    )
+    system = lievi.gravitating_bodies(1.0, masses, points)
+    g0 = jnp.tile(jnp.eye(4), (2, 1, 1)).at[:, 0, 3].set(jnp.array([-0.5, 1.0]))
+    m0 = jnp.array([[0.03, 0.05, 0.1, 0.0, -1.2, 0.0], [0.04, -0.02, 0.01, 0.0, 1.2, 0.0]])
+    return system, g0, m0
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["SE(3) one body, DEP kernel", "binary, DEP"],
+)
+def test_the_options_do_not_change_the_numbers(case, monkeypatch):
+    """One run with the small-run options and the same run with XLA's defaults (no body is
+    then small enough) agree to round-off: 20 steps, each saved, float64, to 64 ulps of
+    the largest entry of each output. (Over hundreds of steps the binary's orbit
+    amplifies a different rounding, as it does any: 4e-13 after 500 steps.)"""
+    if case.startswith("SE(3)"):
+        system = lievi.RigidBodySE3(jnp.array([1.0, 2.0, 3.0]), 2.0)
+        g0, m0 = jnp.eye(4), jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])
+    else:
+        system, g0, m0 = _binary()
+
+    def run():
+        return lievi.simulate(system, lievi.DEP(), g0, m0, h=0.05, n_steps=20)
+
+    small = run()
+    monkeypatch.setattr(_compile, "SMALL_RUN_BODIES", 0)
+    default = run()
+    assert int(small.result) == int(default.result) == int(lievi.RESULTS.successful)
+    for a, b in ((small.g, default.g), (small.m, default.m)):
+        scale = float(jnp.max(jnp.abs(b)))
+        np.testing.assert_allclose(a, b, rtol=0, atol=64 * np.finfo(np.float64).eps * scale)
