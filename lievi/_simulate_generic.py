@@ -166,24 +166,26 @@ def simulate_blocks(
     batch = () if axes is None else g0.shape[:1]
     result, failed_step = (jnp.broadcast_to(x, batch) for x in RESULTS.initial(valid))
     # A function of `g0` alone (not of `init`'s per-run state): computed once here.
-    cache = _initial_cache(system, integrator, g0, axes)
+    stepped = bodies_of(g0)  # the bodies one step advances (`_compile`)
+    cache = _initial_cache.for_bodies(stepped)(system, integrator, g0, axes)
     carry = (g0, m0, result, failed_step, jnp.zeros(batch, jnp.int32), cache)
     n, d = g0.shape[-1], m0.shape[-1]
     bodies = g0.shape[0] if batch else 1
     size = block_saves(bodies * ((n * n + d + 2) * m0.dtype.itemsize + 8))
     steps, every = as_count(n_steps), as_count(save_every)
 
-    program = _block.for_bodies(bodies_of(g0))
+    program = _block.for_bodies(stepped)
 
     def block(carry, count):
         args = (system, integrator, m0, carry, h, t0, steps, every, count, progress, size, axes)
         return program(*args)
 
     final, outputs = run_blocks(block, carry, n_steps // save_every, size)
-    return _join(system, g0, m0, h, t0, n_steps, save_every, final, outputs, axes)
+    join = _join.for_bodies(stepped)
+    return join(system, g0, m0, h, t0, n_steps, save_every, final, outputs, axes)
 
 
-@eqx.filter_jit
+@RunProgram
 def _initial_cache(system, integrator, g0, axes):
     """`AbstractIntegrator.step_cache` at `g0` (per body for a batch), compiled: on the
     blocks' eager path it would otherwise run operation by operation."""
@@ -198,6 +200,7 @@ def _per_body(fn, axes, *in_axes):
     return jax.vmap(fn, in_axes=tuple(names.get(a, a) for a in in_axes))
 
 
+@RunProgram
 def _block(system, integrator, m0, carry, h, t0, n_steps, save_every, count, progress, size, axes):
     """`count` saves of `save_every` steps each (traced), into buffers of `size` saves."""
 
@@ -240,11 +243,7 @@ def _block(system, integrator, m0, carry, h, t0, n_steps, save_every, count, pro
     return _per_body(run, axes, "system", 0, 0, "h")(system, m0, carry, h)
 
 
-# Compiled with the small-run options for one body or two (`_compile`).
-_block = RunProgram(_block)
-
-
-@eqx.filter_jit
+@RunProgram
 def _join(system, g0, m0, h, t0, n_steps: int, save_every: int, final, outputs, axes):
     def join(system, g0, m0, h, final, outputs):
         saves = join_blocks(outputs, n_steps // save_every)

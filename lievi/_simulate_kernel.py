@@ -215,12 +215,13 @@ def _kernel_blocks(
     needs the loop and both programs are compiled, and the less the compile counts beside
     the run. With a meter, a block run again would report its steps twice."""
     args = (kernel, constants, step_bound, g0, m0, h, valid, save, group)
-    init = _initial(*args)
+    stepped = bodies_of(g0)  # the bodies one step advances (`_compile`)
+    init = _initial.for_bodies(stepped)(*args)
     shapes = _save_shapes(kernel, init, save, group)
     size = block_saves(sum(s.size * s.dtype.itemsize for s in jax.tree.leaves(shapes)))
     steps, every = as_count(n_steps), as_count(save_every)
 
-    program = _block.for_bodies(bodies_of(g0))
+    program = _block.for_bodies(stepped)
 
     def block(state, count, kernel=kernel):
         return program(kernel, *args[1:], progress, state, steps, every, count, shapes, size)
@@ -230,7 +231,8 @@ def _kernel_blocks(
         light = kernel.fixed_iterations_only()
     first = None if light is None else functools.partial(block, kernel=light)
     final, outputs = run_blocks(block, init, n_steps // save_every, size, first, _no_new_failure)
-    return _join(kernel, g0, m0, h, t0, n_steps, save_every, save, final, outputs)
+    join = _join.for_bodies(stepped)
+    return join(kernel, g0, m0, h, t0, n_steps, save_every, save, final, outputs)
 
 
 def _no_new_failure(before, after) -> bool:
@@ -245,7 +247,7 @@ def _no_new_failure(before, after) -> bool:
     )
 
 
-@eqx.filter_jit
+@RunProgram
 def _initial(kernel, constants, step_bound, g0, m0, h, valid, save, group):
     return _setup(kernel, constants, step_bound, g0, m0, h, valid, 1, NoProgressMeter())[1]
 
@@ -283,6 +285,7 @@ def _traced_save_shapes(kernel, init, save, group):
     return eqx.filter_eval_shape(one, init)
 
 
+@RunProgram
 def _block(
     kernel,
     constants,
@@ -323,11 +326,7 @@ def _block(
     return state, _layout(kernel, buffers)
 
 
-# Compiled with the small-run options for one body or two (`_compile`).
-_block = RunProgram(_block)
-
-
-@eqx.filter_jit
+@RunProgram
 def _join(kernel, g0, m0, h, t0, n_steps, save_every, save, final, outputs):
     n_saves = n_steps // save_every
     out = {
