@@ -170,6 +170,7 @@ def throughput() -> list[dict]:
     momenta = jax.random.normal(jax.random.PRNGKey(0), (10_000, 3))
     m0, m0_se3 = jnp.array([0.3, -0.2, 0.5]), jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])
     momenta_se3 = m0_se3 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(1), (64, 6)))
+    bodies, g0_binary, m0_binary = binary()
     cases = {
         "simulate_batch 1e4 bodies x 100 steps, DEP exp": lambda: lievi.simulate_batch(
             body, lievi.DEP(), jnp.eye(3), momenta, h=0.05, n_steps=100, save=("g", "m")
@@ -188,6 +189,19 @@ def throughput() -> list[dict]:
         ),
         "simulate 1e4 steps, SE(3) DEP exp, final state": lambda: lievi.simulate(
             se3, lievi.DEP(), jnp.eye(4), m0_se3, h=0.05, n_steps=10_000, save_every=10_000
+        ),
+        # A system of two bodies (one system: its programs take the small-run options).
+        "simulate 1e4 steps, binary DEP exp, every 100th saved": lambda: lievi.simulate(
+            bodies, lievi.DEP(), g0_binary, m0_binary, h=0.05, n_steps=10_000, save_every=100
+        ),
+        "simulate 1e4 steps, binary splitting, every 100th saved": lambda: lievi.simulate(
+            bodies,
+            lievi.LiePoissonSplitting(),
+            g0_binary,
+            m0_binary,
+            h=0.05,
+            n_steps=10_000,
+            save_every=100,
         ),
         # A short batch run: its eager call's own cost is a large part of it.
         "simulate_batch 64 SE(3) bodies x 100 steps, DEP exp, final state": lambda: (

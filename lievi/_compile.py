@@ -5,18 +5,18 @@ XLA's CPU backend turns each fused group of operations into a loop, by default w
 hundreds to thousands of scalar operations, many small fused loops, and those emitters
 take longer to compile them than XLA's older loop emitter does. Where a step advances one
 or two bodies, nothing is vectorised across a batch, and the older emitter's program runs
-as fast; from eight bodies on, the default's runs faster. So the programs that hold a run's
-steps (`_simulate_kernel._block`, `_simulate_generic._block`) are compiled with
-`SMALL_RUN_OPTIONS` for a run of at most `SMALL_RUN_BODIES` bodies on CPU, and with XLA's
-defaults otherwise.
+as fast; from eight bodies on, the default's runs faster. So the programs of an eager run
+(its blocks of steps, their set-up and the join, in `_simulate_kernel` and
+`_simulate_generic`) are compiled with `SMALL_RUN_OPTIONS` for a run of at most
+`SMALL_RUN_BODIES` bodies on CPU, and with XLA's defaults otherwise. Under the caller's
+`jax.jit` or `jax.grad` they are part of the caller's program, compiled with its options.
 
-Measured on a 2-core CPU, float64, the option set for the whole process (`XLA_FLAGS`), a
-first `simulate` of 100 steps and then the best of five of 2000 steps, the final state
-kept: one `RigidBodySE3`, `DEP()` first call 3.1 → 2.2–2.5 s, run 8.7 → 9.3 ms; its
-Cayley chart 2.1–2.3 → 1.4–1.6 s, 6.6–7.3 → 6.4–7.5 ms; `RKMK8` 4.1–4.3 → 2.9–3.2 s,
-33–34 → 31 ms; the binary asteroid (`RigidBodies`, two bodies) with `DEP()` 4.8 → 3.4 s,
-18.5 → 17.3 ms; a batch of SE(3) bodies runs 1.0× as fast at 2 bodies, 0.8× at 8 and
-0.55× at 64. `benchmarks/compile_time.py` records the effect of this module itself.
+Measured on a 2-core CPU, float64 (`python benchmarks/compile_time.py`, before and after
+this module; docs/compile-times.md): first `simulate` calls 0.2–1.3 s sooner (one
+`RigidBodySE3` with `DEP()` 3.06 → 2.57 s, the binary asteroid on SE(3)² 4.49 → 3.42 s),
+one-system run times 0.97–1.01×. With the option set for the whole process, a batch of
+SE(3) bodies with `DEP()` ran as fast at 2 bodies, at 0.8× at 8 and at 0.55× at 64: hence
+`SMALL_RUN_BODIES`.
 
 The option is XLA's own: if the installed XLA does not know it, every program keeps the
 defaults (`small_run_options_apply`).
