@@ -12,7 +12,7 @@ as fast; from eight bodies on, the default's runs faster. So the programs of an 
 `jax.jit` or `jax.grad` they are part of the caller's program, compiled with its options.
 
 Measured on a 2-core CPU, float64 (`python benchmarks/compile_time.py`, before and after
-this module; docs/compile-times.md): first `simulate` calls 0.2–1.3 s sooner (one
+this module; docs/compile-times.md): first `simulate` calls 0.06–1.3 s (7–40 %) sooner (one
 `RigidBodySE3` with `DEP()` 3.06 → 2.57 s, the binary asteroid on SE(3)² 4.49 → 3.42 s),
 one-system run times 0.97–1.01×. With the option set for the whole process, a batch of
 SE(3) bodies with `DEP()` ran as fast at 2 bodies, at 0.8× at 8 and at 0.55× at 64: hence
