@@ -139,7 +139,10 @@ class Problem(eqx.Module):
         residuals))`: the bodies are independent, so the gradient of the sum is every
         body's own gradient."""
         systems, sol = self.rollout(params, dynamic, data, h)
-        r, penalty, failed = jax.vmap(self.residual_terms)(systems, sol.g, sol.m, data, horizon)
+        in_axes = (systems.batch_axes(0), 0, 0, 0, 0)
+        r, penalty, failed = jax.vmap(self.residual_terms, in_axes)(
+            systems, sol.g, sol.m, data, horizon
+        )
         losses = jnp.sum(r**2, axis=(-2, -1)) + penalty
         normalised = losses / data["loss_scale"]
         return jnp.sum(normalised), (normalised, losses, failed, sol.result, r)
@@ -149,7 +152,10 @@ class Problem(eqx.Module):
         at the observations (`simulate_batch`, its fast path where there is one)."""
         params = jax.tree.map(lambda x: x.astype(h.dtype), params)
         values, m0, g0 = jax.vmap(self.unpack)(params, dynamic, data)
-        systems = jax.vmap(self.system_of)(values, dynamic)
+        # `filter_vmap`: a leaf that is not an array (a potential given as a Python
+        # function) is the same for every body and stays one leaf, which `jax.vmap`
+        # cannot return.
+        systems = eqx.filter_vmap(self.system_of)(values, dynamic)
         sol = simulate_batch(
             systems,
             self.integrator,
@@ -176,7 +182,8 @@ class Problem(eqx.Module):
             ok = ok & ((error <= PREDICTED) | (data["weights"][0] == 0))
         if data["angular_velocities"] is not None:
             W = data["angular_velocities"]
-            omega = jax.vmap(jax.vmap(lambda s, m: s.velocity(m), (None, 0)))(systems, sol.m)
+            per_body = jax.vmap(lambda s, m: s.velocity(m), (None, 0))
+            omega = jax.vmap(per_body, (systems.batch_axes(0), 0))(systems, sol.m)
             rms = jnp.sqrt(jnp.mean(jnp.sum(W**2, axis=-1), axis=-1, keepdims=True))
             error = jnp.sqrt(jnp.sum((omega - W) ** 2, axis=-1))
             close = error <= PREDICTED * jnp.where(rms > 0, rms, 1.0)
