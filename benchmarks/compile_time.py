@@ -171,6 +171,9 @@ def throughput() -> list[dict]:
     m0, m0_se3 = jnp.array([0.3, -0.2, 0.5]), jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])
     momenta_se3 = m0_se3 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(1), (64, 6)))
     bodies, g0_binary, m0_binary = binary()
+    many = lievi.RigidBodies(jnp.tile(jnp.array([1.0, 2.0, 3.0]), (10_000, 1)), jnp.ones(10_000))
+    g0_many = jnp.tile(jnp.eye(4), (10_000, 1, 1)).at[:, 0, 3].set(jnp.arange(10_000.0))
+    m0_many = 0.1 * jax.random.normal(jax.random.PRNGKey(2), (10_000, 6))
     cases = {
         "simulate_batch 1e4 bodies x 100 steps, DEP exp": lambda: lievi.simulate_batch(
             body, lievi.DEP(), jnp.eye(3), momenta, h=0.05, n_steps=100, save=("g", "m")
@@ -203,6 +206,18 @@ def throughput() -> list[dict]:
             n_steps=10_000,
             save_every=100,
         ),
+        # One system of 10⁴ free bodies: a save is 1.8 MB, so a block holds few saves.
+        "simulate 100 steps, 1e4 free RigidBodies, splitting, every 10th saved": lambda: (
+            lievi.simulate(
+                many,
+                lievi.LiePoissonSplitting(),
+                g0_many,
+                m0_many,
+                h=0.05,
+                n_steps=100,
+                save_every=10,
+            )
+        ),  # fmt: skip
         # A short batch run: its eager call's own cost is a large part of it.
         "simulate_batch 64 SE(3) bodies x 100 steps, DEP exp, final state": lambda: (
             lievi.simulate_batch(

@@ -24,6 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._checks import (
+    abstract_key,
+    abstract_tree,
     check_finite,
     check_integer,
     check_real_dtype,
@@ -87,29 +89,20 @@ def _is_one_system(system) -> bool:
     dtype = state_dtype(system)
     g = jax.ShapeDtypeStruct(system.element_shape(), dtype)
     m = jax.ShapeDtypeStruct(system.momentum_shape(), dtype)
-    arrays, static = eqx.partition(system, eqx.is_array)
-    leaves, treedef = jax.tree.flatten(arrays)
-    shapes = tuple(
-        jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x), weak_type=_weak(x)) for x in leaves
-    )
+    key = abstract_key(system)
     try:
-        return _scalar_energy_and_potential(static, treedef, shapes, g, m)
+        return _scalar_energy_and_potential(key, g, m)
     except TypeError:  # an unhashable field (e.g. a list): not cached
-        return _scalar_energy_and_potential.__wrapped__(static, treedef, shapes, g, m)
-
-
-def _weak(x) -> bool:
-    return bool(getattr(x, "weak_type", False))
+        return _scalar_energy_and_potential.__wrapped__(key, g, m)
 
 
 @functools.lru_cache(maxsize=64)
-def _scalar_energy_and_potential(static, treedef, shapes, g, m) -> bool:
-    def both(arrays, g, m):
-        system = eqx.combine(arrays, static)
+def _scalar_energy_and_potential(key, g, m) -> bool:
+    def both(system, g, m):
         return system.energy(m), system.potential_energy(g)
 
     try:
-        out = eqx.filter_eval_shape(both, jax.tree.unflatten(treedef, shapes), g, m)
+        out = eqx.filter_eval_shape(both, abstract_tree(key), g, m)
     except Exception:  # e.g. a (B, 3) inertia against a (3,) momentum
         return False
     return all(jnp.shape(x) == () for x in out)

@@ -169,9 +169,10 @@ def simulate_blocks(
     stepped = bodies_of(g0)  # the bodies one step advances (`_compile`)
     cache = _initial_cache.for_bodies(stepped)(system, integrator, g0, axes)
     carry = (g0, m0, result, failed_step, jnp.zeros(batch, jnp.int32), cache)
-    n, d = g0.shape[-1], m0.shape[-1]
-    bodies = g0.shape[0] if batch else 1
-    size = block_saves(bodies * ((n * n + d + 2) * m0.dtype.itemsize + 8))
+    # One save's bytes: `g` and `m` of every body (a system of several has one per body),
+    # and per system the iteration statistics.
+    systems = g0.shape[0] if batch else 1
+    size = block_saves((g0.size + m0.size + 2 * systems) * m0.dtype.itemsize + 8 * systems)
     steps, every = as_count(n_steps), as_count(save_every)
 
     program = _block.for_bodies(stepped)

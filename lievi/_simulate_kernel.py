@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
+from ._checks import abstract_key, abstract_tree
 from ._compile import RunProgram, bodies_of
 from ._horizon import as_count, block_saves, horizon_traced, run_blocks, save_buffers, store
 from ._kernels._base import ROOT_NAME
@@ -260,20 +261,15 @@ def _save_shapes(kernel, init, save, group):
     every eager call cost about 1 ms of a short call's 5–5.5 ms (one SE(3) body, 10 steps,
     best of 150), which a run cut into segments (`simulate_with_neighbor_list`,
     `stream_batch`) pays once a segment."""
-    leaves, treedef = jax.tree.flatten(init)
-    if all(isinstance(x, jax.Array) for x in leaves):
-        specs = tuple((x.shape, x.dtype, x.weak_type) for x in leaves)
-        try:
-            return _cached_save_shapes(kernel, save, group, treedef, specs)
-        except TypeError:  # an unhashable kernel or group: trace as below
-            pass
-    return _traced_save_shapes(kernel, init, save, group)
+    try:
+        return _cached_save_shapes(kernel, save, group, abstract_key(init))
+    except TypeError:  # an unhashable kernel or group: trace as below
+        return _traced_save_shapes(kernel, init, save, group)
 
 
 @functools.lru_cache(maxsize=64)
-def _cached_save_shapes(kernel, save, group, treedef, specs):
-    abstract = [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in specs]
-    return _traced_save_shapes(kernel, jax.tree.unflatten(treedef, abstract), save, group)
+def _cached_save_shapes(kernel, save, group, key):
+    return _traced_save_shapes(kernel, abstract_tree(key), save, group)
 
 
 def _traced_save_shapes(kernel, init, save, group):
