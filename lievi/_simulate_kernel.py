@@ -228,12 +228,26 @@ def _kernel_blocks(
         return program(kernel, *args[1:], progress, state, steps, every, count, shapes, size)
 
     light = None
+    # Once a run of this kernel on these shapes has needed the loop, its whole program is
+    # compiled, and trying the light one first would only run blocks twice.
+    needed_loop = abstract_key((kernel, init))
     if g0.shape[0] <= FIXED_FIRST_MAX_BODIES and not progress.reports:
-        light = kernel.fixed_iterations_only()
+        light = None if needed_loop in _NEEDED_LOOP else kernel.fixed_iterations_only()
     first = None if light is None else functools.partial(block, kernel=light)
-    final, outputs = run_blocks(block, init, n_steps // save_every, size, first, _no_new_failure)
+
+    def kept(before, after):
+        if _no_new_failure(before, after):
+            return True
+        _NEEDED_LOOP.add(needed_loop)
+        return False
+
+    final, outputs = run_blocks(block, init, n_steps // save_every, size, first, kept)
     join = _join.for_bodies(stepped)
     return join(kernel, g0, m0, h, t0, n_steps, save_every, save, final, outputs)
+
+
+# `abstract_key((kernel, initial state))` of the eager runs whose light program failed a body.
+_NEEDED_LOOP: set = set()
 
 
 def _no_new_failure(before, after) -> bool:

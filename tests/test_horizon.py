@@ -182,6 +182,8 @@ def _kernels_of_blocks(monkeypatch):
             return spy
 
     monkeypatch.setattr(_simulate_kernel, "_block", Spy())
+    # No run before this test has left a kernel marked as needing its loop.
+    monkeypatch.setattr(_simulate_kernel, "_NEEDED_LOOP", set())
     return seen
 
 
@@ -224,17 +226,28 @@ def test_small_batches_try_the_fixed_iterations_first(small_blocks, monkeypatch)
     """A batch of up to `FIXED_FIRST_MAX_BODIES` bodies takes the same rule as one body: the
     kernel without its loop while every body's steps succeed, the whole kernel from the
     first block where one body's do not (here the third body's, whose `h|Π|` is ten times
-    the others'). Both runs are the one under `jit`, as for one body."""
+    the others'), and in the later runs of that kernel on the same shapes. Every run is
+    the one under `jit`, as for one body."""
     seen = _kernels_of_blocks(monkeypatch)
     integrator = lievi.DEP()
     fixed = integrator.batch_kernel(BODY).fixed_iterations_only().max_steps
     kwargs = dict(h=0.3, n_steps=12, save_every=1)
     traced = eqx.filter_jit(lambda m: lievi.simulate_batch(BODY, integrator, G0, m, **kwargs))
-    for momenta, fails in ((MOMENTA, False), (MOMENTA.at[2].multiply(10.0), True)):
+    whole = [integrator.max_steps] * 3
+    # After the run that needed the loop, the same kernel on the same shapes runs whole
+    # from the start: its program is compiled, and the light one would fail a block again.
+    hard = MOMENTA.at[2].multiply(10.0)
+    cases = (
+        (MOMENTA, [fixed] * 3, False),
+        (hard, [fixed, *whole], True),
+        (hard, whole, True),
+        (MOMENTA, whole, False),
+    )
+    for momenta, blocks, fails in cases:
         seen.clear()
         eager = lievi.simulate_batch(BODY, integrator, G0, momenta, **kwargs)
         np.testing.assert_array_equal(eager.result, lievi.RESULTS.successful)
-        assert seen == ([fixed, *[integrator.max_steps] * 3] if fails else [fixed] * 3)
+        assert seen == blocks
         expected = traced(momenta)
         np.testing.assert_array_equal(eager.result, expected.result)
         for x, y in ((eager.g, expected.g), (eager.m, expected.m)):

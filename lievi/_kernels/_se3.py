@@ -58,6 +58,7 @@ from .._groups._se3 import SE3
 from .._newton import newton_tolerance
 from .._results import RESULTS
 from ._base import AbstractBatchKernel, compacted_tail, materialise, without_newton_loop
+from ._flat_batch import bodies_batched
 from ._implicit import differentiable_root
 from ._se3_reduced import reduced_residual, velocity_part
 from ._se3_residual import (
@@ -302,8 +303,12 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
     sm, sA, sAinv, sC, stol = stopped
     # The explicit-Euler guess `h M⁻¹ m` (`DEP.solve_increment`'s).
     guess = tuple(sum(sAinv[i][j] * sm[j] for j in range(6)) for i in range(6))
-    x, iterations, norm, converged, off_branch = solve_increment(
-        chart, sm, sA, sC, guess, stol, fixed, max_steps, alive
+
+    def solve(m, A, C, guess, tolerance, alive):
+        return solve_increment(chart, m, A, C, guess, tolerance, fixed, max_steps, alive)
+
+    x, iterations, norm, converged, off_branch = bodies_batched(solve)(
+        sm, sA, sC, guess, stol, jnp.asarray(alive)
     )
     x = differentiable_root(SE3Equation(chart), x, guess, m, A)
     one = ones(m[0])

@@ -52,6 +52,7 @@ import jax.numpy as jnp
 from .._newton import newton_tolerance
 from .._results import RESULTS
 from ._base import AbstractBatchKernel, materialise, ones, without_newton_loop
+from ._flat_batch import bodies_batched
 from ._implicit import differentiable_root
 from ._so3_equations import AbstractSO3Equation, explicit_euler_guess, moser_veselov_on_branch
 from ._soa import (
@@ -138,9 +139,11 @@ def differentiable_increment(
     differentiated); the root is tagged `ROOT_NAME` for `jax.checkpoint` policies.
     """
     stopped = jax.lax.stop_gradient((m, A, tolerance))
-    xi, iterations, norm, converged = solve_increment(
-        equation, *stopped, fixed_iterations, max_steps, alive
-    )
+
+    def solve(m, A, tolerance, alive):
+        return solve_increment(equation, m, A, tolerance, fixed_iterations, max_steps, alive)
+
+    xi, iterations, norm, converged = bodies_batched(solve)(*stopped, jnp.asarray(alive))
     guess = explicit_euler_guess(*stopped[:2])
     return differentiable_root(equation, xi, guess, m, A), iterations, norm, converged
 
