@@ -227,18 +227,20 @@ def _kernel_blocks(
     def block(state, count, kernel=kernel):
         return program(kernel, *args[1:], progress, state, steps, every, count, shapes, size)
 
-    light = None
-    # Once a run of this kernel on these shapes has needed the loop, its whole program is
-    # compiled, and trying the light one first would only run blocks twice.
-    needed_loop = abstract_key((kernel, init))
+    light, needed_loop = None, None
     if g0.shape[0] <= FIXED_FIRST_MAX_BODIES and not progress.reports:
-        light = None if needed_loop in _NEEDED_LOOP else kernel.fixed_iterations_only()
+        # Once a run of this kernel on these shapes has needed the loop, its whole program
+        # is compiled, and trying the light one first would only run blocks twice.
+        needed_loop = _hashable(abstract_key((kernel, init)))
+        if needed_loop is None or needed_loop not in _NEEDED_LOOP:
+            light = kernel.fixed_iterations_only()
     first = None if light is None else functools.partial(block, kernel=light)
 
     def kept(before, after):
         if _no_new_failure(before, after):
             return True
-        _NEEDED_LOOP.add(needed_loop)
+        if needed_loop is not None:
+            _NEEDED_LOOP.add(needed_loop)
         return False
 
     final, outputs = run_blocks(block, init, n_steps // save_every, size, first, kept)
@@ -248,6 +250,16 @@ def _kernel_blocks(
 
 # `abstract_key((kernel, initial state))` of the eager runs whose light program failed a body.
 _NEEDED_LOOP: set = set()
+
+
+def _hashable(key):
+    """`key`, or `None` where it cannot be hashed (an unhashable kernel field: such a
+    kernel is not remembered, as `_save_shapes` does not cache it)."""
+    try:
+        hash(key)
+    except TypeError:
+        return None
+    return key
 
 
 def _no_new_failure(before, after) -> bool:
