@@ -209,8 +209,8 @@ def simulate_batch(
       convergence check; bodies still above tolerance then continue, alone, up to the
       integrator's `max_steps`. Default: 3 (exp chart) or 4 (Cayley chart;
       Moser–Veselov, whose fixed iterations are scalar ones, see `_kernels/_so3.py`); on
-      SE(3) 3 for both charts, the first a chord step (the Jacobian at `ξ = 0`, see
-      `_kernels/_se3.py`); with coarse steps (`h|Ω| ≳ 0.2`) 4 may be faster there. With
+      SE(3) 3 for both charts, the first a chord step (the Jacobian at `ω = 0` for the
+      body's momentum, see `_kernels/_se3.py`). With
       `max_steps` equal to it (e.g. `DEP(max_steps=3)`) there is no data-dependent loop
       at all; bodies not converged then are reported as failed.
     - `unroll`: (fast path) steps per iteration of the compiled loop (`lax.scan`'s

@@ -18,8 +18,9 @@ and no potential, written for throughput over many bodies:
   guess `h M⁻¹m`). The convergence check is on the full six-component residual, so a
   body reported converged satisfies the same test as on the generic path;
 - **a Newton policy for batches**: a fixed number of iterations, the first a chord step
-  (`_chord_step`: the Jacobian at `ξ = 0`, constant per run, in place of the Jacobian at
-  the iterate: half a Newton step's cost, and it saves one), one residual check, and a
+  (`_chord_step`: the Jacobian at `ω = 0` for the body's momentum in place of the
+  Jacobian at the iterate: about half a Newton step's cost, and it saves one), one
+  residual check, and a
   `while_loop` only for the bodies still above tolerance, up to `max_steps`, run on those
   bodies gathered into a small batch, in rounds when they are many (`compacted_tail`); a body that
   does not converge gets `RESULTS.newton_not_converged`;
@@ -86,15 +87,55 @@ from ._soa import (
 )
 
 
+def _chord_jacobian(chart, m, C):
+    """`∂ρ/∂ω` at `ω = 0` for the body's momentum `m = (Π, P)`: the chord step's matrix.
+
+    At `ω = 0` (`K = K′ = 1`, `L = v̂/2`, `q = P`, `Q = P̂/2`; `reduced_residual`), with
+    `a₀ = ZP`, `v₀ = A₂₂⁻¹P`, `V₀ = A₂₂⁻¹P̂/2 − T`:
+
+        Cayley: J₀ = S + ZP̂/2 − â₀/2 − P̂V₀/2,
+        exp:    J₀ = (Cayley's) + (v₀Pᵀ + Pv₀ᵀ)/12 − (v₀·P)/6,
+
+    the exp chart's extra terms from `E_ωω = c(v·b) + c vbᵀ − 2c bvᵀ − â/2` and `LQ =
+    v̂P̂/4` at `c(0) = 1/12`. The terms in `P` are what the Schur complement `S` alone
+    lacks: for a body whose translation per step is a sizable part of its radius of
+    gyration they are several per cent of `J₀` (8 % for the lighter body of the binary
+    asteroid of `benchmarks/compile_time.py`), and the chord step with `S` left the two
+    Newton steps after it above the tolerance at about one step in eight with Cayley's
+    chart (`tests/test_se3_batch.py`)."""
+    S, Z, A22inv, T = C
+    P = m[3:]
+    a0, v0 = mv(Z, P), mv(A22inv, P)
+    # Row i of `X P̂` is `X[i] × P` (`yᵀP̂ = (y × P)ᵀ`).
+    ZP = tuple(cross(Z[i], P) for i in range(3))
+    V0 = tuple(tuple(e / 2 - T[i][j] for j, e in enumerate(cross(A22inv[i], P))) for i in range(3))
+    # Column j of `P̂V₀` is `P × V₀[:, j]`.
+    PV = [cross(P, tuple(V0[k][j] for k in range(3))) for j in range(3)]
+    ah = ((None, -a0[2], a0[1]), (a0[2], None, -a0[0]), (-a0[1], a0[0], None))
+    vP = dot(v0, P) / 6
+    J = []
+    for i in range(3):
+        row = []
+        for j in range(3):
+            e = S[i][j] + ZP[i][j] / 2 - PV[j][i] / 2
+            if ah[i][j] is not None:
+                e = e - ah[i][j] / 2
+            if chart == "exp":
+                e = e + (v0[i] * P[j] + P[i] * v0[j]) / 12 - (vP if i == j else 0)
+            row.append(e)
+        J.append(tuple(row))
+    return tuple(J)
+
+
 def _chord_step(chart, w, m, C):
-    """A simplified Newton step: `ω − S⁻¹ρ(ω)`, with `S = ∂ρ/∂ω` at `ξ = 0` (the Schur
-    complement `A₁₁ − A₁₂A₂₂⁻¹A₂₁`, a per-run constant) in place of the Jacobian at `ω`.
-    From the explicit-Euler guess (`O(h²)` off the root) it gains an order of `h` for the
-    cost of a residual, about half a Newton step's: two Newton steps then reach the
-    tolerance where three were needed (`DEFAULT_FIXED_ITERATIONS`)."""
-    *_, S_inv = C
+    """A simplified Newton step: `ω − J₀⁻¹ρ(ω)`, with `J₀ = ∂ρ/∂ω` at `ω = 0` for this
+    body's momentum (`_chord_jacobian`: the Schur complement `A₁₁ − A₁₂A₂₂⁻¹A₂₁` and the
+    terms of the translational momentum) in place of the Jacobian at `ω`. From the
+    explicit-Euler guess (`O(h²)` off the root) it gains an order of `h` for the cost of a
+    residual, about half a Newton step's: two Newton steps then reach the tolerance where
+    three were needed (`DEFAULT_FIXED_ITERATIONS`)."""
     rho, _, _ = reduced_residual(chart, w, m, C, False)
-    delta = mv(S_inv, rho)
+    delta = solve3(_chord_jacobian(chart, m, C), rho)
     return tuple(w[i] - delta[i] for i in range(3))
 
 
@@ -337,10 +378,13 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
 
 # Iterations every body takes before the one convergence check (see
 # `_so3.DEPEquation.fixed_iterations`): a chord step and two Newton steps. From the
-# explicit-Euler guess they reach 64 ulps for every one of 2·10⁴ random bodies at
-# h = 0.05 (|ω| ≤ 0.3), and for all but about one in 10⁴ at h = 0.1; the rest finish in
-# the gathered tail. Measured with `benchmarks/se3_step_cost.py --one-thread`: 11–16 %
-# less time a step than three Newton steps from the guess.
+# explicit-Euler guess they reach 64 ulps for every one of 2·10⁴ random free bodies
+# (|ω| ≤ 0.3, speeds up to 3) over 5 steps of 0.05, 0.1 and 0.2, with either chart
+# (`benchmarks/se3_fixed_iterations.py`; `tests/test_se3_batch.py` runs 2000 of them at
+# 0.2); with the momentum-free chord matrix, 19 of them (Cayley) and 2 (exp) needed the
+# gathered tail at 0.1 and 1738 and 162 at 0.2. Measured with
+# `benchmarks/se3_step_cost.py --one-thread` (with that matrix): 11–16 % less time a step
+# than three Newton steps from the guess.
 DEFAULT_FIXED_ITERATIONS = {"exp": 3, "cayley": 3}
 
 
@@ -404,9 +448,9 @@ class SE3NewtonKernel(SE3Kernel):
         M, Minv = (matrix(X) for X in constants)
         h = jnp.asarray(h)[..., None, None]
         A = M / h
-        # What the reduced Newton iteration reads (`reduced_residual`): the Schur
-        # complement S = A₁₁ − A₁₂A₂₂⁻¹A₂₁, Z = A₁₂A₂₂⁻¹, A₂₂⁻¹ (Cramer), T = A₂₂⁻¹A₂₁,
-        # and S⁻¹ (the chord step's matrix, `_chord_step`).
+        # What the reduced Newton iteration reads (`reduced_residual`, `_chord_jacobian`):
+        # the Schur complement S = A₁₁ − A₁₂A₂₂⁻¹A₂₁, Z = A₁₂A₂₂⁻¹, A₂₂⁻¹ (Cramer),
+        # T = A₂₂⁻¹A₂₁.
         # Not differentiated (Newton only; the root's derivative is `_implicit.differentiable_root`'s).
         blocks = jax.lax.stop_gradient(A)
         A11, A12 = blocks[..., :3, :3], blocks[..., :3, 3:]
@@ -414,7 +458,7 @@ class SE3NewtonKernel(SE3Kernel):
         A22inv = cramer_inverse(A22)
         Z, T = A12 @ A22inv, A22inv @ A21
         S = A11 - Z @ A21
-        C = tuple(component_major(X) for X in (S, Z, A22inv, T, cramer_inverse(S)))
+        C = tuple(component_major(X) for X in (S, Z, A22inv, T))
         return component_major(A), component_major(h * Minv), C
 
     def step(self, params, g, m, alive):

@@ -20,7 +20,7 @@ def velocity_part(chart, w, m, C, series=None):
     `(1 + ω̂/2 + c ω̂²)⁻¹ = 1 − β ω̂ + γ ω̂²`, `β = (1 − cos θ)/θ²`, `γ = (θ − sin θ)/θ³`
     (the inverse of the SO(3) `dexpinv`, i.e. `dexp(−ω)`).
     """
-    _, _, A22inv, T, _ = C
+    _, _, A22inv, T = C
     P = m[3:]
     t = dot(w, w)
     wP, oP = cross(w, P), dot(w, P)
@@ -50,7 +50,7 @@ def reduced_residual(chart, w, m, C, with_jacobian: bool):
     the generic path converges to from the explicit-Euler guess), a 3×3 solve.
     Returns `(ρ, J, (q, v))`.
     """
-    S, Z, A22inv, T, _ = C
+    S, Z, A22inv, T = C
     one = ones(w[0])
     series = None
     if chart == "exp":
@@ -109,7 +109,7 @@ def _reduced_cayley(w, m, C, q, v, a, with_jacobian, one):
 
     (`K′q = P` ⇒ `dK′ q + K′ dq = 0`, `dK′ q = dω × q/2`).
     """
-    S, Z, A22inv, T, _ = C
+    S, Z, A22inv, T = C
     Pi, P = m[:3], m[3:]
     wa, oa = cross(w, a), dot(w, a)
     vP = cross(v, P)
