@@ -162,6 +162,15 @@ def test_compacted_tail(n_need, alive):
     assert int(jnp.sum(got[0] != x)) == int(jnp.sum(need))
 
 
+def _stacked_rho(chart, m, C):
+    """The reduced residual `ρ` as a function of a stacked `ω` (for `jax.jacfwd`)."""
+
+    def rho(w):
+        return jnp.stack(_se3_reduced.reduced_residual(chart, tuple(w), m, C, False)[0])
+
+    return rho
+
+
 @pytest.mark.parametrize("chart", CHARTS)
 def test_reduced_jacobian(chart):
     """The reduced residual `ρ(ω) = r_ω(ω, v(ω))` with `r_v(ω, v(ω)) = 0` and its
@@ -178,10 +187,7 @@ def test_reduced_jacobian(chart):
     @jax.vmap
     def errors(w, m):
         m = tuple(m)
-
-        def rho(w):
-            return jnp.stack(_se3_reduced.reduced_residual(chart, tuple(w), m, C, False)[0])
-
+        rho = _stacked_rho(chart, m, C)
         r, J, (_, v) = _se3_reduced.reduced_residual(chart, tuple(w), m, C, True)
         full, _ = _se3_residual.residual(chart, tuple(w) + tuple(v), m, A, False)
         J = jnp.stack([jnp.stack(row) for row in J])
@@ -214,10 +220,7 @@ def test_chord_jacobian(chart, sign):
     @jax.vmap
     def error(C, m):
         m = tuple(m)
-
-        def rho(w):
-            return jnp.stack(_se3_reduced.reduced_residual(chart, tuple(w), m, C, False)[0])
-
+        rho = _stacked_rho(chart, m, C)
         J0 = jnp.stack([jnp.stack(row) for row in _se3._chord_jacobian(chart, m, C)])
         exact = jax.jacfwd(rho)(jnp.zeros(3, m[0].dtype))
         return jnp.max(jnp.abs(J0 - exact)) / jnp.max(jnp.abs(exact))
