@@ -253,8 +253,8 @@ _NEEDED_LOOP: set = set()
 
 
 def _hashable(key):
-    """`key`, or `None` where it cannot be hashed (an unhashable kernel field: such a
-    kernel is not remembered, as `_save_shapes` does not cache it)."""
+    """`key`, or `None` where it cannot be hashed (an unhashable kernel or group field):
+    such a run is not remembered (`_NEEDED_LOOP`) and its save shapes are not cached."""
     try:
         hash(key)
     except TypeError:
@@ -287,10 +287,10 @@ def _save_shapes(kernel, init, save, group):
     every eager call cost about 1 ms of a short call's 5–5.5 ms (one SE(3) body, 10 steps,
     best of 150), which a run cut into segments (`simulate_with_neighbor_list`,
     `stream_batch`) pays once a segment."""
-    try:
-        return _cached_save_shapes(kernel, save, group, abstract_key(init))
-    except TypeError:  # an unhashable kernel or group: trace as below
+    key = _hashable((kernel, save, group, abstract_key(init)))
+    if key is None:  # an unhashable kernel or group: traced, not cached
         return _traced_save_shapes(kernel, init, save, group)
+    return _cached_save_shapes(*key)
 
 
 @functools.lru_cache(maxsize=64)

@@ -65,6 +65,7 @@ from ._se3_reduced import reduced_residual, velocity_part
 from ._se3_residual import (
     SINC3,
     SE3Equation,
+    add_hat,
     mv,
     ones,
     residual,
@@ -111,20 +112,18 @@ def _chord_jacobian(chart, m, C):
     V0 = tuple(tuple(e / 2 - T[i][j] for j, e in enumerate(cross(A22inv[i], P))) for i in range(3))
     # Column j of `P̂V₀` is `P × V₀[:, j]`.
     PV = [cross(P, tuple(V0[k][j] for k in range(3))) for j in range(3)]
-    ah = ((None, -a0[2], a0[1]), (a0[2], None, -a0[0]), (-a0[1], a0[0], None))
-    vP = dot(v0, P) / 6
-    J = []
-    for i in range(3):
-        row = []
-        for j in range(3):
-            e = S[i][j] + ZP[i][j] / 2 - PV[j][i] / 2
-            if ah[i][j] is not None:
-                e = e - ah[i][j] / 2
-            if chart == "exp":
-                e = e + (v0[i] * P[j] + P[i] * v0[j]) / 12 - (vP if i == j else 0)
-            row.append(e)
-        J.append(tuple(row))
-    return tuple(J)
+    J = tuple(tuple(S[i][j] + ZP[i][j] / 2 - PV[j][i] / 2 for j in range(3)) for i in range(3))
+    J = add_hat(J, a0, -0.5)
+    if chart == "exp":
+        vP = dot(v0, P) / 6
+        J = tuple(
+            tuple(
+                J[i][j] + (v0[i] * P[j] + P[i] * v0[j]) / 12 - (vP if i == j else 0)
+                for j in range(3)
+            )
+            for i in range(3)
+        )
+    return J
 
 
 def _chord_step(chart, w, m, C):

@@ -191,9 +191,9 @@ def e_blocks(chart, w, v, a, b, Kpb, coefficients):
             tuple((d if i == j else 0) + (w[i] * a[j] - b[i] * v[j]) / 4 for j in range(3))
             for i in range(3)
         )
-        E_ww = _add_hat(E_ww, a, -0.5)
-        E_wv = _add_hat(((0,) * 3,) * 3, Kpb, -0.5)
-        E_vw = _add_hat(((0,) * 3,) * 3, b, -0.5)
+        E_ww = add_hat(E_ww, a, -0.5)
+        E_wv = add_hat(((0,) * 3,) * 3, Kpb, -0.5)
+        E_vw = add_hat(((0,) * 3,) * 3, b, -0.5)
     else:
         c, c1, c2 = coefficients
         k = 2 * c1 * s
@@ -216,16 +216,16 @@ def e_blocks(chart, w, v, a, b, Kpb, coefficients):
             )
             for i in range(3)
         )
-        E_ww = _add_hat(E_ww, a, -0.5)
+        E_ww = add_hat(E_ww, a, -0.5)
         D_b = tuple(
             tuple((d_b if i == j else 0) + w[i] * cb[j] + y[i] * w[j] for j in range(3))
             for i in range(3)
         )
-        E_wv = E_vw = _add_hat(D_b, b, -0.5)
+        E_wv = E_vw = add_hat(D_b, b, -0.5)
     return E_ww, E_wv, E_vw
 
 
-def _add_hat(X, y, alpha):
+def add_hat(X, y, alpha):
     """`X + α ŷ` (3×3 nested tuples), without adding the zero diagonal of `ŷ`."""
     H = ((None, -y[2], y[1]), (y[2], None, -y[0]), (-y[1], y[0], None))
     return tuple(
