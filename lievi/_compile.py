@@ -5,18 +5,24 @@ XLA's CPU backend turns each fused group of operations into a loop, by default w
 hundreds to thousands of scalar operations, many small fused loops, and those emitters
 take longer to compile them than XLA's older loop emitter does. Where a step advances one
 or two bodies, nothing is vectorised across a batch, and the older emitter's program runs
-as fast; from eight bodies on, the default's runs faster. So the programs of an eager run
-(its blocks of steps, their set-up and the join, in `_simulate_kernel` and
-`_simulate_generic`) are compiled with `SMALL_RUN_OPTIONS` for a run of at most
-`SMALL_RUN_BODIES` bodies on CPU, and with XLA's defaults otherwise. Under the caller's
-`jax.jit` or `jax.grad` they are part of the caller's program, compiled with its options.
+as fast; from eight bodies on, the default's runs faster for the structure-of-arrays
+kernels (free bodies). So the programs of an eager run (its blocks of steps, their set-up
+and the join, in `_simulate_kernel` and `_simulate_generic`) are compiled with
+`SMALL_RUN_OPTIONS` on CPU for a run of at most `SMALL_RUN_BODIES` bodies, and for a run
+of systems of several bodies (`lievi.RigidBodies`, `lievi.RigidRotors`: a coupling
+potential, each system's step under `jax.vmap` for a batch) whatever their number; with
+XLA's defaults otherwise. Under the caller's `jax.jit` or `jax.grad` they are part of the
+caller's program, compiled with its options.
 
-Measured on a 2-core CPU, float64 (`python benchmarks/compile_time.py`, before and after
-this module; docs/compile-times.md): first `simulate` calls 0.06–1.3 s (7–40 %) sooner (one
-`RigidBodySE3` with `DEP()` 3.06 → 2.57 s, the binary asteroid on SE(3)² 4.49 → 3.42 s),
-one-system run times 0.97–1.01×. With the option set for the whole process, a batch of
-SE(3) bodies with `DEP()` ran as fast at 2 bodies, at 0.8× at 8 and at 0.55× at 64: hence
-`SMALL_RUN_BODIES`.
+Measured on a 2-core CPU, float64 (docs/compile-times.md): first `simulate` calls 0.06–1.3 s
+(7–40 %) sooner (one `RigidBodySE3` with `DEP()` 3.06 → 2.57 s, the binary asteroid on
+SE(3)² 4.49 → 3.42 s), one-system run times 0.97–1.01×. With the option set for the whole
+process, a batch of free SE(3) bodies with `DEP()` ran as fast at 2 bodies, at 0.8× at 8
+and at 0.55× at 64: hence `SMALL_RUN_BODIES`. For systems of several bodies (batches of
+64 and 1024 binary asteroids, one system of 512 or 2048 Lennard-Jones bodies, a batch of
+coupled rotors) the first calls took 0.64–0.98× and the runs 0.61–1.11× their time with
+the defaults, 0.61–1.04× but for one (`python benchmarks/coupled_emitter.py`): hence the
+systems of several bodies.
 
 The option is XLA's own: if the installed XLA does not know it, every program keeps the
 defaults (`small_run_options_apply`).
@@ -56,16 +62,23 @@ def bodies_of(elements) -> int:
     return math.prod(jnp.shape(elements)[:-2])
 
 
+def bodies_per_system(system) -> int:
+    """The bodies of one system: one, or several (`lievi.RigidBodies`), from the shape of
+    its configuration (`AbstractLieSystem.element_shape`)."""
+    return math.prod(system.element_shape()[:-2])
+
+
 class RunProgram:
     """A run's program (`eqx.filter_jit` of `fn`) in two compilations: with
-    `SMALL_RUN_OPTIONS` for a run of at most `SMALL_RUN_BODIES` bodies, XLA's defaults
-    otherwise. `for_bodies(n)` is the one for a run of `n` bodies."""
+    `SMALL_RUN_OPTIONS` for a run of at most `SMALL_RUN_BODIES` bodies or of systems of
+    several bodies, XLA's defaults otherwise. `for_bodies(n, per_system)` is the one for a
+    run of `n` bodies in systems of `per_system` bodies each."""
 
     def __init__(self, fn):
         self.default = eqx.filter_jit(fn)
         self.small = eqx.filter_jit(fn, compiler_options=SMALL_RUN_OPTIONS)
 
-    def for_bodies(self, n: int):
-        if n <= SMALL_RUN_BODIES and small_run_options_apply():
+    def for_bodies(self, n: int, per_system: int = 1):
+        if (n <= SMALL_RUN_BODIES or per_system > 1) and small_run_options_apply():
             return self.small
         return self.default

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
 from ._checks import drifts_off_group
-from ._compile import RunProgram, bodies_of
+from ._compile import RunProgram, bodies_of, bodies_per_system
 from ._horizon import as_count, block_saves, join_blocks, run_blocks, save_buffers, store
 from ._newton import ROOT_NAME
 from ._progress import AbstractProgressMeter, NoProgressMeter
@@ -165,9 +165,10 @@ def simulate_blocks(
     axis of `g0`, `m0` and `valid` (`simulate_batch`'s generic path)."""
     batch = () if axes is None else g0.shape[:1]
     result, failed_step = (jnp.broadcast_to(x, batch) for x in RESULTS.initial(valid))
+    # The bodies one step advances, and those of one system (`_compile`).
+    stepped = (bodies_of(g0), bodies_per_system(system))
     # A function of `g0` alone (not of `init`'s per-run state): computed once here.
-    stepped = bodies_of(g0)  # the bodies one step advances (`_compile`)
-    cache = _initial_cache.for_bodies(stepped)(system, integrator, g0, axes)
+    cache = _initial_cache.for_bodies(*stepped)(system, integrator, g0, axes)
     carry = (g0, m0, result, failed_step, jnp.zeros(batch, jnp.int32), cache)
     # One save's bytes: `g` and `m` of every body (a system of several has one per body),
     # and per system the iteration statistics.
@@ -175,14 +176,14 @@ def simulate_blocks(
     size = block_saves((g0.size + m0.size + 2 * systems) * m0.dtype.itemsize + 8 * systems)
     steps, every = as_count(n_steps), as_count(save_every)
 
-    program = _block.for_bodies(stepped)
+    program = _block.for_bodies(*stepped)
 
     def block(carry, count):
         args = (system, integrator, m0, carry, h, t0, steps, every, count, progress, size, axes)
         return program(*args)
 
     final, outputs = run_blocks(block, carry, n_steps // save_every, size)
-    join = _join.for_bodies(stepped)
+    join = _join.for_bodies(*stepped)
     return join(system, g0, m0, h, t0, n_steps, save_every, final, outputs, axes)
 
 

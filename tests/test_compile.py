@@ -1,6 +1,8 @@
 """The eager run's programs are compiled with XLA's small-run options for one body or two
-(`lievi/_compile.py`): the policy, and the numbers, which must not depend on it."""
+and for systems of several bodies (`lievi/_compile.py`): the policy, and the numbers, which
+must not depend on it."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -21,12 +23,16 @@ def test_small_runs_take_the_small_run_options(program):
     assert program.for_bodies(1) is program.small
     assert program.for_bodies(_compile.SMALL_RUN_BODIES) is program.small
     assert program.for_bodies(_compile.SMALL_RUN_BODIES + 1) is program.default
+    # Systems of several bodies (a batch of 64 binaries), whatever their number.
+    assert program.for_bodies(128, per_system=2) is program.small
+    assert program.for_bodies(128, per_system=1) is program.default
     assert program.small is not program.default
 
 
 def test_without_the_options_every_run_takes_the_defaults(program, monkeypatch):
     monkeypatch.setattr(_compile, "small_run_options_apply", lambda: False)
     assert program.for_bodies(1) is program.default
+    assert program.for_bodies(128, per_system=2) is program.default
 
 
 def test_bodies_of_a_run():
@@ -35,8 +41,17 @@ def test_bodies_of_a_run():
     assert _compile.bodies_of(jnp.zeros((5, 2, 4, 4))) == 10  # a batch of five of them
 
 
-def _binary():
-    """Two bodies of three point masses each in mutual gravity, 1.5 apart, spinning."""
+def test_bodies_per_system():
+    system, _, _ = _binary()
+    assert _compile.bodies_per_system(system) == 2
+    batch = jax.vmap(lambda G: lievi.gravitating_bodies(G, *_shapes()))(jnp.ones(5))
+    assert _compile.bodies_per_system(batch) == 2  # a batch of systems: per system
+    assert _compile.bodies_per_system(lievi.RigidBodySE3(jnp.array([1.0, 2.0, 3.0]), 2.0)) == 1
+    assert _compile.bodies_per_system(lievi.RigidBody(jnp.array([1.0, 2.0, 3.0]))) == 1
+
+
+def _shapes():
+    """The point masses and their positions of two bodies of three point masses each."""
     masses = jnp.array([[1.0, 0.6, 0.8], [0.5, 0.4, 0.3]])
     points = jnp.array(
         [
@@ -44,7 +59,12 @@ def _binary():
             [[0.1, 0.0, 0.02], [-0.08, 0.07, 0.0], [0.0, -0.05, -0.08]],
         ]
     )
-    system = lievi.gravitating_bodies(1.0, masses, points)
+    return masses, points
+
+
+def _binary():
+    """Two bodies of three point masses each in mutual gravity, 1.5 apart, spinning."""
+    system = lievi.gravitating_bodies(1.0, *_shapes())
     g0 = jnp.tile(jnp.eye(4), (2, 1, 1)).at[:, 0, 3].set(jnp.array([-0.5, 1.0]))
     m0 = jnp.array([[0.03, 0.05, 0.1, 0.0, -1.2, 0.0], [0.04, -0.02, 0.01, 0.0, 1.2, 0.0]])
     return system, g0, m0
@@ -52,26 +72,31 @@ def _binary():
 
 @pytest.mark.parametrize(
     "case",
-    ["SE(3) one body, DEP kernel", "binary, DEP"],
+    ["SE(3) one body, DEP kernel", "binary, DEP", "batch of binaries, DEP"],
 )
 def test_the_options_do_not_change_the_numbers(case, monkeypatch):
-    """One run with the small-run options and the same run with XLA's defaults (no body is
-    then small enough) agree to round-off: 20 steps, each saved, float64, to 64 ulps of
-    the largest entry of each output. (Over hundreds of steps the binary's orbit
+    """One run with the small-run options and the same run with XLA's defaults (the
+    options then do not apply) agree to round-off: 20 steps, each saved, float64, to 64
+    ulps of the largest entry of each output. (Over hundreds of steps the binary's orbit
     amplifies a different rounding, as it does any: 4e-13 after 500 steps.)"""
+    run_of = lievi.simulate
     if case.startswith("SE(3)"):
         system = lievi.RigidBodySE3(jnp.array([1.0, 2.0, 3.0]), 2.0)
         g0, m0 = jnp.eye(4), jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])
     else:
         system, g0, m0 = _binary()
+        if case.startswith("batch"):  # three binaries: six bodies a step, two a system
+            m0 = m0 * jnp.array([1.0, 1.05, 0.95])[:, None, None]
+            run_of = lievi.simulate_batch
 
     def run():
-        return lievi.simulate(system, lievi.DEP(), g0, m0, h=0.05, n_steps=20)
+        return run_of(system, lievi.DEP(), g0, m0, h=0.05, n_steps=20)
 
     small = run()
-    monkeypatch.setattr(_compile, "SMALL_RUN_BODIES", 0)
+    monkeypatch.setattr(_compile, "small_run_options_apply", lambda: False)
     default = run()
-    assert int(small.result) == int(default.result) == int(lievi.RESULTS.successful)
+    assert np.all(small.result == int(lievi.RESULTS.successful))
+    assert np.all(default.result == int(lievi.RESULTS.successful))
     for a, b in ((small.g, default.g), (small.m, default.m)):
         scale = float(jnp.max(jnp.abs(b)))
         np.testing.assert_allclose(a, b, rtol=0, atol=64 * np.finfo(np.float64).eps * scale)
