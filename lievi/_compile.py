@@ -20,9 +20,9 @@ SE(3)² 4.49 → 3.42 s), one-system run times 0.97–1.01×. With the option se
 process, a batch of free SE(3) bodies with `DEP()` ran as fast at 2 bodies, at 0.8× at 8
 and at 0.55× at 64: hence `SMALL_RUN_BODIES`. For systems of several bodies (batches of
 64 and 1024 binary asteroids, one system of 512 or 2048 Lennard-Jones bodies, a batch of
-coupled rotors) the first calls took 0.64–0.98× and the runs 0.61–1.11× their time with
-the defaults, 0.61–1.04× but for one (`python benchmarks/coupled_emitter.py`): hence the
-systems of several bodies.
+coupled rotors) the first calls took 0.64–0.98× and the runs 0.61–1.04× their time with
+the defaults, but for one run at 1.11× (64 binaries with the composition, every step
+saved; `python benchmarks/coupled_emitter.py`): hence the systems of several bodies.
 
 The option is XLA's own: if the installed XLA does not know it, every program keeps the
 defaults (`small_run_options_apply`).
