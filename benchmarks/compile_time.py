@@ -142,9 +142,14 @@ def measure(call, steps: int) -> dict:
     }
 
 
-def pair(system, integrator, g0, m0, steps: int, batch: int) -> dict:
+def batch_momenta(m0, batch: int):
+    """`batch` momenta within about 10 % of `m0` (the batches of `simulate_batch` here)."""
     key = jax.random.PRNGKey(0)
-    ms = m0 * (1 + 0.1 * jax.random.normal(key, (batch, *m0.shape), m0.dtype))
+    return m0 * (1 + 0.1 * jax.random.normal(key, (batch, *m0.shape), m0.dtype))
+
+
+def pair(system, integrator, g0, m0, steps: int, batch: int) -> dict:
+    ms = batch_momenta(m0, batch)
 
     def one(n_steps, save_every):
         return lievi.simulate(

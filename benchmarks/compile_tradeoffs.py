@@ -30,7 +30,7 @@ import os
 import platform
 import sys
 
-from first_call import RESULTS, run_in_checkout
+from first_call import RESULTS, first_and_best, run_in_checkout
 
 FLAG_SETS = (
     "",
@@ -57,21 +57,11 @@ import jax, lievi
 
 system, g0, m0 = compile_time.systems()[{system!r}]
 integrator = compile_time.integrators()[{integrator!r}]
-ms = m0 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(0), (64, *m0.shape), m0.dtype))
+ms = compile_time.batch_momenta(m0, 64)
 jax.block_until_ready(ms)
-
-
-def timed():
-    start = time.perf_counter()
-    jax.block_until_ready(
-        lievi.simulate_batch(system, integrator, g0, ms, h=0.05, n_steps=100, save_every=1).m
-    )
-    return time.perf_counter() - start
-
-
-first = timed()
-run = min(timed() for _ in range(5))
-print(json.dumps({{"first_call_s": first, "run_s": run}}))
+call = lambda: lievi.simulate_batch(
+    system, integrator, g0, ms, h=0.05, n_steps=100, save_every=1
+).m
 """
 
 
@@ -90,7 +80,7 @@ def main():
         for flags in args.flags:
             print(f"round {round_ + 1}, {flags or '(default)'}:")
             for system, integrator in CASES:
-                code = CODE.format(system=system, integrator=integrator)
+                code = CODE.format(system=system, integrator=integrator) + first_and_best(5)
                 out = json.loads(run_in_checkout(code, xla_flags=flags))
                 row = rows[flags][f"{system}, {integrator}"]
                 for key, value in out.items():

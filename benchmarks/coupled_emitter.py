@@ -38,7 +38,7 @@ import json
 import os
 import platform
 
-from first_call import RESULTS, run_in_checkout
+from first_call import RESULTS, first_and_best, run_in_checkout
 
 SETUP = """
 import json, sys, time
@@ -55,7 +55,7 @@ CASES = {
     **{
         f"64 binaries, {name}": f"""
 system, g0, m0 = compile_time.binary()
-ms = m0 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(0), (64, *m0.shape), m0.dtype))
+ms = compile_time.batch_momenta(m0, 64)
 call = lambda: lievi.simulate_batch(
     system, integrators[{name!r}], g0, ms, h=0.05, n_steps=100, save_every=1
 ).m
@@ -109,18 +109,6 @@ call = lambda: lievi.simulate(
 """,
 }
 
-TIMED = """
-def timed():
-    start = time.perf_counter()
-    jax.block_until_ready(call())
-    return time.perf_counter() - start
-
-
-first = timed()
-run = min(timed() for _ in range(4))
-print(json.dumps({"first_call_s": first, "run_s": run}))
-"""
-
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -141,7 +129,7 @@ def main():
         for tree, path in trees.items():
             print(f"round {round_ + 1}, {tree}:")
             for case, code in cases.items():
-                out = json.loads(run_in_checkout(SETUP + code + TIMED, path))
+                out = json.loads(run_in_checkout(SETUP + code + first_and_best(4), path))
                 for key, value in out.items():
                     rows[case][tree][key].append(value)
                 print(

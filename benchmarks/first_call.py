@@ -94,6 +94,23 @@ print(time.perf_counter() - start, len(compiles), sum(compiles))
 """
 
 
+def first_and_best(repeats: int) -> str:
+    """Code that times `call()` (defined before it) in a fresh process: the first call and
+    the best of `repeats` repeats, printed as JSON (`first_call_s`, `run_s`) on its last
+    line, for `run_in_checkout`."""
+    return f"""
+def timed():
+    start = time.perf_counter()
+    jax.block_until_ready(call())
+    return time.perf_counter() - start
+
+
+first = timed()
+run = min(timed() for _ in range({repeats}))
+print(json.dumps({{"first_call_s": first, "run_s": run}}))
+"""
+
+
 def run_in_checkout(code: str, tree: str | None = None, xla_flags: str | None = None) -> str:
     """Run `code` in a fresh `python -c` on the checkout `tree` (default: this one) and
     return the last line it printed. `xla_flags`: the process's `XLA_FLAGS` (`""`: none;
