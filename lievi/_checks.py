@@ -19,6 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._compile import once_per_call, tracing
+
 # `(holds, message)`: a traceable boolean array and the `ValueError` message if it fails.
 Conditions = list[tuple[jax.Array, str]]
 
@@ -31,16 +33,6 @@ def is_concrete(*xs) -> bool:
         isinstance(x, jax.core.Tracer) or (isinstance(x, jax.Array) and not x.is_fully_addressable)
         for x in xs
     )
-
-
-def tracing() -> bool:
-    """Whether a JAX transformation (`jit`, `vmap`, `grad`, a loop's body) is tracing the
-    caller: JAX's own test, private, hence guarded (without it, assume so)."""
-    try:
-        from jax._src.core import trace_state_clean
-    except ImportError:
-        return True
-    return not trace_state_clean()
 
 
 def abstract_key(tree):
@@ -185,7 +177,7 @@ def _float_as_array(x):
     return jnp.asarray(x) if type(x) is float else x
 
 
-@eqx.filter_jit
+@once_per_call
 def _holds(conditions, *args):
     return all_hold(conditions(*args))
 
@@ -261,7 +253,7 @@ def input_valid(system, g0, m0, h, t0=0.0):
     return _input_valid(system, g0, m0, jnp.asarray(h), jnp.asarray(t0))
 
 
-@eqx.filter_jit
+@once_per_call
 def _input_valid(system, g0, m0, h, t0):
     return (
         system.parameters_valid()

@@ -79,6 +79,41 @@ class RunProgram:
         self.small = eqx.filter_jit(fn, compiler_options=SMALL_RUN_OPTIONS)
 
     def for_bodies(self, n: int, per_system: int = 1):
-        if (n <= SMALL_RUN_BODIES or per_system > 1) and small_run_options_apply():
-            return self.small
+        if n <= SMALL_RUN_BODIES or per_system > 1:
+            return self.small_where_applies()
         return self.default
+
+    def small_where_applies(self):
+        """`small` where `SMALL_RUN_OPTIONS` apply (`small_run_options_apply`), else
+        `default`."""
+        return self.small if small_run_options_apply() else self.default
+
+
+def tracing() -> bool:
+    """Whether a JAX transformation (`jit`, `vmap`, `grad`, a loop's body) is tracing the
+    caller: JAX's own test, private, hence guarded (without it, assume so)."""
+    try:
+        from jax._src.core import trace_state_clean
+    except ImportError:
+        return True
+    return not trace_state_clean()
+
+
+def once_per_call(fn):
+    """`eqx.filter_jit(fn)` for a program an eager call runs once, whatever its size: its
+    input checks, its set-up, the join of its blocks, the check of its result. Compiled
+    with `SMALL_RUN_OPTIONS` where they apply (`small_run_options_apply`): the program
+    runs once a call, a pass over the call's inputs or outputs, and its compile is most
+    of what it costs. Measured on the 2-core CPU (`benchmarks/first_call_breakdown.py`,
+    docs/compile-times.md): the six such programs of a first `simulate_batch` of 64 SE(3)
+    bodies compiled in 0.56–0.58 s with the option against 0.85–0.98 s without."""
+    program = RunProgram(fn)
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        # Under a transformation the program is part of the caller's, compiled with its
+        # options (and JAX accepts `compiler_options` only on an outermost `jax.jit`).
+        chosen = program.default if tracing() else program.small_where_applies()
+        return chosen(*args, **kwargs)
+
+    return call

@@ -20,7 +20,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ._checks import is_concrete, tracing
+from ._checks import is_concrete
+from ._compile import tracing
 
 # Saves per block: a block's output buffers are `block_saves(...)` saves long whatever the
 # horizon, so a block must be short enough to be cheap when few saves are used and long

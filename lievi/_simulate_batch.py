@@ -34,6 +34,7 @@ from ._checks import (
     is_concrete,
     state_dtype,
 )
+from ._compile import once_per_call
 from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator
 from ._progress import AbstractProgressMeter, as_progress_meter
@@ -380,7 +381,7 @@ def simulate_batch(
     return solution
 
 
-@eqx.filter_jit
+@once_per_call
 def _raise_if_failed(solution: Solution) -> Solution:
     """`solution`, with a runtime error if any body failed (`throw=True`).
 

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
 from ._checks import drifts_off_group
-from ._compile import RunProgram, bodies_of, bodies_per_system
+from ._compile import RunProgram, bodies_of, bodies_per_system, once_per_call
 from ._horizon import as_count, block_saves, join_blocks, run_blocks, save_buffers, store
 from ._newton import ROOT_NAME
 from ._progress import AbstractProgressMeter, NoProgressMeter
@@ -168,7 +168,7 @@ def simulate_blocks(
     # The bodies one step advances, and those of one system (`_compile`).
     stepped = (bodies_of(g0), bodies_per_system(system))
     # A function of `g0` alone (not of `init`'s per-run state): computed once here.
-    cache = _initial_cache.for_bodies(*stepped)(system, integrator, g0, axes)
+    cache = _initial_cache(system, integrator, g0, axes)
     carry = (g0, m0, result, failed_step, jnp.zeros(batch, jnp.int32), cache)
     # One save's bytes: `g` and `m` of every body (a system of several has one per body),
     # and per system the iteration statistics.
@@ -183,11 +183,10 @@ def simulate_blocks(
         return program(*args)
 
     final, outputs = run_blocks(block, carry, n_steps // save_every, size)
-    join = _join.for_bodies(*stepped)
-    return join(system, g0, m0, h, t0, n_steps, save_every, final, outputs, axes)
+    return _join(system, g0, m0, h, t0, n_steps, save_every, final, outputs, axes)
 
 
-@RunProgram
+@once_per_call
 def _initial_cache(system, integrator, g0, axes):
     """`AbstractIntegrator.step_cache` at `g0` (per body for a batch), compiled: on the
     blocks' eager path it would otherwise run operation by operation."""
@@ -245,7 +244,7 @@ def _block(system, integrator, m0, carry, h, t0, n_steps, save_every, count, pro
     return _per_body(run, axes, "system", 0, 0, "h")(system, m0, carry, h)
 
 
-@RunProgram
+@once_per_call
 def _join(system, g0, m0, h, t0, n_steps: int, save_every: int, final, outputs, axes):
     def join(system, g0, m0, h, final, outputs):
         saves = join_blocks(outputs, n_steps // save_every)

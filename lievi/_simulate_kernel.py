@@ -20,7 +20,7 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from ._checks import abstract_key, abstract_tree
-from ._compile import RunProgram, bodies_of
+from ._compile import RunProgram, bodies_of, once_per_call
 from ._horizon import as_count, block_saves, horizon_traced, run_blocks, save_buffers, store
 from ._kernels._base import ROOT_NAME
 from ._progress import AbstractProgressMeter, NoProgressMeter
@@ -217,7 +217,7 @@ def _kernel_blocks(
     the run. With a meter, a block run again would report its steps twice."""
     args = (kernel, constants, step_bound, g0, m0, h, valid, save, group)
     stepped = bodies_of(g0)  # the bodies one step advances (`_compile`)
-    init = _initial.for_bodies(stepped)(*args)
+    init = _initial(*args)
     shapes = _save_shapes(kernel, init, save, group)
     size = block_saves(sum(s.size * s.dtype.itemsize for s in jax.tree.leaves(shapes)))
     steps, every = as_count(n_steps), as_count(save_every)
@@ -244,8 +244,7 @@ def _kernel_blocks(
         return False
 
     final, outputs = run_blocks(block, init, n_steps // save_every, size, first, kept)
-    join = _join.for_bodies(stepped)
-    return join(kernel, g0, m0, h, t0, n_steps, save_every, save, final, outputs)
+    return _join(kernel, g0, m0, h, t0, n_steps, save_every, save, final, outputs)
 
 
 # `abstract_key((kernel, initial state))` of the eager runs whose light program failed a body.
@@ -274,7 +273,7 @@ def _no_new_failure(before, after) -> bool:
     )
 
 
-@RunProgram
+@once_per_call
 def _initial(kernel, constants, step_bound, g0, m0, h, valid, save, group):
     return _setup(kernel, constants, step_bound, g0, m0, h, valid, 1, NoProgressMeter())[1]
 
@@ -348,7 +347,7 @@ def _block(
     return state, _layout(kernel, buffers)
 
 
-@RunProgram
+@once_per_call
 def _join(kernel, g0, m0, h, t0, n_steps, save_every, save, final, outputs):
     n_saves = n_steps // save_every
     out = {

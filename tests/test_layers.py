@@ -13,7 +13,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "lievi"
 
 # Lowest first. A module may import from its own layer or any lower one, never a higher.
 LAYERS = (
-    ("foundations", ("_results", "_checks")),
+    ("foundations", ("_results", "_compile", "_checks")),
     ("solvers", ("_newton",)),
     ("groups", ("_groups",)),
     ("physics", ("_systems", "_forcing")),
@@ -24,7 +24,6 @@ LAYERS = (
         (
             "_scan",
             "_progress",
-            "_compile",
             "_horizon",
             "_save",
             "_solution",

@@ -32,6 +32,7 @@ from .._checks import (
     membership_tolerance,
     raise_if_violated,
 )
+from .._compile import once_per_call
 from .._groups._base import MatrixLieGroup
 from ._potential import AbstractPotential
 from ._side import Side
@@ -270,7 +271,7 @@ def _off_group(group: MatrixLieGroup, name: str, defect, bound) -> ValueError:
     )
 
 
-@eqx.filter_jit
+@once_per_call
 def _defects(group: MatrixLieGroup, g):
     """The membership defect of each state of `g` `(B, *element_shape)`, the worst of its
     elements (a state of several bodies has one per body), as one compiled program: the
