@@ -135,6 +135,19 @@ def run_in_checkout(code: str, tree: str | None = None, xla_flags: str | None = 
     return out.stdout.strip().splitlines()[-1]
 
 
+def write_results(name: str, document: dict) -> None:
+    """`document`, with the machine and its load average, as `benchmarks/results/<name>.json`."""
+    document = {
+        **document,
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs",
+        "load_average": os.getloadavg(),
+    }
+    RESULTS.mkdir(exist_ok=True)
+    path = RESULTS / f"{name}.json"
+    path.write_text(json.dumps(document, indent=2))
+    print(f"wrote {path}")
+
+
 def first_call(case: str, tree: str | None = None, xla_flags: str | None = None) -> dict:
     """One fresh process's first call of `case`: wall clock, programs compiled, XLA time."""
     system, g0, m0, method = CASES[case]
@@ -166,14 +179,9 @@ def main():
         "what": "system constructor + first simulate (2000 steps, final state), or first "
         "simulate_batch (64 bodies, 100 steps, every step saved), fresh process",
         "tree": args.tree or "this checkout",
-        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs",
-        "load_average": os.getloadavg(),
         "rows": rows,
     }
-    RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / f"{args.out}.json"
-    path.write_text(json.dumps(document, indent=2))
-    print(f"wrote {path}")
+    write_results(args.out, document)
 
 
 if __name__ == "__main__":

@@ -24,10 +24,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 
-from first_call import RESULTS, run_in_checkout
+from first_call import run_in_checkout, write_results
 
 SETUP = """
 import collections, json, sys, time
@@ -124,14 +122,9 @@ def main():
     document = {
         "what": __doc__.splitlines()[0],
         "tree": args.tree or "this checkout",
-        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs",
-        "load_average": os.getloadavg(),
         "rows": rows,
     }
-    RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / f"{args.out}.json"
-    path.write_text(json.dumps(document, indent=2))
-    print(f"wrote {path}")
+    write_results(args.out, document)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,9 @@ coupled rotors) the first calls took 0.64–0.98× and the runs 0.61–1.04× th
 the defaults, but for one run at 1.11× (64 binaries with the composition, every step
 saved; `python benchmarks/coupled_emitter.py`): hence the systems of several bodies.
 
+The programs an eager call runs once whatever its size (input checks, set-up, join, the
+result check) take the option too (`once_per_call`).
+
 The option is XLA's own: if the installed XLA does not know it, every program keeps the
 defaults (`small_run_options_apply`).
 """
@@ -116,4 +119,5 @@ def once_per_call(fn):
         chosen = program.default if tracing() else program.small_where_applies()
         return chosen(*args, **kwargs)
 
+    call.program = program
     return call

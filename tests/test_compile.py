@@ -35,6 +35,45 @@ def test_without_the_options_every_run_takes_the_defaults(program, monkeypatch):
     assert program.for_bodies(128, per_system=2) is program.default
 
 
+def test_programs_run_once_a_call_take_the_small_run_options_when_eager(monkeypatch):
+    """`once_per_call`: the input checks, a run's set-up and join, the result check take
+    the small-run options whatever the batch, eagerly; under the caller's `jax.jit` they
+    are part of its program (JAX refuses `compiler_options` on a nested `jit`)."""
+    double = _compile.once_per_call(lambda x: 2 * x)
+    program, seen = double.program, []
+    for name in ("small", "default"):
+        compiled = getattr(program, name)
+        spy = lambda *args, compiled=compiled, name=name: seen.append(name) or compiled(*args)  # noqa: E731
+        monkeypatch.setattr(program, name, spy)
+    x = jnp.arange(1e5)  # a large batch: still the small-run options
+    np.testing.assert_array_equal(double(x), 2 * x)
+    np.testing.assert_array_equal(jax.jit(double)(x), 2 * x)
+    assert seen == ["small", "default"]
+    monkeypatch.setattr(_compile, "small_run_options_apply", lambda: False)
+    double(x)
+    assert seen[-1] == "default"
+
+
+def test_input_checks_eagerly_and_under_jit():
+    """The input checks (`once_per_call`) run eagerly, where bad input raises, and inside
+    the caller's `jit`, where it is `RESULTS.invalid_input`."""
+    body = lievi.RigidBodySE3(jnp.array([1.0, 2.0, 3.0]), 2.0)
+    m0 = jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])
+
+    def run(g0, m, h):
+        return lievi.simulate(body, lievi.DEP(), g0, m, h=h, n_steps=2, throw=False)
+
+    good = run(jnp.eye(4), m0, 0.1)
+    assert good.result == lievi.RESULTS.successful
+    assert jax.jit(run)(jnp.eye(4), m0, 0.1).result == lievi.RESULTS.successful
+    bad_g0 = jnp.eye(4).at[0, 0].set(1.5)
+    for g0, m, h in ((bad_g0, m0, 0.1), (jnp.eye(4), m0.at[0].set(jnp.nan), 0.1)):
+        with pytest.raises(ValueError, match="g0|m0"):
+            run(g0, m, h)
+        assert jax.jit(run)(g0, m, h).result == lievi.RESULTS.invalid_input
+    assert jax.jit(run)(jnp.eye(4), m0, -0.1).result == lievi.RESULTS.invalid_input
+
+
 def test_bodies_of_a_run():
     assert _compile.bodies_of(jnp.eye(4)) == 1
     assert _compile.bodies_of(jnp.zeros((2, 4, 4))) == 2  # a system of two bodies
