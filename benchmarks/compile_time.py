@@ -120,7 +120,8 @@ def integrators():
 QUICK = {("RigidBody (free)", "DEP exp"), ("RigidBodySE3 (free)", "DEP exp")}
 
 
-def _timed(fn):
+def timed(fn) -> float:
+    """Wall-clock seconds of `fn()`, its result ready."""
     start = time.perf_counter()
     jax.block_until_ready(fn())
     return time.perf_counter() - start
@@ -128,12 +129,12 @@ def _timed(fn):
 
 def measure(call, steps: int) -> dict:
     """Compile and run times of `call(n_steps, save_every)` (see the module docstring)."""
-    first = _timed(lambda: call(steps, 1))
-    run = _timed(lambda: call(steps, 1))
-    longer = _timed(lambda: call(2 * steps, 1))
-    longer_run = _timed(lambda: call(2 * steps, 1))
-    saving = _timed(lambda: call(2 * steps, 2))
-    saving_run = _timed(lambda: call(2 * steps, 2))
+    first = timed(lambda: call(steps, 1))
+    run = timed(lambda: call(steps, 1))
+    longer = timed(lambda: call(2 * steps, 1))
+    longer_run = timed(lambda: call(2 * steps, 1))
+    saving = timed(lambda: call(2 * steps, 2))
+    saving_run = timed(lambda: call(2 * steps, 2))
     return {
         "first": first - run,
         "n_steps": longer - longer_run,
@@ -238,8 +239,8 @@ def throughput() -> list[dict]:
     }
     rows = []
     for name, run in cases.items():
-        _timed(run)
-        best = min(_timed(run) for _ in range(5))
+        timed(run)
+        best = min(timed(run) for _ in range(5))
         rows.append({"case": name, "best_s": best})
         print(f"{name:50s} {1e3 * best:8.2f} ms", flush=True)
     return rows

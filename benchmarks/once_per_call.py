@@ -23,7 +23,6 @@ import argparse
 import collections
 import pathlib
 import sys
-import time
 
 import jax
 
@@ -114,12 +113,6 @@ def other_programs_xla(call) -> float:
     return sum(times.values()) - max(times.values())
 
 
-def timed(call) -> float:
-    start = time.perf_counter()
-    jax.block_until_ready(call())
-    return time.perf_counter() - start
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=2)
@@ -145,12 +138,12 @@ def main():
     for name, call in run_cases().items():
         for older in (True, False):
             choose(older)
-            timed(call)
+            compile_time.timed(call)
         seconds = {True: [], False: []}
         for _ in range(args.repeats):
             for older in (True, False):
                 choose(older)
-                seconds[older].append(timed(call))
+                seconds[older].append(compile_time.timed(call))
         best = {older: min(values) for older, values in seconds.items()}
         runs.append({"case": name, "older_best_s": best[True], "defaults_best_s": best[False]})
         print(
