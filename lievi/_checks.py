@@ -19,7 +19,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._compile import once_per_call, tracing
 
 # `(holds, message)`: a traceable boolean array and the `ValueError` message if it fails.
 Conditions = list[tuple[jax.Array, str]]
@@ -59,6 +58,17 @@ def abstract_tree(key):
         treedef,
         [x[0] if len(x) == 1 else jax.ShapeDtypeStruct(x[0], x[1], weak_type=x[2]) for x in leaves],
     )
+
+
+def tracing() -> bool:
+    """Whether a JAX transformation (`jit`, `vmap`, `grad`, a loop's body) is tracing the
+    caller: JAX's own test, private, hence guarded (without it, assume so: the traced
+    path is always correct, only slower to compile per horizon)."""
+    try:
+        from jax._src.core import trace_state_clean
+    except ImportError:
+        return True
+    return not trace_state_clean()
 
 
 def evaluated_now():
@@ -177,7 +187,7 @@ def _float_as_array(x):
     return jnp.asarray(x) if type(x) is float else x
 
 
-@once_per_call
+@eqx.filter_jit
 def _holds(conditions, *args):
     return all_hold(conditions(*args))
 
@@ -243,18 +253,8 @@ def step_size_valid(h):
 
 def input_valid(system, g0, m0, h, t0=0.0):
     """Traceable validity of a run's inputs: the system's parameters, `g0` in the group,
-    finite `m0`, `t0`, and a positive normal `h`. A boolean array (`simulate` turns
-    `False` into `RESULTS.invalid_input`).
-
-    One compiled program: called eagerly, the checks would otherwise run operation by
-    operation, each a small program compiled at its first call (1.4 s of a first one-body
-    `simulate` on SO(3)) and dispatched at every call. `h` and `t0` are passed as arrays,
-    so that a new value is not a new program."""
-    return _input_valid(system, g0, m0, jnp.asarray(h), jnp.asarray(t0))
-
-
-@once_per_call
-def _input_valid(system, g0, m0, h, t0):
+    finite `m0`, `t0`, and a positive normal `h`. A boolean array (a run turns `False`
+    into `RESULTS.invalid_input`; it is computed inside the run's own program)."""
     return (
         system.parameters_valid()
         & system.element_valid(g0)

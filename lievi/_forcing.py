@@ -116,6 +116,13 @@ class AbstractForcing(eqx.Module):
         """`jax.vmap` in-axes of this forcing in a batch of `system`s: shared by default."""
         return None
 
+    def per_step_axes(self, system) -> PyTree:
+        """The batch axis of each leaf of `per_step()` in a batch of `system`s (`0`:
+        per-member data `(batch, n_steps, …)`), or `None` where it is shared."""
+        if self.batch_axes(system) is None:
+            return None
+        return jax.tree.map(lambda _: 0, self.per_step())
+
     def check_batch(self, system, batch: int) -> None:
         """Raise `ValueError` if per-member data does not have `batch` rows."""
 
@@ -290,6 +297,9 @@ class ForcingSum(AbstractForcing):
 
     def batch_axes(self, system):
         return ForcingSum(tuple(term.batch_axes(system) for term in self.terms))
+
+    def per_step_axes(self, system):
+        return tuple(term.per_step_axes(system) for term in self.terms)
 
     def check_batch(self, system, batch):
         for term in self.terms:

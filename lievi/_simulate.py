@@ -1,9 +1,7 @@
-"""`simulate`: the one entry point. Checks its inputs, then runs the integrator's kernel
-(`lievi._simulate_kernel`) or its own step (`lievi._simulate_generic`)."""
+"""`simulate`: one body, as a batch of one in the one step loop (`lievi._loop`)."""
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -13,21 +11,18 @@ from ._checks import (
     check_integer,
     check_real_dtype,
     check_scalar,
-    drifts_off_group,
-    input_valid,
+    check_shape,
     is_concrete,
     state_dtype,
 )
 from ._forcing import as_forcing
-from ._horizon import horizon_traced
 from ._integrators._base import AbstractIntegrator, AbstractVariationalIntegrator
-from ._progress import AbstractProgressMeter, NoProgressMeter, as_progress_meter
-from ._results import RESULTS
+from ._loop import Run, execute, raise_if_failed
+from ._progress import AbstractProgressMeter, as_progress_meter
 from ._save import Save
 from ._scan import checkpoint_segment
-from ._simulate_generic import simulate_blocks, simulate_scan
-from ._simulate_kernel import simulate_kernel
-from ._solution import Solution, advected_of
+from ._solution import Solution
+from ._steppers import plan_for
 from ._systems._base import AbstractLieSystem
 
 
@@ -122,173 +117,87 @@ def simulate(
             "Give exactly one of `m0` (initial momentum) and `g1` (second configuration)."
         )
     g0 = _as_array("g0", g0)
-    system.check_element("g0", g0)
+    _check_configuration(system, "g0", g0)
     if g1 is not None and forcing is not None:
         raise ValueError(
             "`g1` with `forcing`: the forced discrete Legendre transform needs the force at "
             "the first step; pass the initial momentum `m0` instead."
         )
-    valid = jnp.asarray(True)
     if g1 is not None:
-        if not isinstance(integrator, AbstractVariationalIntegrator):
-            raise ValueError(
-                "`g1` needs a variational integrator (one with a discrete Lagrangian)."
-            )
-        g1 = g1_given = _as_array("g1", g1)
-        system.check_element("g1", g1)
-        dtype = state_dtype(system, g0, g1, h)
-        g0, g1 = jnp.asarray(g0, dtype), jnp.asarray(g1, dtype)
-        m0 = integrator.momentum_from_configurations(system, g0, g1, jnp.asarray(h, dtype))
-        if is_concrete(m0) and not np.all(np.isfinite(np.asarray(m0))):
-            raise ValueError(
-                "the momentum of the discrete trajectory through (`g0`, `g1`) is not finite: "
-                "the increment g0⁻¹g1 is outside the domain of the integrator's chart (e.g. a "
-                "half-turn for chart='cayley' or the Moser–Veselov Lagrangian). Pass `g1` "
-                "closer to `g0` (a smaller step) or pass `m0` instead."
-            )
-        valid = system.element_valid(g1_given)
+        m0 = _momentum_from_g1(system, integrator, g0, g1, h)
     m0 = _as_array("m0", m0)
     system.check_momentum("m0", m0)
     segment = checkpoint_segment(checkpoint, n_steps, save_every)
-    progress = as_progress_meter(progress_meter)
     forcing = as_forcing(forcing)
     dtype = state_dtype(system, g0, m0, h)
     if forcing is not None:
         forcing.check(system, n_steps, dtype, args)
-    # The eager checks above raise for concrete values; this repeats them inside the
-    # computation, so a traced bad value (under jit/vmap) is reported per body. Before the
-    # cast: `g0` is held to the membership tolerance of its own dtype, as eagerly.
-    valid = valid & input_valid(system, g0, m0, h, t0)
-    g0, m0, h, t0 = (jnp.asarray(x, dtype) for x in (g0, m0, h, t0))
-    solution = _simulate(
-        system,
-        integrator,
-        g0,
-        m0,
-        h,
-        t0,
-        n_steps,
-        save_every,
+    run = Run(
+        plan_for(system, integrator, None, forcing, args),
+        Save(g=True, m=True, stats=True),
+        as_progress_meter(progress_meter),
+        dtype,
         segment,
-        valid,
-        progress,
-        forcing,
-        args,
     )
+
+    def explain():
+        # An eager run with a bad input: the eager checks name it (`ValueError`).
+        system.check_element("g0", g0)
+
+    solution = execute(run, _lead(g0), _lead(m0), h, t0, n_steps, save_every, explain)
+    solution = _first(solution)
     if throw:
-        # The check rides on every output (not only `result`): under the caller's `jit`
-        # a check on an unused output would be dead code and dropped silently.
-        solution = eqx.branched_error_if(
-            solution,
-            solution.result != RESULTS.successful,
-            solution.result,
-            [
-                f"lievi.simulate: a step failed: {msg} (Run with throw=False to get the "
-                "partial trajectory and `stats['failed_step']`.)"
-                for msg in RESULTS.messages
-            ],
-        )
+        solution = raise_if_failed(solution, "lievi.simulate", "a step")
     return solution
+
+
+def _lead(x):
+    """`x` with a leading batch axis of one: on the host for a concrete array (no program
+    compiled for it), traced otherwise."""
+    return np.asarray(x)[None] if is_concrete(x) else jnp.asarray(x)[None]
+
+
+def _first(solution: Solution) -> Solution:
+    """The batch of one's leading axis off."""
+    return jax.tree.map(lambda x: x[0], solution)
+
+
+def _check_configuration(system, name, g) -> None:
+    """Shape and finiteness now (no program compiled); membership in the group is checked
+    inside the run (a body off the group starts as `RESULTS.invalid_input`, and an eager
+    run then raises `check_element`'s `ValueError`)."""
+    shape = system.element_shape()
+    n = system.group.matrix_dim
+    what = f"a {n}×{n} group element" + (
+        f" for each of {shape[0]} bodies" if len(shape) > 2 else ""
+    )
+    check_shape(name, g, shape, what)
+    if is_concrete(g) and not np.all(np.isfinite(np.asarray(g))):
+        raise ValueError(f"`{name}` contains NaN or inf; pass finite values.")
+
+
+def _momentum_from_g1(system, integrator, g0, g1, h):
+    """`m0` of the discrete trajectory through `(g0, g1)`: the discrete Legendre transform
+    `−D₁L_d(g0, g1)` (paper §2: a variational integrator is started from `(g0, g1)`)."""
+    if not isinstance(integrator, AbstractVariationalIntegrator):
+        raise ValueError("`g1` needs a variational integrator (one with a discrete Lagrangian).")
+    system.check_element("g0", g0)
+    g1 = _as_array("g1", g1)
+    system.check_element("g1", g1)
+    dtype = state_dtype(system, g0, g1, h)
+    g0, g1 = jnp.asarray(g0, dtype), jnp.asarray(g1, dtype)
+    m0 = integrator.momentum_from_configurations(system, g0, g1, jnp.asarray(h, dtype))
+    if is_concrete(m0) and not np.all(np.isfinite(np.asarray(m0))):
+        raise ValueError(
+            "the momentum of the discrete trajectory through (`g0`, `g1`) is not finite: "
+            "the increment g0⁻¹g1 is outside the domain of the integrator's chart (e.g. a "
+            "half-turn for chart='cayley' or the Moser–Veselov Lagrangian). Pass `g1` "
+            "closer to `g0` (a smaller step) or pass `m0` instead."
+        )
+    return m0
 
 
 def _as_array(name: str, x):
     """Lists and tuples are accepted like arrays; complex, bool and strings are not."""
     check_real_dtype(name, x)
     return jnp.asarray(x)
-
-
-def _simulate(
-    system,
-    integrator,
-    g0,
-    m0,
-    h,
-    t0,
-    n_steps: int,
-    save_every: int,
-    segment: int | None = None,
-    valid=True,
-    progress: AbstractProgressMeter = NoProgressMeter(),
-    forcing=None,
-    args=None,
-) -> Solution:
-    """The run: on the integrator's kernel for the system where it has one (and no force is
-    given), else on its own `step` (`lievi._simulate_generic`). Eagerly, either loop runs
-    in blocks of saves whose program does not depend on `n_steps` or `save_every`
-    (`lievi._horizon`); under a transformation, one static checkpointed scan."""
-    kernel = run_kernel(system, integrator, forcing)
-    if kernel is not None:
-        return _simulate_on_kernel(
-            kernel, system, integrator, g0, m0, h, t0, n_steps, save_every, segment, valid, progress
-        )
-    if forcing is None and horizon_traced(system, integrator, g0, m0, h, t0, valid):
-        return simulate_blocks(
-            system, integrator, g0, m0, h, t0, n_steps, save_every, valid, progress
-        )
-    return simulate_scan(
-        system,
-        integrator,
-        g0,
-        m0,
-        h,
-        t0,
-        n_steps,
-        save_every,
-        segment,
-        valid,
-        progress,
-        forcing,
-        args,
-    )
-
-
-def run_kernel(system, integrator, forcing, batched: bool = False):
-    """The kernel `simulate` runs (`AbstractIntegrator.batch_kernel`), or `None` for the
-    method's own step: a forced run always takes the step (the kernels integrate unforced
-    bodies). `batched`: `system` carries a leading batch axis (`jax.vmap(simulate)` over
-    per-body systems)."""
-    return None if forcing is not None else integrator.batch_kernel(system, batched)
-
-
-def _simulate_on_kernel(
-    kernel, system, integrator, g0, m0, h, t0, n_steps, save_every, segment, valid, progress
-) -> Solution:
-    """The run on the integrator's structure-of-arrays kernel (`batch_kernel`), as a batch
-    of one in `simulate_batch`'s loop: the same iterates as the generic step to round-off
-    (`tests/test_kernel_parity.py`), and under `jax.vmap` each component of the state is
-    one array over the bodies — `simulate_batch`'s layout, not `(B, n, n)` matrices sliced
-    into components at every step."""
-    group = system.group if drifts_off_group(m0.dtype) else None
-    one = simulate_kernel(
-        kernel,
-        kernel.physics(system),
-        integrator.step_bound(),
-        g0[None],
-        m0[None],
-        h,
-        n_steps,
-        save_every,
-        Save(g=True, m=True, stats=True),
-        1,
-        segment,
-        valid,
-        group,
-        t0=t0,
-        progress=progress,
-    )
-    return _one_of_batch(system, one, n_steps)
-
-
-@eqx.filter_jit
-def _one_of_batch(system, one: Solution, n_steps: int) -> Solution:
-    """The batch of one's leading axis off; `simulate`'s statistics."""
-    one = jax.tree.map(lambda x: x[0], one)
-    stats = dict(one.stats, num_steps=jnp.asarray(n_steps))
-    return Solution(
-        ts=one.ts,
-        g=one.g,
-        m=one.m,
-        result=one.result,
-        stats=stats,
-        advected=advected_of(system, one.g),
-    )

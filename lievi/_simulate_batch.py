@@ -29,45 +29,20 @@ from ._checks import (
     check_finite,
     check_integer,
     check_real_dtype,
-    drifts_off_group,
-    input_valid,
     is_concrete,
     state_dtype,
 )
-from ._compile import once_per_call
 from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator
+from ._loop import Run, execute, raise_if_failed
 from ._progress import AbstractProgressMeter, as_progress_meter
-from ._results import RESULTS
 from ._save import Save, as_save
 from ._scan import checkpoint_segment
-from ._simulate_kernel import simulate_kernel
-from ._simulate_vmap import simulate_vmap
-from ._solution import Solution, advected_of
+from ._solution import Solution
+from ._steppers import plan_for
 from ._systems._base import AbstractLieSystem
 
 SAVE_FIELDS = ("g", "m", "stats")  # the default `save`
-
-
-def _fast_kernel(system, integrator, system_axis, fixed_iterations=None, carry_g=True):
-    """`(kernel, constants)` of the fast path for this pair, or None if it has none.
-
-    The integrator decides (`AbstractIntegrator.batch_kernel`), and the kernel reads the
-    system's constants it runs on (`AbstractBatchKernel.physics`: the principal moments,
-    the SE(3) tensor). With `carry_g=False` (the caller does not save `g`) the kernel's
-    reduced form is taken where it has one (`AbstractBatchKernel.reduced`: `(Π, Γ)` in
-    place of `(Π, g)`).
-    """
-    batched = system_axis is not None
-    kernel = integrator.batch_kernel(system, batched)
-    if kernel is None:
-        return None
-    constants = kernel.physics(system, batched)
-    if not carry_g:
-        kernel = kernel.reduced() or kernel
-    if fixed_iterations is not None:
-        kernel = kernel.with_fixed_iterations(fixed_iterations)
-    return kernel, constants
 
 
 def has_fast_path(
@@ -76,7 +51,7 @@ def has_fast_path(
     """Whether `simulate_batch` has a structure-of-arrays fast path for this pair
     (`system_axis` as in `simulate_batch`, inferred for a batch built with `jax.vmap`)."""
     system_axis = infer_system_axis(system, system_axis)
-    return _fast_kernel(system, integrator, system_axis) is not None
+    return integrator.batch_kernel(system, system_axis is not None) is not None
 
 
 def _is_one_system(system) -> bool:
@@ -275,8 +250,12 @@ def simulate_batch(
         check_real_dtype(name, x)
     g0, m0 = jnp.asarray(g0), jnp.asarray(m0)
     if jnp.shape(g0) == element and jnp.ndim(m0) == 1 + len(momentum):
-        # One initial element for every body (e.g. all starting at the identity).
-        g0 = jnp.broadcast_to(g0, (jnp.shape(m0)[0], *element))
+        # One initial element for every body (e.g. all starting at the identity): on the
+        # host where concrete (no program compiled for it).
+        shape = (jnp.shape(m0)[0], *element)
+        g0 = np.broadcast_to(np.asarray(g0), shape) if is_concrete(g0) else (
+            jnp.broadcast_to(g0, shape)
+        )
     _check_batch("g0", g0, element, "one group element per body")
     _check_batch("m0", m0, momentum, "one momentum per body")
     batch = jnp.shape(g0)[0]
@@ -310,102 +289,31 @@ def simulate_batch(
                 f"{batch}, got leading sizes {sorted(sizes)}; build it with "
                 "`jax.vmap(lievi.RigidBody)(inertias)`."
             )
-    # The group's own test (`check_element`'s), per state: on SE(3) a pose is not an
-    # orthogonal matrix.
-    system.check_elements("g0", g0)
-
     forcing = as_forcing(forcing)
     if forcing is not None:
         forcing.check_batch(system, batch)
         for x in jax.tree.leaves(forcing.per_step()):
             check_finite("forcing", x)
+    plan = plan_for(
+        system,
+        integrator,
+        system_axis,
+        forcing,
+        args,
+        fast=fast,
+        fixed_iterations=fixed_iterations,
+        carry_g=save.g,
+    )
     dtype = state_dtype(system, g0, m0, h)
-    # `g0` as given: held to the membership tolerance of its own dtype (as eagerly).
-    g0_given = g0
-    g0, m0, h = jnp.asarray(g0, dtype), jnp.asarray(m0, dtype), jnp.asarray(h, dtype)
     segment = checkpoint_segment(checkpoint, n_steps, save_every)
-    # Forced runs take the generic path (the kernels integrate unforced bodies).
-    use_fast = fast and forcing is None
-    fast_kernel = (
-        _fast_kernel(system, integrator, system_axis, fixed_iterations, carry_g=save.g)
-        if use_fast
-        else None
-    )
-    if fast_kernel is not None:
-        kernel, constants = fast_kernel
-        # The traced input checks of `simulate`, per body (the generic path runs them
-        # inside `simulate`): a bad body starts with `RESULTS.invalid_input`.
-        in_axes = (system.batch_axes(system_axis), 0, 0, None if h.ndim == 0 else 0)
-        valid = jax.vmap(input_valid, in_axes=in_axes)(system, g0_given, m0, h)
-        solution = simulate_kernel(
-            kernel,
-            constants,
-            integrator.step_bound(),
-            g0,
-            m0,
-            h,
-            n_steps,
-            save_every,
-            save,
-            unroll,
-            segment,
-            valid,
-            system.group if save.g and drifts_off_group(dtype) else None,
-            progress=progress,
-        )
-        if solution.advected is None and solution.g is not None:
-            solution = eqx.tree_at(
-                lambda s: s.advected,
-                solution,
-                _advected(system, system_axis, solution.g),
-                is_leaf=lambda x: x is None,
-            )
-    else:
-        solution = simulate_vmap(
-            system,
-            integrator,
-            g0_given,
-            m0,
-            h,
-            n_steps,
-            save_every,
-            save,
-            system_axis,
-            segment,
-            forcing,
-            args,
-            progress,
-        )
+    run = Run(plan, save, progress, dtype, segment, unroll)
+
+    def explain():
+        # An eager run with a bad input: the group's own test (`check_element`'s) names
+        # the body (on SE(3) a pose is not an orthogonal matrix).
+        system.check_elements("g0", g0)
+
+    solution = execute(run, g0, m0, h, 0.0, n_steps, save_every, explain)
     if throw:
-        solution = _raise_if_failed(solution)
+        solution = raise_if_failed(solution, "lievi.simulate_batch", "a body")
     return solution
-
-
-@once_per_call
-def _raise_if_failed(solution: Solution) -> Solution:
-    """`solution`, with a runtime error if any body failed (`throw=True`).
-
-    The check is made on a scalar, whose zero is then added to every output: so it rides
-    on every output (under the caller's `jit` a check on an unused output would be dead
-    code and dropped silently) without passing the outputs themselves through the error's
-    callback, whose replicated layout would gather a batch sharded over devices or
-    processes onto every device."""
-    failed = solution.result != RESULTS.successful
-    first = jnp.max(jnp.where(failed, solution.result, 0))
-    zero = eqx.branched_error_if(
-        jnp.zeros((), jnp.int32),
-        jnp.any(failed),
-        first,
-        [
-            f"lievi.simulate_batch: a body failed: {msg} (Run with throw=False to get "
-            "the per-body `result` and `stats['failed_step']`.)"
-            for msg in RESULTS.messages
-        ],
-    )
-    return jax.tree.map(lambda x: x + zero.astype(x.dtype), solution)
-
-
-def _advected(system, system_axis, g):
-    """`Solution.advected` of a batch, read off the saved elements `g` `(B, T, n, n)`
-    (`None` where the potential has no advected direction)."""
-    return jax.vmap(advected_of, in_axes=(system.batch_axes(system_axis), 0))(system, g)

@@ -32,7 +32,6 @@ from .._checks import (
     membership_tolerance,
     raise_if_violated,
 )
-from .._compile import once_per_call
 from .._groups._base import MatrixLieGroup
 from ._potential import AbstractPotential
 from ._side import Side
@@ -271,7 +270,7 @@ def _off_group(group: MatrixLieGroup, name: str, defect, bound) -> ValueError:
     )
 
 
-@once_per_call
+@eqx.filter_jit
 def _defects(group: MatrixLieGroup, g):
     """The membership defect of each state of `g` `(B, *element_shape)`, the worst of its
     elements (a state of several bodies has one per body), as one compiled program: the

@@ -1,0 +1,336 @@
+"""What the one step loop (`lievi._loop`) steps: a batch of bodies, by a kernel or by the
+method's own step.
+
+A stepper is built inside the run's program, for the run's `h`, `t0` and initial state
+(what depends on the run, not on the step — a kernel's per-run constants, a preprocessed
+method's modified moments — is computed there, once, outside the loop). Its state is a
+pytree whose every leaf has the batch as its leading axis, so the loop masks a failed body,
+whatever the stepper, with one `where`.
+
+Two steppers, chosen by the integrator (`AbstractIntegrator.batch_kernel`):
+
+- `KernelStepper`: the integrator's structure-of-arrays kernel (`AbstractBatchKernel`),
+  one array per component of the state, the batch minor;
+- `VmapStepper`: the method's own `cached_step`, one body written, under `jax.vmap` over the
+  batch — every method on every system, forced runs included.
+
+One body is a batch of one.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._checks import drifts_off_group, input_valid
+from ._results import RESULTS
+from ._solution import advected_of
+
+
+class AbstractStepper(eqx.Module):
+    """One step of a batch, as the loop runs it (diffrax's `solver.init`/`solver.step` in
+    spirit): `init` the state from `(g0, m0)` `(B, …)`, `step` it, and at a save `settle`
+    it and say what is `stored`; `layout` turns the stacked saves batch-major."""
+
+    @abc.abstractmethod
+    def init(self, g0, m0):
+        """The state before the first step (every leaf `(B, …)`)."""
+
+    @abc.abstractmethod
+    def step(self, state, data, k, alive):
+        """`(state, code, iterations, residual)` after step `k` (`data`: that step's slice of
+        the forcing's per-step data; `alive`: `(B,)`, the bodies not yet failed). `code` is
+        the step's `RESULTS` code with the checks every method gets (`RESULTS.checked`)."""
+
+    def settle(self, state):
+        """The state at a save (e.g. put back on the group in low precision)."""
+        return state
+
+    @abc.abstractmethod
+    def stored(self, state, save, ok) -> dict:
+        """What a save stores of `state` (`save`: a `lievi.Save`), any layout, NaN where
+        `ok` `(B,)` is false (a failed body: no silent numbers past its failure)."""
+
+    @abc.abstractmethod
+    def layout(self, stacked: dict) -> dict:
+        """Stacked saves `(T, …)` of `stored` as `g` `(B, T, n, n)`, `m`/`advected`
+        `(B, T, ·)`."""
+
+    @abc.abstractmethod
+    def initial(self, g0, m0, save) -> dict:
+        """The initial save, batch-major with one save: `(B, 1, …)`."""
+
+
+def where_ok(ok, new, old):
+    """`new` where the body is still successful, else `old` (every leaf `(B, …)`)."""
+
+    def pick(x, y):
+        return jnp.where(ok.reshape(ok.shape + (1,) * (jnp.ndim(x) - 1)), x, y)
+
+    return jax.tree.map(pick, new, old)
+
+
+def _finite(leaves):
+    finite = jnp.asarray(True)
+    for x in leaves:
+        finite = finite & jnp.isfinite(x)
+    return finite
+
+
+class KernelStepper(AbstractStepper):
+    """The integrator's kernel: the state is `(entries of g, components of m)`, `(B,)` each."""
+
+    kernel: Any
+    params: Any
+    rates: Any
+    bound: float = eqx.field(static=True)
+    group: Any = eqx.field(static=True)
+
+    def init(self, g0, m0):
+        return self.kernel.carried(g0), tuple(m0[:, i] for i in range(m0.shape[1]))
+
+    def step(self, state, data, k, alive):
+        g, m = state
+        g_next, m_next, code, iterations, residual = self.kernel.step(self.params, g, m, alive)
+        # (h|ω|)² > bound², as h|ω| > bound but for rounding at the bound: no division or
+        # square root per body-step.
+        too_large = self.kernel.turn_squared(self.rates, m) > self.bound * self.bound
+        code = RESULTS.checked(code, _finite((*g_next, *m_next)), too_large)
+        return (g_next, m_next), code, iterations, residual
+
+    def settle(self, state):
+        if self.group is None:
+            return state
+        # (k, B) entries → (B, n, n) elements → projected → the kernel's entries.
+        elements = self.group.project(self.kernel.elements(jnp.stack(state[0])[None])[:, 0])
+        return self.kernel.carried(elements), state[1]
+
+    def stored(self, state, save, ok):
+        out = {}
+        if save.g:
+            out["g"] = jnp.stack(state[0])
+        if save.m:
+            out["m"] = jnp.stack(state[1])
+        advected = self.kernel.advected(state[0]) if save.with_advected() else None
+        if advected is not None:
+            out["advected"] = jnp.stack(advected)
+        # Component-major, the batch minor: NaN past a body's failure.
+        nan = jnp.asarray(jnp.nan, state[1][0].dtype)
+        return {name: jnp.where(ok, x, nan) for name, x in out.items()}
+
+    def layout(self, stacked):
+        out = {}
+        if "g" in stacked:
+            out["g"] = self.kernel.elements(stacked["g"])
+        for name in ("m", "advected"):
+            if name in stacked:
+                out[name] = jnp.moveaxis(stacked[name], -1, 0)
+        return out
+
+    def initial(self, g0, m0, save):
+        out = {}
+        if save.g:
+            out["g"] = g0[:, None]
+        if save.m:
+            out["m"] = m0[:, None]
+        advected = self.kernel.advected(self.kernel.carried(g0)) if save.with_advected() else None
+        if advected is not None:
+            out["advected"] = jnp.stack(advected, -1)[:, None]
+        return out
+
+
+class VmapStepper(AbstractStepper):
+    """The method's own step (`AbstractIntegrator.cached_step`) under `jax.vmap` over the
+    batch; the state is `(g, m, cache)`, `(B, …)` each."""
+
+    system: Any
+    integrator: Any
+    h: Any
+    t0: Any
+    forcing: Any
+    args: Any
+    # In-axes of (system, integrator, h, forcing, per-step data): not arrays, never traced.
+    axes: Any = eqx.field(static=True)
+
+    def init(self, g0, m0):
+        system_axes, integrator_axes, _, _, _ = self.axes
+        cache = eqx.filter_vmap(
+            lambda system, integrator, g: integrator.step_cache(system, g),
+            in_axes=(system_axes, integrator_axes, 0),
+        )(self.system, self.integrator, g0)
+        return g0, m0, cache
+
+    def step(self, state, data, k, alive):
+        forcing, args, t0 = self.forcing, self.args, self.t0
+
+        def one(system, integrator, g, m, h, cache, forcing, data):
+            force = None if forcing is None else forcing.at_step(data, args)
+            g1, m1, info, cache1 = integrator.cached_step(system, g, m, h, cache, force, t0 + k * h)
+            finite = jnp.all(jnp.isfinite(g1)) & jnp.all(jnp.isfinite(m1))
+            too_large = integrator.step_too_large(system, m, h)
+            code = RESULTS.checked(info.result, finite, too_large)
+            return (g1, m1, cache1), code, info.iterations, info.residual
+
+        system_axes, integrator_axes, h_axis, forcing_axes, data_axes = self.axes
+        in_axes = (system_axes, integrator_axes, 0, 0, h_axis, 0, forcing_axes, data_axes)
+        g, m, cache = state
+        return eqx.filter_vmap(one, in_axes=in_axes)(
+            self.system, self.integrator, g, m, self.h, cache, forcing, data
+        )
+
+    def settle(self, state):
+        g = state[0]
+        if drifts_off_group(g.dtype):
+            # Low precision: the saved state, from which a run may be continued, is kept on
+            # the group (to `membership_tolerance`), as is the state carried on.
+            return (self.system.group.project(g), *state[1:])
+        return state
+
+    def stored(self, state, save, ok):
+        out = {}
+        if save.g:
+            out["g"] = state[0]
+        if save.m:
+            out["m"] = state[1]
+        advected = self._advected(state[0]) if save.with_advected() else None
+        if advected is not None:
+            out["advected"] = advected
+        # Batch-major: NaN past a body's failure.
+        return {name: where_ok(ok, x, jnp.full_like(x, jnp.nan)) for name, x in out.items()}
+
+    def _advected(self, g):
+        """`Γ = gᵀa` per body, or `None` where the potential has no advected parameter."""
+        potential = self.system.potential
+        if potential is None or potential.advected_direction() is None:
+            return None
+        return jax.vmap(advected_of, in_axes=(self.axes[0], 0))(self.system, g)
+
+    def layout(self, stacked):
+        return {name: jnp.swapaxes(x, 0, 1) for name, x in stacked.items()}
+
+    def initial(self, g0, m0, save):
+        out = {}
+        if save.g:
+            out["g"] = g0[:, None]
+        if save.m:
+            out["m"] = m0[:, None]
+        advected = self._advected(g0) if save.with_advected() else None
+        if advected is not None:
+            out["advected"] = advected[:, None]
+        return out
+
+
+class AbstractPlan(eqx.Module):
+    """How a run steps, decided before it starts (on the host): `stepper` builds the
+    stepper inside the run's program, from the run's `(g0, m0)` `(B, …)`, `h` and `t0`.
+    `valid` is the traced input check per body (`RESULTS.invalid_input` where false)."""
+
+    system: Any
+    system_axis: int | None = eqx.field(static=True)
+
+    @abc.abstractmethod
+    def stepper(self, g0, m0, h, t0) -> AbstractStepper: ...
+
+    def h_axis(self, h):
+        return None if jnp.ndim(h) == 0 else 0
+
+    def valid(self, g0, m0, h, t0):
+        in_axes = (self.system.batch_axes(self.system_axis), 0, 0, self.h_axis(h), None)
+        return jax.vmap(input_valid, in_axes=in_axes)(self.system, g0, m0, h, t0)
+
+    def advected(self, g):
+        """`Solution.advected` read off saved elements `g` `(B, T, n, n)`, or `None`."""
+        axes = self.system.batch_axes(self.system_axis)
+        return jax.vmap(advected_of, in_axes=(axes, 0))(self.system, g)
+
+    def per_step(self):
+        """The forcing's per-step data with the step axis leading, or `None`."""
+        return None
+
+
+class KernelPlan(AbstractPlan):
+    kernel: Any
+    constants: Any
+    bound: float = eqx.field(static=True)
+    project: bool = eqx.field(static=True)
+
+    def stepper(self, g0, m0, h, t0):
+        dtype = m0.dtype
+        constants = jax.tree.map(lambda x: jnp.asarray(x, dtype), self.constants)
+        constants = self.kernel.constants(constants)
+        group = self.system.group if self.project and drifts_off_group(dtype) else None
+        return KernelStepper(
+            self.kernel,
+            self.kernel.prepare(constants, h),
+            # Per-run constants of the step-size check, once outside the loop.
+            self.kernel.turn_rates(constants, h),
+            self.bound,
+            group,
+        )
+
+
+class VmapPlan(AbstractPlan):
+    integrator: Any
+    forcing: Any = None
+    args: Any = None
+
+    def _forcing_axes(self):
+        if self.forcing is None:
+            return None, None
+        return self.forcing.batch_axes(self.system), self.forcing.per_step_axes(self.system)
+
+    def stepper(self, g0, m0, h, t0):
+        system_axes = self.system.batch_axes(self.system_axis)
+        h_axis = self.h_axis(h)
+        # Per-run state (e.g. a preprocessed method's modified moments for this `h`), per
+        # body from its own `m0`; every array leaf of the result carries the batch.
+        integrator = eqx.filter_vmap(
+            lambda system, m0, h: self.integrator.init(system, m0, h),
+            in_axes=(system_axes, 0, h_axis),
+        )(self.system, m0, h)
+        integrator_axes = eqx.if_array(0)
+        forcing_axes, data_axes = self._forcing_axes()
+        axes = (system_axes, integrator_axes, h_axis, forcing_axes, data_axes)
+        return VmapStepper(self.system, integrator, h, t0, self.forcing, self.args, axes)
+
+    def per_step(self):
+        if self.forcing is None:
+            return None
+        _, data_axes = self._forcing_axes()
+        data = self.forcing.per_step()
+        # Per-body data `(B, n_steps, …)` → `(n_steps, B, …)`: scanned over by step.
+        return jax.tree.map(
+            lambda x, axis: x if axis is None else jnp.moveaxis(x, 1, 0),
+            data,
+            data_axes,
+            is_leaf=lambda x: x is None,
+        )
+
+
+def plan_for(system, integrator, system_axis, forcing=None, args=None, **kernel_options):
+    """How a run of `integrator` on `system` steps: on the integrator's kernel for it
+    (`AbstractIntegrator.batch_kernel`; never for a forced run: the kernels integrate
+    unforced bodies), else by its own step under `jax.vmap`.
+
+    `kernel_options`: `fast=False` takes the method's own step; `fixed_iterations`, the
+    kernel's Newton iterations before its convergence check; `carry_g=False`, the kernel's
+    reduced form where it has one (a run that does not save `g`)."""
+    fast = kernel_options.get("fast", True)
+    batched = system_axis is not None
+    kernel = None
+    if fast and forcing is None:
+        kernel = integrator.batch_kernel(system, batched)
+    if kernel is None:
+        return VmapPlan(system, system_axis, integrator, forcing, args)
+    constants = kernel.physics(system, batched)
+    carry_g = kernel_options.get("carry_g", True)
+    if not carry_g:
+        kernel = kernel.reduced() or kernel
+    fixed = kernel_options.get("fixed_iterations")
+    if fixed is not None:
+        kernel = kernel.with_fixed_iterations(fixed)
+    return KernelPlan(system, system_axis, kernel, constants, integrator.step_bound(), carry_g)
