@@ -19,7 +19,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-
 # `(holds, message)`: a traceable boolean array and the `ValueError` message if it fails.
 Conditions = list[tuple[jax.Array, str]]
 

@@ -58,14 +58,12 @@ EXTENDED = frozenset(
         "tests/test_gradients.py::test_gradient_independent_of_newton_iterations[exp]",  # 14 s
         "tests/test_gradients.py::test_jacfwd_equals_jacrev[exp]",  # 11 s
         "tests/test_group_autodiff.py::test_son_derivatives_are_finite[4]",  # 8 s
-        "tests/test_horizon.py::test_failure_is_recorded_across_blocks[generic]",  # 10 s
-        "tests/test_horizon.py::test_new_horizon_compiles_no_new_step[fast]",  # 9 s
-        "tests/test_horizon.py::test_new_horizon_compiles_no_new_step[generic]",  # 11 s
-        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[h-per-body-save0-generic]",  # 10 s
-        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[h-per-body-save1-generic]",  # 10 s
-        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[shared-h-save0-generic]",  # 13 s
-        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[shared-h-save1-generic]",  # 9 s
-        "tests/test_horizon.py::test_simulate_eager_equals_jit[preprocessed-12-3]",  # 8 s
+        "tests/test_loop.py::test_failure_is_recorded_across_blocks[generic]",  # 10 s
+        "tests/test_loop.py::test_simulate_batch_eager_equals_jit[h-per-body-save0-generic]",  # 10 s
+        "tests/test_loop.py::test_simulate_batch_eager_equals_jit[h-per-body-save1-generic]",  # 10 s
+        "tests/test_loop.py::test_simulate_batch_eager_equals_jit[shared-h-save0-generic]",  # 13 s
+        "tests/test_loop.py::test_simulate_batch_eager_equals_jit[shared-h-save1-generic]",  # 9 s
+        "tests/test_loop.py::test_simulate_eager_equals_jit[preprocessed-12-3]",  # 8 s
         "tests/test_identification.py::test_batch_shapes_and_report",  # 32 s
         "tests/test_kernel_parity.py::test_batch_equals_reference[composition-splitting-6]",  # 19 s
         "tests/test_kernel_parity.py::test_batch_equals_reference[dep-exp-heavy-top]",  # 18 s
@@ -133,8 +131,8 @@ EXTENDED = frozenset(
         "tests/test_forcing.py::test_damping_decays_to_rest_with_the_work_balance[dep-exp]",  # 10 s
         "tests/test_gradients.py::test_checkpointing_changes_nothing[exp-True]",  # 13 s
         "tests/test_gradients.py::test_gradient_finite_at_zero_momentum_float32[exp]",  # 11 s
-        "tests/test_horizon.py::test_simulate_eager_equals_jit[DEP-9-1]",  # 12 s
-        "tests/test_horizon.py::test_simulate_eager_equals_jit[DEP-5-5]",  # 10 s
+        "tests/test_loop.py::test_simulate_eager_equals_jit[DEP-9-1]",  # 12 s
+        "tests/test_loop.py::test_simulate_eager_equals_jit[DEP-5-5]",  # 10 s
         "tests/test_convergence.py::test_second_order_on_hlw[dep-exp]",  # 8 s
         "tests/test_se3_batch.py::test_linear_momentum_sets_the_tolerance[exp]",  # 39 s
         "tests/test_se3_body.py::test_kirchhoff_conservation[exp]",  # 23 s
@@ -143,11 +141,11 @@ EXTENDED = frozenset(
         "tests/test_dep.py::test_batched_equals_per_body[dep-exp]",  # 14 s
         # More variants of checks whose other variants stay in the default suite (the
         # same machine, `pytest --durations=200`):
-        "tests/test_horizon.py::test_simulate_eager_equals_jit[preprocessed-5-5]",  # 11 s
-        "tests/test_horizon.py::test_simulate_eager_equals_jit[SE3-RK4-12-3]",  # 10 s
-        "tests/test_horizon.py::test_simulate_eager_equals_jit[SE3-RK4-5-5]",  # 9 s
-        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[h-per-body-save0-fast]",  # 13 s
-        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[shared-h-save1-fast]",  # 12 s
+        "tests/test_loop.py::test_simulate_eager_equals_jit[preprocessed-5-5]",  # 11 s
+        "tests/test_loop.py::test_simulate_eager_equals_jit[SE3-RK4-12-3]",  # 10 s
+        "tests/test_loop.py::test_simulate_eager_equals_jit[SE3-RK4-5-5]",  # 9 s
+        "tests/test_loop.py::test_simulate_batch_eager_equals_jit[h-per-body-save0-fast]",  # 13 s
+        "tests/test_loop.py::test_simulate_batch_eager_equals_jit[shared-h-save1-fast]",  # 12 s
         "tests/test_potentials.py::test_zero_potential_is_the_free_body[dep-exp-zero-mass]",  # 12 s
         "tests/test_potentials.py::test_zero_potential_is_the_free_body[moser-veselov-zero-mass]",  # 9 s
         "tests/test_potentials.py::test_second_order_heavy_top[dep-exp]",  # 10 s
@@ -192,21 +190,21 @@ EXTENDED = frozenset(
         "tests/test_stream.py::test_resume_after_a_stop",  # 15 s
         "tests/test_fit_optimizer.py::test_lbfgs_rosenbrock_batch_equals_alone",  # 14 s
         "tests/test_progress.py::test_batch_meter_updates_one_line[True]",  # 14 s
-        "tests/test_horizon.py::test_simulate_eager_equals_jit[preprocessed-9-1]",  # 14 s
-        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[shared-h-save0-fast]",  # 14 s
+        "tests/test_loop.py::test_simulate_eager_equals_jit[preprocessed-9-1]",  # 14 s
+        "tests/test_loop.py::test_simulate_batch_eager_equals_jit[shared-h-save0-fast]",  # 14 s
         "tests/test_se3.py::test_derivatives_finite_at_zero_and_near_pi[f64]",  # 14 s
         "tests/test_rkmk.py::test_fourth_order_on_se3_through_the_kernel[gravity]",  # 14 s
         "tests/test_kernel_parity.py::test_batch_equals_reference[splitting]",  # 14 s
         "tests/test_rigid_rotors.py::test_one_rotor_equals_rigid_body[integrator0]",  # 14 s
         "tests/test_reliability.py::test_tolerance_is_relative_float32_satellite_units[0.0001]",  # 13 s
-        "tests/test_horizon.py::test_simulate_batch_eager_equals_jit[h-per-body-save1-fast]",  # 13 s
+        "tests/test_loop.py::test_simulate_batch_eager_equals_jit[h-per-body-save1-fast]",  # 13 s
         "tests/test_preprocessed_dmv.py::test_prepared_for_another_step_size",  # 13 s
         "tests/test_forcing.py::test_float32_forced_run",  # 13 s
         "tests/test_gradients.py::test_moser_veselov_gradient_matches_finite_differences",  # 13 s
         "tests/test_kernel_parity.py::test_iterates_and_gradients_equal_reference[rk4]",  # 13 s
-        "tests/test_horizon.py::test_under_transformations_the_static_scan_is_used",  # 13 s
+        "tests/test_loop.py::test_under_transformations_the_static_scan_is_used",  # 13 s
         "tests/test_rigid_rotors.py::test_simulate_batch_of_systems",  # 13 s
-        "tests/test_horizon.py::test_simulate_eager_equals_jit[DEP-12-3]",  # 13 s
+        "tests/test_loop.py::test_simulate_eager_equals_jit[DEP-12-3]",  # 13 s
         "tests/test_rkmk.py::test_fourth_order_heavy_top_with_control",  # 13 s
         "tests/test_forcing.py::test_order_with_a_held_control",  # 12 s
         "tests/test_gradients.py::test_gradient_finite_when_a_step_fails",  # 12 s
@@ -215,7 +213,7 @@ EXTENDED = frozenset(
         "tests/test_splitting.py::test_derivative_matches_finite_differences[False]",  # 12 s
         "tests/test_properties.py::test_son_log_is_exact_or_nan_near_half_turns",  # 11 s
         "tests/test_simulate.py::test_newton_converges_fast_for_moderate_steps[dep-cayley]",  # 11 s
-        "tests/test_horizon.py::test_failure_is_recorded_across_blocks[fast]",  # 11 s
+        "tests/test_loop.py::test_failure_is_recorded_across_blocks[fast]",  # 11 s
         "tests/test_rkmk.py::test_fourth_order_and_more_accurate_than_embedded_rk4[left]",  # 11 s
         "tests/test_rkmk.py::test_saves_the_advected_parameter[RKMK4()]",  # 11 s
         "tests/test_potentials.py::test_three_d_pendulum",  # 11 s
@@ -243,7 +241,7 @@ EXTENDED = frozenset(
         "tests/test_frames.py::test_angular_velocity_matches_the_motion_of_g",  # 9 s
         "tests/test_son.py::test_hat_vee_and_basis[4]",  # 9 s
         "tests/test_batch.py::test_shared_system_and_save_options",  # 9 s
-        "tests/test_horizon.py::test_simulate_eager_equals_jit[SE3-RK4-9-1]",  # 9 s
+        "tests/test_loop.py::test_simulate_eager_equals_jit[SE3-RK4-9-1]",  # 9 s
         "tests/test_dep.py::test_generalized_rigid_body_increments_that_need_scaling",  # 50 s
         # The module fixture (a batched fit, 65 s) and the three checks that read it:
         "tests/test_identification.py::test_hlw_noise_free_recovers_moments",

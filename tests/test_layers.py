@@ -13,7 +13,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "lievi"
 
 # Lowest first. A module may import from its own layer or any lower one, never a higher.
 LAYERS = (
-    ("foundations", ("_results", "_compile", "_checks")),
+    ("foundations", ("_results", "_checks")),
     ("solvers", ("_newton",)),
     ("groups", ("_groups",)),
     ("physics", ("_systems", "_forcing")),
@@ -24,18 +24,16 @@ LAYERS = (
         (
             "_scan",
             "_progress",
-            "_horizon",
             "_save",
             "_solution",
-            "_simulate_generic",
-            "_simulate_kernel",
+            "_steppers",
+            "_loop",
             "_simulate",
         ),
     ),
     (
         "batches",
         (
-            "_simulate_vmap",
             "_simulate_batch",
             "_sharding",
             "_stream",

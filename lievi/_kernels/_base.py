@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import abc
 import contextlib
-import dataclasses
 
 import equinox as eqx
 import jax
@@ -105,13 +104,6 @@ def materialise(values, one, stack: bool = True):
             out.extend(stacked[i] for i in range(stacked.shape[0]))
         return tuple(out)
     return tuple(v / one for v in values)
-
-
-def without_newton_loop(kernel, fixed: int):
-    """`kernel` (whose step is `fixed` Newton iterations, a check, then a loop up to its
-    `max_steps`) with `max_steps = fixed`, so that its step compiles no loop; `None`
-    where there is none to leave out (no fixed iterations, or no more steps allowed)."""
-    return dataclasses.replace(kernel, max_steps=fixed) if 0 < fixed < kernel.max_steps else None
 
 
 def compacted_tail(need, run, state, args, fraction: int = 8):
@@ -265,16 +257,6 @@ class AbstractBatchKernel(eqx.Module):
         """The kernel with this many Newton iterations before its convergence check
         (`simulate_batch(fixed_iterations=...)`); explicit kernels ignore it."""
         return self
-
-    def fixed_iterations_only(self):
-        """This kernel without the Newton loop that follows its fixed iterations (a body
-        they leave above tolerance, or off the branch, is reported failed instead), or
-        `None` where there is no such loop to leave out (the default: explicit kernels).
-
-        Compiled sooner (on SE(3) about 1 s less, `benchmarks/fixed_first.py`) and at the
-        usual step sizes the same steps: an eager run of up to `FIXED_FIRST_MAX_BODIES`
-        bodies tries it first (`lievi._simulate_kernel`)."""
-        return None
 
     def carried(self, g0):
         """The configuration state this kernel carries, from the initial elements `g0`

@@ -71,10 +71,6 @@ class CompositionKernel(AbstractBatchKernel):
     def with_fixed_iterations(self, fixed_iterations: int):
         return self._wrap(self.inner.with_fixed_iterations(fixed_iterations))
 
-    def fixed_iterations_only(self):
-        inner = self.inner.fixed_iterations_only()
-        return None if inner is None else self._wrap(inner)
-
     def one_body(self):
         return self._wrap(self.inner.one_body())
 

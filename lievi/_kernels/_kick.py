@@ -80,10 +80,6 @@ class KickKernel(AbstractBatchKernel):
     def with_fixed_iterations(self, fixed_iterations: int):
         return dataclasses.replace(self, free=self.free.with_fixed_iterations(fixed_iterations))
 
-    def fixed_iterations_only(self):
-        free = self.free.fixed_iterations_only()
-        return None if free is None else dataclasses.replace(self, free=free)
-
     def reduced(self):
         # `V = aᵀ g b` depends on `g` through `Γ = gᵀa` alone.
         return self if self.reduced_state else dataclasses.replace(self, reduced_state=True)

@@ -58,7 +58,7 @@ import jax.numpy as jnp
 from .._groups._se3 import SE3
 from .._newton import newton_tolerance
 from .._results import RESULTS
-from ._base import AbstractBatchKernel, compacted_tail, materialise, without_newton_loop
+from ._base import AbstractBatchKernel, compacted_tail, materialise
 from ._flat_batch import bodies_batched
 from ._implicit import differentiable_root
 from ._se3_reduced import reduced_residual, velocity_part
@@ -470,9 +470,6 @@ class SE3NewtonKernel(SE3Kernel):
 
     def with_fixed_iterations(self, fixed_iterations: int):
         return dataclasses.replace(self, fixed_iterations=fixed_iterations)
-
-    def fixed_iterations_only(self):
-        return without_newton_loop(self, self._fixed())
 
     def _fixed(self) -> int:
         """The fixed Newton iterations of a step: as set, or the default."""

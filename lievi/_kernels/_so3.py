@@ -51,7 +51,7 @@ import jax.numpy as jnp
 
 from .._newton import newton_tolerance
 from .._results import RESULTS
-from ._base import AbstractBatchKernel, materialise, ones, without_newton_loop
+from ._base import AbstractBatchKernel, materialise, ones
 from ._flat_batch import bodies_batched
 from ._implicit import differentiable_root
 from ._so3_equations import AbstractSO3Equation, explicit_euler_guess, moser_veselov_on_branch
@@ -204,9 +204,6 @@ class NewtonKernel(AbstractBatchKernel):
 
     def with_fixed_iterations(self, fixed_iterations: int):
         return dataclasses.replace(self, fixed_iterations=fixed_iterations)
-
-    def fixed_iterations_only(self):
-        return without_newton_loop(self, self._fixed())
 
     def _fixed(self) -> int:
         """The fixed Newton iterations of a step: as set, or the default."""

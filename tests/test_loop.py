@@ -1,0 +1,166 @@
+"""The one step loop (`lievi/_loop.py`): an eager call compiles at most two programs and a
+new `n_steps`, `save_every`, `h`, `t0` or new values of the inputs compile nothing; the
+eager blocks give the numbers of the static scan (the path under `jit`) to round-off."""
+
+import collections
+
+import equinox as eqx
+import jax
+import jax.monitoring
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lievi
+from lievi import _loop
+from lievi._checks import tracing
+
+COMPILED = collections.Counter()
+
+
+def _record(name, duration, **kwargs):
+    if name == "/jax/core/compile/backend_compile_duration":
+        COMPILED[kwargs.get("fun_name")] += 1
+
+
+jax.monitoring.register_event_duration_secs_listener(_record)
+
+
+def _same(a, b, exact=True):
+    """Equal pytrees: the same structure, shapes, dtypes and values (NaN where NaN), bit for
+    bit, or with `exact=False` to round-off (a few ulps: the eager run is other programs
+    than the one under `jit`, which XLA may fuse differently)."""
+    assert jax.tree.structure(a) == jax.tree.structure(b)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        assert x.shape == y.shape and x.dtype == y.dtype
+        if exact or not jnp.issubdtype(x.dtype, jnp.floating):
+            np.testing.assert_array_equal(x, y)
+        else:
+            eps = np.finfo(x.dtype).eps
+            np.testing.assert_allclose(x, y, rtol=16 * eps, atol=4 * eps)
+
+
+BODY = lievi.RigidBody(jnp.array([1.0, 2.0, 3.0]))
+SE3_BODY = lievi.RigidBodySE3(jnp.array([1.0, 2.0, 3.0]), 2.0)
+G0, M0 = jnp.eye(3), jnp.array([0.3, -0.2, 0.5])
+SE3_M0 = jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])
+MOMENTA = M0 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(0), (5, 3)))
+
+
+@pytest.fixture
+def small_blocks(monkeypatch):
+    """Blocks of 4 saves: a run of a few saves then spans several blocks and a partial one."""
+    monkeypatch.setattr(_loop, "MAX_BLOCK_SAVES", 4)
+    jax.clear_caches()
+    yield
+    jax.clear_caches()
+
+
+@pytest.mark.parametrize("n_steps, save_every", [(9, 1), (12, 3), (5, 5)])
+@pytest.mark.parametrize(
+    "system, integrator, m0",
+    [
+        (BODY, lievi.DEP(chart="exp"), M0),
+        (BODY, lievi.PreprocessedMoserVeselov(), M0),  # per-run state (`init`)
+        (SE3_BODY, lievi.RK4(), SE3_M0),
+    ],
+    ids=["DEP", "preprocessed", "SE3-RK4"],
+)
+def test_simulate_eager_equals_jit(small_blocks, system, integrator, m0, n_steps, save_every):
+    g0 = jnp.eye(system.group.matrix_dim)
+    kwargs = dict(h=0.1, n_steps=n_steps, save_every=save_every)
+    eager = lievi.simulate(system, integrator, g0, m0, **kwargs)
+    traced = eqx.filter_jit(lambda s, g, m: lievi.simulate(s, integrator, g, m, **kwargs))
+    # The blocks are another program than the scan under `jit` (fused differently by XLA):
+    # equal to round-off.
+    _same(eager, traced(system, g0, m0), exact=False)
+
+
+# The generic path's blocks run where a method has no kernel for the system (the
+# preprocessed Moser–Veselov method); a method with one runs it on every path.
+FAST_AND_GENERIC = pytest.mark.parametrize(
+    "fast, integrator",
+    [(True, lievi.DEP(chart="exp")), (False, lievi.PreprocessedMoserVeselov())],
+    ids=["fast", "generic"],
+)
+
+
+@FAST_AND_GENERIC
+@pytest.mark.parametrize("save", [("g", "m", "stats"), ("m",)])
+@pytest.mark.parametrize("h", [0.1, 0.1 + 0.01 * jnp.arange(5.0)], ids=["shared-h", "h-per-body"])
+def test_simulate_batch_eager_equals_jit(small_blocks, fast, integrator, save, h):
+    assert (integrator.batch_kernel(BODY) is None) != fast
+    kwargs = dict(h=h, n_steps=18, save_every=2, save=save, fast=fast)
+    eager = lievi.simulate_batch(BODY, integrator, G0, MOMENTA, **kwargs)
+    traced = eqx.filter_jit(lambda s, m: lievi.simulate_batch(s, integrator, G0, m, **kwargs))
+    _same(eager, traced(BODY, MOMENTA), exact=False)
+
+
+@FAST_AND_GENERIC
+def test_failure_is_recorded_across_blocks(small_blocks, fast, integrator):
+    """A failed body: its code, failed step and NaN saves in every later block, as under
+    `jit`."""
+    momenta = MOMENTA.at[2].set(jnp.array([0.0, 100.0, 0.0]))  # h|Ω| = 5: past the bound
+    kwargs = dict(h=0.1, n_steps=12, save_every=1, throw=False, fast=fast)
+    eager = lievi.simulate_batch(BODY, integrator, G0, momenta, **kwargs)
+    assert eager.result[2] != lievi.RESULTS.successful
+    assert np.all(np.isnan(eager.m[2, eager.stats["failed_step"][2] + 1 :]))
+    traced = eqx.filter_jit(lambda m: lievi.simulate_batch(BODY, integrator, G0, m, **kwargs))
+    _same(eager, traced(momenta), exact=False)
+
+
+def _programs(run) -> int:
+    COMPILED.clear()
+    jax.block_until_ready(run())
+    return sum(COMPILED.values())
+
+
+@pytest.mark.parametrize(
+    "fast, integrator",
+    [(True, lievi.DEP(chart="cayley")), (False, lievi.PreprocessedMoserVeselov())],
+    ids=["fast", "generic"],
+)
+def test_an_eager_call_compiles_two_programs_and_a_new_horizon_none(fast, integrator):
+    """The run's set-up with its input checks, and its block of saves: two programs, for
+    every horizon, step size, start time and value of the inputs (counts of compilations,
+    not timings)."""
+    jax.clear_caches()
+    body = lievi.RigidBody(jnp.array([1.0, 2.0, 3.1]))  # values no other test compiled
+    one = lambda n, k, h, t0, m, b: lievi.simulate(  # noqa: E731
+        b, integrator, G0, m, h=h, n_steps=n, save_every=k, t0=t0
+    )
+    many = lambda n, k, h, t0, m, b: lievi.simulate_batch(  # noqa: E731
+        b, integrator, G0, MOMENTA * m[0], h=h, n_steps=n, save_every=k, fast=fast
+    )
+    m1, m2 = np.asarray(M0), np.asarray(M0) * 1.5
+    other = lievi.RigidBody(np.array([1.5, 2.0, 3.0]))
+    for run in (one, many):
+        assert _programs(lambda: run(6, 1, 0.1, 0.0, m1, body)) <= 2, COMPILED
+        for args in ((8, 1, 0.1, 0.0), (8, 2, 0.05, 1.0), (30, 5, 0.2, -2.0), (700, 1, 0.1, 0.0)):
+            assert _programs(lambda: run(*args, m2, other)) == 0, (args, COMPILED)
+
+
+def test_progress_meter_of_an_eager_run(small_blocks, capsys):
+    """0 % first and 100 % last, on one line, over several blocks."""
+    meter = lievi.TextProgressMeter(delay=0.0)
+    lievi.simulate(BODY, lievi.DEP(), G0, M0, h=0.1, n_steps=40, progress_meter=meter)
+    jax.effects_barrier()
+    out = capsys.readouterr().out
+    values = [float(x) for x in out.replace("%", " ").split() if x.replace(".", "").isdigit()]
+    assert values[0] == 0.0 and values[-1] == 100.0 and np.all(np.diff(values) > 0)
+    assert out.count("\n") == 1
+
+
+def test_under_transformations_the_static_scan_is_used():
+    """`jit`, `grad` and `vmap` trace the run: the static scan (reverse mode needs it)."""
+    assert not tracing()
+    seen = []
+    jax.jit(lambda m: seen.append(tracing()) or m)(M0)
+    jax.grad(lambda h: seen.append(tracing()) or h)(0.1)
+    assert seen == [True, True]
+
+    def final_energy(h):
+        sol = lievi.simulate(BODY, lievi.DEP(), G0, M0, h=h, n_steps=6)
+        return BODY.energy(sol.m[-1])
+
+    assert np.isfinite(jax.grad(final_energy)(0.1))
