@@ -1,91 +1,164 @@
-"""Compile times of `lievi.simulate` and `lievi.simulate_batch`, per system and integrator.
+"""First calls: XLA programs compiled and wall time, each beside diffrax on the same ODE.
 
-For every system × integrator pair that applies (an integrator that does not apply to a
-system raises at its first call and is listed as skipped), measured by wall clock in one
-process with JAX's persistent compilation cache off and `jax.clear_caches()` before each
-pair:
+Each case runs in a fresh Python process (nothing compiled before, JAX's persistent
+compilation cache off), lievi's call and then diffrax's on the same equations of motion,
+in the order given by `--rounds` (alternated, so that a change of the machine's load
+reaches both). Per call it records:
 
-- `first`: the first call (`n_steps`, `save_every = 1`) minus the second, identical call:
-  the compile time a new script pays (tracing, lowering, XLA);
-- `n_steps`: the first call with `2·n_steps` minus a repeat of it: what changing the
-  horizon costs;
-- `save_every`: the first call with `2·n_steps` and `save_every = 2` minus a repeat;
-- `run`: the repeat of the first call (the run time of `n_steps` steps, checks included).
+- `programs`: the XLA programs compiled (JAX's `backend_compile_duration` events);
+- `first_s`: the wall time of the first call, result ready (tracing, compiling, running);
+- `again_programs`: the programs compiled by a second call with another `n_steps`, `h`
+  and initial momentum (lievi: none; diffrax compiles per horizon);
+- `run_s`: the best of 3 repeats of the first call (the run alone).
 
-Each for `simulate` (one body) and `simulate_batch` (`--batch` bodies, every save of
-`g` and `m` kept: the same `save_every` is passed to both). Differences of two wall-clock
-times: a figure of a few milliseconds is "nothing compiled", within the scatter of the
-machine's load (printed with the results).
+Cases: one rigid body on SO(3) with `DEP()` (1000 steps, every step saved) against
+`Tsit5`; a batch of 64 rigid bodies with `RKMK8()` (100 steps, final state) against
+`Dopri8`, the batch in one state array; one free body on SE(3) with `DEP()` (100 steps,
+every step saved) against `Tsit5`; a batch of 256 binary asteroids (two rigid bodies of
+three point masses in mutual gravity, SE(3)², `LiePoissonSplitting()`, 100 steps, final
+state), forward and the gradient of the final energy with respect to the initial momenta,
+against `Tsit5` on the Newton–Euler equations with the same potential's gradient.
 
-    python benchmarks/compile_time.py [--quick] [--steps 100] [--batch 64] [--out compile_time]
-                                      [--integrators RKMK5 RKMK8]
-                                      [--systems "RigidBodySE3 (free)"]
-    python benchmarks/compile_time.py --throughput [--out compile_time_throughput]
+    python benchmarks/compile_time.py [--rounds 2] [--cases so3_dep batch64_rkmk8 ...]
 
-Writes `benchmarks/results/<out>.json` (after each pair, so that a run cut short keeps
-what it measured). `--quick`: the free rigid body on SO(3) and on SE(3) with `DEP` (exp
-chart) only.
-
-`--throughput`: run times only (the best of 5 after a warm-up), to check that the loop
-in blocks (`lievi/_horizon.py`) costs nothing: `simulate_batch` on 10⁴ free rigid bodies,
-100 steps, the final state saved, through the fast path (DEP exp, Lie–Poisson splitting);
-`simulate` of one body for 10⁴ steps, every step saved (DEP exp, SO(3) and SE(3)), and
-on SE(3) every 100th step and the final state only; one SE(3) body over 100 steps,
-the final state only, and `simulate_batch` of 64 SE(3) bodies over 100 steps, the final
-state only: the cost of an eager call itself.
+Writes `benchmarks/results/compile_time.json` and prints a table.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import pathlib
 import platform
 import subprocess
+import sys
 import time
 
-import jax
 
-jax.config.update("jax_enable_x64", True)
-jax.config.update("jax_compilation_cache_dir", None)  # nothing persisted between runs
+def _jit(fn):
+    """`eqx.filter_jit` of a diffrax run (Python ints and strings static), as its users
+    write it; imported in the child only."""
 
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        import equinox as eqx
 
-import lievi  # noqa: E402
+        if not hasattr(call, "compiled"):
+            call.compiled = eqx.filter_jit(fn)
+        return call.compiled(*args, **kwargs)
+
+    return call
+
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+CASES = ("so3_dep", "batch64_rkmk8", "se3_dep", "binaries256", "binaries256_grad")
 
 
-def systems():
-    """`name → (system, g0, m0)`: one body (or one system of bodies) each, a generic
-    momentum."""
-    so3 = (jnp.eye(3), jnp.array([0.3, -0.2, 0.5]))
-    return {
-        "RigidBody (free)": (lievi.RigidBody(jnp.array([1.0, 2.0, 3.0])), *so3),
-        "RigidBody (heavy top)": (
-            lievi.heavy_top(jnp.array([1.0, 2.0, 3.0]), 1.0, jnp.array([0.0, 0.1, 0.3])),
-            *so3,
-        ),
-        "GeneralizedRigidBody SO(4)": (
-            lievi.GeneralizedRigidBody(jnp.array([1.0, 1.5, 2.0, 2.5])),
-            jnp.eye(4),
-            jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4]),
-        ),
-        "RigidBodySE3 (free)": (
-            lievi.RigidBodySE3(jnp.array([1.0, 2.0, 3.0]), 2.0),
-            jnp.eye(4),
-            jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4]),
-        ),
-        "RigidBodies (binary)": binary(),
-    }
+def _measure(case: str, engine: str) -> dict:
+    """Runs in the child process."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_compilation_cache_dir", None)
+    import jax.monitoring
+
+    compiled = [0]
+
+    def listen(name, duration, **kwargs):
+        if name == "/jax/core/compile/backend_compile_duration":
+            compiled[0] += 1
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    first, again = _calls(case, engine)
+
+    def timed(call):
+        compiled[0] = 0
+        start = time.perf_counter()
+        jax.block_until_ready(call())
+        return time.perf_counter() - start, compiled[0]
+
+    first_s, programs = timed(first)
+    _, again_programs = timed(again)
+    run_s = min(timed(first)[0] for _ in range(3))
+    return dict(first_s=first_s, programs=programs, again_programs=again_programs, run_s=run_s)
 
 
-def binary():
-    """Two bodies of three point masses each (masses 2.4 and 1.2) in mutual gravity
-    (`lievi.gravitating_bodies`, on SE(3)², G = 1) on a circular mutual orbit 1.5 apart
-    about their barycentre at rest (a period is 122 steps of 0.05), spinning slowly."""
+def _calls(case: str, engine: str):
+    """`(first, again)`: zero-argument calls of the case on `engine`."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    import lievi
+
+    # Inputs made with NumPy: the user's own array arithmetic compiles nothing here.
+    inertia = np.array([2.0, 1.0, 2 / 3])
+    m_so3 = np.array([np.cos(1.1), 0.0, np.sin(1.1)])
+    scale = 1 + 0.01 * np.arange(64.0)[:, None]
+    eye3, eye4 = np.eye(3), np.eye(4)
+    if case == "so3_dep":
+        body = lievi.RigidBody(inertia)
+        if engine == "lievi":
+            run = lambda n, h, m: lievi.simulate(body, lievi.DEP(), eye3, m, h=h, n_steps=n)  # noqa: E731
+        else:
+            run = lambda n, h, m: _diffrax_so3(
+                solver="Tsit5", inertia=inertia, m=m, h=h, n=n, every=True
+            )  # noqa: E731
+        return lambda: run(1000, 0.1, m_so3), lambda: run(700, 0.05, 1.1 * m_so3)
+    if case == "batch64_rkmk8":
+        body = lievi.RigidBody(inertia)
+        m = m_so3 * scale
+        if engine == "lievi":
+            run = lambda n, h, m: lievi.simulate_batch(body, lievi.RKMK8(), eye3, m, h=h, n_steps=n)  # noqa: E731
+        else:
+            run = lambda n, h, m: _diffrax_so3(
+                solver="Dopri8", inertia=inertia, m=m, h=h, n=n, every=False
+            )  # noqa: E731
+        return lambda: run(100, 0.1, m), lambda: run(70, 0.05, 1.1 * m)
+    if case == "se3_dep":
+        body = lievi.RigidBodySE3(inertia, 1.0)
+        m = np.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])
+        if engine == "lievi":
+            run = lambda n, h, m: lievi.simulate(body, lievi.DEP(), eye4, m, h=h, n_steps=n)  # noqa: E731
+        else:
+            run = lambda n, h, m: _diffrax_se3(inertia=inertia, mass=1.0, m=m, h=h, n=n)  # noqa: E731
+        return lambda: run(100, 0.1, m), lambda: run(70, 0.05, 1.1 * m)
+    if case.startswith("binaries256"):
+        system, g0, m0 = _binary()
+        g0 = np.broadcast_to(g0, (256,) + g0.shape)
+        m0 = m0 * (1 + 0.001 * np.arange(256.0))[:, None, None]
+        if engine == "lievi":
+            method = lievi.LiePoissonSplitting()
+
+            def final(n, h, m):
+                sol = lievi.simulate_batch(system, method, g0, m, h=h, n_steps=n, save=("g", "m"))
+                return sol.g[:, -1], sol.m[:, -1]
+        else:
+
+            def final(n, h, m):
+                return _diffrax_binary(system=system, g0=g0, m0=m, h=h, n=n)
+
+        if case.endswith("_grad"):
+            import jax
+
+            def loss(m, n, h):
+                g, m_end = final(n, h, m)
+                return jnp.sum(m_end**2)
+
+            run = lambda n, h, m: jax.grad(loss)(m, n, h)  # noqa: E731
+        else:
+            run = final
+        return lambda: run(100, 0.05, m0), lambda: run(70, 0.04, 1.01 * m0)
+    raise ValueError(case)
+
+
+def _binary():
+    import jax.numpy as jnp
+    import numpy as np
+
+    import lievi
+
     points = jnp.array(
         [
             [[0.12, 0.0, 0.0], [-0.1, 0.08, 0.0], [0.0, -0.06, 0.09]],
@@ -93,237 +166,209 @@ def binary():
         ]
     )
     bodies = lievi.gravitating_bodies(1.0, jnp.array([[1.0, 0.6, 0.8], [0.5, 0.4, 0.3]]), points)
-    # Relative speed sqrt(G (m₁ + m₂)/d) = sqrt(2.4); each body's share by the other's mass.
-    x, momentum = jnp.array([-0.5, 1.0]), 2.4 * 1.2 / 3.6 * jnp.sqrt(2.4)
-    g0 = jnp.tile(jnp.eye(4), (2, 1, 1)).at[:, 0, 3].set(x)
-    m0 = jnp.array(
+    momentum = 2.4 * 1.2 / 3.6 * np.sqrt(2.4)
+    g0 = np.tile(np.eye(4), (2, 1, 1))
+    g0[:, 0, 3] = [-0.5, 1.0]
+    m0 = np.array(
         [[0.003, 0.005, 0.01, 0.0, -momentum, 0.0], [0.004, -0.002, 0.001, 0.0, momentum, 0.0]]
     )
     return bodies, g0, m0
 
 
-def integrators():
-    return {
-        "DEP exp": lievi.DEP(chart="exp"),
-        "DEP cayley": lievi.DEP(chart="cayley"),
-        "MoserVeselov": lievi.MoserVeselov(),
-        "LiePoissonSplitting": lievi.LiePoissonSplitting(),
-        "RK4": lievi.RK4(),
-        "RKMK4": lievi.RKMK4(),
-        "RKMK5": lievi.RKMK5(),
-        "RKMK8": lievi.RKMK8(),
-        "Composition(DEP exp, 4)": lievi.Composition(lievi.DEP(chart="exp"), order=4),
-        "PreprocessedMoserVeselov": lievi.PreprocessedMoserVeselov(),
-    }
+def _hat_products(w, x):
+    """`w × x` for component-major arrays `(3, …)`."""
+    import jax.numpy as jnp
+
+    return jnp.stack(
+        [w[1] * x[2] - w[2] * x[1], w[2] * x[0] - w[0] * x[2], w[0] * x[1] - w[1] * x[0]]
+    )
 
 
-QUICK = {("RigidBody (free)", "DEP exp"), ("RigidBodySE3 (free)", "DEP exp")}
+@_jit
+def _diffrax_so3(solver: str, inertia, m, h, n, every: bool):
+    """The free rigid body, `Ṙ = RΩ̂`, `Π̇ = Π × Ω`, `Ω = I⁻¹Π`, with the whole batch in one
+    `(12, B)` state (a batch of one for one body): diffrax's fastest formulation here."""
+    import diffrax
+    import jax.numpy as jnp
+
+    m = jnp.atleast_2d(m)
+    batch = m.shape[0]
+    y0 = jnp.concatenate([jnp.tile(jnp.eye(3).reshape(9, 1), (1, batch)), m.T])
+    inv = (1 / inertia)[:, None]
+
+    def field(t, y, args):
+        R, P = y[:9].reshape(3, 3, -1), y[9:]
+        W = P * inv
+        # R Ω̂: column j of R Ω̂ is R (Ω × e_j).
+        hat = jnp.stack(
+            [
+                jnp.stack([0 * W[0], -W[2], W[1]]),
+                jnp.stack([W[2], 0 * W[0], -W[0]]),
+                jnp.stack([-W[1], W[0], 0 * W[0]]),
+            ]
+        )
+        dR = jnp.einsum("ikb,kjb->ijb", R, hat)
+        return jnp.concatenate([dR.reshape(9, -1), _hat_products(P, W)])
+
+    save = diffrax.SaveAt(steps=True) if every else diffrax.SaveAt(t1=True)
+    return diffrax.diffeqsolve(
+        diffrax.ODETerm(field),
+        getattr(diffrax, solver)(),
+        0.0,
+        h * n,
+        h,
+        y0,
+        saveat=save,
+        stepsize_controller=diffrax.ConstantStepSize(),
+        max_steps=n,
+    ).ys
 
 
-def timed(fn) -> float:
-    """Wall-clock seconds of `fn()`, its result ready."""
-    start = time.perf_counter()
-    jax.block_until_ready(fn())
-    return time.perf_counter() - start
+@_jit
+def _diffrax_se3(inertia, mass, m, h, n):
+    """The free body on SE(3) in body momenta `(Π, P)`: `Ṙ = RΩ̂`, `ẋ = Rv`, `Π̇ = Π×Ω +
+    P×v`, `Ṗ = P×Ω`, every step saved, `Tsit5`."""
+    import diffrax
+    import jax.numpy as jnp
 
-
-def measure(call, steps: int) -> dict:
-    """Compile and run times of `call(n_steps, save_every)` (see the module docstring)."""
-    first = timed(lambda: call(steps, 1))
-    run = timed(lambda: call(steps, 1))
-    longer = timed(lambda: call(2 * steps, 1))
-    longer_run = timed(lambda: call(2 * steps, 1))
-    saving = timed(lambda: call(2 * steps, 2))
-    saving_run = timed(lambda: call(2 * steps, 2))
-    return {
-        "first": first - run,
-        "n_steps": longer - longer_run,
-        "save_every": saving - saving_run,
-        "run": run,
-    }
-
-
-def batch_momenta(m0, batch: int):
-    """`batch` momenta within about 10 % of `m0` (the batches of `simulate_batch` here)."""
-    key = jax.random.PRNGKey(0)
-    return m0 * (1 + 0.1 * jax.random.normal(key, (batch, *m0.shape), m0.dtype))
-
-
-def pair(system, integrator, g0, m0, steps: int, batch: int) -> dict:
-    ms = batch_momenta(m0, batch)
-
-    def one(n_steps, save_every):
-        return lievi.simulate(
-            system, integrator, g0, m0, h=0.05, n_steps=n_steps, save_every=save_every
+    def field(t, y, args):
+        R, P, L = y[:9].reshape(3, 3), y[12:15], y[15:]
+        W, v = P / inertia, L / mass
+        return jnp.concatenate(
+            [
+                (R @ _hat(W)).reshape(9),
+                R @ v,
+                jnp.cross(P, W) + jnp.cross(L, v),
+                jnp.cross(L, W),
+            ]
         )
 
-    def many(n_steps, save_every):
-        return lievi.simulate_batch(
-            system, integrator, g0, ms, h=0.05, n_steps=n_steps, save_every=save_every
+    y0 = jnp.concatenate([jnp.eye(3).reshape(9), jnp.zeros(3), m])
+    return diffrax.diffeqsolve(
+        diffrax.ODETerm(field),
+        diffrax.Tsit5(),
+        0.0,
+        h * n,
+        h,
+        y0,
+        saveat=diffrax.SaveAt(steps=True),
+        stepsize_controller=diffrax.ConstantStepSize(),
+        max_steps=n,
+    ).ys
+
+
+def _hat(w):
+    import jax.numpy as jnp
+
+    return jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+@_jit
+def _diffrax_binary(system, g0, m0, h, n):
+    """Two rigid bodies in mutual gravity, Newton–Euler in body momenta, the force and
+    torque from the gradient of lievi's potential of the poses; the batch `vmap`-ed inside
+    the vector field (one state array `(B, 2, 18)`), `Tsit5`, final state."""
+    import diffrax
+    import jax
+    import jax.numpy as jnp
+
+    inertia, mass = system.inertia, system.mass
+
+    def pose(y):
+        R, x = y[:, :9].reshape(-1, 3, 3), y[:, 9:12]
+        top = jnp.concatenate([R, x[:, :, None]], axis=2)
+        bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0]), (R.shape[0], 1, 4))
+        return jnp.concatenate([top, bottom], axis=1)
+
+    def one(y):
+        R, P, L = y[:, :9].reshape(-1, 3, 3), y[:, 12:15], y[:, 15:]
+        dV = jax.grad(system.potential_energy)(pose(y))
+        GR, force = dV[:, :3, :3], -dV[:, :3, 3]
+        M = jnp.einsum("bki,bkj->bij", GR, R) - jnp.einsum("bki,bkj->bij", R, GR)
+        torque = jnp.stack([M[:, 2, 1], M[:, 0, 2], M[:, 1, 0]], axis=-1)
+        W, v = P / inertia, L / mass[:, None]
+        dR = jnp.einsum("bik,bkj->bij", R, jax.vmap(_hat)(W))
+        return jnp.concatenate(
+            [
+                dR.reshape(-1, 9),
+                jnp.einsum("bij,bj->bi", R, v),
+                jnp.cross(P, W) + jnp.cross(L, v) + torque,
+                jnp.cross(L, W) + jnp.einsum("bji,bj->bi", R, force),
+            ],
+            axis=1,
         )
 
-    return {
-        "simulate": measure(one, steps),
-        "simulate_batch": measure(many, steps),
-        "fast_path": lievi.has_fast_path(system, integrator),
-    }
+    y0 = jnp.concatenate([g0[:, :, :3, :3].reshape(*g0.shape[:2], 9), g0[:, :, :3, 3], m0], axis=-1)
+    ys = diffrax.diffeqsolve(
+        diffrax.ODETerm(lambda t, y, args: jax.vmap(one)(y)),
+        diffrax.Tsit5(),
+        0.0,
+        h * n,
+        h,
+        y0,
+        saveat=diffrax.SaveAt(t1=True),
+        stepsize_controller=diffrax.ConstantStepSize(),
+        max_steps=n,
+    ).ys[-1]
+    return ys[..., :12], ys[..., 12:]
 
 
-def throughput() -> list[dict]:
-    """Best-of-5 run times (see the module docstring)."""
-    body = lievi.RigidBody(jnp.array([1.0, 2.0, 3.0]))
-    se3 = lievi.RigidBodySE3(jnp.array([1.0, 2.0, 3.0]), 2.0)
-    momenta = jax.random.normal(jax.random.PRNGKey(0), (10_000, 3))
-    m0, m0_se3 = jnp.array([0.3, -0.2, 0.5]), jnp.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])
-    momenta_se3 = m0_se3 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(1), (64, 6)))
-    bodies, g0_binary, m0_binary = binary()
-    many = lievi.RigidBodies(jnp.tile(jnp.array([1.0, 2.0, 3.0]), (10_000, 1)), jnp.ones(10_000))
-    g0_many = jnp.tile(jnp.eye(4), (10_000, 1, 1)).at[:, 0, 3].set(jnp.arange(10_000.0))
-    m0_many = 0.1 * jax.random.normal(jax.random.PRNGKey(2), (10_000, 6))
-    cases = {
-        "simulate_batch 1e4 bodies x 100 steps, DEP exp": lambda: lievi.simulate_batch(
-            body, lievi.DEP(), jnp.eye(3), momenta, h=0.05, n_steps=100, save=("g", "m")
-        ),
-        "simulate_batch 1e4 bodies x 100 steps, splitting": lambda: lievi.simulate_batch(
-            body, lievi.LiePoissonSplitting(), jnp.eye(3), momenta, h=0.05, n_steps=100
-        ),
-        "simulate 1e4 steps, SO(3) DEP exp": lambda: lievi.simulate(
-            body, lievi.DEP(), jnp.eye(3), m0, h=0.05, n_steps=10_000
-        ),
-        "simulate 1e4 steps, SE(3) DEP exp": lambda: lievi.simulate(
-            se3, lievi.DEP(), jnp.eye(4), m0_se3, h=0.05, n_steps=10_000
-        ),
-        "simulate 1e4 steps, SE(3) DEP exp, every 100th saved": lambda: lievi.simulate(
-            se3, lievi.DEP(), jnp.eye(4), m0_se3, h=0.05, n_steps=10_000, save_every=100
-        ),
-        "simulate 1e4 steps, SE(3) DEP exp, final state": lambda: lievi.simulate(
-            se3, lievi.DEP(), jnp.eye(4), m0_se3, h=0.05, n_steps=10_000, save_every=10_000
-        ),
-        # A system of two bodies (one system: its programs take the small-run options).
-        "simulate 1e4 steps, binary DEP exp, every 100th saved": lambda: lievi.simulate(
-            bodies, lievi.DEP(), g0_binary, m0_binary, h=0.05, n_steps=10_000, save_every=100
-        ),
-        "simulate 1e4 steps, binary splitting, every 100th saved": lambda: lievi.simulate(
-            bodies,
-            lievi.LiePoissonSplitting(),
-            g0_binary,
-            m0_binary,
-            h=0.05,
-            n_steps=10_000,
-            save_every=100,
-        ),
-        # One system of 10⁴ free bodies: a save is 1.8 MB, so a block holds few saves.
-        "simulate 100 steps, 1e4 free RigidBodies, splitting, every 10th saved": lambda: (
-            lievi.simulate(
-                many,
-                lievi.LiePoissonSplitting(),
-                g0_many,
-                m0_many,
-                h=0.05,
-                n_steps=100,
-                save_every=10,
-            )
-        ),  # fmt: skip
-        # A short batch run: its eager call's own cost is a large part of it.
-        "simulate_batch 64 SE(3) bodies x 100 steps, DEP exp, final state": lambda: (
-            lievi.simulate_batch(
-                se3, lievi.DEP(), jnp.eye(4), momenta_se3, h=0.05, n_steps=100, save=("g", "m")
-            )
-        ),
-        # 100 steps run in under 1 ms under jit: the rest is the eager call's own cost.
-        "simulate 100 steps, SE(3) DEP exp, final state (the per-call cost)": lambda: (
-            lievi.simulate(
-                se3, lievi.DEP(), jnp.eye(4), m0_se3, h=0.05, n_steps=100, save_every=100
-            )
-        ),
-    }
+def _child(case: str, engine: str) -> dict:
+    out = subprocess.run(
+        [sys.executable, __file__, "--child", case, engine],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=dict(os.environ, JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", "cpu")),
+    )
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", nargs="*", default=list(CASES))
+    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--out", default="compile_time")
+    parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
+    options = parser.parse_args()
+    if options.child:
+        print(json.dumps(_measure(*options.child)))
+        return
     rows = []
-    for name, run in cases.items():
-        timed(run)
-        best = min(timed(run) for _ in range(5))
-        rows.append({"case": name, "best_s": best})
-        print(f"{name:50s} {1e3 * best:8.2f} ms", flush=True)
-    return rows
-
-
-def _write(options, out: dict) -> None:
-    out["uptime"] = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    for case in options.cases:
+        runs = {"lievi": [], "diffrax": []}
+        for index in range(options.rounds):
+            order = ("lievi", "diffrax") if index % 2 == 0 else ("diffrax", "lievi")
+            for engine in order:
+                runs[engine].append(_child(case, engine))
+        row = {"case": case}
+        for engine, measured in runs.items():
+            row[engine] = {
+                "programs": measured[0]["programs"],
+                "again_programs": measured[0]["again_programs"],
+                "first_s": [m["first_s"] for m in measured],
+                "run_s": min(m["run_s"] for m in measured),
+            }
+        ratio = [a["first_s"] / b["first_s"] for a, b in zip(runs["lievi"], runs["diffrax"])]
+        row["first_call_ratio"] = ratio
+        rows.append(row)
+        lv, dx = row["lievi"], row["diffrax"]
+        print(
+            f"{case:18s} lievi {lv['programs']:2d} programs (+{lv['again_programs']}), first "
+            f"{min(lv['first_s']):6.2f} s | diffrax {dx['programs']:2d} (+{dx['again_programs']}),"
+            f" first {min(dx['first_s']):6.2f} s | first-call ratio "
+            f"{', '.join(f'{r:.2f}' for r in ratio)}",
+            flush=True,
+        )
+    meta = {
+        "machine": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "load_before_after": os.getloadavg(),
+        "python": platform.python_version(),
+    }
     RESULTS.mkdir(exist_ok=True)
     path = RESULTS / f"{options.out}.json"
-    path.write_text(json.dumps(out, indent=1, default=float))
-    return path
-
-
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--steps", type=int, default=100)
-    parser.add_argument("--batch", type=int, default=64)
-    parser.add_argument("--throughput", action="store_true")
-    parser.add_argument("--out", default=None)
-    parser.add_argument(
-        "--integrators", nargs="+", choices=list(integrators()), help="only these (default: all)"
-    )
-    parser.add_argument("--systems", nargs="+", help="only these (default: all)")
-    options = parser.parse_args()
-    options.out = options.out or (
-        "compile_time_throughput" if options.throughput else "compile_time"
-    )
-    out = {
-        "description": __doc__.splitlines()[0],
-        "steps": options.steps,
-        "batch": options.batch,
-        "dtype": "float64",
-        "device": str(jax.devices()[0]),
-        "jax": jax.__version__,
-        "machine": platform.machine(),
-        "cpus": os.cpu_count(),
-        "load_before": os.getloadavg(),
-    }
-    if options.throughput:
-        out["rows"] = throughput()
-        print(f"wrote {_write(options, out)}; {out['uptime']}")
-        return
-    rows = out["rows"] = []
-    for system_name, (system, g0, m0) in systems().items():
-        for name, integrator in integrators().items():
-            if options.quick and (system_name, name) not in QUICK:
-                continue
-            if options.integrators and name not in options.integrators:
-                continue
-            if options.systems and system_name not in options.systems:
-                continue
-            jax.clear_caches()
-            row = {"system": system_name, "integrator": name}
-            try:
-                row.update(pair(system, integrator, g0, m0, options.steps, options.batch))
-            except (ValueError, TypeError, NotImplementedError) as error:
-                # Raised by the first call's checks, before anything is compiled.
-                print(f"{system_name:28s} {name:26s} skipped: {str(error)[:70]}")
-                continue
-            rows.append(row)
-            print(
-                f"{system_name:28s} {name:26s} "
-                + "  ".join(
-                    f"{entry}: first {row[entry]['first']:5.2f} s, n_steps "
-                    f"{row[entry]['n_steps']:5.2f} s, save_every {row[entry]['save_every']:5.2f}"
-                    f" s, run {1e3 * row[entry]['run']:6.1f} ms"
-                    for entry in ("simulate", "simulate_batch")
-                ),
-                flush=True,
-            )
-            _write(options, out)
-    out.update(
-        worst_first_compile_s=max(
-            max(r["simulate"]["first"], r["simulate_batch"]["first"]) for r in rows
-        ),
-        worst_recompile_s=max(
-            max(r[e][k] for e in ("simulate", "simulate_batch") for k in ("n_steps", "save_every"))
-            for r in rows
-        ),
-    )
-    path = _write(options, out)
-    print(f"load before {np.round(out['load_before'], 2)}; {out['uptime']}")
+    path.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     print(f"wrote {path}")
 
 

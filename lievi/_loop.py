@@ -272,15 +272,13 @@ def finish(carry, initial, saves, n_steps: int, save: eqx.Module, xp=jnp) -> Sol
     )
 
 
-def as_device(solution: Solution) -> Solution:
-    """An eager run's `Solution` with every field a JAX array (a transfer, no program)."""
-    return jax.tree.map(jnp.asarray, solution)
-
-
-def execute(run: Run, g0, m0, h, t0, n_steps: int, save_every: int, explain) -> Solution:
+def execute(
+    run: Run, g0, m0, h, t0, n_steps: int, save_every: int, explain, one: bool = False
+) -> Solution:
     """The run of a batch, eagerly (`run_eager`, the outputs joined on the host) or traced
-    (`run_static`), and its `Solution`. `explain()` raises the `ValueError` that names a
-    bad input; an eager run calls it when a body starts as `RESULTS.invalid_input`."""
+    (`run_static`), and its `Solution` (`one`: of the batch's one body, without the batch
+    axis). `explain()` raises the `ValueError` that names a bad input; an eager run calls
+    it when a body starts as `RESULTS.invalid_input`."""
     eager = (
         not tracing()
         and is_concrete(*jax.tree.leaves((run, g0, m0, h, t0)))
@@ -288,19 +286,28 @@ def execute(run: Run, g0, m0, h, t0, n_steps: int, save_every: int, explain) -> 
         and run.unroll == 1
     )
     if not eager:
-        return _static_program(run, g0, m0, h, t0, n_steps, save_every)
+        return _static_program(run, g0, m0, h, t0, n_steps, save_every, one)
     carry, initial, saves = run_eager(run, g0, m0, h, t0, n_steps, save_every)
     if np.any(np.asarray(carry[1]) == int(RESULTS.invalid_input)):
         explain()
     carry = jax.tree.map(np.asarray, carry)
     initial = jax.tree.map(np.asarray, initial)
-    return finish(carry, initial, saves, n_steps, run.save, xp=np)
+    solution = finish(carry, initial, saves, n_steps, run.save, xp=np)
+    # On the device: a transfer, no program (`jnp.asarray` of a NumPy array would compile
+    # one per shape, hence per horizon).
+    return jax.device_put(_first(solution) if one else solution)
 
 
 @eqx.filter_jit
-def _static_program(run, g0, m0, h, t0, n_steps: int, save_every: int) -> Solution:
+def _static_program(run, g0, m0, h, t0, n_steps: int, save_every: int, one: bool) -> Solution:
     carry, initial, saves = run_static(run, g0, m0, h, t0, n_steps, save_every)
-    return finish(carry, initial, saves, n_steps, run.save)
+    solution = finish(carry, initial, saves, n_steps, run.save)
+    return _first(solution) if one else solution
+
+
+def _first(solution: Solution) -> Solution:
+    """The batch of one's leading axis off."""
+    return jax.tree.map(lambda x: x[0], solution)
 
 
 def raise_if_failed(solution: Solution, label: str, what: str) -> Solution:

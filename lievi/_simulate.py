@@ -144,8 +144,7 @@ def simulate(
         # An eager run with a bad input: the eager checks name it (`ValueError`).
         system.check_element("g0", g0)
 
-    solution = execute(run, _lead(g0), _lead(m0), h, t0, n_steps, save_every, explain)
-    solution = _first(solution)
+    solution = execute(run, _lead(g0), _lead(m0), h, t0, n_steps, save_every, explain, one=True)
     if throw:
         solution = raise_if_failed(solution, "lievi.simulate", "a step")
     return solution
@@ -155,11 +154,6 @@ def _lead(x):
     """`x` with a leading batch axis of one: on the host for a concrete array (no program
     compiled for it), traced otherwise."""
     return np.asarray(x)[None] if is_concrete(x) else jnp.asarray(x)[None]
-
-
-def _first(solution: Solution) -> Solution:
-    """The batch of one's leading axis off."""
-    return jax.tree.map(lambda x: x[0], solution)
 
 
 def _check_configuration(system, name, g) -> None:
@@ -198,6 +192,8 @@ def _momentum_from_g1(system, integrator, g0, g1, h):
 
 
 def _as_array(name: str, x):
-    """Lists and tuples are accepted like arrays; complex, bool and strings are not."""
+    """Lists and tuples are accepted like arrays; complex, bool and strings are not. A
+    JAX array (or tracer) is kept; anything else is read on the host (no program
+    compiled)."""
     check_real_dtype(name, x)
-    return jnp.asarray(x)
+    return x if isinstance(x, jax.Array) else np.asarray(x)

@@ -248,7 +248,8 @@ def simulate_batch(
         if isinstance(x, (bool, np.bool_)):
             raise ValueError(f"`{name}` must hold real numbers, got {x!r}.")
         check_real_dtype(name, x)
-    g0, m0 = jnp.asarray(g0), jnp.asarray(m0)
+    # JAX arrays (or tracers) kept, anything else read on the host: no program compiled.
+    g0, m0 = (x if isinstance(x, jax.Array) else np.asarray(x) for x in (g0, m0))
     if jnp.shape(g0) == element and jnp.ndim(m0) == 1 + len(momentum):
         # One initial element for every body (e.g. all starting at the identity): on the
         # host where concrete (no program compiled for it).
