@@ -293,10 +293,14 @@ def simulate_batch(
                 "`jax.vmap(lievi.RigidBody)(inertias)`."
             )
     forcing = as_forcing(forcing)
+    dtype = state_dtype(system, g0, m0, h)
     if forcing is not None:
         forcing.check_batch(system, batch)
         for x in jax.tree.leaves(forcing.per_step()):
             check_finite("forcing", x)
+        # One member's run takes what `simulate` takes (shapes, values).
+        member = _member(forcing, forcing.batch_axes(system))
+        member.check(_member(system, system.batch_axes(system_axis)), n_steps, dtype, args)
     plan = plan_for(
         system,
         integrator,
@@ -307,7 +311,6 @@ def simulate_batch(
         fixed_iterations=fixed_iterations,
         carry_g=save.g,
     )
-    dtype = state_dtype(system, g0, m0, h)
     segment = checkpoint_segment(checkpoint, n_steps, save_every)
     run = Run(plan, save, progress, dtype, segment, unroll)
 
@@ -320,3 +323,16 @@ def simulate_batch(
     if throw:
         solution = raise_if_failed(solution, "lievi.simulate_batch", "a body")
     return solution
+
+
+def _member(tree, axes):
+    """The first member of a batch `tree` whose batched leaves are those with axis `0` in
+    `axes` (a `jax.vmap` in-axes prefix), on the host (no program compiled)."""
+    if axes is None:
+        return tree
+    return jax.tree.map(
+        lambda x, axis: x if axis is None or not eqx.is_array(x) else np.asarray(x)[0],
+        tree,
+        axes,
+        is_leaf=lambda x: x is None,
+    )
