@@ -68,3 +68,19 @@ def main(argv: list[str] | None = None) -> int:
     if messages := args._command.check(args):
         args._parser.error("; ".join(messages))
     return args._command.run(args)
+
+
+def persistent_cache() -> None:
+    """JAX's persistent compilation cache for `python -m lievi`'s own process (a demo run
+    again loads its programs instead of compiling them): in `$LIEVI_CACHE_DIR`, or
+    `~/.cache/lievi/jax`; `LIEVI_CACHE_DIR=""` turns it off. A library does not set it for
+    its users (docs/compile-times.md says how)."""
+    import os
+    import pathlib
+
+    import jax
+
+    directory = os.environ.get("LIEVI_CACHE_DIR", str(pathlib.Path.home() / ".cache/lievi/jax"))
+    if directory and jax.config.jax_compilation_cache_dir is None:
+        jax.config.update("jax_compilation_cache_dir", directory)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
