@@ -203,7 +203,8 @@ def _block_program(run, g0, m0, h, t0, carry, n_steps, save_every, count, size: 
         carry = jax.lax.fori_loop(0, save_every, lambda _, c: one_step(c, None)[0], carry)
         return _save(stepper, run.save, carry, h, t0, save_every)
 
-    shapes = jax.eval_shape(lambda c: one_save(c)[1], carry)
+    # A save's shapes from the save alone (tracing `one_save` would trace the step again).
+    shapes = jax.eval_shape(lambda c: _save(stepper, run.save, c, h, t0, save_every)[1], carry)
     buffers = jax.tree.map(lambda s: jnp.zeros((size,) + s.shape, s.dtype), shapes)
 
     def body(index, both):
