@@ -40,6 +40,7 @@ LAYERS = (
             "_sharding",
             "_stream",
             "_stream_writer",
+            "_stream_record",
             "_simulate_neighbors",
         ),
     ),
