@@ -107,7 +107,7 @@ def stream_batch(
     as in `simulate_batch`. A body that fails keeps its first failure in `result` and
     `failed_step` (the step counted from the start) and NaN in its later saves. A body
     whose own inputs are not admissible (a NaN in its `m0`, a `g0` off the group, its
-    `h` or its system's parameters: the checks of `simulate_batch`, `input_valid`) gets
+    `h` or its system's parameters: the checks of `simulate_batch`) gets
     `RESULTS.invalid_input` at step 0 and NaN saves, and the others run: a streamed run
     never raises for one body. Arguments shared by all bodies (shapes, a scalar `h`, the
     options) are checked at once, as `ValueError`s.
