@@ -23,15 +23,13 @@ coincide gives an infinite energy (or a non-finite force), which `simulate` repo
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._checks import is_concrete
-from ._neighbors import fill_index, minimum_image, shifted_force
+from .._checks import shown
+from ._neighbors import is_pair, minimum_image, pair_list_conditions, shifted_force
 from ._pair_energies import AbstractPairEnergy
 from ._potential import AbstractPotential
 from ._rigid_bodies import RigidBodies
@@ -83,8 +81,8 @@ class SitePotential(AbstractPotential):
     - `sites`: body-frame positions `(N, k, 3)`, measured from each body's centre of mass.
     - `pair`: a pair energy (`lievi.LennardJones`, `lievi.Coulomb`, `lievi.Morse`) or a
       tuple of them (summed).
-    - `types`: integer site types `(N, k)` (default all 0), indexing the `(T, T)`
-      parameter tables of the pair energies.
+    - `types`: integer site types `(N, k)` (default all 0), in `[0, T)`, indexing the
+      `(T, T)` parameter tables of the pair energies (symmetric tables).
     - `charges`: site charges `(N, k)`, for `lievi.Coulomb`.
     - `cutoff`: `r_c > 0`, or `None` (default: no cut-off). Pairs farther than `r_c`
       contribute nothing, and each pair energy is energy-and-force shifted,
@@ -99,8 +97,9 @@ class SitePotential(AbstractPotential):
       total linear momentum is conserved) but not under rotations: the box has axes, and
       the total angular momentum is not conserved.
     - `neighbors`: a pair list `(P, 2)` of flat site indices (body-major, `body·k + site`),
-      rows with an index `N·k` padding (contributing nothing), or `None` (default: every
-      pair of sites on different bodies). Needs `cutoff`. Built by
+      each pair of sites on different bodies once (in either order; twice is refused),
+      rows with the index `N·k` in either column padding (contributing nothing), or `None`
+      (default: every pair of sites on different bodies). Needs `cutoff`. Built by
       `lievi.BruteForceNeighbors` or `lievi.JaxMDNeighbors` with a skin, valid while no
       site has moved more than half the skin; `lievi.simulate_with_neighbor_list` rebuilds
       and checks it during a run.
@@ -143,21 +142,6 @@ class SitePotential(AbstractPotential):
                 raise ValueError(
                     f"{type(energy).__name__} reads the sites' charges: pass `charges` (N, k)."
                 )
-            if is_concrete(self.types):
-                # On the host, in NumPy: as JAX operations, eagerly, each reduction was a
-                # small program of its own, compiled at its first use.
-                types = np.asarray(self.types)
-                largest = int(types.max()) if types.size else 0
-                if types.size and int(types.min()) < 0:
-                    raise ValueError("`types` must be ≥ 0 (indices into the pair tables).")
-                for name, table in energy.tables().items():
-                    if largest >= jnp.shape(table)[0]:
-                        raise ValueError(
-                            f"{type(energy).__name__}.{name} is a table over "
-                            f"{jnp.shape(table)[0]} site types, but `types` uses type "
-                            f"{largest}: give a ({largest + 1}, {largest + 1}) table or fix "
-                            "`types`."
-                        )
         self._check_box_and_neighbors()
 
     def _check_box_and_neighbors(self):
@@ -170,19 +154,6 @@ class SitePotential(AbstractPotential):
             )
         if self.neighbors is not None and self.cutoff is None:
             raise ValueError("`neighbors` needs a `cutoff` (the list holds the pairs within it).")
-        concrete = is_concrete(self.cutoff, self.box)
-        if self.cutoff is not None and concrete and not float(self.cutoff) > 0:
-            raise ValueError(f"`cutoff` must be > 0, got {float(self.cutoff)}.")
-        if self.box is not None and concrete:
-            box = np.asarray(self.box)  # on the host, as `types` above
-            if not bool(np.all(box > 0)):
-                raise ValueError(f"`box` sides must all be > 0, got {box.tolist()}.")
-            if float(self.cutoff) > float(box.min()) / 2:
-                raise ValueError(
-                    f"`cutoff` ({float(self.cutoff)}) must be at most half the smallest side "
-                    f"of `box` ({float(box.min())}): beyond, a site would reach two "
-                    "images of another. Use a larger box or a shorter cut-off."
-                )
         if self.neighbors is not None:
             self._check_neighbors()
 
@@ -193,26 +164,52 @@ class SitePotential(AbstractPotential):
                 "`neighbors` must be integers of shape (P, 2), flat site indices, got shape "
                 f"{pairs.shape} and dtype {pairs.dtype}."
             )
-        if is_concrete(pairs) and pairs.size:
-            n, k = jnp.shape(self.sites)[:2]
-            # Reduced where the list lives (on a GPU, a run with rebuilds checks every new
-            # list): two booleans come back, not the list.
-            in_range, within_one_body = (bool(x) for x in _pair_list_defects(pairs, n * k, k))
-            if not in_range:
-                raise ValueError(
-                    f"`neighbors` holds indices outside [0, {n * k}] (the {n * k} flat sites "
-                    f"and the padding index {fill_index(n * k)})."
-                )
-            if within_one_body:
-                raise ValueError(
-                    "`neighbors` pairs two sites of one body (their distance is fixed): list "
-                    "only sites of different bodies, as the builders do."
-                )
 
     def parameter_conditions(self):
-        conditions = super().parameter_conditions()
+        """Finite parameters, the pair energies' own conditions, site types within their
+        tables, a positive cut-off at most half a positive box, and an admissible pair list
+        (`pair_list_conditions`)."""
+        conditions = super().parameter_conditions() + self._type_conditions()
+        if self.cutoff is not None:
+            conditions.append(
+                (self.cutoff > 0, f"`cutoff` must be > 0{shown(self.cutoff, ', got {}')}.")
+            )
+        if self.box is not None:
+            smallest = jnp.min(self.box)
+            conditions += [
+                (
+                    jnp.all(self.box > 0),
+                    f"`box` sides must all be > 0{shown(self.box, ', got {}')}.",
+                ),
+                (
+                    self.cutoff <= smallest / 2,
+                    f"`cutoff`{shown(self.cutoff, ' ({})')} must be at most half the smallest "
+                    f"side of `box`{shown(smallest, ' ({})')}: beyond, a site would reach two "
+                    "images of another. Use a larger box or a shorter cut-off.",
+                ),
+            ]
+        if self.neighbors is not None:
+            n, k = jnp.shape(self.sites)[:2]
+            conditions += pair_list_conditions(self.neighbors, n * k, k)
+        return conditions
+
+    def _type_conditions(self):
+        """Each pair energy's conditions, and every site type an index into its tables."""
+        types = self.types
+        conditions = [(jnp.all(types >= 0), "`types` must be ≥ 0 (indices into the pair tables).")]
+        largest = shown(jnp.max(types, initial=0), " {}")
         for energy in self.pair:
-            conditions = conditions + energy.parameter_conditions()
+            conditions += energy.parameter_conditions()
+            for name, table in energy.tables().items():
+                size = jnp.shape(table)[0]
+                conditions.append(
+                    (
+                        jnp.all(types < size),
+                        f"{type(energy).__name__}.{name} is a table over {size} site types, "
+                        f"but `types` uses type{largest} ≥ {size}: give a table over every "
+                        "type in `types`, or fix `types`.",
+                    )
+                )
         return conditions
 
     def flat_positions(self, g):
@@ -240,7 +237,7 @@ class SitePotential(AbstractPotential):
             i, j = cross_body_pairs(*jnp.shape(self.sites)[:2])
             listed = True
         else:
-            listed = self.neighbors[:, 1] < n_sites
+            listed = is_pair(self.neighbors, n_sites)
             i = jnp.where(listed, self.neighbors[:, 0], 0)
             j = jnp.where(listed, self.neighbors[:, 1], 0)
         d = x[i] - x[j]
@@ -289,7 +286,6 @@ class SiteSprings(AbstractPotential):
 
     def __check_init__(self):
         _check_sites(self.sites, {})
-        n, k = jnp.shape(self.sites)[:2]
         pairs = self.pairs
         if pairs.ndim != 2 or pairs.shape[1] != 4 or not jnp.issubdtype(pairs.dtype, jnp.integer):
             raise ValueError(
@@ -303,24 +299,29 @@ class SiteSprings(AbstractPotential):
                     f"`{name}` must be a scalar or have shape ({pairs.shape[0]},), one per "
                     f"spring, got {jnp.shape(value)}."
                 )
-        if is_concrete(pairs) and pairs.size:
-            p = np.asarray(pairs)
-            bad = (p < 0) | (p >= np.array([n, k, n, k]))
-            if bad.any():
-                raise ValueError(
-                    f"`pairs` row {int(np.argmax(bad.any(axis=1)))} names a body or site "
-                    f"outside the {n} bodies of {k} sites."
-                )
-            if (p[:, 0] == p[:, 2]).any():
-                raise ValueError(
-                    f"`pairs` row {int(np.argmax(p[:, 0] == p[:, 2]))} joins two sites of one "
-                    "body (their distance is fixed): join sites of different bodies."
-                )
 
     def parameter_conditions(self):
+        """Finite, `stiffness` and `rest_length` `≥ 0`, and each spring joining existing
+        sites of two different bodies (an index out of range would be clamped by the
+        gather: the spring would silently join other sites)."""
+        n, k = jnp.shape(self.sites)[:2]
+        pairs = self.pairs
+        outside = jnp.any((pairs < 0) | (pairs >= jnp.array([n, k, n, k])), axis=1)
+        within = pairs[:, 0] == pairs[:, 2]
         return super().parameter_conditions() + [
             (jnp.all(self.stiffness >= 0), "`stiffness` must be ≥ 0."),
             (jnp.all(self.rest_length >= 0), "`rest_length` must be ≥ 0."),
+            (
+                ~jnp.any(outside),
+                f"`pairs`{shown(jnp.argmax(outside), ' row {}')} names a body or site outside "
+                f"the {n} bodies of {k} sites (rows (body_a, site_a, body_b, site_b), each "
+                "index from 0).",
+            ),
+            (
+                ~jnp.any(within),
+                f"`pairs`{shown(jnp.argmax(within), ' row {}')} joins two sites of one body "
+                "(their distance is fixed): join sites of different bodies.",
+            ),
         ]
 
     def __call__(self, g):
@@ -397,12 +398,3 @@ def gravitating_bodies(G, masses, points, extra_inertia=None) -> RigidBodies:
         inertia = inertia + jnp.asarray(extra_inertia)
     potential = MutualGravity(G, masses, centered)
     return RigidBodies(inertia, mass, potential=potential)
-
-
-@functools.partial(jax.jit, static_argnums=(1, 2))
-def _pair_list_defects(pairs, n_sites: int, k: int):
-    """`(every index in [0, n_sites], some real pair within one body)` for a pair list of
-    flat site indices (`k` sites a body, `n_sites` the padding index)."""
-    in_range = (jnp.min(pairs) >= 0) & (jnp.max(pairs) <= fill_index(n_sites))
-    real = jnp.all(pairs < n_sites, axis=1)
-    return in_range, jnp.any(real & (pairs[:, 0] // k == pairs[:, 1] // k))
