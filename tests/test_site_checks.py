@@ -177,3 +177,65 @@ def test_bad_parameters_traced():
     }
     got = jax.jit(jax.vmap(run))(**stacked)
     assert dict(zip(CASES, map(int, got))) == {name: code for name, (_, code) in CASES.items()}
+
+
+# ---- bodies of different numbers of points -----------------------------------------------
+
+
+def test_gravity_of_bodies_of_different_sizes():
+    """A binary of a 3-point body and a 1-point body given as lists: padded with points of
+    mass 0, it is the binary whose second body is its point split into 3 coincident
+    points of a third of the mass (the same gravity, inertia and mass), to round-off, in
+    its energy and a 3-step run."""
+    big = np.array([[0.4, 0.0, 0.0], [-0.3, 0.2, 0.0], [0.0, -0.1, 0.3]])
+    masses = [np.array([1.0, 2.0, 1.5]), np.array([0.9])]
+    points = [big, np.array([[5.0, 1.0, 0.0]])]
+    extra = np.broadcast_to(0.1 * np.eye(3), (2, 3, 3))
+    ragged = lievi.gravitating_bodies(1.0, masses, points, extra_inertia=extra)
+    split = lievi.gravitating_bodies(
+        1.0,
+        np.array([masses[0], [0.3, 0.3, 0.3]]),
+        np.array([big, [[5.0, 1.0, 0.0]] * 3]),
+        extra_inertia=extra,
+    )
+    np.testing.assert_array_equal(ragged.potential.masses[1], [0.9, 0.0, 0.0])
+    np.testing.assert_allclose(ragged.inertia, split.inertia, rtol=1e-15, atol=1e-15)
+    np.testing.assert_allclose(ragged.mass, split.mass, rtol=1e-15)
+    g0 = jnp.stack([jnp.eye(4), jnp.eye(4).at[:3, 3].set(jnp.array([5.0, 1.0, 0.0]))])
+    np.testing.assert_allclose(ragged.potential(g0), split.potential(g0), rtol=1e-14)
+    runs = [
+        lievi.simulate(s, lievi.LiePoissonSplitting(), g0, M0, h=0.05, n_steps=3)
+        for s in (ragged, split)
+    ]
+    np.testing.assert_allclose(runs[0].m, runs[1].m, rtol=0, atol=1e-13)
+    with pytest.raises(ValueError, match="≥ 0"):
+        lievi.MutualGravity(1.0, [[1.0, -1.0], [1.0, 1.0]], np.zeros((2, 2, 3)))
+    with pytest.raises(ValueError, match="each body a point of mass > 0"):
+        lievi.MutualGravity(1.0, [[1.0, 1.0], [0.0, 0.0]], np.zeros((2, 2, 3)))
+
+
+def test_sites_of_bodies_of_different_sizes():
+    """A two-site body and a one-site body given as lists: the energy is the sum over the
+    real pairs (written out here), and its force is finite where the padding site (at
+    the second body's centre) coincides with a site of the first body."""
+    pair = (lievi.LennardJones(TABLE, 0.9), lievi.Coulomb())
+    sites = [np.array([[0.5, 0.0, 0.0], [-0.4, 0.1, 0.0]]), np.array([[0.0, 0.6, 0.0]])]
+    types, charges = [[0, 1], [1]], [[0.3, -0.2], [0.5]]
+    potential = lievi.SitePotential(sites, pair, types, charges)
+    np.testing.assert_array_equal(potential.mask, [[True, True], [True, False]])
+    # The second body's centre on the first's site 0: its padding site lies there.
+    g = jnp.stack([jnp.eye(4), jnp.eye(4).at[0, 3].set(0.5)])
+    second = np.array([0.5, 0.6, 0.0])
+    expected = 0.0
+    for x, t, q in zip(sites[0], types[0], charges[0]):
+        r = np.linalg.norm(x - second)
+        s6 = (0.9 / r) ** 6
+        expected += 4 * TABLE[t, 1] * (s6 * s6 - s6) + q * 0.5 / r
+    np.testing.assert_allclose(potential(g), expected, rtol=1e-14)
+    system = lievi.RigidBodies(jnp.ones((2, 3)), jnp.ones(2), potential)
+    assert bool(jnp.all(jnp.isfinite(system.force(g))))
+    # With a cut-off, over a neighbour list (which lists the padding site's pairs too).
+    cut = lievi.SitePotential(sites, pair, types, charges, cutoff=2.0)
+    pairs = lievi.BruteForceNeighbors(0.5)(cut, g)
+    np.testing.assert_allclose(cut.with_neighbors(pairs)(g), cut(g), rtol=1e-14)
+    assert float(cut(g)) != 0.0

@@ -26,12 +26,13 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from .._checks import shown
 from ._neighbors import is_pair, minimum_image, pair_list_conditions, shifted_force
 from ._pair_energies import AbstractPairEnergy
 from ._potential import AbstractPotential
+from ._ragged import stack_bodies
 from ._rigid_bodies import RigidBodies
 from ._se3_potentials import point_mass_body
 
@@ -63,22 +64,15 @@ def _check_sites(sites, per_site: dict) -> None:
             )
 
 
-def _distances(g, sites):
-    """`(r, i, j)`: the distances of the sites on different bodies, and the pairs' flat
-    site indices."""
-    n, k = jnp.shape(sites)[:2]
-    x = site_positions(g, jnp.asarray(sites, g.dtype)).reshape(n * k, 3)
-    i, j = cross_body_pairs(n, k)
-    d = x[i] - x[j]
-    return jnp.sqrt(jnp.sum(d * d, axis=-1)), i, j
-
-
 class SitePotential(AbstractPotential):
     """`V(g) = Σ e(|x_ia − x_jb|)` over every pair of sites on different bodies.
 
     **Arguments:**
 
-    - `sites`: body-frame positions `(N, k, 3)`, measured from each body's centre of mass.
+    - `sites`: body-frame positions `(N, k, 3)`, measured from each body's centre of mass;
+      or, for bodies of different numbers of sites, a list of `N` arrays `(k_i, 3)`
+      (with `types` and `charges` lists of `(k_i,)` alike), padded to `k = max k_i` with
+      sites in no pair (`mask`).
     - `pair`: a pair energy (`lievi.LennardJones`, `lievi.Coulomb`, `lievi.Morse`) or a
       tuple of them (summed).
     - `types`: integer site types `(N, k)` (default all 0), in `[0, T)`, indexing the
@@ -104,6 +98,10 @@ class SitePotential(AbstractPotential):
       site has moved more than half the skin; `lievi.simulate_with_neighbor_list` rebuilds
       and checks it during a run.
 
+    - `mask`: booleans `(N, k)`, `False` for a padding site, which takes part in no pair
+      (default: every site real; from a list of `sites`, the sites given). A neighbour
+      list may hold its pairs (they take capacity, not energy).
+
     Cost: one evaluation of `e` per pair, `N k (N − 1) k / 2` pairs without a neighbour
     list (twice that with a cut-off: `e(r_c)`, `e'(r_c)` per pair), `P` with one.
     """
@@ -115,23 +113,42 @@ class SitePotential(AbstractPotential):
     cutoff: Float[Array, ""] | None
     box: Float[Array, " 3"] | None
     neighbors: Int[Array, "P 2"] | None
+    mask: Bool[Array, "N k"] | None
 
     def __init__(
-        self, sites, pair, types=None, charges=None, *, cutoff=None, box=None, neighbors=None
+        self,
+        sites,
+        pair,
+        types=None,
+        charges=None,
+        *,
+        cutoff=None,
+        box=None,
+        neighbors=None,
+        mask=None,
     ):
-        self.sites = jnp.asarray(sites, float)
+        self.sites, given = stack_bodies("sites", sites, 0.0, (3,))
+        if not given.all():  # bodies of different numbers of sites, padded
+            mask = given if mask is None else np.asarray(mask) & given
         self.pair = tuple(pair) if isinstance(pair, (tuple, list)) else (pair,)
         shape = jnp.shape(self.sites)[:2]
-        self.types = jnp.zeros(shape, int) if types is None else jnp.asarray(types)
-        self.charges = None if charges is None else jnp.asarray(charges, float)
+        self.types = (
+            jnp.zeros(shape, int)
+            if types is None
+            else stack_bodies("types", types, 0, dtype=None)[0]
+        )
+        self.charges = None if charges is None else stack_bodies("charges", charges, 0.0)[0]
+        self.mask = None if mask is None else jnp.asarray(mask)
         self.cutoff = None if cutoff is None else jnp.asarray(cutoff, float)
         self.box = None if box is None else jnp.broadcast_to(jnp.asarray(box, float), (3,))
         self.neighbors = None if neighbors is None else jnp.asarray(neighbors)
 
     def __check_init__(self):
-        _check_sites(self.sites, {"types": self.types, "charges": self.charges})
+        _check_sites(self.sites, {"types": self.types, "charges": self.charges, "mask": self.mask})
         if not jnp.issubdtype(self.types.dtype, jnp.integer):
             raise ValueError(f"`types` must be integers, got dtype {self.types.dtype}.")
+        if self.mask is not None and self.mask.dtype != jnp.bool_:
+            raise ValueError(f"`mask` must be booleans (N, k), got dtype {self.mask.dtype}.")
         for energy in self.pair:
             if not isinstance(energy, AbstractPairEnergy):
                 raise ValueError(
@@ -228,6 +245,7 @@ class SitePotential(AbstractPotential):
             cutoff=self.cutoff,
             box=self.box,
             neighbors=neighbors,
+            mask=self.mask,
         )
 
     def __call__(self, g):
@@ -240,6 +258,9 @@ class SitePotential(AbstractPotential):
             listed = is_pair(self.neighbors, n_sites)
             i = jnp.where(listed, self.neighbors[:, 0], 0)
             j = jnp.where(listed, self.neighbors[:, 1], 0)
+        if self.mask is not None:  # a pair with a padding site is none
+            present = self.mask.reshape(-1)
+            listed = listed & present[i] & present[j]
         d = x[i] - x[j]
         if self.box is not None:
             d = minimum_image(d, self.box.astype(d.dtype))
@@ -249,9 +270,15 @@ class SitePotential(AbstractPotential):
             jnp.zeros(types.shape, g.dtype) if self.charges is None else self.charges.reshape(-1)
         )
         args = (types[i], types[j], charges[i], charges[j])
-        if self.cutoff is None:
+        if self.cutoff is None and self.mask is None:
             r = jnp.sqrt(squared)
             return sum(jnp.sum(e(r, *args)) for e in self.pair)
+        if self.cutoff is None:
+            # A padding site may sit anywhere, on another body's site too: its pairs take
+            # the distance 1 before the square root (both branches of `where` are
+            # differentiated), then count 0.
+            r = jnp.sqrt(jnp.where(listed, squared, 1.0))
+            return jnp.sum(jnp.where(listed, sum(e(r, *args) for e in self.pair), 0.0))
         cutoff = self.cutoff.astype(squared.dtype)
         inside = listed & (squared < cutoff * cutoff)
         # Outside (and for padding rows, whose distance is 0) r is set to r_c before the
@@ -342,7 +369,9 @@ class MutualGravity(AbstractPotential):
     **Arguments:**
 
     - `G`: the gravitational constant of the units in use, `> 0`.
-    - `masses`: the point masses `(N, k)`, `> 0`.
+    - `masses`: the point masses `(N, k)`, `≥ 0`, each body's sum `> 0`. A point of mass
+      0 takes part in no pair: bodies of fewer than `k` points are padded with such points
+      (`gravitating_bodies` pads a list of bodies of different sizes).
     - `points`: their body-frame positions `(N, k, 3)`, measured from each body's centre
       of mass (`gravitating_bodies` shifts them there).
 
@@ -370,13 +399,29 @@ class MutualGravity(AbstractPotential):
     def parameter_conditions(self):
         return super().parameter_conditions() + [
             (self.G > 0, "`G` must be > 0."),
-            (jnp.all(self.masses > 0), "`masses` must all be > 0."),
+            (
+                jnp.all(self.masses >= 0),
+                "`masses` must all be ≥ 0 (0: a padding point, in no pair).",
+            ),
+            (
+                jnp.all(jnp.any(self.masses > 0, axis=-1)),
+                "`masses` must give each body a point of mass > 0.",
+            ),
         ]
 
     def __call__(self, g):
-        r, i, j = _distances(g, self.points)
+        n, k = jnp.shape(self.points)[:2]
+        x = site_positions(g, jnp.asarray(self.points, g.dtype)).reshape(n * k, 3)
+        i, j = cross_body_pairs(n, k)
         masses = jnp.asarray(self.masses, g.dtype).reshape(-1)
-        return -self.G * jnp.sum(masses[i] * masses[j] / r)
+        product = masses[i] * masses[j]
+        d = x[i] - x[j]
+        # A padding point (mass 0) may sit anywhere, on another body's point too: its
+        # pairs take the distance 1 before the square root (both branches of `where` are
+        # differentiated), then count 0.
+        real = product > 0
+        r = jnp.sqrt(jnp.where(real, jnp.sum(d * d, axis=-1), 1.0))
+        return -self.G * jnp.sum(jnp.where(real, product / r, 0.0))
 
 
 def gravitating_bodies(G, masses, points, extra_inertia=None) -> RigidBodies:
@@ -387,12 +432,20 @@ def gravitating_bodies(G, masses, points, extra_inertia=None) -> RigidBodies:
     `(N, 3, 3)` array, e.g. for a dumbbell, whose point-mass inertia is singular).
 
     **Arguments:** `G`, `masses` `(N, k)`, `points` `(N, k, 3)`, `extra_inertia`
-    (optional).
+    (optional). Bodies of different numbers of points: `masses` a list of `N` arrays
+    `(k_i,)` and `points` a list of `(k_i, 3)`; they are padded to `k = max k_i` with
+    points of mass 0 at the centre of mass, which take part in no pair (`MutualGravity`).
 
     **Returns:** `RigidBodies(inertia, mass, potential=MutualGravity(G, masses, ρ))`.
     """
-    masses, points = jnp.asarray(masses, float), jnp.asarray(points, float)
+    masses, given = stack_bodies("masses", masses, 0.0)
+    points, given_points = stack_bodies("points", points, 0.0, (3,))
     _check_sites(points, {"masses": masses})
+    if not np.array_equal(given, given_points):
+        raise ValueError(
+            "`masses` and `points` must give each body as many masses as points, got "
+            f"{given.sum(axis=1).tolist()} and {given_points.sum(axis=1).tolist()}."
+        )
     mass, centered, inertia = jax.vmap(point_mass_body)(masses, points)
     if extra_inertia is not None:
         inertia = inertia + jnp.asarray(extra_inertia)
