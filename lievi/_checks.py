@@ -151,6 +151,16 @@ def finite_conditions(tree, name: str | None = None) -> Conditions:
     return conditions
 
 
+def shown(x, template: str) -> str:
+    """`template.format(value of x)` where `x` is concrete, else `""`: a condition's
+    message may show the offending value. `raise_if_violated` builds the messages it
+    raises from concrete values; traced (`all_hold`), the messages are never read."""
+    if not is_concrete(x):
+        return ""
+    value = np.asarray(x)
+    return template.format(value.tolist() if value.ndim else value.item())
+
+
 def all_hold(conditions: Conditions):
     """The traced form of a list of conditions: one boolean array."""
     valid = jnp.asarray(True)

@@ -192,21 +192,22 @@ class TqdmProgressMeter(AbstractProgressMeter):
         bar.close()
 
 
-def as_progress_meter(progress_meter) -> AbstractProgressMeter:
+def as_progress_meter(progress_meter, label: str = "lievi.simulate") -> AbstractProgressMeter:
     """The meter of `simulate`'s `progress_meter` argument: a meter as it is, or a
     shorthand: `False`/`None` (`NoProgressMeter`), `"text"` (`TextProgressMeter`),
-    `"tqdm"` (`TqdmProgressMeter`), `True` (tqdm where it is installed, else text)."""
+    `"tqdm"` (`TqdmProgressMeter`), `True` (tqdm where it is installed, else text); the
+    meter a shorthand makes shows `label` (the entry point's name)."""
     if isinstance(progress_meter, AbstractProgressMeter):
         return progress_meter
     if progress_meter is False or progress_meter is None:
         return NoProgressMeter()
     if progress_meter is True:
-        return TqdmProgressMeter() if _has_tqdm() else TextProgressMeter()
+        return TqdmProgressMeter(desc=label) if _has_tqdm() else TextProgressMeter(prefix=label)
     if isinstance(progress_meter, str) and progress_meter == "text":
-        return TextProgressMeter()
+        return TextProgressMeter(prefix=label)
     if isinstance(progress_meter, str) and progress_meter == "tqdm":
         try:
-            return TqdmProgressMeter()
+            return TqdmProgressMeter(desc=label)
         except ImportError as error:
             raise ValueError(
                 "`progress_meter='tqdm'` needs tqdm: `pip install tqdm`, or pass "

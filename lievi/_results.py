@@ -18,6 +18,7 @@ class RESULTS:
     step_too_large = 2  # also: past the method's documented step bound (docs/guarantees.md)
     nonfinite = 3
     invalid_input = 4
+    not_run = 5  # a streamed run's body whose run has not reached its horizon (yet)
 
     messages = (
         "",
@@ -36,6 +37,10 @@ class RESULTS:
         "`g0`/`g1` not in the group (for SO(n): ‖gᵀg − I‖ + |det g − 1| > 1e-6) or not "
         "finite, `m0` or `t0` not finite, `h` not a positive normal number, or a prepared "
         "integrator used with another step size or on another trajectory. Fix the input.",
+        "the body has not been run to the end of its horizon: the streamed run "
+        "(`lievi.stream_batch`) that writes it stopped, or has not reached it yet, and its "
+        "saves past the last finished segment are NaN. Call `lievi.stream_batch` again with "
+        "the same arguments and writer to finish it.",
     )
 
     @classmethod

@@ -16,11 +16,12 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from ._checks import check_integer, state_dtype
+from ._checks import check_integer, check_scalar, input_valid, state_dtype
 from ._progress import AbstractProgressMeter, as_progress_meter
 from ._results import RESULTS
 from ._save import Save, as_save
 from ._simulate_batch import infer_system_axis, simulate_batch
+from ._stream_record import run_record
 from ._stream_writer import AbstractStreamWriter, ChunkState, StreamLayout
 
 
@@ -76,12 +77,17 @@ def stream_batch(
     chunk: call `stream_batch` again with the same arguments and writer storage (e.g. the
     same `lievi.NpyWriter` directory). The state a chunk resumes from is `(g, m)` after
     its last finished segment, kept by the writer with the steps done and the per-body
-    result so far (`lievi.ChunkState`).
+    result so far (`lievi.ChunkState`). What defines the run — the layout, and the
+    system, the integrator, `g0`, `m0`, `h`, the options and lievi's version, as values
+    or digests (`StreamLayout.run`) — goes to the writer, which refuses to continue
+    another run with a `ValueError` naming what differs.
 
     **Arguments:**
 
-    - `system`, `integrator`, `g0`, `m0`, `h`, `system_axis`: as `simulate_batch`
-      (`g0`, `m0` may be NumPy memory maps: only one chunk's rows are read at a time).
+    - `system`, `integrator`, `g0`, `m0`, `h`, `system_axis`: as `simulate_batch`, also
+      for systems of several bodies (`m0` `(batch, N, 6)` for `lievi.RigidBodies`); `g0`,
+      `m0` may be NumPy memory maps: only one chunk's rows are read at a time (and once,
+      a chunk at a time, for the run's record).
     - `n_steps`, `save_every`: as `simulate_batch` (`save_every` must divide `n_steps`).
     - `writer`: where the saves go, e.g. `lievi.NpyWriter("run/")`; any
       `lievi.AbstractStreamWriter`.
@@ -91,14 +97,20 @@ def stream_batch(
       lost when a run stops.
     - `save`: `"g"`, `"m"` or both (default). The chunk's state `(g, m)` is always
       carried, so a potential with an advected parameter runs its `(Π, g)` algorithm.
-    - `progress_meter`: as `simulate_batch`'s: the fraction of all body-steps done, shown
-      after each finished segment (the chunks' own runs report nothing).
+    - `progress_meter`: as `simulate_batch`'s (its shorthands labelled
+      `lievi.stream_batch`): the fraction of all body-steps done, shown after each
+      finished segment (the chunks' own runs report nothing).
     - `**options`: further keywords of `simulate_batch` (`fast`, `fixed_iterations`,
       `unroll`). Forcing is not streamed.
 
     Time: the saves of a body are at `t = k·save_every·h`, `k = 0, …, n_steps/save_every`,
     as in `simulate_batch`. A body that fails keeps its first failure in `result` and
-    `failed_step` (the step counted from the start) and NaN in its later saves.
+    `failed_step` (the step counted from the start) and NaN in its later saves. A body
+    whose own inputs are not admissible (a NaN in its `m0`, a `g0` off the group, its
+    `h` or its system's parameters: the checks of `simulate_batch`) gets
+    `RESULTS.invalid_input` at step 0 and NaN saves, and the others run: a streamed run
+    never raises for one body. Arguments shared by all bodies (shapes, a scalar `h`, the
+    options) are checked at once, as `ValueError`s.
     """
     unknown = set(options) - {"fast", "fixed_iterations", "unroll"}
     if unknown:
@@ -112,30 +124,43 @@ def stream_batch(
             f"`writer` must be a lievi.AbstractStreamWriter (e.g. lievi.NpyWriter(directory)), "
             f"got {type(writer).__name__}."
         )
-    n, d = system.group.matrix_dim, system.group.algebra_dim
-    batch = np.shape(m0)[0] if np.ndim(m0) == 2 else 0
-    if batch == 0 or np.shape(m0) != (batch, d):
-        raise ValueError(f"`m0` must have shape (batch, {d}) with batch ≥ 1, got {np.shape(m0)}.")
-    if np.shape(g0) not in ((batch, n, n), (n, n)):
+    element, momentum = system.element_shape(), system.momentum_shape()
+    batch = np.shape(m0)[0] if np.ndim(m0) == 1 + len(momentum) else 0
+    if batch == 0 or np.shape(m0)[1:] != momentum:
         raise ValueError(
-            f"`g0` must have shape ({batch}, {n}, {n}) or ({n}, {n}), got {np.shape(g0)}."
+            f"`m0` must have shape (batch, {', '.join(map(str, momentum))}) (one momentum "
+            f"per body) with batch ≥ 1, got {np.shape(m0)}."
+        )
+    if np.shape(g0) not in ((batch, *element), element):
+        raise ValueError(
+            f"`g0` must have shape {(batch, *element)} or {element}, got {np.shape(g0)}."
         )
     if np.ndim(h) not in (0, 1) or (np.ndim(h) == 1 and np.shape(h)[0] != batch):
         raise ValueError(f"`h` must be a scalar or have shape ({batch},), got {np.shape(h)}.")
+    if np.ndim(h) == 0:
+        check_scalar("h", h, positive=True)  # shared by every body: an argument error
     n_steps, save_every, chunk_size, segment_steps, save = _check_options(
         n_steps, save_every, chunk_size, segment_steps, save, batch
     )
     system_axis = infer_system_axis(system, system_axis, batch)
-    progress = as_progress_meter(progress_meter)
+    progress = as_progress_meter(progress_meter, label="lievi.stream_batch")
     dtype = np.dtype(state_dtype(system, np.asarray(g0[:1]), np.asarray(m0[:1]), h))
     n_saves = n_steps // save_every + 1
     fields = {}
     if save.g:
-        fields["g"] = ((batch, n_saves, n, n), dtype.name)
+        fields["g"] = ((batch, n_saves, *element), dtype.name)
     if save.m:
-        fields["m"] = ((batch, n_saves, d), dtype.name)
+        fields["m"] = ((batch, n_saves, *momentum), dtype.name)
     layout = StreamLayout(
-        fields, batch, n_steps, save_every, chunk_size, segment_steps, ((n, n), (d,)), dtype.name
+        fields,
+        batch,
+        n_steps,
+        save_every,
+        chunk_size,
+        segment_steps,
+        (element, momentum),
+        dtype.name,
+        run_record(system, integrator, g0, m0, h, options, chunk_size),
     )
     writer.open(layout)
     try:
@@ -143,12 +168,15 @@ def stream_batch(
         done = 0.0
         for chunk in range(layout.n_chunks()):
             rows = slice(chunk * chunk_size, min(batch, (chunk + 1) * chunk_size))
-            state = writer.resume_state(chunk) or _initial_state(g0, m0, rows, n, dtype)
+            system_rows = _rows_of(system, rows, system_axis)
+            state = writer.resume_state(chunk) or _initial_state(
+                system_rows, system_axis, g0, m0, h, rows, element
+            )
             done += (rows.stop - rows.start) * state.steps_done
             progress.show(done / total)
             while state.steps_done < n_steps:
                 values, state = _segment(
-                    system,
+                    system_rows,
                     integrator,
                     system_axis,
                     h,
@@ -166,19 +194,39 @@ def stream_batch(
                 writer.write(chunk, rows, saves, values, state)
                 done += (rows.stop - rows.start) * segment_steps
                 progress.show(done / total)
+        writer.finish()
     finally:
         # Also when the run stops (an error, an interrupt): what was written is kept.
         writer.close()
 
 
-def _initial_state(g0, m0, rows, n, dtype) -> ChunkState:
+def _h_rows(h, rows):
+    return h if np.ndim(h) == 0 else np.asarray(h)[rows]
+
+
+def _mask(flags, x):
+    """`flags` `(b,)` shaped to broadcast against `x` `(b, …)`."""
+    return np.reshape(flags, flags.shape + (1,) * (np.ndim(x) - 1))
+
+
+def _initial_state(system_rows, system_axis, g0, m0, h, rows, element) -> ChunkState:
+    """The chunk's state at step 0. A body whose inputs are not admissible (its system,
+    `g0` in the group, finite `m0`, a positive normal `h`: `input_valid`, the checks
+    `simulate_batch` makes) gets `RESULTS.invalid_input` at step 0 and NaN, and is
+    masked out from then on (`_segment`), so one bad row does not stop the others."""
     b = rows.stop - rows.start
-    g = np.asarray(g0[rows] if np.ndim(g0) == 3 else np.broadcast_to(g0, (b, n, n)))
+    g = np.asarray(
+        g0[rows] if np.ndim(g0) == 1 + len(element) else np.broadcast_to(g0, (b, *element))
+    )
+    m = np.asarray(m0[rows])
+    h_rows = _h_rows(h, rows)
+    in_axes = (system_rows.batch_axes(system_axis), 0, 0, None if np.ndim(h) == 0 else 0)
+    valid = np.asarray(jax.vmap(input_valid, in_axes=in_axes)(system_rows, g, m, h_rows))
     return ChunkState(
-        g=g,
-        m=np.asarray(m0[rows]),
-        result=np.full((b,), int(RESULTS.successful), np.int32),
-        failed_step=np.full((b,), -1, np.int32),
+        g=np.where(_mask(valid, g), g, np.nan),
+        m=np.where(_mask(valid, m), m, np.nan),
+        result=np.where(valid, RESULTS.successful, RESULTS.invalid_input).astype(np.int32),
+        failed_step=np.where(valid, -1, 0).astype(np.int32),
         total_newton_iterations=np.zeros((b,), np.int64),
         steps_done=0,
     )
@@ -192,18 +240,22 @@ def _rows_of(tree, rows, axis):
 
 
 def _segment(system, integrator, system_axis, h, rows, state, steps, save_every, save, options):
-    """Run one chunk for one segment from `state`: the values to write and the new state.
+    """Run one chunk (`system`: its rows) for one segment from `state`: the values to
+    write and the new state.
 
-    A body that failed in an earlier segment restarts from a harmless state (the identity,
-    zero momentum) that is masked out: its saves are NaN and its result, failed step and
-    iteration count stay those of its failure."""
+    A body that failed in an earlier segment, or whose inputs were not admissible,
+    restarts from a harmless state (the identity, zero momentum, a unit step) that is
+    masked out: its saves are NaN and its result, failed step and iteration count stay
+    those of its failure."""
     failed = state.result != int(RESULTS.successful)
-    n = state.g.shape[-1]
-    g = np.where(failed[:, None, None], np.eye(n, dtype=state.g.dtype), state.g)
-    m = np.where(failed[:, None], 0.0, state.m)
-    h_rows = h if np.ndim(h) == 0 else np.asarray(h)[rows]
+    identity = np.broadcast_to(np.eye(state.g.shape[-1], dtype=state.g.dtype), state.g.shape)
+    g = np.where(_mask(failed, state.g), identity, state.g)
+    m = np.where(_mask(failed, state.m), 0.0, state.m)
+    h_rows = _h_rows(h, rows)
+    if np.ndim(h_rows):
+        h_rows = np.where(failed, 1.0, h_rows)
     solution = simulate_batch(
-        _rows_of(system, rows, system_axis),
+        system,
         integrator,
         g,
         m,
@@ -215,8 +267,8 @@ def _segment(system, integrator, system_axis, h, rows, state, steps, save_every,
         throw=False,
         **options,
     )
-    out_g = np.where(failed[:, None, None, None], np.nan, solution.g)
-    out_m = np.where(failed[:, None, None], np.nan, solution.m)
+    out_g = np.where(_mask(failed, solution.g), np.nan, solution.g)
+    out_m = np.where(_mask(failed, solution.m), np.nan, solution.m)
     result = np.asarray(solution.result)
     failed_step = np.asarray(solution.stats["failed_step"])
     iterations = np.asarray(solution.stats["total_newton_iterations"])

@@ -38,6 +38,7 @@ LAYERS = (
             "_sharding",
             "_stream",
             "_stream_writer",
+            "_stream_record",
             "_simulate_neighbors",
         ),
     ),

@@ -1,6 +1,6 @@
 """What the systems of several rigid bodies share (`lievi.RigidBodies` on SE(3)ᴺ,
-`lievi.RigidRotors` on SO(3)ᴺ): the shape check of their per-body inertias and the free
-step of a product group taken body by body.
+`lievi.RigidRotors` on SO(3)ᴺ): the checks of their per-body inertias (shared with
+`lievi.RigidBodySE3`) and the free step of a product group taken body by body.
 
 On a product group `Gᴺ` with a block-diagonal kinetic energy the free flow is the
 product of the bodies' free flows, and so is the free step of every kick integrator
@@ -16,6 +16,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from .._checks import Conditions, shown, spd_conditions
 from .._groups._so3 import SO3
 from .._results import RESULTS
 
@@ -31,6 +32,52 @@ def check_per_body_inertia(inertia) -> None:
     raise ValueError(
         "`inertia` must be principal moments of shape (N, 3) or tensors of shape (N, 3, 3), "
         f"one per body, got shape {shape}."
+    )
+
+
+# The bound on `det J / (tr J)³` below which an inertia `J` is taken as singular: rounding
+# alone leaves a singular tensor (a dumbbell's, summed from its point masses) a determinant
+# of a few ulps of `(tr J)³`; a body whose smallest moment is `r` times its largest has a
+# ratio of at least `r/54` (the moments obey the triangle inequality), so in float64 only
+# bodies with `r ≲ 1e-13` are refused, in float32 `r ≲ 5e-5`.
+_SINGULAR_ULPS = 8
+
+
+def inertia_conditions(name: str, inertia) -> Conditions:
+    """Inertia tensors `(…, 3, 3)` finite, symmetric, positive definite
+    (`spd_conditions`) and not singular to rounding (`regular_inertia`), as conditions."""
+    finite, symmetric, positive = spd_conditions(name, inertia)
+    return [finite, symmetric, regular_inertia(name, inertia), positive]
+
+
+def regular_inertia(name: str, inertia):
+    """The condition that inertia tensors `(…, 3, 3)` are not singular to rounding:
+    `det J > 8ε (tr J)³`. A body of point masses on one line (a dumbbell) fails it: its
+    moment about that line is 0, or ±1e-16 of the others after rounding, which a test of
+    positive definiteness can pass; its first step would then spin it about that line
+    infinitely fast and fail as a step too large. The message names `extra_inertia`, the
+    fix. Put before the test of positive definiteness, whose message has no hint."""
+    j = jnp.asarray(inertia)
+    j = j.astype(jnp.result_type(j, float))
+    j = jnp.where(jnp.all(jnp.isfinite(j)), j, jnp.eye(3, dtype=j.dtype))
+    trace = j[..., 0, 0] + j[..., 1, 1] + j[..., 2, 2]
+    # The determinant by cofactors: elementwise, so a batch of any size runs where the
+    # state runs (as `spd_conditions`' pivots).
+    det = (
+        j[..., 0, 0] * (j[..., 1, 1] * j[..., 2, 2] - j[..., 1, 2] * j[..., 2, 1])
+        - j[..., 0, 1] * (j[..., 1, 0] * j[..., 2, 2] - j[..., 1, 2] * j[..., 2, 0])
+        + j[..., 0, 2] * (j[..., 1, 0] * j[..., 2, 1] - j[..., 1, 1] * j[..., 2, 0])
+    )
+    regular = det > _SINGULAR_ULPS * jnp.finfo(j.dtype).eps * trace**3
+    body = shown(jnp.argmin(regular), " (body {})") if j.ndim == 3 else ""
+    return (
+        jnp.all(regular),
+        f"`{name}` is singular{body}, or singular up to rounding: the body has no moment "
+        "about some axis, as a body of point masses on one line (a dumbbell) about that "
+        "line, and would spin about it infinitely fast. Give it the moments of its extent: "
+        "`extra_inertia=` of `lievi.gravitating_bodies` or `lievi.full_body_problem` (e.g. "
+        "the inertia of a rod, or of the spheres at its ends), or a positive definite "
+        f"`{name}`.",
     )
 
 

@@ -23,17 +23,16 @@ coincide gives an infinite energy (or a non-finite force), which `simulate` repo
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
-from .._checks import is_concrete
-from ._neighbors import fill_index, minimum_image, shifted_force
+from .._checks import shown
+from ._neighbors import is_pair, minimum_image, pair_list_conditions, shifted_force
 from ._pair_energies import AbstractPairEnergy
 from ._potential import AbstractPotential
+from ._ragged import stack_bodies
 from ._rigid_bodies import RigidBodies
 from ._se3_potentials import point_mass_body
 
@@ -65,26 +64,19 @@ def _check_sites(sites, per_site: dict) -> None:
             )
 
 
-def _distances(g, sites):
-    """`(r, i, j)`: the distances of the sites on different bodies, and the pairs' flat
-    site indices."""
-    n, k = jnp.shape(sites)[:2]
-    x = site_positions(g, jnp.asarray(sites, g.dtype)).reshape(n * k, 3)
-    i, j = cross_body_pairs(n, k)
-    d = x[i] - x[j]
-    return jnp.sqrt(jnp.sum(d * d, axis=-1)), i, j
-
-
 class SitePotential(AbstractPotential):
     """`V(g) = Σ e(|x_ia − x_jb|)` over every pair of sites on different bodies.
 
     **Arguments:**
 
-    - `sites`: body-frame positions `(N, k, 3)`, measured from each body's centre of mass.
+    - `sites`: body-frame positions `(N, k, 3)`, measured from each body's centre of mass;
+      or, for bodies of different numbers of sites, a list of `N` arrays `(k_i, 3)`
+      (with `types` and `charges` lists of `(k_i,)` alike), padded to `k = max k_i` with
+      sites in no pair (`mask`).
     - `pair`: a pair energy (`lievi.LennardJones`, `lievi.Coulomb`, `lievi.Morse`) or a
       tuple of them (summed).
-    - `types`: integer site types `(N, k)` (default all 0), indexing the `(T, T)`
-      parameter tables of the pair energies.
+    - `types`: integer site types `(N, k)` (default all 0), in `[0, T)`, indexing the
+      `(T, T)` parameter tables of the pair energies (symmetric tables).
     - `charges`: site charges `(N, k)`, for `lievi.Coulomb`.
     - `cutoff`: `r_c > 0`, or `None` (default: no cut-off). Pairs farther than `r_c`
       contribute nothing, and each pair energy is energy-and-force shifted,
@@ -99,11 +91,16 @@ class SitePotential(AbstractPotential):
       total linear momentum is conserved) but not under rotations: the box has axes, and
       the total angular momentum is not conserved.
     - `neighbors`: a pair list `(P, 2)` of flat site indices (body-major, `body·k + site`),
-      rows with an index `N·k` padding (contributing nothing), or `None` (default: every
-      pair of sites on different bodies). Needs `cutoff`. Built by
+      each pair of sites on different bodies once (in either order; twice is refused),
+      rows with the index `N·k` in either column padding (contributing nothing), or `None`
+      (default: every pair of sites on different bodies). Needs `cutoff`. Built by
       `lievi.BruteForceNeighbors` or `lievi.JaxMDNeighbors` with a skin, valid while no
       site has moved more than half the skin; `lievi.simulate_with_neighbor_list` rebuilds
       and checks it during a run.
+
+    - `mask`: booleans `(N, k)`, `False` for a padding site, which takes part in no pair
+      (default: every site real; from a list of `sites`, the sites given). A neighbour
+      list may hold its pairs (they take capacity, not energy).
 
     Cost: one evaluation of `e` per pair, `N k (N − 1) k / 2` pairs without a neighbour
     list (twice that with a cut-off: `e(r_c)`, `e'(r_c)` per pair), `P` with one.
@@ -116,23 +113,42 @@ class SitePotential(AbstractPotential):
     cutoff: Float[Array, ""] | None
     box: Float[Array, " 3"] | None
     neighbors: Int[Array, "P 2"] | None
+    mask: Bool[Array, "N k"] | None
 
     def __init__(
-        self, sites, pair, types=None, charges=None, *, cutoff=None, box=None, neighbors=None
+        self,
+        sites,
+        pair,
+        types=None,
+        charges=None,
+        *,
+        cutoff=None,
+        box=None,
+        neighbors=None,
+        mask=None,
     ):
-        self.sites = jnp.asarray(sites, float)
+        self.sites, given = stack_bodies("sites", sites, 0.0, (3,))
+        if not given.all():  # bodies of different numbers of sites, padded
+            mask = given if mask is None else np.asarray(mask) & given
         self.pair = tuple(pair) if isinstance(pair, (tuple, list)) else (pair,)
         shape = jnp.shape(self.sites)[:2]
-        self.types = jnp.zeros(shape, int) if types is None else jnp.asarray(types)
-        self.charges = None if charges is None else jnp.asarray(charges, float)
+        self.types = (
+            jnp.zeros(shape, int)
+            if types is None
+            else stack_bodies("types", types, 0, dtype=None)[0]
+        )
+        self.charges = None if charges is None else stack_bodies("charges", charges, 0.0)[0]
+        self.mask = None if mask is None else jnp.asarray(mask)
         self.cutoff = None if cutoff is None else jnp.asarray(cutoff, float)
         self.box = None if box is None else jnp.broadcast_to(jnp.asarray(box, float), (3,))
         self.neighbors = None if neighbors is None else jnp.asarray(neighbors)
 
     def __check_init__(self):
-        _check_sites(self.sites, {"types": self.types, "charges": self.charges})
+        _check_sites(self.sites, {"types": self.types, "charges": self.charges, "mask": self.mask})
         if not jnp.issubdtype(self.types.dtype, jnp.integer):
             raise ValueError(f"`types` must be integers, got dtype {self.types.dtype}.")
+        if self.mask is not None and self.mask.dtype != jnp.bool_:
+            raise ValueError(f"`mask` must be booleans (N, k), got dtype {self.mask.dtype}.")
         for energy in self.pair:
             if not isinstance(energy, AbstractPairEnergy):
                 raise ValueError(
@@ -143,21 +159,6 @@ class SitePotential(AbstractPotential):
                 raise ValueError(
                     f"{type(energy).__name__} reads the sites' charges: pass `charges` (N, k)."
                 )
-            if is_concrete(self.types):
-                # On the host, in NumPy: as JAX operations, eagerly, each reduction was a
-                # small program of its own, compiled at its first use.
-                types = np.asarray(self.types)
-                largest = int(types.max()) if types.size else 0
-                if types.size and int(types.min()) < 0:
-                    raise ValueError("`types` must be ≥ 0 (indices into the pair tables).")
-                for name, table in energy.tables().items():
-                    if largest >= jnp.shape(table)[0]:
-                        raise ValueError(
-                            f"{type(energy).__name__}.{name} is a table over "
-                            f"{jnp.shape(table)[0]} site types, but `types` uses type "
-                            f"{largest}: give a ({largest + 1}, {largest + 1}) table or fix "
-                            "`types`."
-                        )
         self._check_box_and_neighbors()
 
     def _check_box_and_neighbors(self):
@@ -170,19 +171,6 @@ class SitePotential(AbstractPotential):
             )
         if self.neighbors is not None and self.cutoff is None:
             raise ValueError("`neighbors` needs a `cutoff` (the list holds the pairs within it).")
-        concrete = is_concrete(self.cutoff, self.box)
-        if self.cutoff is not None and concrete and not float(self.cutoff) > 0:
-            raise ValueError(f"`cutoff` must be > 0, got {float(self.cutoff)}.")
-        if self.box is not None and concrete:
-            box = np.asarray(self.box)  # on the host, as `types` above
-            if not bool(np.all(box > 0)):
-                raise ValueError(f"`box` sides must all be > 0, got {box.tolist()}.")
-            if float(self.cutoff) > float(box.min()) / 2:
-                raise ValueError(
-                    f"`cutoff` ({float(self.cutoff)}) must be at most half the smallest side "
-                    f"of `box` ({float(box.min())}): beyond, a site would reach two "
-                    "images of another. Use a larger box or a shorter cut-off."
-                )
         if self.neighbors is not None:
             self._check_neighbors()
 
@@ -193,26 +181,52 @@ class SitePotential(AbstractPotential):
                 "`neighbors` must be integers of shape (P, 2), flat site indices, got shape "
                 f"{pairs.shape} and dtype {pairs.dtype}."
             )
-        if is_concrete(pairs) and pairs.size:
-            n, k = jnp.shape(self.sites)[:2]
-            # Reduced where the list lives (on a GPU, a run with rebuilds checks every new
-            # list): two booleans come back, not the list.
-            in_range, within_one_body = (bool(x) for x in _pair_list_defects(pairs, n * k, k))
-            if not in_range:
-                raise ValueError(
-                    f"`neighbors` holds indices outside [0, {n * k}] (the {n * k} flat sites "
-                    f"and the padding index {fill_index(n * k)})."
-                )
-            if within_one_body:
-                raise ValueError(
-                    "`neighbors` pairs two sites of one body (their distance is fixed): list "
-                    "only sites of different bodies, as the builders do."
-                )
 
     def parameter_conditions(self):
-        conditions = super().parameter_conditions()
+        """Finite parameters, the pair energies' own conditions, site types within their
+        tables, a positive cut-off at most half a positive box, and an admissible pair list
+        (`pair_list_conditions`)."""
+        conditions = super().parameter_conditions() + self._type_conditions()
+        if self.cutoff is not None:
+            conditions.append(
+                (self.cutoff > 0, f"`cutoff` must be > 0{shown(self.cutoff, ', got {}')}.")
+            )
+        if self.box is not None:
+            smallest = jnp.min(self.box)
+            conditions += [
+                (
+                    jnp.all(self.box > 0),
+                    f"`box` sides must all be > 0{shown(self.box, ', got {}')}.",
+                ),
+                (
+                    self.cutoff <= smallest / 2,
+                    f"`cutoff`{shown(self.cutoff, ' ({})')} must be at most half the smallest "
+                    f"side of `box`{shown(smallest, ' ({})')}: beyond, a site would reach two "
+                    "images of another. Use a larger box or a shorter cut-off.",
+                ),
+            ]
+        if self.neighbors is not None:
+            n, k = jnp.shape(self.sites)[:2]
+            conditions += pair_list_conditions(self.neighbors, n * k, k)
+        return conditions
+
+    def _type_conditions(self):
+        """Each pair energy's conditions, and every site type an index into its tables."""
+        types = self.types
+        conditions = [(jnp.all(types >= 0), "`types` must be ≥ 0 (indices into the pair tables).")]
+        largest = shown(jnp.max(types, initial=0), " {}")
         for energy in self.pair:
-            conditions = conditions + energy.parameter_conditions()
+            conditions += energy.parameter_conditions()
+            for name, table in energy.tables().items():
+                size = jnp.shape(table)[0]
+                conditions.append(
+                    (
+                        jnp.all(types < size),
+                        f"{type(energy).__name__}.{name} is a table over {size} site types, "
+                        f"but `types` uses type{largest} ≥ {size}: give a table over every "
+                        "type in `types`, or fix `types`.",
+                    )
+                )
         return conditions
 
     def flat_positions(self, g):
@@ -231,6 +245,7 @@ class SitePotential(AbstractPotential):
             cutoff=self.cutoff,
             box=self.box,
             neighbors=neighbors,
+            mask=self.mask,
         )
 
     def __call__(self, g):
@@ -240,9 +255,12 @@ class SitePotential(AbstractPotential):
             i, j = cross_body_pairs(*jnp.shape(self.sites)[:2])
             listed = True
         else:
-            listed = self.neighbors[:, 1] < n_sites
+            listed = is_pair(self.neighbors, n_sites)
             i = jnp.where(listed, self.neighbors[:, 0], 0)
             j = jnp.where(listed, self.neighbors[:, 1], 0)
+        if self.mask is not None:  # a pair with a padding site is none
+            present = self.mask.reshape(-1)
+            listed = listed & present[i] & present[j]
         d = x[i] - x[j]
         if self.box is not None:
             d = minimum_image(d, self.box.astype(d.dtype))
@@ -252,9 +270,15 @@ class SitePotential(AbstractPotential):
             jnp.zeros(types.shape, g.dtype) if self.charges is None else self.charges.reshape(-1)
         )
         args = (types[i], types[j], charges[i], charges[j])
-        if self.cutoff is None:
+        if self.cutoff is None and self.mask is None:
             r = jnp.sqrt(squared)
             return sum(jnp.sum(e(r, *args)) for e in self.pair)
+        if self.cutoff is None:
+            # A padding site may sit anywhere, on another body's site too: its pairs take
+            # the distance 1 before the square root (both branches of `where` are
+            # differentiated), then count 0.
+            r = jnp.sqrt(jnp.where(listed, squared, 1.0))
+            return jnp.sum(jnp.where(listed, sum(e(r, *args) for e in self.pair), 0.0))
         cutoff = self.cutoff.astype(squared.dtype)
         inside = listed & (squared < cutoff * cutoff)
         # Outside (and for padding rows, whose distance is 0) r is set to r_c before the
@@ -289,7 +313,6 @@ class SiteSprings(AbstractPotential):
 
     def __check_init__(self):
         _check_sites(self.sites, {})
-        n, k = jnp.shape(self.sites)[:2]
         pairs = self.pairs
         if pairs.ndim != 2 or pairs.shape[1] != 4 or not jnp.issubdtype(pairs.dtype, jnp.integer):
             raise ValueError(
@@ -303,24 +326,29 @@ class SiteSprings(AbstractPotential):
                     f"`{name}` must be a scalar or have shape ({pairs.shape[0]},), one per "
                     f"spring, got {jnp.shape(value)}."
                 )
-        if is_concrete(pairs) and pairs.size:
-            p = np.asarray(pairs)
-            bad = (p < 0) | (p >= np.array([n, k, n, k]))
-            if bad.any():
-                raise ValueError(
-                    f"`pairs` row {int(np.argmax(bad.any(axis=1)))} names a body or site "
-                    f"outside the {n} bodies of {k} sites."
-                )
-            if (p[:, 0] == p[:, 2]).any():
-                raise ValueError(
-                    f"`pairs` row {int(np.argmax(p[:, 0] == p[:, 2]))} joins two sites of one "
-                    "body (their distance is fixed): join sites of different bodies."
-                )
 
     def parameter_conditions(self):
+        """Finite, `stiffness` and `rest_length` `≥ 0`, and each spring joining existing
+        sites of two different bodies (an index out of range would be clamped by the
+        gather: the spring would silently join other sites)."""
+        n, k = jnp.shape(self.sites)[:2]
+        pairs = self.pairs
+        outside = jnp.any((pairs < 0) | (pairs >= jnp.array([n, k, n, k])), axis=1)
+        within = pairs[:, 0] == pairs[:, 2]
         return super().parameter_conditions() + [
             (jnp.all(self.stiffness >= 0), "`stiffness` must be ≥ 0."),
             (jnp.all(self.rest_length >= 0), "`rest_length` must be ≥ 0."),
+            (
+                ~jnp.any(outside),
+                f"`pairs`{shown(jnp.argmax(outside), ' row {}')} names a body or site outside "
+                f"the {n} bodies of {k} sites (rows (body_a, site_a, body_b, site_b), each "
+                "index from 0).",
+            ),
+            (
+                ~jnp.any(within),
+                f"`pairs`{shown(jnp.argmax(within), ' row {}')} joins two sites of one body "
+                "(their distance is fixed): join sites of different bodies.",
+            ),
         ]
 
     def __call__(self, g):
@@ -341,7 +369,9 @@ class MutualGravity(AbstractPotential):
     **Arguments:**
 
     - `G`: the gravitational constant of the units in use, `> 0`.
-    - `masses`: the point masses `(N, k)`, `> 0`.
+    - `masses`: the point masses `(N, k)`, `≥ 0`, each body's sum `> 0`. A point of mass
+      0 takes part in no pair: bodies of fewer than `k` points are padded with such points
+      (`gravitating_bodies` pads a list of bodies of different sizes).
     - `points`: their body-frame positions `(N, k, 3)`, measured from each body's centre
       of mass (`gravitating_bodies` shifts them there).
 
@@ -369,13 +399,29 @@ class MutualGravity(AbstractPotential):
     def parameter_conditions(self):
         return super().parameter_conditions() + [
             (self.G > 0, "`G` must be > 0."),
-            (jnp.all(self.masses > 0), "`masses` must all be > 0."),
+            (
+                jnp.all(self.masses >= 0),
+                "`masses` must all be ≥ 0 (0: a padding point, in no pair).",
+            ),
+            (
+                jnp.all(jnp.any(self.masses > 0, axis=-1)),
+                "`masses` must give each body a point of mass > 0.",
+            ),
         ]
 
     def __call__(self, g):
-        r, i, j = _distances(g, self.points)
+        n, k = jnp.shape(self.points)[:2]
+        x = site_positions(g, jnp.asarray(self.points, g.dtype)).reshape(n * k, 3)
+        i, j = cross_body_pairs(n, k)
         masses = jnp.asarray(self.masses, g.dtype).reshape(-1)
-        return -self.G * jnp.sum(masses[i] * masses[j] / r)
+        product = masses[i] * masses[j]
+        d = x[i] - x[j]
+        # A padding point (mass 0) may sit anywhere, on another body's point too: its
+        # pairs take the distance 1 before the square root (both branches of `where` are
+        # differentiated), then count 0.
+        real = product > 0
+        r = jnp.sqrt(jnp.where(real, jnp.sum(d * d, axis=-1), 1.0))
+        return -self.G * jnp.sum(jnp.where(real, product / r, 0.0))
 
 
 def gravitating_bodies(G, masses, points, extra_inertia=None) -> RigidBodies:
@@ -386,23 +432,22 @@ def gravitating_bodies(G, masses, points, extra_inertia=None) -> RigidBodies:
     `(N, 3, 3)` array, e.g. for a dumbbell, whose point-mass inertia is singular).
 
     **Arguments:** `G`, `masses` `(N, k)`, `points` `(N, k, 3)`, `extra_inertia`
-    (optional).
+    (optional). Bodies of different numbers of points: `masses` a list of `N` arrays
+    `(k_i,)` and `points` a list of `(k_i, 3)`; they are padded to `k = max k_i` with
+    points of mass 0 at the centre of mass, which take part in no pair (`MutualGravity`).
 
     **Returns:** `RigidBodies(inertia, mass, potential=MutualGravity(G, masses, ρ))`.
     """
-    masses, points = jnp.asarray(masses, float), jnp.asarray(points, float)
+    masses, given = stack_bodies("masses", masses, 0.0)
+    points, given_points = stack_bodies("points", points, 0.0, (3,))
     _check_sites(points, {"masses": masses})
+    if not np.array_equal(given, given_points):
+        raise ValueError(
+            "`masses` and `points` must give each body as many masses as points, got "
+            f"{given.sum(axis=1).tolist()} and {given_points.sum(axis=1).tolist()}."
+        )
     mass, centered, inertia = jax.vmap(point_mass_body)(masses, points)
     if extra_inertia is not None:
         inertia = inertia + jnp.asarray(extra_inertia)
     potential = MutualGravity(G, masses, centered)
     return RigidBodies(inertia, mass, potential=potential)
-
-
-@functools.partial(jax.jit, static_argnums=(1, 2))
-def _pair_list_defects(pairs, n_sites: int, k: int):
-    """`(every index in [0, n_sites], some real pair within one body)` for a pair list of
-    flat site indices (`k` sites a body, `n_sites` the padding index)."""
-    in_range = (jnp.min(pairs) >= 0) & (jnp.max(pairs) <= fill_index(n_sites))
-    real = jnp.all(pairs < n_sites, axis=1)
-    return in_range, jnp.any(real & (pairs[:, 0] // k == pairs[:, 1] // k))

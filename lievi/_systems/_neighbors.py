@@ -18,8 +18,10 @@
   sites then approach by less than `skin`). A builder (`BruteForceNeighbors`,
   `JaxMDNeighbors`) returns the pairs as an int array `(capacity, 2)` of flat site
   indices (body-major, `i < j`), padded with the fill index `N·k` (one past the last
-  site), which the potential reads as "no pair": the array's shape stays fixed from one
-  build to the next, so the compiled step is reused. `lievi.simulate_with_neighbor_list`
+  site), which the potential reads as "no pair" in either column (`is_pair`): the
+  array's shape stays fixed from one build to the next, so the compiled step is reused.
+  A list given by hand is checked as the potential's parameters are
+  (`pair_list_conditions`): a pair within one body, or listed twice, is refused. `lievi.simulate_with_neighbor_list`
   rebuilds the list between segments of a run and checks both conditions.
 
 Builders run outside the compiled step (between segments), on concrete positions.
@@ -35,6 +37,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from .._checks import Conditions, shown
 
 
 def minimum_image(d, box):
@@ -60,6 +64,51 @@ def shifted_force(energy, r, cutoff, *args):
 def fill_index(n_sites: int) -> int:
     """The padding index of a pair list: one past the last flat site."""
     return n_sites
+
+
+def is_pair(pairs, n_sites: int):
+    """`(P,)` booleans: the rows of the pair list `pairs` `(P, 2)` that are pairs of sites.
+    A row with the padding index in either column is padding, whichever column holds it."""
+    return jnp.all(pairs < n_sites, axis=1)
+
+
+def pair_list_conditions(pairs, n_sites: int, k: int) -> Conditions:
+    """The admissible pair lists `(P, 2)` of `n_sites` flat sites, `k` a body, as
+    conditions (`lievi._checks.Conditions`): every index a site or the padding index, no
+    pair within one body, and no pair listed twice — neither a repeated row nor the pair
+    given both ways round, each of which would count its energy twice. A duplicate is
+    refused rather than dropped: finding it costs a sort of the list, which the check
+    does once a run and the energy would do at every force evaluation. A pair listed once
+    in either order is the same pair (the energy is symmetric)."""
+    fill = fill_index(n_sites)
+    real = is_pair(pairs, n_sites)
+    conditions = [
+        (
+            jnp.all((pairs >= 0) & (pairs <= fill)),
+            f"`neighbors` holds indices outside [0, {n_sites}] (the {n_sites} flat sites "
+            f"and the padding index {fill}).",
+        ),
+        (
+            ~jnp.any(real & (pairs[:, 0] // k == pairs[:, 1] // k)),
+            "`neighbors` pairs two sites of one body (their distance is fixed): list only "
+            "sites of different bodies, as the builders do.",
+        ),
+    ]
+    if pairs.shape[0] < 2:
+        return conditions
+    low, high = jnp.min(pairs, axis=1), jnp.max(pairs, axis=1)
+    order = jnp.lexsort((high, low))  # equal pairs end up next to each other
+    low, high, real = low[order], high[order], real[order]
+    repeated = real[1:] & real[:-1] & (low[1:] == low[:-1]) & (high[1:] == high[:-1])
+    row = shown(order[1:][jnp.argmax(repeated)], " (row {})")
+    conditions.append(
+        (
+            ~jnp.any(repeated),
+            f"`neighbors` lists a pair twice{row}, or both ways round: its energy would "
+            "count twice. List each pair once, as the builders do.",
+        )
+    )
+    return conditions
 
 
 class AbstractNeighborBuilder(eqx.Module):

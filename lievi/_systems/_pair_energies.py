@@ -15,7 +15,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._checks import Conditions, finite_conditions, raise_if_violated
+from .._checks import Conditions, finite_conditions, raise_if_violated, shown
 
 
 def _by_type(value, type_i, type_j):
@@ -59,7 +59,22 @@ class AbstractPairEnergy(eqx.Module):
         raise_if_violated(self.parameter_conditions)
 
     def parameter_conditions(self) -> Conditions:
-        return finite_conditions(self)
+        """Finite parameters, and each table symmetric (to 1e-10 relative, as
+        `lievi._checks.spd_conditions`): the energy of a pair of sites of types `a`, `b`
+        must not depend on which is listed first — the order of the bodies, or of a
+        neighbour list's columns, would change it."""
+        conditions = finite_conditions(self)
+        for name, table in self.tables().items():
+            asymmetry = jnp.max(jnp.abs(table - table.T))
+            conditions.append(
+                (
+                    asymmetry <= 1e-10 * jnp.max(jnp.abs(table)),
+                    f"`{name}` must be symmetric (`{name}[a, b]` is the parameter of a pair of "
+                    f"types a and b, either way round){shown(asymmetry, ', off by {:.3g}')}; "
+                    f"symmetrise it as ({name} + {name}.T)/2.",
+                )
+            )
+        return conditions
 
 
 class LennardJones(AbstractPairEnergy):

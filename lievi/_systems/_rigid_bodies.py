@@ -34,11 +34,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
-from .._checks import check_real_dtype, spd_conditions
+from .._checks import check_real_dtype
 from .._groups._base import MatrixLieGroup
 from .._groups._se3 import SE3
 from ._base import AbstractLieSystem
-from ._bodies import check_per_body_inertia
+from ._bodies import check_per_body_inertia, inertia_conditions
 from ._potential import AbstractPotential, as_potential
 from ._se3_body import rigid_body_tensor, spd_solve
 from ._side import Side
@@ -98,10 +98,11 @@ class RigidBodies(AbstractLieSystem):
         return (self.n_bodies, 6)
 
     def parameter_conditions(self):
-        """Finite, each inertia symmetric positive definite, each mass `> 0`."""
+        """Finite, each inertia symmetric positive definite and not singular to rounding
+        (`inertia_conditions`), each mass `> 0`."""
         return (
             super().parameter_conditions()
-            + spd_conditions("inertia", self.tensor[..., :3, :3])
+            + inertia_conditions("inertia", self.tensor[..., :3, :3])
             + [(jnp.all(jnp.asarray(self.mass) > 0), "`mass` must be > 0 for every body.")]
         )
 

@@ -36,11 +36,11 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
-from .._checks import check_real_dtype, spd_conditions
+from .._checks import check_real_dtype
 from .._groups._base import MatrixLieGroup
 from .._groups._so3 import SO3
 from ._base import AbstractLieSystem
-from ._bodies import check_per_body_inertia, each_body, orthonormal_frame
+from ._bodies import check_per_body_inertia, each_body, inertia_conditions, orthonormal_frame
 from ._potential import AbstractPotential, as_potential
 from ._rigid_body import RigidBody
 from ._side import Side
@@ -96,8 +96,9 @@ class RigidRotors(AbstractLieSystem):
         return (self.n_bodies, 3)
 
     def parameter_conditions(self):
-        """Finite, each inertia tensor symmetric positive definite."""
-        return super().parameter_conditions() + spd_conditions("inertia", self.inertia_tensor)
+        """Finite, each inertia tensor symmetric positive definite and not singular to
+        rounding (`inertia_conditions`)."""
+        return super().parameter_conditions() + inertia_conditions("inertia", self.inertia_tensor)
 
     @property
     def inertia_tensor(self) -> Float[Array, "N 3 3"]:

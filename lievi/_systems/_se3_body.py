@@ -31,6 +31,7 @@ from .._checks import check_finite, check_spd, is_concrete, spd_conditions
 from .._groups._base import MatrixLieGroup
 from .._groups._se3 import SE3
 from ._base import AbstractLieSystem
+from ._bodies import regular_inertia
 from ._potential import AbstractPotential, as_potential
 from ._side import Side
 
@@ -142,8 +143,11 @@ class RigidBodySE3(AbstractLieSystem):
             )
 
     def parameter_conditions(self):
-        """A finite, symmetric, positive definite tensor (`spd_conditions`)."""
-        return super().parameter_conditions() + spd_conditions("tensor", self.tensor)
+        """A finite, symmetric, positive definite tensor (`spd_conditions`) whose inertia
+        block is not singular to rounding (`regular_inertia`)."""
+        finite, symmetric, positive = spd_conditions("tensor", self.tensor)
+        regular = regular_inertia("inertia", jnp.asarray(self.tensor)[..., :3, :3])
+        return super().parameter_conditions() + [finite, symmetric, regular, positive]
 
     def kinetic_tensor(self) -> Float[Array, "6 6"]:
         return self.tensor

@@ -127,7 +127,9 @@ def point_mass_body(masses: Float[Array, " k"], points: Float[Array, "k 3"]):
     mass, the points measured from their centre of mass, and the inertia tensor about it,
     `Σ m_i (|ρ_i|² I − ρ_i ρ_iᵀ)`."""
     mass = jnp.sum(masses)
-    centered = points - masses @ points / mass
+    # Points of mass 0 (padding: `lievi.gravitating_bodies` of bodies of different sizes)
+    # are put at the centre of mass; they add nothing to the mass or the inertia.
+    centered = jnp.where(masses[:, None] > 0, points - masses @ points / mass, 0.0)
     squared = jnp.sum(centered**2, axis=-1)
     inertia = jnp.einsum(
         "i,ijk->jk",
