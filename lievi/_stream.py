@@ -209,6 +209,13 @@ def _mask(flags, x):
     return np.reshape(flags, flags.shape + (1,) * (np.ndim(x) - 1))
 
 
+@eqx.filter_jit
+def _valid_rows(system, system_axis, g, m, h):
+    """`input_valid` of each body of a chunk, as one compiled program."""
+    in_axes = (system.batch_axes(system_axis), 0, 0, None if np.ndim(h) == 0 else 0)
+    return jax.vmap(input_valid, in_axes=in_axes)(system, g, m, h)
+
+
 def _initial_state(system_rows, system_axis, g0, m0, h, rows, element) -> ChunkState:
     """The chunk's state at step 0. A body whose inputs are not admissible (its system,
     `g0` in the group, finite `m0`, a positive normal `h`: `input_valid`, the checks
@@ -220,8 +227,7 @@ def _initial_state(system_rows, system_axis, g0, m0, h, rows, element) -> ChunkS
     )
     m = np.asarray(m0[rows])
     h_rows = _h_rows(h, rows)
-    in_axes = (system_rows.batch_axes(system_axis), 0, 0, None if np.ndim(h) == 0 else 0)
-    valid = np.asarray(jax.vmap(input_valid, in_axes=in_axes)(system_rows, g, m, h_rows))
+    valid = np.asarray(_valid_rows(system_rows, system_axis, g, m, h_rows))
     return ChunkState(
         g=np.where(_mask(valid, g), g, np.nan),
         m=np.where(_mask(valid, m), m, np.nan),
