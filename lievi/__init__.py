@@ -51,6 +51,9 @@ from ._integrators._rkmk import RKMK5 as RKMK5
 from ._integrators._rkmk import RKMK8 as RKMK8
 from ._integrators._rkmk import AbstractRKMK as AbstractRKMK
 from ._integrators._splitting import LiePoissonSplitting as LiePoissonSplitting
+from ._monitor import AbstractInvariantMonitor as AbstractInvariantMonitor
+from ._monitor import EnergyMonitor as EnergyMonitor
+from ._monitor import MomentumMonitor as MomentumMonitor
 from ._optimal_control import OptimalControlSolution as OptimalControlSolution
 from ._optimal_control import solve_optimal_control as solve_optimal_control
 from ._progress import NoProgressMeter as NoProgressMeter

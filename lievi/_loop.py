@@ -61,6 +61,7 @@ class Run(eqx.Module):
     dtype: Any = eqx.field(static=True)
     segment: int | None = eqx.field(static=True, default=None)
     unroll: int = eqx.field(static=True, default=1)
+    monitor: Any = None  # an invariant monitor (`lievi.EnergyMonitor`), checked at saves
 
 
 def _zero_counters(batch, dtype):
@@ -85,7 +86,7 @@ def _one_step(stepper, progress, n_steps):
         policy=jax.checkpoint_policies.save_only_these_names(ROOT_NAME),
     )
     def one_step(carry, data):
-        state, result, failed_step, k, (total, most, worst) = carry
+        state, result, failed_step, k, (total, most, worst), reference = carry
         alive = result == RESULTS.successful
         new, code, iterations, residual = stepper.step(state, data, k, alive)
         result, failed_step, ok = RESULTS.record(result, failed_step, k, code)
@@ -99,16 +100,23 @@ def _one_step(stepper, progress, n_steps):
         residual = jnp.where(alive, residual, -jnp.inf).astype(worst.dtype)
         counters = (total + iterations, jnp.maximum(most, iterations), jnp.fmax(worst, residual))
         k = progress.report(k + 1, n_steps)
-        return (new, result, failed_step, k, counters), None
+        return (new, result, failed_step, k, counters, reference), None
 
     return one_step
 
 
-def _save(stepper, save, carry, h, t0, save_every):
-    """`(carry, out)` at a save: the state settled, what is stored of it (NaN after a
-    body's failure), the statistics, and the save's time `t0 + h·save_every·j`."""
-    state, result, failed_step, k, (total, most, worst) = carry
+def _save(run, stepper, carry, h, t0, save_every):
+    """`(carry, out)` at a save: the state settled, the invariant monitor's check, what is
+    stored of the state (NaN after a body's failure), the statistics, and the save's time
+    `t0 + h·save_every·j`."""
+    save = run.save
+    state, result, failed_step, k, (total, most, worst), reference = carry
     state = stepper.settle(state)
+    if run.monitor is not None:
+        drifted = jax.vmap(run.monitor.drifted)(reference, _invariants(run, stepper, state))
+        failing = drifted & (result == RESULTS.successful)
+        result = jnp.where(failing, RESULTS.invariant_drift, result).astype(result.dtype)
+        failed_step = jnp.where(failing, k - 1, failed_step)
     ok = result == RESULTS.successful
     out = stepper.stored(state, save, ok)
     out["iterations"] = total
@@ -117,7 +125,13 @@ def _save(stepper, save, carry, h, t0, save_every):
         out["residual"] = worst
     j = (k // save_every).astype(worst.dtype)
     out["t"] = jnp.broadcast_to(t0 + h * save_every * j, ok.shape)
-    return (state, result, failed_step, k, _zero_counters(ok.shape[0], worst.dtype)), out
+    counters = _zero_counters(ok.shape[0], worst.dtype)
+    return (state, result, failed_step, k, counters, reference), out
+
+
+def _invariants(run, stepper, state):
+    """The monitor's invariant of every body of `state`, `(B, k)`."""
+    return run.plan.invariants(run.monitor, *stepper.configuration(state))
 
 
 def _layout(stepper, stacked):
@@ -141,10 +155,12 @@ def start(run: Run, g0, m0, h, t0):
     stepper = plan.stepper(g0, m0, h, t0)
     batch = m0.shape[0]
     result, failed_step = (jnp.broadcast_to(x, (batch,)) for x in RESULTS.initial(valid))
-    carry = (stepper.init(g0, m0), result, failed_step, jnp.asarray(0, jnp.int32))
+    state = stepper.init(g0, m0)
+    reference = None if run.monitor is None else _invariants(run, stepper, state)
+    carry = (state, result, failed_step, jnp.asarray(0, jnp.int32))
     initial = stepper.initial(g0, m0, run.save)
     initial["t"] = jnp.broadcast_to(t0, (batch,))[:, None]
-    return stepper, (*carry, _zero_counters(batch, dtype)), initial
+    return stepper, (*carry, _zero_counters(batch, dtype), reference), initial
 
 
 def run_static(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
@@ -162,7 +178,7 @@ def run_static(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
 
     def one_save(carry, data):
         carry, _ = scan_in_segments(one_step, carry, save_every, inner, data, run.unroll)
-        return _save(stepper, run.save, carry, h, t0, save_every)
+        return _save(run, stepper, carry, h, t0, save_every)
 
     data = run.plan.per_step()
     # Per-step data (a control sequence) scanned over, not indexed: reverse mode then
@@ -197,14 +213,14 @@ def _block_program(run, g0, m0, h, t0, carry, n_steps, save_every, count, size: 
     one_step = _one_step(stepper, run.progress, n_steps)
     # 0 at the start of a run (a repeat at a later block is not shown again), before the
     # loop: the loop starts from the step count it returns.
-    carry = (*carry[:3], run.progress.report(carry[3], n_steps), carry[4])
+    carry = (*carry[:3], run.progress.report(carry[3], n_steps), *carry[4:])
 
     def one_save(carry):
         carry = jax.lax.fori_loop(0, save_every, lambda _, c: one_step(c, None)[0], carry)
-        return _save(stepper, run.save, carry, h, t0, save_every)
+        return _save(run, stepper, carry, h, t0, save_every)
 
     # A save's shapes from the save alone (tracing `one_save` would trace the step again).
-    shapes = jax.eval_shape(lambda c: _save(stepper, run.save, c, h, t0, save_every)[1], carry)
+    shapes = jax.eval_shape(lambda c: _save(run, stepper, c, h, t0, save_every)[1], carry)
     buffers = jax.tree.map(lambda s: jnp.zeros((size,) + s.shape, s.dtype), shapes)
 
     def body(index, both):
@@ -247,7 +263,7 @@ def run_eager(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
 def finish(carry, initial, saves, n_steps: int, save: eqx.Module, xp=jnp) -> Solution:
     """The batch's `Solution` (`xp`: `jax.numpy` for a traced run, `numpy` for an eager
     one, joined on the host)."""
-    _, result, failed_step, _, _ = carry
+    _, result, failed_step, _, _, _ = carry
     batch = result.shape[0]
     stats = {
         "failed_step": failed_step,

@@ -19,6 +19,7 @@ class RESULTS:
     nonfinite = 3
     invalid_input = 4
     not_run = 5  # a streamed run's body whose run has not reached its horizon (yet)
+    invariant_drift = 6  # an invariant monitor's tolerance passed (`lievi.EnergyMonitor`)
 
     messages = (
         "",
@@ -41,6 +42,10 @@ class RESULTS:
         "(`lievi.stream_batch`) that writes it stopped, or has not reached it yet, and its "
         "saves past the last finished segment are NaN. Call `lievi.stream_batch` again with "
         "the same arguments and writer to finish it.",
+        "an invariant drifted past the monitor's tolerance (`monitor=lievi.EnergyMonitor(…)` "
+        "or `lievi.MomentumMonitor(…)`, checked at every save): the step is too large for "
+        "what the run met (e.g. a close encounter of two bodies). Reduce the step size `h`, "
+        "or loosen the monitor's `rtol`.",
     )
 
     @classmethod

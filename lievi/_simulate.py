@@ -18,6 +18,7 @@ from ._checks import (
 from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator, AbstractVariationalIntegrator
 from ._loop import Run, execute, raise_if_failed
+from ._monitor import AbstractInvariantMonitor, as_monitor
 from ._progress import AbstractProgressMeter, as_progress_meter
 from ._save import Save
 from ._scan import checkpoint_segment
@@ -46,6 +47,7 @@ def simulate(
     progress_meter: AbstractProgressMeter | bool | str = False,
     forcing=None,
     args=None,
+    monitor: AbstractInvariantMonitor | None = None,
 ) -> Solution:
     """Integrate `system` with `integrator` from `(g0, m0)` for `n_steps` steps of size `h`.
 
@@ -90,6 +92,9 @@ def simulate(
       them (added). Enters the step through the discrete Lagrange–d'Alembert principle
       (see `lievi.AbstractKickIntegrator`). Step `k` runs from `t_k = t0 + k·h`.
     - `args`: passed unchanged to a force law (as diffrax's `args`).
+    - `monitor`: an invariant checked at every save, `lievi.EnergyMonitor(rtol)` or
+      `lievi.MomentumMonitor(rtol)`: a run whose invariant drifts past the tolerance ends
+      with `RESULTS.invariant_drift` (off by default; docs/concepts/failure.md).
 
     **Returns:** a `Solution`.
 
@@ -138,6 +143,7 @@ def simulate(
         as_progress_meter(progress_meter),
         dtype,
         segment,
+        monitor=as_monitor(monitor),
     )
 
     def explain():

@@ -35,6 +35,7 @@ from ._checks import (
 from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator
 from ._loop import Run, execute, raise_if_failed
+from ._monitor import as_monitor
 from ._progress import AbstractProgressMeter, as_progress_meter
 from ._save import Save, as_save
 from ._scan import checkpoint_segment
@@ -138,6 +139,7 @@ def simulate_batch(
     forcing=None,
     args=None,
     progress_meter: AbstractProgressMeter | bool | str = False,
+    monitor=None,
 ) -> Solution:
     """Integrate a batch of `B` bodies: `jax.vmap(simulate)` with a fast path.
 
@@ -209,6 +211,8 @@ def simulate_batch(
       line or bar for the whole batch, updated in place about every 1% of the steps from
       inside the compiled loop. The default (`False`, `NoProgressMeter`) compiles nothing
       into the loop; no effect on values.
+    - `monitor`: an invariant checked at every save for every body, as in
+      `lievi.simulate` (`lievi.EnergyMonitor`, `lievi.MomentumMonitor`).
 
     Both paths apply the same checks as `simulate`, per body: a bad value of a body's
     system, `g0`, `m0` or `h` gives `RESULTS.invalid_input` (also when they are traced,
@@ -309,10 +313,11 @@ def simulate_batch(
         args,
         fast=fast,
         fixed_iterations=fixed_iterations,
-        carry_g=save.g,
+        # A monitor reads `g` at every save: not the reduced state.
+        carry_g=save.g or monitor is not None,
     )
     segment = checkpoint_segment(checkpoint, n_steps, save_every)
-    run = Run(plan, save, progress, dtype, segment, unroll)
+    run = Run(plan, save, progress, dtype, segment, unroll, as_monitor(monitor))
 
     def explain():
         # An eager run with a bad input: the group's own test (`check_element`'s) names

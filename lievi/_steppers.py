@@ -64,6 +64,11 @@ class AbstractStepper(eqx.Module):
     def initial(self, g0, m0, save) -> dict:
         """The initial save, batch-major with one save: `(B, 1, …)`."""
 
+    @abc.abstractmethod
+    def configuration(self, state):
+        """`(g, m)` of the state, batch-major `(B, n, n)`, `(B, d)` (for an invariant
+        monitor)."""
+
 
 def where_ok(ok, new, old):
     """`new` where the body is still successful, else `old` (every leaf `(B, …)`)."""
@@ -141,6 +146,10 @@ class KernelStepper(AbstractStepper):
         if advected is not None:
             out["advected"] = jnp.stack(advected, -1)[:, None]
         return out
+
+    def configuration(self, state):
+        g = self.kernel.elements(jnp.stack(state[0])[None])[:, 0]
+        return g, jnp.stack(state[1], axis=-1)
 
 
 class VmapStepper(AbstractStepper):
@@ -223,6 +232,9 @@ class VmapStepper(AbstractStepper):
             out["advected"] = advected[:, None]
         return out
 
+    def configuration(self, state):
+        return state[0], state[1]
+
 
 class AbstractPlan(eqx.Module):
     """How a run steps, decided before it starts (on the host): `stepper` builds the
@@ -250,6 +262,11 @@ class AbstractPlan(eqx.Module):
     def per_step(self):
         """The forcing's per-step data with the step axis leading, or `None`."""
         return None
+
+    def invariants(self, monitor, g, m):
+        """`monitor.invariant` of every body, `(B, k)`."""
+        axes = self.system.batch_axes(self.system_axis)
+        return jax.vmap(monitor.invariant, in_axes=(axes, 0, 0))(self.system, g, m)
 
 
 class KernelPlan(AbstractPlan):

@@ -26,6 +26,7 @@ LAYERS = (
             "_progress",
             "_save",
             "_solution",
+            "_monitor",
             "_steppers",
             "_loop",
             "_simulate",

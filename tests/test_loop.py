@@ -129,8 +129,10 @@ def test_an_eager_call_compiles_two_programs_and_a_new_horizon_none(fast, integr
     one = lambda n, k, h, t0, m, b: lievi.simulate(  # noqa: E731
         b, integrator, G0, m, h=h, n_steps=n, save_every=k, t0=t0
     )
-    many = lambda n, k, h, t0, m, b: lievi.simulate_batch(  # noqa: E731
-        b, integrator, G0, m[:1] * np.asarray(MOMENTA), h=h, n_steps=n, save_every=k, fast=fast
+    many = (
+        lambda n, k, h, t0, m, b: lievi.simulate_batch(  # noqa: E731
+            b, integrator, G0, m[:1] * np.asarray(MOMENTA), h=h, n_steps=n, save_every=k, fast=fast
+        )
     )
     # NumPy inputs: the test's own arithmetic compiles nothing.
     m1, m2 = np.asarray(M0), np.asarray(M0) * 1.5
@@ -165,3 +167,58 @@ def test_under_transformations_the_static_scan_is_used():
         return BODY.energy(sol.m[-1])
 
     assert np.isfinite(jax.grad(final_energy)(0.1))
+
+
+def _close_encounter():
+    """Two bodies of one point mass each in mutual gravity passing within 0.02 of each
+    other at a step far too large for it: finite numbers, every step "successful"
+    without a monitor, and an energy error of many times the energy."""
+    points = jnp.zeros((2, 1, 3))
+    bodies = lievi.gravitating_bodies(
+        1.0, jnp.ones((2, 1)), points, extra_inertia=jnp.tile(0.1 * jnp.eye(3), (2, 1, 1))
+    )
+    g0 = jnp.tile(jnp.eye(4), (2, 1, 1)).at[:, 0, 3].set(jnp.array([-1.0, 1.0]))
+    g0 = g0.at[:, 1, 3].set(jnp.array([-0.01, 0.01]))
+    m0 = jnp.array([[0.0, 0.0, 0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, -1.0, 0.0, 0.0]])
+    return bodies, g0, m0
+
+
+@pytest.mark.parametrize("batched", [False, True], ids=["simulate", "simulate_batch"])
+def test_invariant_monitor_reports_a_drift(batched):
+    """With `EnergyMonitor` a run whose energy drifts past the tolerance ends with
+    `RESULTS.invariant_drift` at the save that saw it (NaN from there on); without it the
+    same run reports success. A monitor on a run that keeps its energy changes nothing."""
+    bodies, g0, m0 = _close_encounter()
+    kwargs = dict(h=0.05, n_steps=40, save_every=1, throw=False)
+    if batched:
+        run = lambda monitor, m, g=g0: lievi.simulate_batch(  # noqa: E731
+            bodies, lievi.LiePoissonSplitting(), g, m[None], monitor=monitor, **kwargs
+        )
+    else:
+        run = lambda monitor, m, g=g0: jax.tree.map(  # noqa: E731
+            lambda x: x[None],
+            lievi.simulate(bodies, lievi.LiePoissonSplitting(), g, m, monitor=monitor, **kwargs),
+        )
+    plain = run(None, m0)
+    energies = lievi.diagnostics.energy(bodies, plain.m[0], plain.g[0])
+    assert int(plain.result[0]) == lievi.RESULTS.successful
+    assert np.max(np.abs(energies - energies[0])) > 10 * abs(energies[0])  # it went wrong
+    watched = run(lievi.EnergyMonitor(rtol=1e-2), m0)
+    assert int(watched.result[0]) == lievi.RESULTS.invariant_drift
+    step = int(watched.stats["failed_step"][0])
+    drift = np.abs(energies - energies[0]) / abs(energies[0])
+    # The first save past the tolerance is the one after the failed step.
+    assert drift[step + 1] > 1e-2 and np.all(drift[: step + 1] <= 1e-2)
+    assert np.all(np.isnan(watched.m[0, step + 1 :]))
+    np.testing.assert_array_equal(watched.m[0, : step + 1], plain.m[0, : step + 1])
+    # Far apart (they fall towards each other for a fraction of the time to meet), the
+    # energy is kept and the monitor never fires.
+    far = g0.at[:, 0, 3].set(jnp.array([-5.0, 5.0]))
+    assert int(run(lievi.EnergyMonitor(rtol=1e-2), 0 * m0, far).result[0]) == 0
+
+
+def test_monitor_must_be_a_monitor():
+    with pytest.raises(ValueError, match="`monitor` must be None or an invariant monitor"):
+        lievi.simulate(BODY, lievi.DEP(), G0, M0, h=0.1, n_steps=2, monitor="energy")
+    with pytest.raises(ValueError, match="`rtol` must be > 0"):
+        lievi.EnergyMonitor(rtol=-1.0)
