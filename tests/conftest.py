@@ -251,7 +251,7 @@ EXTENDED = frozenset(
         "tests/test_docs_examples.py::test_page_examples_run[docs/rigid-bodies.md]",  # 67 s
         "tests/test_docs_examples.py::test_page_examples_run[docs/optimal-control.md]",  # 58 s
         "tests/test_docs_examples.py::test_page_examples_run[docs/gradients.md]",  # 40 s
-        "tests/test_docs_examples.py::test_page_examples_run[docs/forcing.md]",  # 27 s
+        "tests/test_docs_examples.py::test_page_examples_run[docs/forcing.md]",  # 55 s
         "tests/test_docs_examples.py::test_page_examples_run[docs/se3.md]",  # 24 s
         "tests/test_docs_examples.py::test_page_examples_run[docs/potentials.md]",  # 22 s
         "tests/test_docs_examples.py::test_page_examples_run[docs/preprocessed_dmv.md]",  # 15 s
