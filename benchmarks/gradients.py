@@ -28,6 +28,11 @@ acceptance figure: ≤ 5), and for reference the `fast=False` gradient (`jax.vma
 on a 10× smaller batch, as body-steps per second. Writes `gradients_batch.json`.
 
     python benchmarks/gradients.py --batch [--bodies 100000] [--steps 100]
+
+`--forcing` measures the gradient with respect to a whole control sequence against the
+forward run (N = 500, 2000, 8000; `--quick`: 500, 2000); writes `forcing_gradients.json`.
+
+    python benchmarks/gradients.py --forcing [--quick]
 """
 
 from __future__ import annotations
@@ -321,6 +326,99 @@ def main_batch(args):
     print(f"load average before {load_before}, after {os.getloadavg()}; wrote {out_path}")
 
 
+# ---- --forcing: the gradient with respect to a whole control sequence ---------------------
+#
+# A rigid body (HLW inertia, float64, exp-chart DEP, h = 0.01) driven by a control sequence
+# `u` of shape `(N, 3)` (`lievi.Control`, zero-order hold) and by damping `−cΩ`
+# (`lievi.ForceLaw`, whose end-of-step kick is an implicit solve); the loss is a terminal
+# attitude and momentum cost plus `Σ h|u_k|²`. For each N: forward and gradient (with
+# respect to `u` and `c`, with and without `checkpoint=True`) as process CPU time, their
+# ratio (the acceptance figure: ≤ 5), and the Newton iterations per step of the forward
+# run. Writes `benchmarks/results/forcing_gradients.json`.
+
+FORCING_H = 0.01
+HLW_INERTIA = jnp.array([2.0, 1.0, 2.0 / 3.0])
+
+
+def damping(t, g, m, c):
+    return -c * m / HLW_INERTIA
+
+
+def forcing_loss(n_steps: int, checkpoint):
+    target = lievi.SO3.exp(jnp.array([0.3, 0.2, -0.4]))
+    body = lievi.RigidBody(HLW_INERTIA)
+
+    def loss(params):
+        sol = lievi.simulate(
+            body,
+            lievi.DEP(),
+            jnp.eye(3),
+            jnp.array([np.cos(1.1), 0.0, np.sin(1.1)]),
+            h=FORCING_H,
+            n_steps=n_steps,
+            save_every=n_steps,
+            throw=False,
+            checkpoint=checkpoint,
+            forcing=(lievi.Control(params["u"]), lievi.ForceLaw(damping)),
+            args=params["c"],
+        )
+        terminal = jnp.sum((sol.g[-1] - target) ** 2) + jnp.sum(sol.m[-1] ** 2)
+        return terminal + FORCING_H * jnp.sum(params["u"] ** 2)
+
+    return loss
+
+
+def main_forcing(quick: bool):
+    ns = (500, 2000) if quick else (500, 2000, 8000)
+    rows = []
+    for n in ns:
+        params = {
+            "u": jnp.asarray(0.3 * np.random.default_rng(0).normal(size=(n, 3))),
+            "c": jnp.asarray(0.2),
+        }
+        forward = jax.jit(forcing_loss(n, False))
+        gradient = jax.jit(jax.value_and_grad(forcing_loss(n, False)))
+        gradient_ckpt = jax.jit(jax.value_and_grad(forcing_loss(n, True)))
+        wall, cpu = best_times([forward, gradient, gradient_ckpt], params)
+        sol = lievi.simulate(
+            lievi.RigidBody(HLW_INERTIA),
+            lievi.DEP(),
+            jnp.eye(3),
+            jnp.array([np.cos(1.1), 0.0, np.sin(1.1)]),
+            h=FORCING_H,
+            n_steps=n,
+            forcing=(lievi.Control(params["u"]), lievi.ForceLaw(damping)),
+            args=0.2,
+        )
+        row = {
+            "n_steps": n,
+            "forward_cpu_s": cpu[0],
+            "gradient_cpu_s": cpu[1],
+            "gradient_checkpointed_cpu_s": cpu[2],
+            "forward_wall_s": wall[0],
+            "gradient_wall_s": wall[1],
+            "gradient_checkpointed_wall_s": wall[2],
+            "ratio": cpu[1] / cpu[0],
+            "ratio_checkpointed": cpu[2] / cpu[0],
+            "newton_iterations_per_step": float(sol.stats["total_newton_iterations"]) / n,
+        }
+        rows.append(row)
+        print(
+            f"N = {n:6d}: forward {cpu[0] * 1e3:8.2f} ms, gradient {cpu[1] * 1e3:8.2f} ms "
+            f"(×{row['ratio']:.2f}), checkpointed {cpu[2] * 1e3:8.2f} ms (×{row['ratio_checkpointed']:.2f})"
+        )
+    RESULTS.mkdir(exist_ok=True)
+    out = {
+        "problem": "rigid body I = (2, 1, 2/3), DEP exp chart, h = 0.01, float64; control u (N, 3) "
+        "held per step plus damping −cΩ (implicit end kick); gradient w.r.t. u and c",
+        "machine": platform.processor() or platform.machine(),
+        "jax": jax.__version__,
+        "rows": rows,
+    }
+    (RESULTS / "forcing_gradients.json").write_text(json.dumps(out, indent=2))
+    print(f"wrote {RESULTS / 'forcing_gradients.json'}")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="only N = 1e3 and 1e4")
@@ -332,9 +430,14 @@ def main():
     parser.add_argument("--methods", nargs="+", default=None, choices=list(BATCH_METHODS))
     parser.add_argument("--outdir", default=str(RESULTS), help="where --batch writes its JSON")
     parser.add_argument("--out", default="gradients_batch", help="basename of --batch's JSON")
+    parser.add_argument(
+        "--forcing", action="store_true", help="gradient w.r.t. a control sequence (N = 500…8000)"
+    )
     args = parser.parse_args()
     if args.batch:
         return main_batch(args)
+    if args.forcing:
+        return main_forcing(args.quick)
     sizes = [1_000, 10_000] if args.quick else [1_000, 3_000, 10_000, 30_000, 100_000]
     load_before = os.getloadavg()  # a shared machine: other processes inflate both times
     rows = []

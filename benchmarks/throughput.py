@@ -27,7 +27,7 @@ formulation of the same solver, the same ODE and the same step that we found:
 
 What was tried (`--diffrax-variants` times every formulation in `DIFFRAX_VARIANTS` in
 interleaved rounds, each checked against the weak formulation's final state; the
-figures, with the load they were taken at, are in docs/benchmarks.md): the pytree `(Π,
+figures are in the run's JSON, with the load they were taken at): the pytree `(Π,
 g)` with `g @ SO3.hat(Ω)`, one solve per body under `jax.vmap` (the former baseline,
 kept as the row "diffrax Tsit5, (Π, g) pytree — weak formulation"; no ratio is published
 against it); a flat 12-vector per body with `R @ hat(Ω)` or with the 12 scalar
@@ -496,7 +496,7 @@ def cpu_cores() -> int:
 def flops_per_body_step(fn, dtype, batch: int = 1000):
     """XLA's own operation counts for one step of `fn`'s method (built with 1 step):
     `(traced, executed)` per body-step — the program as written, and the optimised one
-    XLA runs (fusion may duplicate work, see `fusion_report.py`)."""
+    XLA runs (fusion may duplicate work: executed counts ran 2–2.5× the traced ones)."""
 
     def count(analysis):
         analysis = analysis[0] if isinstance(analysis, list) else analysis

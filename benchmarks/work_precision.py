@@ -1,59 +1,55 @@
-"""Work–precision: the cost of reaching a final attitude error, lievi against MuJoCo and diffrax.
+"""Work–precision at two horizons: lievi against diffrax (batch in the state) and MuJoCo.
 
-Two problems, T = 20, float64, every body the same system with its own initial momentum
-(the base momentum times `1 + 0.05·noise` per component):
+What a run costs, in CPU seconds per million bodies, to reach a target error, for every
+method and step size (every tolerance, for adaptive diffrax). float64; one core each (the
+process is pinned to one CPU and XLA to one thread; MuJoCo's `rollout` gets one thread);
+each run compiled ahead, then the best of `--repeats` timed calls (process CPU time, so a
+loaded machine inflates the figures less than wall time would). Every body is the same
+system with its own initial momentum (the base momentum times `1 + 0.05·noise`).
 
-- **free body**: principal moments `(0.6, 0.8, 1.0)`, `Π₀ = (1.8, 0.4, −0.9)`, `g₀ = 1`;
-- **heavy top**: the same moments about the centre of mass (`heavy_top(...,
-  inertia_about="center_of_mass")`), mass 1, `ρ = (0, 0, 0.5)` (on a principal axis, so the
-  moments about the fixed point are principal moments too and lievi's fast paths apply;
-  with `I₁ ≠ I₂` the top is not integrable), gravity 1, `Π₀ = (0.5, 0.3, 1.2)`,
-  `g₀ = exp(0.3, −0.2, 0.1)`.
+Problems (`PROBLEMS`):
 
-(MuJoCo requires a physical body — its principal moments satisfy the triangle inequality —
-so the Hairer–Lubich–Wanner body `(2, 1, 2/3)` of the other benchmarks is not used here.)
+- **free body**: principal moments `(0.6, 0.8, 1.0)`, `Π₀ = (1.8, 0.4, −0.9)`; integrable.
+- **HLW body**: the Hairer–Lubich–Wanner body `(2, 1, 2/3)`, `Π₀ = (cos 1.1, 0, sin 1.1)`;
+  integrable; not a physical body (the moments break the triangle inequality), so no MuJoCo.
+- **heavy top**: moments `(0.6, 0.8, 1.0)` about the centre of mass, mass 1, `ρ = (0, 0,
+  0.5)`, gravity 1, `Π₀ = (0.5, 0.3, 1.2)`, `g₀ = exp(0.3, −0.2, 0.1)`; chaotic.
+- **Lagrange top**: the same with moments `(0.8, 0.8, 1.0)` (symmetric) and `Π₀ = (0.3,
+  −0.2, 2.0)`; integrable.
 
-For each method and step size (each tolerance, for adaptive diffrax), one batched run is
-timed (after compilation, best of two), and the error is the largest over the first
-`--reference` bodies of `‖g(T) − g_ref(T)‖_F`, `g_ref` from DOP853 at 1e-13
-(`lievi.reference_solution`). The cost is seconds per million bodies for the whole
-horizon. Methods:
+Errors, each the largest over the first `--reference` bodies and over `SAMPLES` times
+evenly spaced in the run, against `lievi.reference_solution` (DOP853, rtol = atol =
+1e-13): the rotation angle between `g` and `g_ref` (`attitude`), the distance between
+the symmetry axes `g e₃` (`axis`), the relative energy error, and the error of the Noether
+momentum (all of `gΠ` for the free bodies, its vertical part for the tops) over `|Π₀|`.
+Which of them a run must bring below the target (`TARGETS_SHORT` at T = 20,
+`TARGETS_LONG` at T = `--long-T`, default 2·10⁴): the attitude at T = 20; at the long
+horizon, trajectory and energy on the integrable problems, energy and momentum on the
+chaotic heavy top (two near-exact runs of it part by O(1) rad in attitude by t ≈ 8000:
+no method can meet an attitude target there).
 
-- lievi: `DEP(exp)`, `MoserVeselov`, `LiePoissonSplitting`, `RKMK4`, `RKMK5`, `RKMK8`
-  (the Lie-group Runge–Kutta methods of order 4, 5, 8; the order-8 ones also at h = 0.8, 0.4)
-  (structure-of-arrays fast paths, with gravity too), `RK4` (embedded; fast path for the
-  free body), `Composition(LiePoissonSplitting, 4 | 6 | 8)` (the fused composition kernel), all through
-  `lievi.simulate_batch`;
-- diffrax: `Tsit5` and `Dopri8` with constant steps (Dopri8 also at h = 0.8, 0.4), and
-  `Dopri8` with a PID controller at tolerances 1e-4 … 1e-12, the state one flat array of 12 numbers (`R` row-major and `Π`), the field
-  `Ṙ = R Ω̂`, `Π̇ = Π × Ω + mγ Γ × ρ` (`Γ` the last row of `R`), vmapped over the batch;
-- MuJoCo (`mujoco.rollout`, the C engine, on every core): `Euler`, `implicitfast`, `RK4`,
-  a free joint (free body, gravity off) or a ball joint at the fixed point (heavy top), the
-  MJCF written here. MuJoCo runs its general articulated-body pipeline every step (mass
-  matrix, bias forces, collision detection with nothing to collide, constraint solver
-  with no constraints), which lievi's closed-form steps do not: this is the comparison a
-  user choosing a tool makes, not one of equal arithmetic. Timed on `--mujoco-batch`
-  bodies (its cost per body does not depend on the batch).
+Methods: lievi's (`LIEVI_METHODS`, each marked structure-preserving or not: a
+structure-preserving one keeps the momentum map to round-off and the energy bounded);
+diffrax `Tsit5`, `Dopri5`, `Dopri8` with constant steps and with a PID controller at
+rtol = atol = tol, the whole batch as ONE `(12, B)` state (rows Π₁ Π₂ Π₃ g₁₁ … g₃₃, the
+field on slices of the one array, `ForwardMode`, `throw=False`) — the fastest
+formulation we timed, called "strong"; MuJoCo's C `rollout` (`Euler`,
+`implicitfast`, `RK4`; a free joint or a ball joint at the fixed point). The same run
+also times an **independent** batch-in-state diffrax runner (`independent_runner`: a
+pytree `(Π (3, B), g (3, 3, B))`, another field, diffrax's defaults) and checks that the
+strong baseline costs at most 1.1× it (`baseline_check` in the JSON).
 
-The table printed (and written to `benchmarks/results/work_precision.json`, with a PNG of
-error against cost per problem) also gives, for every target error 1e-2 … 1e-10, the
-cheapest run of each family that reaches it, and how many times cheaper lievi's is than
-the cheaper of the other two (`lievi_advantage`).
+The summary per problem and horizon gives, for each target, the cheapest run of each
+family, the cheapest structure-preserving lievi run, and the ratios of the strongest
+diffrax's cost to each lievi one. Results: `benchmarks/results/<out>.json` and `.png`
+(error against cost, one panel per problem and horizon).
 
-**Invariants over a long run** (`long_run` in the JSON): every method again, on the first
-`--reference` bodies, for `LONG_STEPS = 10⁵` steps of `LONG_H = 0.05` (T = 5000; diffrax's
-Dopri8 over the same horizon at tolerance `LONG_TOL = 1e-8`): the largest relative energy
-error `|H(T) − H(0)|/|H(0)|`, the largest momentum error `|J(T) − J(0)|/|Π₀|` (`J` the
-spatial angular momentum `gΠ` of the free body, the vertical one `e₃·gΠ` of the heavy top:
-the Noether momenta of the symmetries each problem has) and, for the methods that carry
-the attitude as a matrix (lievi's and diffrax's), `‖gᵀg − I‖_F` at the end (MuJoCo
-carries a quaternion, normalised every step). All from `lievi.diagnostics` on the final
-states.
+    python benchmarks/work_precision.py                     # the published figures (hours)
+    python benchmarks/work_precision.py --quick             # a smoke run (minutes)
+    python benchmarks/work_precision.py --problems "free body" --horizons short
 
-    python benchmarks/work_precision.py [--batch 4096] [--quick] [--no-long-run]
-
-`mujoco` and `diffrax` are optional (`pip install -e .[bench]` brings both); a family whose
-package is missing is skipped and said so.
+`mujoco` and `diffrax` are optional (`pip install -e .[bench]`); a missing family is
+skipped and said so.
 """
 
 from __future__ import annotations
@@ -63,373 +59,450 @@ import json
 import os
 import pathlib
 import platform
+import sys
 import time
+from functools import partial
 
-import jax
-import jax.numpy as jnp
-import numpy as np
+if "--all-cores" not in sys.argv:
+    # One core: pin the process (threads inherit it) and keep XLA to one thread.
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "")
+        + " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+    )
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
 import lievi  # noqa: E402
 
-T = 20.0
-MOMENTS = np.array([0.6, 0.8, 1.0])
-MASS, GRAVITY = 1.0, 1.0
-RHO = np.array([0.0, 0.0, 0.5])
+T_SHORT = 20.0
+SAMPLES = 25  # every run's step count is a multiple: T/h = 25·2^k
+MASS, GRAVITY, RHO = 1.0, 1.0, np.array([0.0, 0.0, 0.5])
 PROBLEMS = {
-    "free body": dict(m0=np.array([1.8, 0.4, -0.9]), tilt=np.zeros(3), gravity=False),
-    "heavy top": dict(m0=np.array([0.5, 0.3, 1.2]), tilt=np.array([0.3, -0.2, 0.1]), gravity=True),
-}
-TARGETS = [10.0**-k for k in range(2, 11)]
-LONG_STEPS, LONG_H, LONG_TOL = 100_000, 0.05, 1e-8
+    "free body": dict(
+        moments=(0.6, 0.8, 1.0), m0=(1.8, 0.4, -0.9), tilt=(0, 0, 0), gravity=False,
+        long_targets=("attitude", "energy"),
+    ),
+    "HLW body": dict(
+        moments=(2.0, 1.0, 2 / 3), m0=(np.cos(1.1), 0.0, np.sin(1.1)), tilt=(0, 0, 0),
+        gravity=False, long_targets=("attitude", "energy"), mujoco=False,
+    ),
+    "heavy top": dict(
+        moments=(0.6, 0.8, 1.0), m0=(0.5, 0.3, 1.2), tilt=(0.3, -0.2, 0.1), gravity=True,
+        long_targets=("energy", "momentum"),
+    ),
+    "Lagrange top": dict(
+        moments=(0.8, 0.8, 1.0), m0=(0.3, -0.2, 2.0), tilt=(0.3, -0.2, 0.1), gravity=True,
+        long_targets=("attitude", "axis", "energy"),
+    ),
+}  # fmt: skip
+TARGETS_SHORT = [10.0**-k for k in range(2, 11)]
+TARGETS_LONG = [10.0**-k for k in range(2, 9)]
+QUANTITIES = ("attitude", "axis", "energy", "momentum")
+
+# name: (integrator, order, structure-preserving, free bodies only)
+LIEVI_METHODS = {
+    "DEP exp": (lambda: lievi.DEP(), 2, True, False),
+    "Moser-Veselov": (lambda: lievi.MoserVeselov(), 2, True, False),
+    "splitting": (lambda: lievi.LiePoissonSplitting(), 2, True, False),
+    "splitting ∘ 4": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=4), 4, True, False),
+    "splitting ∘ 6": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=6), 6, True, False),
+    "splitting ∘ 8": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=8), 8, True, False),
+    "preprocessed MV(6)": (lambda: lievi.PreprocessedMoserVeselov(6), 6, True, True),
+    "preprocessed MV(8)": (lambda: lievi.PreprocessedMoserVeselov(8), 8, True, True),
+    "RKMK4": (lambda: lievi.RKMK4(), 4, False, False),
+    "RKMK5": (lambda: lievi.RKMK5(), 5, False, False),
+    "RKMK8": (lambda: lievi.RKMK8(), 8, False, False),
+}  # fmt: skip
+DIFFRAX_SOLVERS = {"Tsit5": 5, "Dopri5": 5, "Dopri8": 8}
 
 
-def lievi_system(problem):
-    if PROBLEMS[problem]["gravity"]:
+def steps_for(order, horizon, quick):
+    """Step sizes: the high-order methods reach tight errors at larger steps."""
+    if quick:
+        return [0.2, 0.1]
+    if horizon == "long":
+        return [0.8, 0.4, 0.2, 0.1] if order >= 6 else [0.1, 0.05, 0.025]
+    return [0.8, 0.4, 0.2, 0.1, 0.05] if order >= 6 else [0.2, 0.1, 0.05, 0.025, 0.0125]
+
+
+def tolerances_for(horizon, quick):
+    if quick:
+        return [1e-6, 1e-9]
+    return [1e-4, 1e-6, 1e-8, 1e-10, 1e-12] + ([1e-13] if horizon == "long" else [])
+
+
+# ---- the problems -------------------------------------------------------------------------
+
+
+def system_of(problem):
+    spec = PROBLEMS[problem]
+    moments = jnp.asarray(spec["moments"])
+    if spec["gravity"]:
         return lievi.heavy_top(
-            jnp.asarray(MOMENTS), MASS, jnp.asarray(RHO), GRAVITY, inertia_about="center_of_mass"
+            moments, MASS, jnp.asarray(RHO), GRAVITY, inertia_about="center_of_mass"
         )
-    return lievi.RigidBody(jnp.asarray(MOMENTS))
-
-
-def moments_about_the_fixed_point(problem):
-    """The principal moments the equations use (for the heavy top, shifted from the centre
-    of mass to the fixed point)."""
-    return np.asarray(lievi_system(problem).inertia)
+    return lievi.RigidBody(moments)
 
 
 def initial_states(problem, batch, seed=0):
     spec = PROBLEMS[problem]
-    rng = np.random.default_rng(seed)
-    m0 = spec["m0"] * (1 + 0.05 * rng.normal(size=(batch, 3)))
-    g0 = np.asarray(lievi.SO3.exp(jnp.asarray(spec["tilt"])))
-    return g0, m0
+    m0 = np.asarray(spec["m0"]) * (1 + 0.05 * np.random.default_rng(seed).normal(size=(batch, 3)))
+    return np.asarray(lievi.SO3.exp(jnp.asarray(spec["tilt"], dtype=float))), m0
 
 
-def reference(problem, count):
-    system = lievi_system(problem)
+def sample_every(n):
+    """Steps between saved states: every run saves `SAMPLES`, at the same times."""
+    if n % SAMPLES:
+        raise ValueError(f"{n} steps: use a step count that is a multiple of {SAMPLES}")
+    return n // SAMPLES
+
+
+def reference(problem, count, t1):
+    system = system_of(problem)
     g0, m0 = initial_states(problem, count)
-    finals = []
+    ts = np.linspace(0.0, t1, SAMPLES + 1)
+    gs, ms = [], []
     for k in range(count):
-        g_ref, _ = lievi.reference_solution(system, jnp.asarray(g0), jnp.asarray(m0[k]), [0.0, T])
-        finals.append(np.asarray(g_ref[-1]))
-    return np.array(finals)
+        g, m = lievi.reference_solution(system, jnp.asarray(g0), jnp.asarray(m0[k]), ts)
+        gs.append(np.asarray(g)[1:])
+        ms.append(np.asarray(m)[1:])
+    return np.array(gs), np.array(ms)
 
 
-def attitude_error(g_final, g_ref):
-    count = g_ref.shape[0]
-    return float(np.max(np.linalg.norm(np.asarray(g_final[:count]) - g_ref, axis=(-2, -1))))
+def errors(problem, g, m, ref):
+    """Each quantity's error, the largest over the reference bodies and the saved times.
+    `g (B, K, 3, 3)`, `m (B, K, 3)`; `ref` the reference's `(g, m)` at the same times."""
+    system, gravity = system_of(problem), PROBLEMS[problem]["gravity"]
+    count = ref[0].shape[0]
+    g, m = np.asarray(g[:count]), np.asarray(m[:count])
+    g_ref, m_ref = ref
+    chord = np.linalg.norm(g - g_ref, axis=(-2, -1)) / (2 * np.sqrt(2))
+    attitude = 2 * np.arcsin(np.clip(chord, 0.0, 1.0))
+    axis = np.linalg.norm(g[..., :, 2] - g_ref[..., :, 2], axis=-1)
+
+    def invariants(g, m):
+        g, m = jnp.asarray(g), jnp.asarray(m)
+        J = np.asarray(lievi.diagnostics.spatial_momentum(system, g, m))
+        return np.asarray(lievi.diagnostics.energy(system, m, g)), (J[..., 2:] if gravity else J)
+
+    g0, m0 = initial_states(problem, count)
+    (H, J), (H0, J0) = (
+        invariants(g, m),
+        invariants(np.broadcast_to(g0, (count, 1, 3, 3)), m0[:, None]),
+    )
+    energy = np.abs(H - H0) / np.abs(H0)
+    momentum = np.linalg.norm(J - J0, axis=-1) / np.linalg.norm(m0[:, None], axis=-1)
+    out = dict(attitude=attitude, axis=axis, energy=energy, momentum=momentum)
+    return {k: float(np.max(v)) if np.all(np.isfinite(v)) else float("nan") for k, v in out.items()}
 
 
-def timed(fn, *args):
-    """`(result, seconds)`: compiled and run once, then the best of two runs."""
-    out = jax.block_until_ready(fn(*args))
-    best = np.inf
-    for _ in range(2):
-        start = time.perf_counter()
-        out = jax.block_until_ready(fn(*args))
-        best = min(best, time.perf_counter() - start)
+def best_cpu_seconds(fn, args, repeats):
+    """Compiled ahead (`fn` is jitted), then the best process CPU time of `repeats` calls."""
+    compiled = fn.lower(*args).compile()
+    best, out = np.inf, None
+    for _ in range(repeats):
+        start = time.process_time()
+        out = jax.block_until_ready(compiled(*args))
+        best = min(best, time.process_time() - start)
     return out, best
 
 
 # ---- lievi --------------------------------------------------------------------------------
 
 
-LIEVI_METHODS = {
-    "lievi DEP exp": (lambda: lievi.DEP(), 2),
-    "lievi Moser-Veselov": (lambda: lievi.MoserVeselov(), 2),
-    "lievi splitting": (lambda: lievi.LiePoissonSplitting(), 2),
-    "lievi RK4 (embedded)": (lambda: lievi.RK4(), 4),
-    "lievi RKMK4": (lambda: lievi.RKMK4(), 4),
-    "lievi RKMK5": (lambda: lievi.RKMK5(), 5),
-    "lievi RKMK8": (lambda: lievi.RKMK8(), 8),
-    "lievi splitting ∘ 4": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=4), 4),
-    "lievi splitting ∘ 6": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=6), 6),
-    "lievi splitting ∘ 8": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=8), 8),
-}
-
-
-def lievi_run(problem, method, h, batch, n=None, with_m=False):
-    """`(g(T), seconds, ok)`, or `(g, m, seconds, ok)` after `n` steps with `with_m`."""
-    system = lievi_system(problem)
+def lievi_run(problem, method, h, batch, t1, repeats):
+    system = system_of(problem)
     g0, m0 = initial_states(problem, batch)
-    n = int(round(T / h)) if n is None else n
+    n = int(round(t1 / h))
+    every = sample_every(n)
     integrator = LIEVI_METHODS[method][0]()
-    save = lievi.Save(g=True, m=with_m, stats=False)
 
     @jax.jit
     def run(m0):
         sol = lievi.simulate_batch(
-            system, integrator, jnp.asarray(g0), m0, h=h, n_steps=n, save=save, throw=False
-        )
-        return sol.g[:, -1], (sol.m[:, -1] if with_m else None), sol.result
+            system, integrator, jnp.asarray(g0), m0, h=h, n_steps=n, save_every=every,
+            save=lievi.Save(g=True, m=True, stats=False), throw=False,
+        )  # fmt: skip
+        return sol.g[:, 1:], sol.m[:, 1:], sol.result
 
-    (g_final, m_final, result), seconds = timed(run, jnp.asarray(m0))
-    ok = bool(np.all(np.asarray(result) == 0))
-    if with_m:
-        return np.asarray(g_final), np.asarray(m_final), seconds, ok
-    return np.asarray(g_final), seconds, ok
+    (g, m, result), seconds = best_cpu_seconds(run, (jnp.asarray(m0),), repeats)
+    return g, m, seconds, bool(np.all(np.asarray(result) == 0)), n // every
 
 
-# ---- diffrax ------------------------------------------------------------------------------
+# ---- diffrax, the batch in the state --------------------------------------------------------
 
 
-def diffrax_field(problem):
+def strong_field(problem):
+    """The field on the whole batch, `y (12, B)` = Π (3 rows) and g row-major (9 rows):
+    `Π̇ = Π × Ω (+ mγ Γ × ρ, Γ the last row of g)`, `ġ = gΩ̂` (row i of g crossed with Ω).
+    The fastest of the formulations timed (12 scalar rows stacked; a pytree `(Π, g)`; this,
+    with and without `scan_kind="lax"`): slices of one array and `jnp.cross` on the rows."""
+    inverse = jnp.asarray(1.0 / np.asarray(system_of(problem).inertia))[:, None]
+    torque = jnp.asarray(MASS * GRAVITY * RHO)[:, None]
     gravity = PROBLEMS[problem]["gravity"]
-    inverse = jnp.asarray(1 / moments_about_the_fixed_point(problem))
-    rho = jnp.asarray(MASS * GRAVITY * RHO)
 
     def field(t, y, args):
-        R, P = y[:9].reshape(3, 3), y[9:]
-        w = P * inverse
-        W = jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-        P_dot = jnp.cross(P, w)
+        Pi, g = y[:3], y[3:].reshape(3, 3, -1)
+        omega = Pi * inverse
+        dPi = jnp.cross(Pi, omega, axis=0)
         if gravity:
-            P_dot = P_dot + jnp.cross(R[2], rho)
-        return jnp.concatenate([(R @ W).reshape(9), P_dot])
+            dPi = dPi + jnp.cross(g[2], torque, axis=0)
+        return jnp.concatenate([dPi, jnp.cross(g, omega[None], axis=1).reshape(9, -1)])
 
     return field
 
 
-def diffrax_run(problem, solver_name, h_or_tol, batch, t1=T, with_m=False):
-    """`(g(t1), seconds, ok)`, or `(g, Π, seconds, ok)` with `with_m`."""
+def diffrax_run(problem, solver, knob, adaptive, batch, t1, repeats, final_only=False):
+    """The strong baseline: one solve, the whole batch one `(12, B)` state."""
     import diffrax
 
     g0, m0 = initial_states(problem, batch)
-    y0 = np.concatenate([np.broadcast_to(g0.reshape(9), (batch, 9)), m0], axis=1)
-    term = diffrax.ODETerm(diffrax_field(problem))
-    if solver_name in ("Tsit5", "Dopri8 constant"):
-        # Constant steps: no error estimate, no rejected steps (the cheapest way to run a
-        # fixed tableau in diffrax, and the like-for-like baseline of lievi's RKMK methods).
-        n = int(round(t1 / h_or_tol))
-        kwargs = dict(
-            solver=diffrax.Tsit5() if solver_name == "Tsit5" else diffrax.Dopri8(),
-            dt0=h_or_tol,
-            stepsize_controller=diffrax.ConstantStepSize(),
-            max_steps=n,
-        )
+    y0 = np.concatenate([m0.T, np.broadcast_to(g0.reshape(9, 1), (9, batch))])
+    ts = saved_times(t1)
+    term = diffrax.ODETerm(strong_field(problem))
+    saveat = diffrax.SaveAt(t1=True) if final_only else diffrax.SaveAt(ts=ts)
+    ts = ts[-1:] if final_only else ts
+    if adaptive:
+        control = dict(dt0=None, stepsize_controller=diffrax.PIDController(rtol=knob, atol=knob))
+        max_steps = int(t1 * 1e4)
     else:
-        kwargs = dict(
-            solver=diffrax.Dopri8(),
-            dt0=None,
-            stepsize_controller=diffrax.PIDController(rtol=h_or_tol, atol=h_or_tol),
-            max_steps=100 * LONG_STEPS,
-        )
+        control = dict(dt0=knob, stepsize_controller=diffrax.ConstantStepSize())
+        max_steps = int(round(t1 / knob))
 
     @jax.jit
     def run(y0):
-        def one(y):
-            sol = diffrax.diffeqsolve(
-                term, t0=0.0, t1=t1, y0=y, saveat=diffrax.SaveAt(t1=True), throw=False, **kwargs
-            )
-            return sol.ys[-1], sol.result == diffrax.RESULTS.successful
+        sol = diffrax.diffeqsolve(
+            term, getattr(diffrax, solver)(),
+            t0=0.0, t1=t1, y0=y0, saveat=saveat, max_steps=max_steps,
+            adjoint=diffrax.ForwardMode(), throw=False, **control,
+        )  # fmt: skip
+        return sol.ys, sol.result == diffrax.RESULTS.successful
 
-        return jax.vmap(one)(y0)
+    (ys, ok), seconds = best_cpu_seconds(run, (jnp.asarray(y0),), repeats)
+    ys = np.asarray(ys)  # (K, 12, B)
+    m = ys[:, :3].transpose(2, 0, 1)
+    g = ys[:, 3:].reshape(len(ts), 3, 3, batch).transpose(3, 0, 1, 2)
+    return g, m, seconds, bool(ok), len(ts)
 
-    (y, ok), seconds = timed(run, jnp.asarray(y0))
-    g, ok = np.asarray(y[:, :9]).reshape(-1, 3, 3), bool(np.all(np.asarray(ok)))
-    return (g, np.asarray(y[:, 9:]), seconds, ok) if with_m else (g, seconds, ok)
+
+def saved_times(t1):
+    """The `SAMPLES` times every run saves (not the start)."""
+    return jnp.linspace(0.0, t1, SAMPLES + 1)[1:]
+
+
+def independent_runner(problem, solver, h, batch, t1, repeats):
+    """Written apart from `strong_field`, as a user would: the batch in a pytree state
+    `(Π (3, B), g (3, 3, B))`, diffrax's default options (checkpointed adjoint, `throw`),
+    the final state only."""
+    import diffrax
+
+    spec = PROBLEMS[problem]
+    inverse = 1.0 / np.asarray(system_of(problem).inertia)[:, None]
+    torque = np.array([0.0, 0.0, MASS * GRAVITY * RHO[2]])[:, None]
+
+    def field(t, state, args):
+        Pi, g = state
+        omega = Pi * inverse
+        dPi = jnp.cross(Pi, omega, axis=0)
+        if spec["gravity"]:
+            dPi = dPi + jnp.cross(g[2], torque, axis=0)
+        return dPi, jnp.cross(g, omega[None], axis=1)
+
+    g0, m0 = initial_states(problem, batch)
+    state = (jnp.asarray(m0.T), jnp.broadcast_to(jnp.asarray(g0)[..., None], (3, 3, batch)))
+    n = int(round(t1 / h))
+
+    @jax.jit
+    def run(state):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(field), getattr(diffrax, solver)(), t0=0.0, t1=t1, dt0=h, y0=state,
+            stepsize_controller=diffrax.ConstantStepSize(), max_steps=n,
+        )  # fmt: skip
+        return sol.ys
+
+    (Pi, g), seconds = best_cpu_seconds(run, (state,), repeats)
+    return np.asarray(g)[-1].transpose(2, 0, 1), seconds
 
 
 # ---- MuJoCo -------------------------------------------------------------------------------
 
 
 def mjcf(problem, h, integrator):
-    if PROBLEMS[problem]["gravity"]:
+    spec = PROBLEMS[problem]
+    if spec["gravity"]:
         joint, gravity, pos = '<joint type="ball"/>', f"0 0 -{GRAVITY}", " ".join(map(str, RHO))
     else:
         joint, gravity, pos = "<freejoint/>", "0 0 0", "0 0 0"
-    inertia = " ".join(map(str, MOMENTS))
+    inertia = " ".join(map(str, spec["moments"]))
     return f"""
 <mujoco>
   <option timestep="{h}" integrator="{integrator}" gravity="{gravity}"/>
-  <worldbody>
-    <body name="body">
-      {joint}
-      <inertial pos="{pos}" mass="{MASS}" diaginertia="{inertia}"/>
-    </body>
-  </worldbody>
+  <worldbody><body name="body">{joint}
+    <inertial pos="{pos}" mass="{MASS}" diaginertia="{inertia}"/>
+  </body></worldbody>
 </mujoco>"""
 
 
-def mujoco_run(problem, integrator, h, batch, chunk=200, n=None, with_m=False):
-    """`(g(T), seconds, ok)`, or `(g, Π, seconds, ok)` after `n` steps with `with_m`."""
+def mujoco_run(problem, integrator, h, batch, t1, repeats, threads):
     import mujoco
     from mujoco import rollout
 
     model = mujoco.MjModel.from_xml_string(mjcf(problem, h, integrator))
-    threads = os.cpu_count() or 1
     datas = [mujoco.MjData(model) for _ in range(threads)]
     g0, m0 = initial_states(problem, batch)
-    data = datas[0]
     q0 = np.asarray(lievi.matrix_to_quaternion_wxyz(jnp.asarray(g0)))
     free = not PROBLEMS[problem]["gravity"]
-    # Angular velocity in the body frame (MuJoCo's free and ball joints use the local frame).
-    omega = m0 / moments_about_the_fixed_point(problem)
-    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    inertia = np.asarray(system_of(problem).inertia)  # about the joint
+    spec, data = mujoco.mjtState.mjSTATE_FULLPHYSICS, datas[0]
     states = []
-    for k in range(batch):
+    for omega in m0 / inertia:  # body-frame angular velocity (free and ball joints)
         mujoco.mj_resetData(model, data)
         if free:
-            data.qpos[3:7] = q0
-            data.qvel[3:6] = omega[k]
+            data.qpos[3:7], data.qvel[3:6] = q0, omega
         else:
-            data.qpos[:4] = q0
-            data.qvel[:3] = omega[k]
+            data.qpos[:4], data.qvel[:3] = q0, omega
         state = np.empty(mujoco.mj_stateSize(model, spec))
         mujoco.mj_getState(model, data, state, spec)
         states.append(state)
-    initial = np.array(states)
-    n = int(round(T / h)) if n is None else n
-    start = time.perf_counter()
-    state = initial
-    done = 0
-    while done < n:
-        steps = min(chunk, n - done)
-        out, _ = rollout.rollout(model, datas, state, nstep=steps)
-        state = out[:, -1, :]
-        done += steps
-    seconds = time.perf_counter() - start
-    # FULLPHYSICS state: time, qpos, qvel, …
-    quaternion = state[:, 1 + 3 : 1 + 7] if free else state[:, 1 : 1 + 4]
-    g = np.asarray(lievi.quaternion_wxyz_to_matrix(jnp.asarray(quaternion)))
-    ok = bool(np.all(np.isfinite(state)))
-    if not with_m:
-        return g, seconds, ok
-    # FULLPHYSICS: time, qpos (7 | 4), qvel (6 | 3); the body angular velocity, times the
-    # moments about the joint, is the body momentum Π.
+    n = int(round(t1 / h))
+    every = sample_every(n)
+    best = np.inf
+    for _ in range(repeats):
+        state, saved = np.array(states), []
+        start = time.process_time()
+        for _ in range(n // every):
+            out, _ = rollout.rollout(model, datas, state, nstep=every)
+            state = out[:, -1, :]
+            saved.append(state)
+        best = min(best, time.process_time() - start)
+    saved = np.stack(saved, axis=1)  # (B, K, state): time, qpos (7 | 4), qvel (6 | 3)
     nq = 7 if free else 4
-    omega = state[:, 1 + nq + 3 : 1 + nq + 6] if free else state[:, 1 + nq : 1 + nq + 3]
-    return g, omega * moments_about_the_fixed_point(problem), seconds, ok
+    quaternion = saved[..., 4:8] if free else saved[..., 1:5]
+    omega = saved[..., 1 + nq + 3 : 1 + nq + 6] if free else saved[..., 1 + nq : 1 + nq + 3]
+    g = np.asarray(lievi.quaternion_wxyz_to_matrix(jnp.asarray(quaternion)))
+    return g, omega * inertia, best, bool(np.all(np.isfinite(saved))), n // every
 
 
 # ---- the sweep ----------------------------------------------------------------------------
 
 
-def sweep(problem, batch, mujoco_batch, quick, g_ref):
-    steps = [0.2, 0.1, 0.05, 0.025, 0.0125] if not quick else [0.1, 0.05]
-    rows = []
+def sweep(problem, horizon, t1, args, ref):
+    rows, quick, spec = [], args.quick, PROBLEMS[problem]
 
-    def record(family, method, knob, g_final, seconds, ok, bodies):
-        error = attitude_error(g_final, g_ref) if ok else float("nan")
+    def record(family, method, knob, run, bodies, structure=False):
+        try:
+            g, m, seconds, ok, _ = run()
+        except Exception as error:  # a method this problem does not support
+            print(f"  {method:<26} {knob:>8.3g}  skipped: {type(error).__name__}: {error}"[:160])
+            return
+        errs = errors(problem, g, m, ref) if ok else dict.fromkeys(QUANTITIES, float("nan"))
         cost = seconds / bodies * 1e6
-        rows.append(dict(family=family, method=method, knob=knob, error=error, cost=cost, ok=ok))
-        print(f"  {method:<28} {knob:>9.3g}  error {error:9.2e}  {cost:9.3g} s per 1e6 bodies")
+        rows.append(dict(family=family, method=method, knob=knob, cost=cost, ok=ok,
+                         structure_preserving=structure, **errs))  # fmt: skip
+        shown = "  ".join(f"{q} {errs[q]:8.1e}" for q in QUANTITIES)
+        print(f"  {method:<26} {knob:>8.3g}  {cost:9.3g} s/1e6 bodies  {shown}", flush=True)
 
-    for method, (_, order) in LIEVI_METHODS.items():
-        # The high-order methods reach tight errors at larger steps: start them at 0.8.
-        for h in ([0.8, 0.4] if order >= 6 and not quick else []) + steps:
-            g_final, seconds, ok = lievi_run(problem, method, h, batch)
-            record("lievi", method, h, g_final, seconds, ok, batch)
+    B, r = args.batch, args.repeats
+    for method, (_, order, structure, free_only) in LIEVI_METHODS.items():
+        if free_only and spec["gravity"]:
+            continue
+        for h in steps_for(order, horizon, quick):
+            run = partial(lievi_run, problem, method, h, B, t1, r)
+            record("lievi", f"lievi {method}", h, run, B, structure)
     try:
         import diffrax  # noqa: F401
-
-        for h in steps:
-            record("diffrax", "diffrax Tsit5", h, *diffrax_run(problem, "Tsit5", h, batch), batch)
-        for h in [0.8, 0.4] + steps[:3] if not quick else steps:
-            record(
-                "diffrax", "diffrax Dopri8 (constant step)", h,
-                *diffrax_run(problem, "Dopri8 constant", h, batch), batch,
-            )  # fmt: skip
-        tolerances = [1e-4, 1e-6, 1e-8, 1e-10, 1e-12] if not quick else [1e-6]
-        for tol in tolerances:
-            record(
-                "diffrax", "diffrax Dopri8 (adaptive)", tol,
-                *diffrax_run(problem, "Dopri8", tol, batch), batch,
-            )  # fmt: skip
     except ImportError:
         print("  diffrax not installed: skipped")
-    try:
-        import mujoco  # noqa: F401
-
-        for integrator in ("Euler", "implicitfast", "RK4"):
-            for h in [x / 4 for x in steps]:
-                g_final, seconds, ok = mujoco_run(problem, integrator, h, mujoco_batch)
-                record("MuJoCo", f"MuJoCo {integrator}", h, g_final, seconds, ok, mujoco_batch)
-    except ImportError:
-        print("  mujoco not installed: skipped")
+    else:
+        for solver, order in DIFFRAX_SOLVERS.items():
+            for h in steps_for(order, horizon, quick):
+                run = partial(diffrax_run, problem, solver, h, False, B, t1, r)
+                record("diffrax", f"diffrax {solver} constant", h, run, B)
+            for tol in tolerances_for(horizon, quick):
+                run = partial(diffrax_run, problem, solver, tol, True, B, t1, r)
+                record("diffrax", f"diffrax {solver} PID", tol, run, B)
+    if spec.get("mujoco", True) and not args.no_mujoco:
+        try:
+            import mujoco  # noqa: F401
+        except ImportError:
+            print("  mujoco not installed: skipped")
+        else:
+            mb = args.mujoco_batch
+            integrators = ("RK4",) if quick else ("Euler", "implicitfast", "RK4")
+            for integrator in integrators:
+                for h in [x / 4 for x in steps_for(2, horizon, quick)][: 1 if quick else None]:
+                    run = partial(mujoco_run, problem, integrator, h, mb, t1, r, args.threads)
+                    record("MuJoCo", f"MuJoCo {integrator}", h, run, mb)
     return rows
 
 
-def invariant_errors(problem, g0, m0, g, m):
-    """`(energy error, momentum error, ‖gᵀg − I‖_F)`, each the largest over the bodies."""
-    system = lievi_system(problem)
-    g0 = np.broadcast_to(g0, g.shape)
-
-    def invariants(g, m):
-        g, m = jnp.asarray(g), jnp.asarray(m)
-        J = lievi.diagnostics.spatial_momentum(system, g, m)
-        J = J[:, 2:] if PROBLEMS[problem]["gravity"] else J  # vertical / all of it
-        return np.asarray(lievi.diagnostics.energy(system, m, g)), np.asarray(J)
-
-    (H0, J0), (H, J) = invariants(g0, m0), invariants(g, m)
-    energy = np.max(np.abs(H - H0) / np.abs(H0))
-    momentum = np.max(np.linalg.norm(J - J0, axis=-1) / np.linalg.norm(m0, axis=-1))
-    defect = np.linalg.norm(np.swapaxes(g, -1, -2) @ g - np.eye(3), axis=(-2, -1)).max()
-    return float(energy), float(momentum), float(defect)
-
-
-def peer_long_runs(problem, count, t1):
-    """`(method, knob, run)` of diffrax's and MuJoCo's long runs, where installed."""
-    runs = []
-    try:
-        import diffrax  # noqa: F401
-
-        runs += [
-            ("diffrax Tsit5", LONG_H, lambda: diffrax_run(problem, "Tsit5", LONG_H, count, t1, True)),
-            ("diffrax Dopri8 (adaptive)", LONG_TOL,
-             lambda: diffrax_run(problem, "Dopri8", LONG_TOL, count, t1, True)),
-        ]  # fmt: skip
-    except ImportError:
-        pass
-    try:
-        import mujoco  # noqa: F401
-
-        runs += [(f"MuJoCo {i}", LONG_H, lambda i=i: mujoco_run(
-                  problem, i, LONG_H, count, 1000, LONG_STEPS, True))
-                 for i in ("Euler", "implicitfast", "RK4")]  # fmt: skip
-    except ImportError:
-        pass
-    return runs
+def baseline_check(problem, args):
+    """The strong diffrax against the independent runner, constant steps, T = 20."""
+    out = {}
+    for solver in ("Tsit5", "Dopri8"):
+        h = 0.1
+        repeats = max(3, args.repeats)  # a small difference to resolve: more calls
+        g_s, _, strong, _, _ = diffrax_run(
+            problem, solver, h, False, args.batch, T_SHORT, repeats, final_only=True
+        )
+        g_i, independent = independent_runner(problem, solver, h, args.batch, T_SHORT, repeats)
+        out[solver] = dict(
+            h=h, strong_cost=strong / args.batch * 1e6, independent_cost=independent / args.batch * 1e6,
+            strong_over_independent=strong / independent,
+            max_difference=float(np.max(np.abs(g_s[:, -1] - g_i))),
+        )  # fmt: skip
+        verdict = "ok" if strong <= 1.1 * independent else "STRONG BASELINE TOO SLOW"
+        print(f"  baseline check {solver} h={h}: strong / independent = {strong / independent:.3f}"
+              f" ({verdict}), final states agree to {out[solver]['max_difference']:.1e}")  # fmt: skip
+    return out
 
 
-def long_run(problem, count, methods=None):
-    """The invariants after `LONG_STEPS` steps of `LONG_H`, `count` bodies: every method,
-    or only the lievi `methods` named."""
-    g0, m0 = initial_states(problem, count)
-    runs = [(m, LONG_H, lambda m=m: lievi_run(problem, m, LONG_H, count, LONG_STEPS, True))
-            for m in (methods or LIEVI_METHODS)]  # fmt: skip
-    t1 = LONG_STEPS * LONG_H
-    runs += [] if methods else peer_long_runs(problem, count, t1)
-    rows = []
-    for method, knob, run in runs:
-        g, m, seconds, ok = run()
-        energy, momentum, defect = invariant_errors(problem, g0, m0, g, m)
-        if method.startswith("MuJoCo"):
-            defect = None  # a quaternion, normalised every step: no matrix to leave SO(3)
-        rows.append(dict(method=method, knob=knob, steps=LONG_STEPS, ok=ok, energy_error=energy,
-                         momentum_error=momentum, orthogonality=defect))  # fmt: skip
-        print(f"  {method:<28} {knob:>7.3g}  energy {energy:9.2e}  momentum {momentum:9.2e}"
-              f"  ‖gᵀg − I‖ {defect if defect is not None else float('nan'):9.2e}")  # fmt: skip
-    return rows
-
-
-def cheapest(rows):
-    """Per target error and family, the cheapest run that reaches it."""
+def summary(rows, targets, quantities):
+    """Per target: the cheapest run of each family meeting it on every quantity named, the
+    cheapest structure-preserving lievi run, and diffrax's cost over each lievi one."""
     table = {}
-    for target in TARGETS:
+    for target in targets:
+
+        def meets(r, target=target):
+            return r["ok"] and all(r[q] <= target for q in quantities)
+
+        def best(select):
+            hits = [r for r in rows if select(r) and meets(r)]
+            return min(hits, key=lambda r: r["cost"]) if hits else None
+
         entry = {}
-        for family in ("lievi", "diffrax", "MuJoCo"):
-            hits = [r for r in rows if r["family"] == family and r["ok"] and r["error"] <= target]
-            if hits:
-                best = min(hits, key=lambda r: r["cost"])
-                entry[family] = {k: best[k] for k in ("method", "knob", "cost", "error")}
-        others = [entry[f]["cost"] for f in ("diffrax", "MuJoCo") if f in entry]
-        if "lievi" in entry and others:
-            entry["lievi_advantage"] = min(others) / entry["lievi"]["cost"]
+        for name, select in (
+            ("lievi", lambda r: r["family"] == "lievi"),
+            ("lievi structure-preserving", lambda r: r["family"] == "lievi" and r["structure_preserving"]),
+            ("diffrax", lambda r: r["family"] == "diffrax"),
+            ("MuJoCo", lambda r: r["family"] == "MuJoCo"),
+        ):  # fmt: skip
+            hit = best(select)
+            if hit:
+                entry[name] = {k: hit[k] for k in ("method", "knob", "cost")}
+        for name in ("lievi", "lievi structure-preserving"):
+            if name in entry and "diffrax" in entry:
+                entry[f"diffrax / {name}"] = entry["diffrax"]["cost"] / entry[name]["cost"]
         table[f"{target:.0e}"] = entry
     return table
+
+
+def print_summary(table):
+    for target, entry in table.items():
+
+        def cell(name, entry=entry):
+            e = entry.get(name)
+            return f"{e['cost']:.3g} ({e['method']}, {e['knob']:g})" if e else "—"
+
+        ratios = "  ".join(f"{k}: {v:.2g}×" for k, v in entry.items() if k.startswith("diffrax /"))
+        print(f"  {target}: lievi {cell('lievi')} | structure-preserving "
+              f"{cell('lievi structure-preserving')} | diffrax {cell('diffrax')} | MuJoCo "
+              f"{cell('MuJoCo')}  {ratios}")  # fmt: skip
 
 
 def plot(results, path):
@@ -438,84 +511,88 @@ def plot(results, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 4.5), squeeze=False)
-    for ax, (problem, data) in zip(axes[0], results.items()):
-        methods = sorted({r["method"] for r in data["rows"]})
-        for method in methods:
-            rows = [r for r in data["rows"] if r["method"] == method and np.isfinite(r["error"])]
-            if not rows:
+    panels = [(p, h) for p in results["problems"] for h in results["problems"][p]]
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.5), squeeze=False)
+    for ax, (problem, horizon) in zip(axes[0], panels):
+        data = results["problems"][problem][horizon]
+        for method in sorted({r["method"] for r in data["rows"]}):
+            rows = [r for r in data["rows"] if r["method"] == method]
+            error = [max(r[q] for q in data["quantities"]) for r in rows]
+            keep = [i for i, e in enumerate(error) if np.isfinite(e)]
+            if not keep:
                 continue
             style = "-o" if method.startswith("lievi") else ("--s" if "diffrax" in method else ":^")
-            ax.loglog(
-                [r["cost"] for r in rows], [r["error"] for r in rows], style, label=method, ms=4
-            )
-        ax.set_xlabel("seconds per million bodies (T = 20)")
-        ax.set_ylabel("final attitude error ‖g − g_ref‖_F")
-        ax.set_title(problem)
+            ax.loglog([rows[i]["cost"] for i in keep], [error[i] for i in keep], style,
+                      label=method, ms=3)  # fmt: skip
+        ax.set_xlabel(f"CPU seconds per million bodies (T = {data['T']:g})")
+        ax.set_ylabel("largest error: " + ", ".join(data["quantities"]))
+        ax.set_title(f"{problem}, T = {data['T']:g}")
         ax.grid(True, which="both", alpha=0.3)
-    axes[0][-1].legend(fontsize=7, loc="lower left")
+    axes[0][-1].legend(fontsize=6, loc="lower left")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=110)
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--batch", type=int, default=4096)
-    parser.add_argument("--mujoco-batch", type=int, default=512)
+    parser.add_argument("--batch", type=int, default=256)
+    parser.add_argument("--mujoco-batch", type=int, default=64)
     parser.add_argument("--reference", type=int, default=8, help="bodies checked against DOP853")
     parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=list(PROBLEMS))
-    parser.add_argument("--quick", action="store_true", help="two step sizes, small batches")
-    parser.add_argument("--no-long-run", action="store_true", help="skip the 1e5-step run")
     parser.add_argument(
-        "--long-run-only", nargs="+", metavar="METHOD", choices=list(LIEVI_METHODS),
-        help="only the invariants after 1e5 steps, of these lievi methods",
-    )  # fmt: skip
-    parser.add_argument("--out", default="work_precision")
+        "--horizons", nargs="+", default=["short", "long"], choices=["short", "long"]
+    )
+    parser.add_argument("--long-T", type=float, default=2e4, help="the long horizon")
+    parser.add_argument("--repeats", type=int, default=2, help="timed calls per run (best kept)")
+    parser.add_argument("--no-mujoco", action="store_true")
+    parser.add_argument("--all-cores", action="store_true", help="do not pin to one core")
+    parser.add_argument("--quick", action="store_true", help="two steps, batch 64, T_long = 200")
+    parser.add_argument("--out", default=None, help="default work_precision[_quick]")
     parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
     args = parser.parse_args()
+    args.threads = os.cpu_count() if args.all_cores else 1
     if args.quick:
-        args.batch, args.mujoco_batch = min(args.batch, 256), min(args.mujoco_batch, 64)
-    load, start = os.getloadavg()[0], time.perf_counter()
-    results = {}
+        args.batch, args.mujoco_batch = min(args.batch, 64), min(args.mujoco_batch, 16)
+        args.reference, args.long_T = min(args.reference, 4), min(args.long_T, 200.0)
+        args.repeats = 1
+    out = args.out or ("work_precision_quick" if args.quick else "work_precision")
+    load, start = os.getloadavg(), time.perf_counter()
+    results = {"problems": {}}
     for problem in args.problems:
-        print(f"{problem} (T = {T}, batch {args.batch}, MuJoCo batch {args.mujoco_batch}):")
-        if args.long_run_only:
-            results[problem] = {"long_run": long_run(problem, args.reference, args.long_run_only)}
-            continue
-        g_ref = reference(problem, args.reference)
-        rows = sweep(problem, args.batch, args.mujoco_batch, args.quick, g_ref)
-        results[problem] = {"rows": rows, "cheapest": cheapest(rows)}
-        if not args.no_long_run:
-            print(f"  invariants after {LONG_STEPS} steps of {LONG_H} ({args.reference} bodies):")
-            results[problem]["long_run"] = long_run(problem, args.reference)
-        print(f"  {'target':>8}  cheapest lievi / diffrax / MuJoCo [s per 1e6 bodies]")
-        for target, entry in results[problem]["cheapest"].items():
-            cells = [
-                f"{entry[f]['cost']:.3g} ({entry[f]['method']}, {entry[f]['knob']:g})"
-                if f in entry
-                else "—"
-                for f in ("lievi", "diffrax", "MuJoCo")
-            ]
-            advantage = entry.get("lievi_advantage", float("nan"))
-            print(f"  {target:>8}  " + " / ".join(cells) + f"  lievi {advantage:.2g}× cheaper")
-    outdir = pathlib.Path(args.outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
-    meta = {
+        results["problems"][problem] = {}
+        print(f"{problem}:")
+        check = baseline_check(problem, args) if "short" in args.horizons else None
+        for horizon in args.horizons:
+            t1 = T_SHORT if horizon == "short" else args.long_T
+            quantities = ("attitude",) if horizon == "short" else PROBLEMS[problem]["long_targets"]
+            targets = TARGETS_SHORT if horizon == "short" else TARGETS_LONG
+            print(f" T = {t1:g}, batch {args.batch}, targets on {', '.join(quantities)}:")
+            ref = reference(problem, args.reference, t1)
+            rows = sweep(problem, horizon, t1, args, ref)
+            table = summary(rows, targets, quantities)
+            print_summary(table)
+            results["problems"][problem][horizon] = dict(
+                T=t1, quantities=quantities, rows=rows, summary=table,
+                **({"baseline_check": check} if horizon == "short" else {}),
+            )  # fmt: skip
+    results["meta"] = {
+        "command": " ".join(["python", "benchmarks/work_precision.py", *sys.argv[1:]]),
         "machine": platform.processor() or platform.machine(),
         "cpu_count": os.cpu_count(),
+        "cores_used": args.threads,
         "load_average_at_start": load,
-        "T": T,
+        "load_average_at_end": os.getloadavg(),
+        "jax": jax.__version__,
         "batch": args.batch,
         "mujoco_batch": args.mujoco_batch,
-        "long_run": None if args.no_long_run else dict(steps=LONG_STEPS, h=LONG_H, tol=LONG_TOL),
-        "load_average_at_end": os.getloadavg()[0],
+        "reference_bodies": args.reference,
         "wall_seconds": time.perf_counter() - start,
     }
-    (outdir / f"{args.out}.json").write_text(json.dumps({"meta": meta, **results}, indent=1))
-    if not args.long_run_only:
-        plot(results, outdir / f"{args.out}.png")
-    png = "" if args.long_run_only else " and .png"
-    print(f"wrote {outdir / (args.out + '.json')}{png} (load average at start {load:.1f})")
+    outdir = pathlib.Path(args.outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    (outdir / f"{out}.json").write_text(json.dumps(results, indent=1))
+    plot(results, outdir / f"{out}.png")
+    print(f"wrote {outdir / out}.json and .png (load average at start {load[0]:.1f})")
 
 
 if __name__ == "__main__":

@@ -28,8 +28,8 @@
 #    angular momentum through the bodies' shapes.
 # 2. **A box of rigid three-site molecules** (water-like: Lennard-Jones between the "O"
 #    sites, Coulomb between all sites of different molecules): the energy error against
-#    the step size, on the system of `benchmarks/rigid_molecules_jaxmd.py`, which compares
-#    it with jax-md's rigid-body NVE.
+#    the step size, on the system that `benchmarks/rigid_molecules_jaxmd.py` compares
+#    with jax-md's rigid-body NVE (built here from scratch).
 
 # %% tags=["parameters"]
 import os
@@ -40,7 +40,6 @@ N_MOLECULES = 200 if SMALL else 1_000  # steps per step size of the molecules
 
 # %%
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -142,18 +141,50 @@ plt.tight_layout()
 # Eight water-like molecules (O of mass 16 and two H of mass 1, O–H 0.33, 104.5°;
 # charges −0.8, +0.4, +0.4) on a jittered lattice in free space, random orientations and
 # momenta: `lievi.SitePotential` with `LennardJones` between O sites ($\varepsilon = \sigma
-# = 1$) and `Coulomb` between all sites of different molecules, no cut-off. The system
-# (and its initial state) is built by `benchmarks/rigid_molecules_jaxmd.py`, which runs the
-# same molecules with jax-md's rigid-body NVE; its measured figures are in
-# `benchmarks/results/rigid_molecules_jaxmd.json`.
+# = 1$) and `Coulomb` between all sites of different molecules, no cut-off.
+#
+# The recipe: the sites of one molecule about its centre of mass, turned to its principal
+# frame (`RigidBodies` takes principal moments; the sites are then given in that frame),
+# each site counted as a small sphere of radius 0.5 (`2/5 r² m` added to each moment, as
+# jax-md's `rigid_body.point_union_shape` does, so that the system is the one
+# `benchmarks/rigid_molecules_jaxmd.py` runs in both libraries); the poses
+# `g = [[R, x], [0, 1]]` from centres and unit quaternions, and `m = (Π, P)` with `Π` the
+# body angular momentum and `P = Rᵀp` the linear momentum in the body frame.
 
 # %%
-# The repository's `benchmarks/`, from `notebooks/` (as the tests run it) or the root.
-benchmarks = next(p / "benchmarks" for p in (Path.cwd().parent, Path.cwd()) if (p / "benchmarks").is_dir())
-sys.path.insert(0, str(benchmarks))
-from rigid_molecules_jaxmd import STEP_SIZES, lievi_molecules  # noqa: E402
+STEP_SIZES = (0.0025, 0.005, 0.01, 0.02)
+half, bond = np.deg2rad(104.5) / 2, 0.33
+sites = np.array([[0.0, 0.0, 0.0], [bond * np.sin(half), bond * np.cos(half), 0.0],
+                  [-bond * np.sin(half), bond * np.cos(half), 0.0]])  # fmt: skip
+site_masses, charges = np.array([16.0, 1.0, 1.0]), np.array([-0.8, 0.4, 0.4])
+sites -= site_masses @ sites / site_masses.sum()  # about the centre of mass
+sphere = 2 / 5 * 0.5**2
+tensor = sum(m * ((s @ s + sphere) * np.eye(3) - np.outer(s, s)) for m, s in zip(site_masses, sites))
+moments, axes = np.linalg.eigh(tensor)
+sites = sites @ axes  # in the principal frame
 
-molecules, g0_mol, m0_mol, _ = lievi_molecules(8)
+n = 8  # on a jittered 2×2×2 lattice of spacing 1.6, random orientations and momenta
+rng = np.random.default_rng(0)
+grid = np.stack(np.meshgrid(*[np.arange(2)] * 3, indexing="ij"), -1).reshape(-1, 3)
+centres = 1.6 * grid + rng.uniform(-0.1, 0.1, size=(n, 3))
+q = rng.normal(size=(n, 4))
+q /= np.linalg.norm(q, axis=1, keepdims=True)  # unit quaternions (w, x, y, z)
+angular = rng.normal(size=(n, 3)) * 0.5  # body angular momenta
+linear = rng.normal(size=(n, 3))  # world linear momenta, total zero
+linear -= linear.mean(axis=0)
+
+pairs = lievi.SitePotential(
+    np.broadcast_to(sites, (n, 3, 3)),
+    (lievi.LennardJones(epsilon=[[1.0, 0.0], [0.0, 0.0]], sigma=1.0), lievi.Coulomb()),
+    types=np.tile([0, 1, 1], (n, 1)),  # type 0: O, type 1: H (no Lennard-Jones)
+    charges=np.tile(charges, (n, 1)),
+)
+molecules = lievi.RigidBodies(np.tile(moments, (n, 1)), np.full(n, site_masses.sum()), pairs)
+R = jax.vmap(lievi.quaternion_wxyz_to_matrix)(jnp.asarray(q))
+g0_mol = jnp.broadcast_to(jnp.eye(4), (n, 4, 4)).at[:, :3, :3].set(R).at[:, :3, 3].set(centres)
+m0_mol = jnp.concatenate([jnp.asarray(angular), jnp.einsum("nji,nj->ni", R, linear)], axis=1)
+
+# %%
 errors = {}
 for name, method in (
     ("DEP Cayley", lievi.DEP(chart="cayley")),
@@ -172,8 +203,11 @@ for name, method in (
 fig, ax = plt.subplots(figsize=(6, 4))
 for name, errs in errors.items():
     ax.loglog(STEP_SIZES, errs, "o-", label=f"lievi {name}")
-saved = benchmarks / "results" / "rigid_molecules_jaxmd.json"
-if saved.exists():
+# jax-md's figures for the same molecules, where the repository's benchmark results are at hand.
+places = (Path.cwd().parent, Path.cwd())  # from `notebooks/` (as the tests run it) or the root
+saved = [p / "benchmarks/results/rigid_molecules_jaxmd.json" for p in places]
+saved = next((p for p in saved if p.exists()), None)
+if saved is not None:
     document = json.loads(saved.read_text())
     if document["steps"] == N_MOLECULES:
         rows = [r for r in document["rows"] if r["method"].startswith("jax-md")]

@@ -243,6 +243,17 @@ EXTENDED = frozenset(
         "tests/test_batch.py::test_shared_system_and_save_options",  # 9 s
         "tests/test_loop.py::test_simulate_eager_equals_jit[SE3-RK4-9-1]",  # 9 s
         "tests/test_dep.py::test_generalized_rigid_body_increments_that_need_scaling",  # 50 s
+        # The documentation's examples (tests/test_docs_examples.py) whose pages compile
+        # fits, coupled bodies or SE(3) programs; the quick-start pages stay by default:
+        "tests/test_docs_examples.py::test_page_examples_run[docs/identification.md]",  # 70 s
+        "tests/test_docs_examples.py::test_page_examples_run[docs/rigid-bodies.md]",  # 67 s
+        "tests/test_docs_examples.py::test_page_examples_run[docs/optimal-control.md]",  # 58 s
+        "tests/test_docs_examples.py::test_page_examples_run[docs/gradients.md]",  # 40 s
+        "tests/test_docs_examples.py::test_page_examples_run[docs/forcing.md]",  # 55 s
+        "tests/test_docs_examples.py::test_page_examples_run[docs/se3.md]",  # 24 s
+        "tests/test_docs_examples.py::test_page_examples_run[docs/potentials.md]",  # 22 s
+        "tests/test_docs_examples.py::test_page_examples_run[docs/preprocessed_dmv.md]",  # 15 s
+        "tests/test_docs_examples.py::test_cluster_script_in_two_processes[False]",  # 72 s
         # The module fixture (a batched fit, 65 s) and the three checks that read it:
         "tests/test_identification.py::test_hlw_noise_free_recovers_moments",
         "tests/test_identification.py::test_hlw_noisy_recovers_moments",

@@ -144,3 +144,30 @@ def test_notebook_source_is_paired(notebook):
         f"`jupytext --to ipynb --update notebooks/{source.name}` (or --execute)"
     )
     assert nb["metadata"]["jupytext"]["formats"] == "ipynb,py:percent"
+
+
+LOCAL_MODULES = {p.stem for d in ("benchmarks", "tests", "tools") for p in (ROOT / d).glob("*.py")}
+
+
+@pytest.mark.parametrize("source", [p.with_suffix(".py") for p in NOTEBOOKS], ids=lambda p: p.stem)
+def test_notebook_is_self_contained(source):
+    """A notebook imports lievi and installed packages only, nothing from the repository's
+    `benchmarks/`, `tests/` or `tools/`: a reader who has the notebook and lievi runs it."""
+    text = source.read_text()
+    imported = set()
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.Import):
+            imported |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            imported.add(node.module.split(".")[0])
+    assert not imported & LOCAL_MODULES, f"{source.name} imports {imported & LOCAL_MODULES}"
+    assert "sys.path" not in text, f"{source.name} changes sys.path"
+
+
+def test_pages_agree_on_the_test_suite_time():
+    """README.md and docs/getting-started.md give the default suite's time alike."""
+    said = [
+        re.search(r"Run the tests \(about (\d+) minutes", (ROOT / page).read_text())
+        for page in ("README.md", "docs/getting-started.md")
+    ]
+    assert all(said) and said[0][1] == said[1][1], [m and m[1] for m in said]

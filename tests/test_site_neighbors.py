@@ -225,6 +225,27 @@ def test_jax_md_rebuilds_agree_with_brute_force():
             assert np.all(np.unique(np.asarray(pairs), axis=0) == expected)
 
 
+def test_jax_md_in_a_small_box_warns_nothing(recwarn):
+    """A periodic box of fewer than three list radii per side (`box_problem`: 3 against
+    3 × 1.7), where jax-md has no cell list and tests every pair, in float64: no JAX
+    `FutureWarning` (jax-md scatters int64 indices into its int32 list there, which later
+    JAX releases make an error), on the first build and on a rebuild, and the brute-force
+    pair set."""
+    pytest.importorskip("jax_md")
+    system, g0, _ = box_problem()
+    cells = lievi.JaxMDNeighbors(SKIN, capacity=CAPACITY)
+    brute = lievi.BruteForceNeighbors(SKIN, capacity=CAPACITY)
+    pairs, state = cells.build(system.potential, g0)
+    moved = g0.at[:, :3, 3].add(0.1)
+    again, _ = cells.build(system.potential, moved, state)
+    future = [str(w.message) for w in recwarn if issubclass(w.category, FutureWarning)]
+    assert not future, future
+    for poses, found in ((g0, pairs), (moved, again)):
+        expected = np.unique(np.asarray(brute(system.potential, poses)), axis=0)
+        assert len(expected) > 10
+        assert np.array_equal(np.unique(np.asarray(found), axis=0), expected)
+
+
 @pytest.fixture(scope="module")
 def segmented():
     system, g0, m0 = box_problem()

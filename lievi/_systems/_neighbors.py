@@ -229,11 +229,15 @@ class BruteForceNeighbors(AbstractNeighborBuilder):
         return np.nonzero(near)
 
     def build(self, potential, g, state=None):
-        # The mask, its count and the compacted list stay on the device: only the pair
-        # count (for the capacity) comes back to the host.
-        near = _near_pairs(*_device_inputs(*_inputs(potential, g, self.skin)))
-        capacity = self.sized(int(jnp.sum(near, dtype=jnp.int32)))
-        return _mask_to_pairs(near, capacity), None
+        return _all_pairs_list(self, *_inputs(potential, g, self.skin)), None
+
+
+def _all_pairs_list(builder, x, body, radius, box):
+    """The `(capacity, 2)` list by testing every pair (`_near_pairs`). The mask, its count
+    and the compacted list stay on the device: only the pair count (for `builder`'s
+    capacity) comes back to the host."""
+    near = _near_pairs(*_device_inputs(x, body, radius, box))
+    return _mask_to_pairs(near, builder.sized(int(jnp.sum(near, dtype=jnp.int32))))
 
 
 def _device_inputs(x, body, radius, box):
@@ -291,6 +295,8 @@ class JaxMDNeighbors(AbstractNeighborBuilder):
     list is built, never by `import lievi`. In a periodic box the sites are wrapped into
     the box for jax-md (the minimum-image separations, hence the pairs, are unchanged);
     in free space they are shifted into a bounding box with a margin of the list radius.
+    A periodic box shorter than three list radii (`cutoff + skin`) along a side holds no
+    cell list: there every pair is tested, as by `BruteForceNeighbors`.
     """
 
     def candidates(self, x, body, radius, box):
@@ -314,6 +320,12 @@ class JaxMDNeighbors(AbstractNeighborBuilder):
                 'JaxMDNeighbors builds the list with jax-md: pip install "lievi[jaxmd]", '
                 "or use lievi.BruteForceNeighbors (no extra dependency)."
             ) from error
+        if box is not None and not np.all(radius < np.broadcast_to(box, (3,)) / 3):
+            # jax-md's cell list needs three cells of side `radius` along each side of
+            # the box; in a smaller box it tests every pair instead, and there scatters
+            # int64 indices into its int32 list in float64 mode (a JAX FutureWarning,
+            # an error in later JAX releases). The same all-pairs test, done here.
+            return _all_pairs_list(self, x, body, radius, box), None
         if state is not None:
             update, neighbors, origin, side = state
             shifted = _into_box(x, origin, side, box)
