@@ -35,7 +35,7 @@ class AbstractProgressMeter(eqx.Module):
     def report(self, k, n_steps):
         """Send `k / n_steps` to the host about every 1% of the steps (`k`, traced, counts
         the steps done; `n_steps` static or traced: an eager run's horizon is traced, see
-        `lievi._horizon`). Called inside `simulate`'s loop.
+        `lievi._loop`). Called inside `simulate`'s loop.
 
         Returns `k`, after the report: what is computed from the returned value is ordered
         after it (the callbacks are otherwise unordered)."""

@@ -43,7 +43,7 @@ def _any_scaled(s):
     when no body needs a doubling. With JAX's own batching rule the predicate would be
     per body and the `cond` a `select` that runs the loop for every body at every call
     (measured: `DEP()` on 256 `SOn(4)` bodies took 2.1× the time per body-step,
-    `benchmarks/son_dexp.py`). The values do not change: the loop is masked per
+    the retired `son_dexp.py`). The values do not change: the loop is masked per
     element."""
     return jnp.any(s > 0)
 

@@ -93,7 +93,7 @@ def materialise(values, one, stack: bool = True):
     bodies (`(N,)` arrays): the bodies of a binary (`lievi.RigidBodies`) stepped together
     by `bodies_step` keep the layout they had as scalars under `jax.vmap` of the
     one-body step. Not more: a batch of 8 SE(3) bodies ran at 0.8× the body-steps/s
-    stacked (`benchmarks/before_after.py --se3 --batches 8`,
+    stacked (measured with the retired `before_after.py --se3 --batches 8`,
     `benchmarks/results/before_after_s50_batch8.json`).
     `stack=False` stores them one by one (see its use in `_se3`).
     """

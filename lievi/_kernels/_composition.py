@@ -48,7 +48,7 @@ class CompositionKernel(AbstractBatchKernel):
 
     def stages(self, params, g, m, alive, unroll: int | bool = 1):
         """The stages in one `lax.scan` (`unroll` is the scan's; `step` keeps the loop, and
-        `benchmarks/composition_unroll_experiment.py` times it against `unroll=True`)."""
+        the retired `composition_unroll_experiment.py` timed it against `unroll=True`)."""
 
         def stage(carry, stage_params):
             g, m, result, iterations, residual = carry

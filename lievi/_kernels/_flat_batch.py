@@ -9,7 +9,7 @@ batch of `lievi.RigidBodies` systems, each running its `N` bodies through `bodie
 runs on the whole batch under a select, and the `cond` runs both branches, so the
 straggler loop costs a pass over every body at every step that any body needs it
 (`jax.vmap(simulate)` of SE(3) bodies at coarse steps ran at a quarter of
-`simulate_batch`, `benchmarks/vmapped_kernels.py`). `bodies_batched(fn)` gives the solve
+`simulate_batch`). `bodies_batched(fn)` gives the solve
 a batching rule of its own: the vmapped axis is merged into the body axis and `fn` runs
 once on the `B·N` bodies, as in `simulate_batch`, then the axis is split again.
 

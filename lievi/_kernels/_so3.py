@@ -6,7 +6,7 @@ principal moments `I` (diagonal inertia), written for throughput over many bodie
 - **structure of arrays**: every vector or matrix component is its own `(B,)` array with
   the batch as the minor (contiguous) axis, so XLA emits long elementwise loops that it
   vectorises and fuses into a few kernels; batched 3×3 `matmul`/`solve`/`jacfwd` on
-  `(B, 3, 3)` arrays vectorise poorly on CPU (docs/benchmarks.md#yardsticks);
+  `(B, 3, 3)` arrays vectorise poorly on CPU (docs/performance.md);
 - **closed forms**: the residual `r(ξ) = dφ⁻¹(ξ)ᵀ I ξ/h − Π_k` and its 3×3 Jacobian are
   written out by hand (derived below; the tests check them against `jax.jacfwd` of the
   generic residual) and the Newton system is solved by Cramer's rule;
