@@ -35,7 +35,6 @@ from ._groups._son import SOn as SOn
 from ._identification._fit import fit_inertia as fit_inertia
 from ._identification._fit import fit_system as fit_system
 from ._identification._result import FIT_REASONS as FIT_REASONS
-from ._identification._result import InertiaFit as InertiaFit
 from ._identification._result import SystemFit as SystemFit
 from ._integrators._base import AbstractIntegrator as AbstractIntegrator
 from ._integrators._base import AbstractKickIntegrator as AbstractKickIntegrator
@@ -111,6 +110,22 @@ try:
     __version__ = _metadata.version("lievi")
 except _metadata.PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0+unknown"
+
+
+def __getattr__(name: str):
+    # Old names kept for one release, with a warning (CHANGELOG, "Deprecated").
+    if name == "InertiaFit":
+        import warnings
+
+        warnings.warn(
+            "`lievi.InertiaFit` is deprecated: it is `lievi.SystemFit` (the result of "
+            "`fit_system` and `fit_inertia`); use that name.",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return SystemFit
+    raise AttributeError(f"module 'lievi' has no attribute {name!r}")
+
 
 # The public API is exactly the explicit re-exports above (`from ._x import Y as Y`);
 # tests/test_docs.py checks this and that each has an entry in the API reference.

@@ -222,3 +222,9 @@ def test_monitor_must_be_a_monitor():
         lievi.simulate(BODY, lievi.DEP(), G0, M0, h=0.1, n_steps=2, monitor="energy")
     with pytest.raises(ValueError, match="`rtol` must be > 0"):
         lievi.EnergyMonitor(rtol=-1.0)
+
+
+def test_deprecated_names_warn():
+    with pytest.warns(DeprecationWarning, match="lievi.SystemFit"):
+        assert lievi.InertiaFit is lievi.SystemFit
+    assert "InertiaFit" not in lievi.__all__

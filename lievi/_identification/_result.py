@@ -108,6 +108,3 @@ class SystemFit(eqx.Module):
         if reason.ndim == 0:
             return FIT_REASONS.message(reason)
         return [FIT_REASONS.message(r) for r in reason.ravel()]
-
-
-InertiaFit = SystemFit  # the result of `fit_inertia` (earlier name, kept)
