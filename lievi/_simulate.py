@@ -138,7 +138,7 @@ def simulate(
     if forcing is not None:
         forcing.check(system, n_steps, dtype, args)
     run = Run(
-        plan_for(system, integrator, None, forcing, args),
+        plan_for(system, integrator, None, forcing, args, one_body=True),
         Save(g=True, m=True, stats=True),
         as_progress_meter(progress_meter),
         dtype,

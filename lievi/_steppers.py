@@ -334,7 +334,8 @@ def plan_for(system, integrator, system_axis, forcing=None, args=None, **kernel_
     unforced bodies), else by its own step under `jax.vmap`.
 
     `kernel_options`: `fast=False` takes the method's own step; `fixed_iterations`, the
-    kernel's Newton iterations before its convergence check; `carry_g=False`, the kernel's
+    kernel's Newton iterations before its convergence check; `one_body=True`, the kernel as
+    it runs one body (`AbstractBatchKernel.one_body`); `carry_g=False`, the kernel's
     reduced form where it has one (a run that does not save `g`)."""
     fast = kernel_options.get("fast", True)
     batched = system_axis is not None
@@ -350,4 +351,8 @@ def plan_for(system, integrator, system_axis, forcing=None, args=None, **kernel_
     fixed = kernel_options.get("fixed_iterations")
     if fixed is not None:
         kernel = kernel.with_fixed_iterations(fixed)
+    elif kernel_options.get("one_body", False):
+        # One body stops at convergence: no fixed iterations unrolled before the check
+        # (`AbstractBatchKernel.one_body`), a smaller program that runs as fast.
+        kernel = kernel.one_body()
     return KernelPlan(system, system_axis, kernel, constants, integrator.step_bound(), carry_g)
