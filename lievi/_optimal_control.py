@@ -42,7 +42,7 @@ class OptimalControlSolution(eqx.Module):
     - `multipliers`: the final Lagrange multipliers `λ` of the terminal conditions.
     """
 
-    controls: Float[Array, "n_steps *momentum"]
+    controls: Float[Array, "n_steps ..."]
     solution: Solution
     converged: bool
     iterations: int
@@ -130,7 +130,7 @@ def solve_optimal_control(
     n_steps: int,
     h,
     *,
-    u0: Float[Array, "n_steps *momentum"] | None = None,
+    u0: Float[Array, "n_steps ..."] | None = None,
     penalty: float = 100.0,
     tol: float = 1e-12,
     max_iterations: int = 15,

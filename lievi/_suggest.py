@@ -26,12 +26,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._checks import check_integer, check_scalar
-from .diagnostics import energy
 from ._integrators._composition import Composition
 from ._integrators._dep import DEP
 from ._integrators._rkmk import RKMK4, RKMK5, RKMK8
 from ._results import RESULTS
 from ._simulate_batch import simulate_batch
+from .diagnostics import energy
 
 
 def _attitudes(system, g, m):
@@ -165,8 +165,7 @@ def _measure(system, tolerance_on, g0, m0):
     apply to `system`."""
     if tolerance_on not in MEASURES:
         raise ValueError(
-            f"`tolerance_on` must be one of {', '.join(map(repr, MEASURES))}, got "
-            f"{tolerance_on!r}."
+            f"`tolerance_on` must be one of {', '.join(map(repr, MEASURES))}, got {tolerance_on!r}."
         )
     measure = MEASURES[tolerance_on]
     if jax.eval_shape(lambda g, m: measure(system, g, m), g0, m0) is None:

@@ -111,9 +111,9 @@ def relative_drift(values: Float[Array, "T ..."]) -> Scalar:
 def del_residual(
     system: AbstractLieSystem,
     integrator: AbstractVariationalIntegrator,
-    g: Float[Array, "T *element"],
+    g: Float[Array, "T ..."],
     h,
-) -> Float[Array, "T-2 *momentum"]:
+) -> Float[Array, "T-2 ..."]:
     """The DEL residual `D₂L_d(g_{k−1}, g_k) + D₁L_d(g_k, g_{k+1})`, `k = 1 … T−2`.
 
     Both derivatives are taken by `jax.grad` along `ε ↦ g_k exp(εη)` (left) or

@@ -42,6 +42,7 @@ def rotors_state():
     return g0, m0
 
 
+@pytest.mark.extended  # four pilot compilations of a coupled SE(3) run
 def test_suggest_integrator_on_rigid_bodies_with_a_position_tolerance():
     """Per-body speeds set the pilot's step (no `float` of an array), and `tolerance_on`
     bounds the error of the positions alone: the suggested run is within 3× the
@@ -81,11 +82,28 @@ def test_suggest_integrator_tolerance_on_is_checked():
 
 
 def test_poisson_defect_on_several_bodies():
-    """The DLP map of the product group is Poisson for the block-diagonal structure."""
+    """The DLP map of the product group is Poisson for the block-diagonal structure; a
+    map that scales the momentum is not."""
     rotors = lievi.RigidRotors(INERTIA)
     g0, m0 = rotors_state()
-    assert dg.lie_poisson_tensor(rotors, m0).shape == (6, 6)
+    B = dg.lie_poisson_tensor(rotors, m0)
+    assert B.shape == (6, 6)
+    np.testing.assert_allclose(B[3:, 3:], dg.lie_poisson_tensor(lievi.RigidBody(INERTIA[1]), m0[1]))
+    np.testing.assert_allclose(B[:3, 3:], 0.0)
     assert dg.poisson_defect(rotors, lievi.DEP(), g0, m0, 0.1) <= ROUNDOFF
+    assert dg.poisson_defect(rotors, Scaled(), g0, m0, 0.1) > 1e-4
+
+
+class Scaled(lievi.DEP):
+    """Not Poisson: the DEP step with the momenta rescaled."""
+
+    def step(self, system, g, m, h):
+        g1, m1, info = super().step(system, g, m, h)
+        return g1, 1.01 * m1, info
+
+
+@pytest.mark.extended  # the Jacobian of a step of two SE(3) bodies: a long compilation
+def test_poisson_defect_moser_veselov_on_rigid_bodies():
     bodies = lievi.RigidBodies(INERTIA, MASS)
     g0, m0 = bodies_state()
     assert dg.poisson_defect(bodies, lievi.MoserVeselov(), g0, m0, 0.1) <= ROUNDOFF
@@ -114,7 +132,7 @@ def test_del_residual_refuses_a_batch():
         dg.del_residual(system, lievi.DEP(), g, 0.1)
 
 
-@pytest.mark.parametrize("batch", [2, 3])
+@pytest.mark.parametrize("batch", [pytest.param(2, marks=pytest.mark.extended), 3])
 def test_simulate_batch_infers_a_vmapped_batch_of_rotors(batch):
     """`jax.vmap(RigidRotors)` of `(B, N, 3)` moments is a batch of `B` systems (its
     energy of one state sums to a scalar, but its velocity is not one state's)."""
@@ -124,30 +142,39 @@ def test_simulate_batch_infers_a_vmapped_batch_of_rotors(batch):
     gs, ms = jnp.stack([g0] * batch), jnp.stack([m0] * batch)
     sol = lievi.simulate_batch(systems, lievi.DEP(), gs, ms, h=0.1, n_steps=3)
     for b in range(batch):
-        alone = lievi.simulate(lievi.RigidRotors(scale[b] * INERTIA), lievi.DEP(), g0, m0, h=0.1, n_steps=3)
+        alone = lievi.simulate(
+            lievi.RigidRotors(scale[b] * INERTIA), lievi.DEP(), g0, m0, h=0.1, n_steps=3
+        )
         np.testing.assert_allclose(sol.m[b, -1], alone.m[-1], rtol=0, atol=1e-13)
         np.testing.assert_allclose(sol.g[b, -1], alone.g[-1], rtol=0, atol=1e-13)
 
 
+@pytest.mark.extended  # compiles the solver (about 15 s)
 def test_optimal_control_on_several_bodies():
-    """The controls have `Control`'s per-body shape `(n_steps, N, d)`, by default and as
-    `u0`; the converged controls take both rotors to rest at their targets."""
-    system = lievi.RigidRotors(INERTIA)
+    """The controls have `Control`'s per-body shape `(n_steps, N, d)`, as `u0` and as the
+    result. Two free spheres (`J = j 1`), each turned rest to rest about its own axis: the
+    discrete optimum costs the sum of the bodies' closed forms `12 j² θ²/T³ (1 + 1/(N² − 1))`
+    (docs/optimal-control.md), and the trajectory ends at rest at the targets."""
+    j = jnp.array([1.0, 2.0])
+    system = lievi.RigidRotors(j[:, None] * jnp.ones(3))
+    rotations = jnp.array([[0.3, 0.0, 0.0], [0.0, 0.1, -0.2]])
+    target = (SO3.exp(rotations), jnp.zeros((2, 3)))
+    n, T = 8, 2.0
+    u0 = jnp.asarray(0.1 * np.random.default_rng(0).normal(size=(n, 2, 3)))
     g0 = jnp.broadcast_to(jnp.eye(3), (2, 3, 3))
-    target = (SO3.exp(jnp.array([[0.3, 0.0, 0.0], [0.0, 0.0, -0.2]])), jnp.zeros((2, 3)))
-    n = 4
-    r = lievi.solve_optimal_control(system, lievi.DEP(), g0, jnp.zeros((2, 3)), target, n, 0.25)
+    r = lievi.solve_optimal_control(
+        system, lievi.DEP(), g0, jnp.zeros((2, 3)), target, n, T / n, u0=u0
+    )
     assert r.controls.shape == (n, 2, 3)
     assert r.converged and r.constraint_violation <= 1e-12
-    np.testing.assert_allclose(r.solution.g[-1], target[0], atol=1e-11)
-    np.testing.assert_allclose(r.solution.m[-1], 0.0, atol=1e-11)
-    again = lievi.solve_optimal_control(
-        system, lievi.DEP(), g0, jnp.zeros((2, 3)), target, n, 0.25, u0=r.controls
-    )
-    assert again.converged
-    with pytest.raises(ValueError, match=r"`u0` must have shape .*\(4, 2, 3\)"):
+    theta2 = jnp.sum(rotations**2, axis=-1)
+    optimum = float(jnp.sum(12 * j**2 * theta2 / T**3)) * (1 + 1 / (n**2 - 1))
+    assert r.cost == pytest.approx(optimum, rel=1e-9)
+    np.testing.assert_allclose(r.solution.g[-1], target[0], rtol=0, atol=1e-11)
+    np.testing.assert_allclose(r.solution.m[-1], 0.0, rtol=0, atol=1e-11)
+    with pytest.raises(ValueError, match=r"`u0` must have shape .*\(8, 2, 3\)"):
         lievi.solve_optimal_control(
-            system, lievi.DEP(), g0, jnp.zeros((2, 3)), target, n, 0.25, u0=jnp.zeros((n, 3))
+            system, lievi.DEP(), g0, jnp.zeros((2, 3)), target, n, T / n, u0=u0[:, 0]
         )
 
 
@@ -158,7 +185,9 @@ def test_fit_system_on_rigid_bodies_reads_samples_as_samples():
     truth = lievi.RigidBodies(INERTIA, MASS, potential=spring)
     g0, m0 = bodies_state()
     h, every, samples = 0.1, 2, 6
-    sol = lievi.simulate(truth, lievi.DEP(), g0, m0, h=h, n_steps=every * (samples - 1), save_every=every)
+    sol = lievi.simulate(
+        truth, lievi.DEP(), g0, m0, h=h, n_steps=every * (samples - 1), save_every=every
+    )
     assert sol.g.shape == (samples, 2, 4, 4)
     guess = lievi.RigidBodies(INERTIA, 1.3 * MASS, potential=spring)
     fit = lievi.fit_system(

@@ -84,4 +84,6 @@ def test_bad_input():
     with pytest.raises(ValueError, match="rigid body on SE\\(3\\)"):
         lievi.state_from_world(lievi.RigidBody(jnp.ones(3)), p, v, R, w)
     with pytest.raises(ValueError, match=r"`g` must have shape \(\*batch, 2, 4, 4\)"):
-        lievi.state_to_world(lievi.RigidBodies(jnp.ones((2, 3)), jnp.ones(2)), jnp.eye(4), jnp.zeros(6))
+        lievi.state_to_world(
+            lievi.RigidBodies(jnp.ones((2, 3)), jnp.ones(2)), jnp.eye(4), jnp.zeros(6)
+        )

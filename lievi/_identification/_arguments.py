@@ -124,7 +124,9 @@ def check_data(
         check_trailing("orientations", orientations, batch_shape, (n_samples, *element))
         check_rotations("orientations", orientations, group)
     if angular_velocities is not None:
-        check_trailing("angular_velocities", angular_velocities, batch_shape, (n_samples, *momentum))
+        check_trailing(
+            "angular_velocities", angular_velocities, batch_shape, (n_samples, *momentum)
+        )
     if g0 is None and element != (3, 3):
         raise ValueError(
             f"Fitting `g0` is implemented on SO(3) for one body; give `g0` (shape {element}) "
