@@ -105,6 +105,9 @@ from ._systems._se3_body import RigidBodySE3 as RigidBodySE3
 from ._systems._se3_potentials import CentralGravity as CentralGravity
 from ._systems._se3_potentials import UniformGravitySE3 as UniformGravitySE3
 from ._systems._se3_potentials import full_body_problem as full_body_problem
+from ._world import WorldState as WorldState
+from ._world import state_from_world as state_from_world
+from ._world import state_to_world as state_to_world
 
 try:
     __version__ = _metadata.version("lievi")

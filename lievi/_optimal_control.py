@@ -29,7 +29,9 @@ class OptimalControlSolution(eqx.Module):
 
     **Attributes:**
 
-    - `controls`: the optimal control sequence `u`, shape `(n_steps, d)`.
+    - `controls`: the optimal control sequence `u`, shape `(n_steps, *momentum_shape)`:
+      `(n_steps, d)` for one body, `(n_steps, N, d)` for a system of `N` bodies (one
+      generalised force per body and step, as `lievi.Control` takes it).
     - `solution`: the trajectory it drives (`lievi.simulate` with `forcing=Control(u)`,
       every step saved, `throw=False`: read `solution.result`).
     - `converged`: whether `constraint_violation ≤ tol`.
@@ -40,7 +42,7 @@ class OptimalControlSolution(eqx.Module):
     - `multipliers`: the final Lagrange multipliers `λ` of the terminal conditions.
     """
 
-    controls: Float[Array, "N d"]
+    controls: Float[Array, "n_steps ..."]
     solution: Solution
     converged: bool
     iterations: int
@@ -76,9 +78,10 @@ class _Problem(eqx.Module):
             throw=False,
         )
         group = self.system.group
-        c = [group.log(group.compose(group.inverse(self.g_target), sol.g[-1]))]
+        # One defect per body where the system has several: raveled into one vector.
+        c = [group.log(group.compose(group.inverse(self.g_target), sol.g[-1])).ravel()]
         if self.m_target is not None:
-            c.append(sol.m[-1] - self.m_target)
+            c.append((sol.m[-1] - self.m_target).ravel())
         return jnp.concatenate(c)
 
     def cost(self, u):
@@ -121,13 +124,13 @@ def _inner_solve(problem: _Problem, u, multiplier, penalty, tol, max_iter: int, 
 def solve_optimal_control(
     system,
     integrator,
-    g0: Float[Array, "n n"],
-    m0: Float[Array, " d"],
+    g0: Float[Array, "*element"],
+    m0: Float[Array, "*momentum"],
     target,
     n_steps: int,
     h,
     *,
-    u0: Float[Array, "N d"] | None = None,
+    u0: Float[Array, "n_steps ..."] | None = None,
     penalty: float = 100.0,
     tol: float = 1e-12,
     max_iterations: int = 15,
@@ -149,12 +152,16 @@ def solve_optimal_control(
 
     - `system`, `integrator`: as for `lievi.simulate`; the integrator must take a force
       (`lievi.AbstractKickIntegrator`, e.g. `lievi.DEP()`).
-    - `g0`, `m0`: the initial state (momentum in algebra coordinates).
+    - `g0`, `m0`: the initial state (momentum in algebra coordinates), of the system's
+      `element_shape()` and `momentum_shape()`: `(n, n)` and `(d,)` for one body, one
+      row per body for a system of several (`lievi.RigidBodies`: `(N, 4, 4)`, `(N, 6)`).
     - `target`: `(g_f, m_f)`, the terminal configuration and momentum (`m_f = 0`: arrive
-      at rest), or `(g_f, None)` for a free terminal momentum.
+      at rest), or `(g_f, None)` for a free terminal momentum; shaped as `g0`, `m0`.
     - `n_steps`: the number of steps (and of controls), a Python `int ≥ 1`.
     - `h`: the step size; the horizon is `T = n_steps · h`.
-    - `u0`: the initial guess, shape `(n_steps, d)`; zeros by default.
+    - `u0`: the initial guess, shape `(n_steps, *momentum_shape)` (`(n_steps, d)` for one
+      body, `(n_steps, N, d)` for `N` bodies, as `lievi.Control` takes it); zeros by
+      default.
     - `penalty`: `ρ` of the augmented Lagrangian.
     - `tol`: the terminal-defect tolerance `max|c|` that ends the outer loop.
     - `max_iterations`: the most multiplier updates.
@@ -175,13 +182,22 @@ def solve_optimal_control(
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"`{name}` must be an integer ≥ 1, got {value!r}.")
     g_target, m_target = target
-    d = system.group.algebra_dim
+    system.check_element("g0", g0)
+    system.check_momentum("m0", m0)
+    system.check_element("target[0]", g_target)
+    if m_target is not None:
+        system.check_momentum("target[1]", m_target)
+    # One generalised force per step and body: the shape `lievi.Control` takes.
+    shape = (n_steps, *system.momentum_shape())
     dtype = jnp.result_type(g0, m0, h, float)
     if u0 is None:
-        u0 = jnp.zeros((n_steps, d), dtype)
+        u0 = jnp.zeros(shape, dtype)
     u = jnp.asarray(u0, dtype)
-    if u.shape != (n_steps, d):
-        raise ValueError(f"`u0` must have shape (n_steps, d) = {(n_steps, d)}, got {u.shape}.")
+    if u.shape != shape:
+        raise ValueError(
+            f"`u0` must have shape (n_steps, *momentum_shape) = {shape} (one generalised "
+            f"force per step{', a row per body' if len(shape) > 2 else ''}), got {u.shape}."
+        )
     problem = _Problem(
         system,
         integrator,
@@ -191,7 +207,8 @@ def solve_optimal_control(
         None if m_target is None else jnp.asarray(m_target, dtype),
         jnp.asarray(h, dtype),
     )
-    multiplier = jnp.zeros(d if m_target is None else 2 * d, dtype)
+    size = int(np.prod(system.momentum_shape()))  # the defect's length per condition
+    multiplier = jnp.zeros(size if m_target is None else 2 * size, dtype)
     penalty_, gradient_tol_ = jnp.asarray(penalty, dtype), jnp.asarray(gradient_tol, dtype)
     outer = inner = 0
     violation = float("nan")

@@ -33,20 +33,25 @@ def reference_solution(
 ):
     """Solve the Euler–Poincaré equations of `system` to `rtol`/`atol` with DOP853.
 
-    **Arguments:** `g0 (n, n)`, `m0 (d,)`, `ts`: increasing times starting at the
-    initial time. Needs 64-bit JAX (`jax.config.update("jax_enable_x64", True)`).
+    **Arguments:** `g0 (n, n)`, `m0 (d,)` — one state, of the system's `element_shape()`
+    and `momentum_shape()` (a row per body for a system of several, e.g. `(N, 4, 4)` and
+    `(N, 6)` for `lievi.RigidBodies`; for a batch of states, call it on each) — and `ts`:
+    increasing times starting at the initial time. Needs 64-bit JAX (`jax.config.update("jax_enable_x64", True)`).
     `forcing`, `args`: an external force as for `lievi.simulate`, added to `ṁ`. With a
     `lievi.Control(u)` the times `ts` are the step times: `u[k]` is held on
     `[ts[k], ts[k+1]]` (so `len(ts) = len(u) + 1`) and each interval is solved separately,
     so the jumps of the control do not spoil the accuracy.
 
-    **Returns:** `(g, m)` as NumPy arrays of shapes `(len(ts), n, n)` and `(len(ts), d)`.
+    **Returns:** `(g, m)` as NumPy arrays of shapes `(len(ts), *element_shape)` and
+    `(len(ts), *momentum_shape)`.
     """
     if not jax.config.jax_enable_x64:
         raise ValueError(
             "reference_solution needs float64: call jax.config.update('jax_enable_x64', True) "
             "before creating arrays."
         )
+    system.check_element("g0", g0)
+    system.check_momentum("m0", m0)
     # One state's shapes (per body for a system of several bodies), flattened for DOP853.
     element, momentum = system.element_shape(), system.momentum_shape()
     d = int(np.prod(momentum))

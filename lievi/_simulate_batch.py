@@ -57,7 +57,8 @@ def has_fast_path(
 
 def _is_one_system(system) -> bool:
     """Whether `system` describes one system: its energy of one momentum `(d,)` and its
-    potential at one element `(n, n)` are scalars (by shapes alone, nothing computed).
+    potential at one element `(n, n)` are scalars, and its velocity of that momentum has
+    the momentum's shape (by shapes alone, nothing computed).
 
     Cached by the system's structure, its non-array fields and its arrays' shapes and
     dtypes: tracing the energy and the potential again cost about 7 ms of every eager
@@ -76,13 +77,15 @@ def _is_one_system(system) -> bool:
 @functools.lru_cache(maxsize=64)
 def _scalar_energy_and_potential(key, g, m) -> bool:
     def both(system, g, m):
-        return system.energy(m), system.potential_energy(g)
+        return system.energy(m), system.potential_energy(g), system.velocity(m)
 
     try:
-        out = eqx.filter_eval_shape(both, abstract_tree(key), g, m)
+        energy, potential, velocity = eqx.filter_eval_shape(both, abstract_tree(key), g, m)
     except Exception:  # e.g. a (B, 3) inertia against a (3,) momentum
         return False
-    return all(jnp.shape(x) == () for x in out)
+    # The velocity too: an energy summed over bodies is a scalar even for a batch of
+    # systems whose leaves broadcast against one state (`(B, N, 3)` moments of rotors).
+    return jnp.shape(energy) == jnp.shape(potential) == () and velocity.shape == m.shape
 
 
 def infer_system_axis(system, system_axis, batch: int | None = None):

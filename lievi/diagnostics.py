@@ -111,15 +111,28 @@ def relative_drift(values: Float[Array, "T ..."]) -> Scalar:
 def del_residual(
     system: AbstractLieSystem,
     integrator: AbstractVariationalIntegrator,
-    g: Float[Array, "T n n"],
+    g: Float[Array, "T ..."],
     h,
-) -> Float[Array, "T-2 d"]:
+) -> Float[Array, "T-2 ..."]:
     """The DEL residual `D₂L_d(g_{k−1}, g_k) + D₁L_d(g_k, g_{k+1})`, `k = 1 … T−2`.
 
     Both derivatives are taken by `jax.grad` along `ε ↦ g_k exp(εη)` (left) or
     `exp(εη) g_k` (right) at `ε = 0`: zero, to round-off, exactly when the trajectory is
     a critical point of the action sum (Theorem 2.1).
+
+    `g` is one trajectory, `(T, *element_shape)` with `T ≥ 3` (`(T, n, n)` for one body;
+    `(T, N, 4, 4)` for `lievi.RigidBodies`, one variation per body); the discrete
+    Lagrangian is the system's (`AbstractLieSystem.free_discrete_lagrangian`: for several
+    bodies, the sum of each body's under `integrator`).
     """
+    g = jnp.asarray(g)
+    element = tuple(system.element_shape())
+    if g.ndim != 1 + len(element) or g.shape[1:] != element or g.shape[0] < 3:
+        raise ValueError(
+            f"`g` must be one trajectory of shape (T, {', '.join(map(str, element))}) with "
+            f"T ≥ 3 (e.g. `simulate(...).g`), got {g.shape}; for a batch of trajectories "
+            "call it on each (or `jax.vmap` it)."
+        )
     return _del_residual(system, integrator, g, jnp.asarray(h, g.dtype))
 
 
@@ -143,31 +156,47 @@ def _del_residual(system, integrator, g, h):
     return jax.vmap(residual)(g[:-2], g[1:-1], g[2:])
 
 
-def lie_poisson_tensor(system: AbstractLieSystem, m: Float[Array, " d"]) -> Float[Array, "d d"]:
-    """`B(m)_{ab} = ⟨m, [e_a, e_b]⟩`, the Lie–Poisson structure matrix at `m`."""
+def lie_poisson_tensor(
+    system: AbstractLieSystem, m: Float[Array, "*momentum"]
+) -> Float[Array, "D D"]:
+    """`B(m)_{ab} = ⟨m, [e_a, e_b]⟩`, the Lie–Poisson structure matrix at `m`.
+
+    For a system of `N` bodies (`m` of shape `(N, d)`, the dual of the product algebra
+    `gᴺ`) the structure is the direct sum of the bodies': `B` is block diagonal,
+    `(N·d, N·d)`, in the order of `m.ravel()`.
+    """
     group = system.group
-    structure = group.ad(jnp.eye(group.algebra_dim, dtype=m.dtype))  # [a] = ad_{e_a}
-    return jnp.einsum("c,acb->ab", m, structure)
+    d = group.algebra_dim
+    structure = group.ad(jnp.eye(d, dtype=m.dtype))  # [a] = ad_{e_a}
+    each = jnp.einsum("nc,acb->nab", jnp.reshape(m, (-1, d)), structure)
+    bodies = each.shape[0]
+    blocks = jnp.einsum("ij,iab->iajb", jnp.eye(bodies, dtype=m.dtype), each)
+    return blocks.reshape(bodies * d, bodies * d)
 
 
 def poisson_defect(
-    system: AbstractLieSystem, integrator: AbstractIntegrator, g, m: Float[Array, " d"], h
+    system: AbstractLieSystem, integrator: AbstractIntegrator, g, m: Float[Array, "*momentum"], h
 ) -> Scalar:
     """`max |D B(m) Dᵀ − B(m')|` for the momentum map `m ↦ m'` of one step (docs/theory/checks.md#poisson).
 
     `D` is computed by `jax.jacfwd` (implicit differentiation through the Newton solve).
+    One state: `g` and `m` of the system's `element_shape()` and `momentum_shape()`; for
+    a system of several bodies `D` is the Jacobian of the whole momentum `m.ravel()` and
+    `B` the block-diagonal structure of the product (`lie_poisson_tensor`).
     """
+    system.check_element("g", g)
+    system.check_momentum("m", m)
     dtype = jnp.result_type(m, float)
-    return _poisson_defect(system, integrator, g, m, jnp.asarray(h, dtype))
+    return _poisson_defect(system, integrator, g, jnp.asarray(m, dtype), jnp.asarray(h, dtype))
 
 
 @eqx.filter_jit  # as `_del_residual`: one compiled program instead of op-by-op dispatch
 def _poisson_defect(system, integrator, g, m, h):
 
-    def momentum_map(mm):
-        return integrator.step(system, g, mm, h)[1]
+    def momentum_map(flat):
+        return integrator.step(system, g, flat.reshape(m.shape), h)[1].ravel()
 
-    D = jax.jacfwd(momentum_map)(m)
-    m_next = momentum_map(m)
+    D = jax.jacfwd(momentum_map)(m.ravel())
+    m_next = momentum_map(m.ravel()).reshape(m.shape)
     pushed = D @ lie_poisson_tensor(system, m) @ D.T
     return jnp.max(jnp.abs(pushed - lie_poisson_tensor(system, m_next)))

@@ -52,6 +52,7 @@ LAYERS = (
             "_fit_optimizer",
             "_optimal_control",
             "_suggest",
+            "_world",
         ),
     ),
     ("public API", ("",)),  # `lievi/__init__.py`: the names users import

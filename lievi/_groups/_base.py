@@ -67,6 +67,16 @@ class MatrixLieGroup(eqx.Module):
     def compose(self, a: Float[Array, "*batch n n"], b: Float[Array, "*batch n n"]):
         return a @ b
 
+    def rotation(self, g: Float[Array, "*batch n n"]):
+        """The rotation part of `g` (its attitude), or `None` where the group has none
+        (the default)."""
+        return None
+
+    def translation(self, g: Float[Array, "*batch n n"]):
+        """The translation part of `g` (its position), or `None` where the group has none
+        (the default)."""
+        return None
+
     def inverse(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
         return jnp.linalg.inv(g)
 

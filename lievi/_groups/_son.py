@@ -54,6 +54,10 @@ class AbstractSpecialOrthogonal(MatrixLieGroup):
         X = jnp.zeros(x.shape[:-1] + (n, n), x.dtype)
         return X.at[..., j, i].set(signed).at[..., i, j].set(-signed)
 
+    def rotation(self, g: Float[Array, "*batch n n"]) -> Float[Array, "*batch n n"]:
+        """`g` itself: an element of SO(n) is a rotation (it has no translation)."""
+        return g
+
     def vee(self, X: Float[Array, "*batch n n"]) -> Float[Array, "*batch d"]:
         i, j, sign = planes(self.matrix_dim)
         # The skew part's coordinates: exact on so(n), a projection elsewhere.

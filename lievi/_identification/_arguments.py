@@ -86,13 +86,17 @@ def check_options(
         raise ValueError(f"`system_axis` must be None or 0, got {system_axis!r}.")
 
 
-def batch_shape_of(orientations, angular_velocities) -> tuple[int, ...]:
-    """The leading batch axes of the observations (orientations `(S, n, n)` per body,
-    velocities `(S, d)`)."""
+def batch_shape_of(
+    orientations, angular_velocities, element_ndim: int = 2, momentum_ndim: int = 1
+) -> tuple[int, ...]:
+    """The leading batch axes of the observations: orientations `(S, *element_shape)` per
+    run, velocities `(S, *momentum_shape)` — `(S, n, n)` and `(S, d)` for one body (the
+    defaults), one row per body after `S` for a system of several (`element_ndim`,
+    `momentum_ndim`: the lengths of the system's shapes)."""
     if orientations is None and angular_velocities is None:
         raise ValueError("Give `orientations` and/or `angular_velocities` to fit to.")
     obs = orientations if orientations is not None else angular_velocities
-    core = 3 if orientations is not None else 2
+    core = 1 + (element_ndim if orientations is not None else momentum_ndim)
     if jnp.ndim(obs) < core:
         name = "orientations" if orientations is not None else "angular_velocities"
         raise ValueError(f"`{name}` must have at least {core} axes, got {jnp.shape(obs)}.")
@@ -100,27 +104,36 @@ def batch_shape_of(orientations, angular_velocities) -> tuple[int, ...]:
 
 
 def check_data(
-    group, orientations, angular_velocities, m0, g0, trace, orientation_weight, velocity_weight
+    system, orientations, angular_velocities, m0, g0, trace, orientation_weight, velocity_weight
 ):
     """The observations, the given initial state, the gauge and the weights, broadcast to
-    the batch. **Returns:** `(batch_shape, n_samples, m0, g0, trace, weights)`."""
+    the batch. One run's state has the system's shapes (`element_shape()`,
+    `momentum_shape()`: one body's `(n, n)` and `(d,)`, or a row per body for a system of
+    several), so the batch axes are those in front of them and of the sample axis.
+    **Returns:** `(batch_shape, n_samples, m0, g0, trace, weights)`."""
     if g0 is None and orientations is None:
         raise ValueError("`g0` is needed when no `orientations` are observed.")
-    n, d = group.matrix_dim, group.algebra_dim
-    batch_shape = batch_shape_of(orientations, angular_velocities)
+    group = system.group
+    element, momentum = tuple(system.element_shape()), tuple(system.momentum_shape())
+    batch_shape = batch_shape_of(orientations, angular_velocities, len(element), len(momentum))
     obs = orientations if orientations is not None else angular_velocities
     n_samples = jnp.shape(obs)[len(batch_shape)]
     if n_samples < 2:
         raise ValueError(f"need at least 2 samples per body, got {n_samples}.")
     if orientations is not None:
-        check_trailing("orientations", orientations, batch_shape, (n_samples, n, n))
+        check_trailing("orientations", orientations, batch_shape, (n_samples, *element))
         check_rotations("orientations", orientations, group)
     if angular_velocities is not None:
-        check_trailing("angular_velocities", angular_velocities, batch_shape, (n_samples, d))
-    if g0 is None and n != 3:
-        raise ValueError("Fitting `g0` is implemented on SO(3); give `g0` for other groups.")
-    m0 = None if m0 is None else batched("m0", m0, batch_shape, (d,))
-    g0 = None if g0 is None else batched("g0", g0, batch_shape, (n, n))
+        check_trailing(
+            "angular_velocities", angular_velocities, batch_shape, (n_samples, *momentum)
+        )
+    if g0 is None and element != (3, 3):
+        raise ValueError(
+            f"Fitting `g0` is implemented on SO(3) for one body; give `g0` (shape {element}) "
+            "for other groups and for systems of several bodies."
+        )
+    m0 = None if m0 is None else batched("m0", m0, batch_shape, momentum)
+    g0 = None if g0 is None else batched("g0", g0, batch_shape, element)
     if m0 is not None:
         check_finite("m0", m0)
     if g0 is not None:

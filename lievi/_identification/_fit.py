@@ -125,9 +125,13 @@ def fit_system(
     - `system`: the model with the initial guess of the fitted parameters and the known
       values of the others, e.g. `lievi.heavy_top(I_guess, mass, ρ_guess)`.
     - `orientations`: observed attitudes `R_k`, shape `(*batch, S, n, n)` (noisy rotation
-      vectors `r_k` become `lievi.SO3.exp(r_k)`); rotations to 1e-6.
+      vectors `r_k` become `lievi.SO3.exp(r_k)`); rotations to 1e-6. For a system of
+      several bodies each sample is one state of the system, `(*batch, S,
+      *element_shape)`: `(*batch, S, N, 4, 4)` for `lievi.RigidBodies`, `(*batch, S, N, 3,
+      3)` for `lievi.RigidRotors`.
     - `angular_velocities`: observed velocities `Ω_k = velocity(m_k)` (body angular
-      velocities `I⁻¹Π_k` for a rigid body), `(*batch, S, d)`. Give at least one of the two.
+      velocities `I⁻¹Π_k` for a rigid body), `(*batch, S, d)`, or `(*batch, S,
+      *momentum_shape)` for several bodies. Give at least one of the two.
     - `h`, `sample_every`: step size of the model and steps between samples.
     - `params`: a function selecting the fitted leaves, as `where` of `eqx.tree_at`:
       `lambda s: s.inertia` (default), `lambda s: (s.inertia, s.potential.center_of_mass)`,
@@ -138,7 +142,8 @@ def fit_system(
       the conserved spatial momentum `R_{k+½} I ω_{k+½}` of each interval between
       samples; otherwise from the first two samples). Then, if the inertia is fitted, the
       gauge is fixed by its trace.
-    - `g0`: the known initial orientation, or `None` to fit it (initial guess `R_0`).
+    - `g0`: the known initial orientation, or `None` to fit it (initial guess `R_0`; one
+      body on SO(3) only: a system of several bodies needs `g0`).
     - `system_axis`: `None` (one initial guess for every body) or `0` (every array leaf of
       `system` carries the batch axes first, e.g. `jax.vmap(lievi.RigidBody)(guesses)`).
     - `realisable`: constrain the inertia to physically realisable ones (triangle inequalities).
@@ -196,7 +201,7 @@ def fit_system(
         system_axis=system_axis,
     )
     batch_shape, n_samples, m0, g0, trace, weights = check_data(
-        system.group,
+        system,
         orientations,
         angular_velocities,
         m0,
@@ -288,8 +293,10 @@ def fit_system(
     m0_guess = None
     if data["m0"] is None:
         m0_guess = initial_momenta(problem, theta0, dynamic, data, h)
-        size = jnp.linalg.norm(m0_guess, axis=-1)
-        data["momentum_scale"] = jnp.where(size > 0, size, 1.0)[:, None]
+        # The norm of each run's whole momentum (every body's, for a system of several).
+        size = jnp.linalg.norm(m0_guess.reshape(n_bodies, -1), axis=-1)
+        size = jnp.where(size > 0, size, 1.0)
+        data["momentum_scale"] = size.reshape((n_bodies,) + (1,) * (m0_guess.ndim - 1))
     carry = start(problem, theta0, m0_guess, dynamic, data, h)
     if check_every is None and n_bodies >= 64:
         check_every = 20

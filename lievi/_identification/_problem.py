@@ -99,24 +99,29 @@ class Problem(eqx.Module):
         """Weighted residuals per sample `(S, c)`, failed-sample penalty and count of failed
         samples of one body's simulated samples `g`, `m`."""
         dtype = m.dtype
-        valid = jnp.all(jnp.isfinite(m), axis=-1) & jnp.all(jnp.isfinite(g), axis=(-2, -1))
-        counted = (jnp.arange(self.n_samples) < horizon).astype(dtype)
+        S = self.n_samples
+        # A sample is one state of the system: every axis after the first (one body's
+        # `(n, n)`, `(d,)`; several bodies' `(N, n, n)`, `(N, d)`) is flattened.
+        valid = jnp.all(jnp.isfinite(m.reshape(S, -1)), axis=-1) & jnp.all(
+            jnp.isfinite(g.reshape(S, -1)), axis=-1
+        )
+        counted = (jnp.arange(S) < horizon).astype(dtype)
         parts, penalty = [], jnp.zeros((), dtype)
         w_orientation, w_velocity = data["weights"]
         if data["orientations"] is not None:
             R = data["orientations"]
             # double where: a failed (NaN) sample never enters arithmetic, so no NaN gradient
-            g = jnp.where(valid[:, None, None], g, R)
+            g = jnp.where(_per_sample(valid, g), g, R)
             weight = w_orientation * counted / jnp.sum(counted)  # weighted mean over this stage
-            parts.append((jnp.sqrt(weight)[:, None, None] * (g - R)).reshape(self.n_samples, -1))
+            parts.append(jnp.sqrt(weight)[:, None] * (g - R).reshape(S, -1))
             penalty = penalty + jnp.sum(jnp.where(valid, 0.0, weight * ORIENTATION_PENALTY))
         if data["angular_velocities"] is not None:
             W = data["angular_velocities"]
-            m = jnp.where(valid[:, None], m, 0.0)
-            omega = jnp.where(valid[:, None], jax.vmap(system.velocity)(m), W)
+            m = jnp.where(_per_sample(valid, m), m, 0.0)
+            omega = jnp.where(_per_sample(valid, W), jax.vmap(system.velocity)(m), W)
             weight = w_velocity * counted / jnp.sum(counted)
-            parts.append(jnp.sqrt(weight)[:, None] * (omega - W))
-            worst = 4 * jnp.max(jnp.sum(W**2, axis=-1))
+            parts.append(jnp.sqrt(weight)[:, None] * (omega - W).reshape(S, -1))
+            worst = 4 * jnp.max(jnp.sum((W**2).reshape(S, -1), axis=-1))
             penalty = penalty + jnp.sum(jnp.where(valid, 0.0, weight * worst))
         failed = jnp.sum(~valid & (counted > 0)).astype(jnp.int32)
         return jnp.concatenate(parts, axis=-1), penalty, failed
@@ -177,15 +182,16 @@ class Problem(eqx.Module):
         `(bodies, S)`."""
         systems, sol = self.rollout(params, dynamic, data, h)
         ok = jnp.ones(sol.m.shape[:2], bool)
+        flat = lambda x: x.reshape(*x.shape[:2], -1)  # (bodies, S, one state's entries)
         if data["orientations"] is not None:
-            error = jnp.sqrt(jnp.sum((sol.g - data["orientations"]) ** 2, axis=(-2, -1)))
+            error = jnp.sqrt(jnp.sum(flat((sol.g - data["orientations"]) ** 2), axis=-1))
             ok = ok & ((error <= PREDICTED) | (data["weights"][0] == 0))
         if data["angular_velocities"] is not None:
             W = data["angular_velocities"]
             per_body = jax.vmap(lambda s, m: s.velocity(m), (None, 0))
             omega = jax.vmap(per_body, (systems.batch_axes(0), 0))(systems, sol.m)
-            rms = jnp.sqrt(jnp.mean(jnp.sum(W**2, axis=-1), axis=-1, keepdims=True))
-            error = jnp.sqrt(jnp.sum((omega - W) ** 2, axis=-1))
+            rms = jnp.sqrt(jnp.mean(jnp.sum(flat(W**2), axis=-1), axis=-1, keepdims=True))
+            error = jnp.sqrt(jnp.sum(flat((omega - W) ** 2), axis=-1))
             close = error <= PREDICTED * jnp.where(rms > 0, rms, 1.0)
             ok = ok & (close | (data["weights"][1] == 0))
         return ok  # (NaN compares False: a failed sample is not predicted)
@@ -208,6 +214,11 @@ class Problem(eqx.Module):
         return (gnorm <= tol) & (failed == 0) & jnp.isfinite(value)
 
 
+def _per_sample(flags, x):
+    """`flags` `(S,)` shaped to broadcast against `x` `(S, …)`: one flag per sample."""
+    return flags.reshape(flags.shape + (1,) * (x.ndim - 1))
+
+
 def loss_scale(data):
     """One body's loss normaliser: the weighted size of its observations (1 when zero)."""
     w_orientation, w_velocity = data["weights"]
@@ -215,7 +226,8 @@ def loss_scale(data):
     if data["orientations"] is not None:
         scale = scale + jnp.mean(w_orientation)
     if data["angular_velocities"] is not None:
-        scale = scale + jnp.mean(w_velocity * jnp.sum(data["angular_velocities"] ** 2, axis=-1))
+        W = data["angular_velocities"]
+        scale = scale + jnp.mean(w_velocity * jnp.sum((W**2).reshape(W.shape[0], -1), axis=-1))
     return jnp.where(scale > 0, scale, 1.0)
 
 
@@ -227,10 +239,10 @@ def motion_size(data):
     size = jnp.zeros((), w_orientation.dtype)
     if data["orientations"] is not None:
         R = data["orientations"]
-        size = size + jnp.sum(w_orientation * jnp.sum((R - R[0]) ** 2, axis=(-2, -1))) / n
+        size = size + jnp.sum(w_orientation * jnp.sum(((R - R[0]) ** 2).reshape(n, -1), -1)) / n
     if data["angular_velocities"] is not None:
         W = data["angular_velocities"]
-        size = size + jnp.sum(w_velocity * jnp.sum((W - W.mean(0)) ** 2, axis=-1)) / n
+        size = size + jnp.sum(w_velocity * jnp.sum(((W - W.mean(0)) ** 2).reshape(n, -1), -1)) / n
     return size
 
 
@@ -242,14 +254,15 @@ def initial_momentum(problem, theta0, dynamic, data, h):
     body velocity `ω_{k+½} = log(R_kᵀ R_{k+1})/Δt` at the midpoint attitude `R_{k+½}`), and
     `Π₀ = R₀ᵀ L̄` with `L̄` their weighted mean over the whole record (the noise of one
     difference, `√2 σ/Δt`, averaged out). Otherwise `Π₀ ≈ legendre(Ω₀)` from the first two
-    samples (or the first observed velocity)."""
+    samples (or the first observed velocity): `Ω₀ = log(R₀⁻¹R₁)/Δt` in the system's group,
+    each body's for a system of several."""
     values = problem.leaf_values(theta0, data)
     system = problem.system_of(values, dynamic)
     dt = problem.sample_every * h
     if data["orientations"] is not None:
         R = data["orientations"]
-        xi = jax.vmap(SO3.log)(jnp.swapaxes(R[:-1], -1, -2) @ R[1:])
         if isinstance(system, RigidBody) and system.potential is None:
+            xi = jax.vmap(SO3.log)(jnp.swapaxes(R[:-1], -1, -2) @ R[1:])
             mid = R[:-1] @ jax.vmap(SO3.exp)(xi / 2)
             spatial = jnp.einsum("kij,kj->ki", mid, jax.vmap(system.legendre)(xi / dt))
             w = data["weights"][0]
@@ -257,7 +270,8 @@ def initial_momentum(problem, theta0, dynamic, data, h):
             w = jnp.where(jnp.sum(w) > 0, w, 1.0)
             L = jnp.sum(w[:, None] * spatial, axis=0) / jnp.sum(w)
             return (R[0].T @ L).astype(h.dtype)
-        omega0 = xi[0] / dt
+        group = system.group
+        omega0 = group.log(group.compose(group.inverse(R[0]), R[1])) / dt
     else:
         omega0 = data["angular_velocities"][0]
     return system.legendre(omega0).astype(h.dtype)

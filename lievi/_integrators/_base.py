@@ -360,6 +360,14 @@ class AbstractVariationalIntegrator(AbstractKickIntegrator):
     ) -> Scalar:
         """`L_d` of the reduced Lagrangian `l(ξ)` alone (the free system)."""
 
+    def body_discrete_lagrangian(self, inertia, mass, g0, g1, h: Scalar) -> Scalar:
+        """The kinetic discrete Lagrangian of a rigid body in vacuum,
+        `lievi.RigidBodySE3(inertia, mass)` (origin at its centre of mass), whose discrete
+        Euler–Lagrange equations `free_body_step` solves: by default this method's
+        `kinetic_discrete_lagrangian` of that body; a method of the rotation alone adds the
+        exact translation's (`_drift.rotation_and_drift_lagrangian`)."""
+        return self.kinetic_discrete_lagrangian(RigidBodySE3(inertia, mass), g0, g1, h)
+
     def discrete_lagrangian(
         self, system: AbstractLieSystem, g0: Float[Array, "n n"], g1: Float[Array, "n n"], h: Scalar
     ) -> Scalar:
@@ -369,7 +377,8 @@ class AbstractVariationalIntegrator(AbstractKickIntegrator):
         `AbstractKickIntegrator`); it is the Lie group variational integrator of Lee, Leok
         and McClamroch for the exponential/Cayley charts.
         """
-        kinetic = self.kinetic_discrete_lagrangian(system, g0, g1, h)
+        # The system's: a system of several bodies sums its bodies' (`free_discrete_lagrangian`).
+        kinetic = system.free_discrete_lagrangian(self, g0, g1, h)
         if system.potential is None:
             return kinetic
         return kinetic - h / 2 * (system.potential_energy(g0) + system.potential_energy(g1))

@@ -28,6 +28,20 @@ from .._systems._bodies import orthonormal_frame
 from .._systems._rigid_body import RigidBody
 
 
+def rotation_and_drift_lagrangian(integrator, inertia, mass, g0, g1, h: Scalar):
+    """The discrete Lagrangian of `rotation_and_drift`: `integrator`'s kinetic discrete
+    Lagrangian of `RigidBody(inertia)` on the rotations, plus the exact one of the uniform
+    translation, `mass |p_1 − p_0|² / (2h)` (the action of the straight line from `p_0` to
+    `p_1` in time `h`). Its discrete Euler–Lagrange equations (paper (2.1)) in the
+    rotation are the method's; in the position, `m (p_1 − 2p_0 + p_{−1})/h = 0` with
+    the kicks' forces, the drift at constant spatial linear momentum."""
+    kinetic = integrator.kinetic_discrete_lagrangian(
+        RigidBody(inertia), SE3.rotation(g0), SE3.rotation(g1), h
+    )
+    step = SE3.translation(g1) - SE3.translation(g0)
+    return kinetic + mass * jnp.sum(step**2) / (2 * h)
+
+
 def rotation_and_drift(integrator, inertia, mass, g, m, h: Scalar):
     """`integrator`'s free step of `RigidBody(inertia)` on `(R, Π)`, `P` turned with `R`,
     and the exact translation `p ← p + h R_k P_k / mass`. Returns `(g, m, StepInfo)`."""

@@ -52,7 +52,7 @@ from .._newton import check_newton_options, newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from ._base import AbstractVariationalIntegrator, StepInfo
-from ._drift import rotation_and_drift
+from ._drift import rotation_and_drift, rotation_and_drift_lagrangian
 
 
 def check_rigid_body(method: str, system: AbstractLieSystem) -> None:
@@ -122,6 +122,10 @@ class MoserVeselov(AbstractVariationalIntegrator):
     def free_body_step(self, inertia, mass, g, m, h: Scalar):
         # A method of the rotation: the body's rotation by it, its translation exactly.
         return rotation_and_drift(self, inertia, mass, g, m, h)
+
+    def body_discrete_lagrangian(self, inertia, mass, g0, g1, h: Scalar):
+        # The discrete Lagrangian of `free_body_step`: the rotation's, the exact drift's.
+        return rotation_and_drift_lagrangian(self, inertia, mass, g0, g1, h)
 
     def kernels(self):
         return (NewtonKernel(MoserVeselovEquation(), self.rtol, self.atol, self.max_steps),)

@@ -101,6 +101,14 @@ class AbstractLieSystem(eqx.Module):
         body with it (`lievi.RigidBodies`, `lievi.RigidRotors`)."""
         return integrator.free_step(self, g, m, h)
 
+    def free_discrete_lagrangian(self, integrator, g0, g1, h: Scalar) -> Scalar:
+        """The kinetic discrete Lagrangian `L_d(g0, g1)` of a variational integrator on this
+        system (`AbstractVariationalIntegrator.kinetic_discrete_lagrangian`): the
+        integrator's own (the default). A system of several bodies sums its bodies' — the
+        discrete Lagrangian whose discrete Euler–Lagrange equations (paper (2.1)) its
+        `free_flow` steps (`lievi.RigidBodies`, `lievi.RigidRotors`)."""
+        return integrator.kinetic_discrete_lagrangian(self, g0, g1, h)
+
     @abc.abstractmethod
     def lagrangian(self, xi: Float[Array, " d"]) -> Scalar:
         """The reduced Lagrangian `l(ξ)`."""

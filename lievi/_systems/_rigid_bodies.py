@@ -123,6 +123,13 @@ class RigidBodies(AbstractLieSystem):
         code, the most Newton iterations, the largest residual."""
         return integrator.free_bodies_step(self, g, m, h)
 
+    def free_discrete_lagrangian(self, integrator, g0, g1, h: Scalar) -> Scalar:
+        """`Σ_i L_d^i(g0_i, g1_i)`: each body's discrete Lagrangian in vacuum
+        (`AbstractVariationalIntegrator.body_discrete_lagrangian`, the discrete Lagrangian
+        of the step `free_flow` takes on the body)."""
+        each = jax.vmap(lambda J, mass, a, b: integrator.body_discrete_lagrangian(J, mass, a, b, h))
+        return jnp.sum(each(self.inertia, self.mass, g0, g1))
+
     def lagrangian(self, xi: Float[Array, "N 6"]) -> Scalar:
         return jnp.sum(xi * self.legendre(xi)) / 2
 

@@ -33,6 +33,7 @@ rotations `Q` about an axis `a` conserves `a · Σ_i R_i Π_i` only.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Scalar
 
@@ -123,6 +124,15 @@ class RigidRotors(AbstractLieSystem):
             return R, Pi, info
 
         return each_body(one, self.inertia, g, m)
+
+    def free_discrete_lagrangian(self, integrator, g0, g1, h: Scalar) -> Scalar:
+        """`Σ_i L_d^i(R0_i, R1_i)`: each body's discrete Lagrangian as the free rigid body
+        `RigidBody(J_i)`, the body `free_flow` steps."""
+
+        def one(J, a, b):
+            return integrator.kinetic_discrete_lagrangian(RigidBody(J), a, b, h)
+
+        return jnp.sum(jax.vmap(one)(self.inertia, g0, g1))
 
     def lagrangian(self, xi: Float[Array, "N 3"]) -> Scalar:
         return jnp.sum(xi * self.legendre(xi)) / 2
