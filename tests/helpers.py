@@ -4,6 +4,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from scipy.integrate import solve_ivp
 
 import lievi
@@ -41,6 +42,12 @@ def random_generalized_body(rng, n):
 # Every integrator of the core library, for parametrize.
 INTEGRATORS = (lievi.DEP(chart="exp"), lievi.DEP(chart="cayley"))
 INTEGRATOR_IDS = ("dep-exp", "dep-cayley")
+# The same, the exp chart's case marked `extended`: for checks whose cayley case is the one
+# kept in the default suite.
+INTEGRATORS_EXP_EXTENDED = (
+    pytest.param(INTEGRATORS[0], marks=pytest.mark.extended, id=INTEGRATOR_IDS[0]),
+    pytest.param(INTEGRATORS[1], id=INTEGRATOR_IDS[1]),
+)
 
 
 @eqx.filter_jit

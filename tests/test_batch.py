@@ -42,7 +42,14 @@ def problem():
     return random_batch(np.random.default_rng(5), BATCH)
 
 
-@pytest.fixture(scope="module", params=list(FAST))
+@pytest.fixture(
+    scope="module",
+    # The exp chart's checks are extended (8 s and 10 s); the other integrators stay.
+    params=[
+        pytest.param(name, marks=pytest.mark.extended) if name == "dep-exp" else name
+        for name in FAST
+    ],
+)
 def runs(request, problem):
     """Fast path and generic path (vmap of simulate) on the same batch."""
     bodies, g0, m0, h = problem
@@ -178,7 +185,13 @@ def test_one_fixed_iteration_then_tail(problem):
     assert np.all(one.stats["newton_iterations"] >= 2)  # the tail ran
 
 
-@pytest.mark.parametrize("chart", ["exp", pytest.param("cayley", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "chart",
+    [
+        pytest.param("exp", marks=pytest.mark.extended),  # 11 s
+        pytest.param("cayley", marks=pytest.mark.slow),
+    ],
+)
 def test_failures_are_per_body(chart):
     """One body with a far too large step fails; the others carry on, equal to the
     generic path; the failed body is NaN after its failed step; throw=True raises."""
@@ -207,6 +220,7 @@ def test_failures_are_per_body(chart):
         only_m(m0).block_until_ready()
 
 
+@pytest.mark.extended  # 16 s
 def test_moser_veselov_scalar_solve_at_large_steps():
     """The fast Moser–Veselov step solves a scalar quartic first and falls back to Newton
     in `x` where that has not converged (from the explicit-Euler guess where it is worse);
@@ -233,6 +247,7 @@ def test_moser_veselov_scalar_solve_at_large_steps():
     np.testing.assert_allclose(fast.g[ok], generic.g[ok], rtol=0, atol=ROUNDOFF)
 
 
+@pytest.mark.extended  # 9 s
 def test_shared_system_and_save_options(problem):
     _, g0, m0, _ = problem
     body = lievi.RigidBody(jnp.array([2.0, 1.0, 2 / 3]))
@@ -387,6 +402,7 @@ def test_batch_of_systems_with_a_function_potential():
         np.testing.assert_allclose(traced.m[i, -1], alone.m[-1], rtol=0, atol=ROUNDOFF)
 
 
+@pytest.mark.extended  # 13 s
 def test_sharded_equals_unsharded():
     """On 4 (forced host) CPU devices the sharded batch equals the unsharded one."""
     env = dict(
@@ -457,8 +473,15 @@ def test_fast_path_gradient_equals_generic(name):
             )
 
 
-@pytest.mark.parametrize("method", ["splitting", "rk4"])
-@pytest.mark.parametrize("rows", [3, 1])
+@pytest.mark.parametrize(
+    "rows, method",
+    [
+        pytest.param(3, "splitting", marks=pytest.mark.extended),  # 10 s
+        (3, "rk4"),
+        (1, "splitting"),
+        (1, "rk4"),
+    ],
+)
 def test_explicit_step_derivative_rules(method, rows):
     """The hand-written tangents of the explicit fast steps (`_explicit_adjoints`) equal
     plain autodiff of the same arithmetic, in forward mode (`jvp`) and reverse mode
@@ -497,6 +520,7 @@ def test_explicit_step_derivative_rules(method, rows):
         )
 
 
+@pytest.mark.extended  # 12 s
 def test_fast_path_gradient_finite_when_a_body_fails():
     """A body whose step fails (a far too large h) is reported and masked; the gradient of
     a loss of the other bodies is finite and equals the generic path's."""
@@ -597,7 +621,7 @@ def heavy_tops(rng, batch):
 
 @pytest.mark.parametrize(
     "name",
-    ["dep-exp"]
+    [pytest.param("dep-exp", marks=pytest.mark.extended)]  # 18 s
     + [
         pytest.param(n, marks=pytest.mark.slow)
         for n in ("dep-cayley", "moser-veselov", "splitting")

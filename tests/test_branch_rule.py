@@ -51,9 +51,9 @@ def _continued_root(integrator, inertia, m, h):
 @pytest.mark.parametrize(
     "integrator",
     [
-        lievi.DEP(),
+        pytest.param(lievi.DEP(), marks=pytest.mark.extended),  # 18 s
         pytest.param(lievi.DEP(chart="cayley"), marks=pytest.mark.slow),
-        lievi.MoserVeselov(),
+        pytest.param(lievi.MoserVeselov(), marks=pytest.mark.extended),  # 16 s
     ],
     ids=["dep-exp", "dep-cayley", "moser-veselov"],
 )

@@ -64,13 +64,17 @@ def start(system):
     return g0, 0.1 * jnp.arange(1.0, d + 1.0)
 
 
-# One case per class in the default suite (the others under -m slow: each compiles a run).
-DEFAULT_CASES = ("se3-indefinite", "uniform-gravity-negative-mass", "central-gravity-negative-mu")
+# One case per class under -m extended (8–39 s each), the others under -m slow: each
+# compiles a run.
+EXTENDED_CASES = ("se3-indefinite", "uniform-gravity-negative-mass", "central-gravity-negative-mu")
 
 
 @pytest.mark.parametrize(
     "name",
-    [n if n in DEFAULT_CASES else pytest.param(n, marks=pytest.mark.slow) for n in CASES],
+    [
+        pytest.param(n, marks=pytest.mark.extended if n in EXTENDED_CASES else pytest.mark.slow)
+        for n in CASES
+    ],
 )
 def test_parameter_check_eager_and_traced(name):
     """A bad parameter raises eagerly and gives `invalid_input` under `vmap`/`jit`."""
@@ -88,6 +92,7 @@ def test_parameter_check_eager_and_traced(name):
     assert int(jax.jit(run)(params[1])) == INVALID
 
 
+@pytest.mark.extended  # 17 s
 def test_parameter_check_batched_fast_path():
     """`simulate_batch` on a vmapped batch of heavy tops, one with a negative mass."""
     masses = jnp.array([1.0, -1.0, 0.5])
@@ -104,6 +109,7 @@ def test_parameter_check_batched_fast_path():
 # ---- a potential whose value is not finite ----------------------------------------------
 
 
+@pytest.mark.extended  # 9 s
 def test_nonfinite_potential_value_is_reported():
     """A log barrier `V = −k log g₃₃`: past horizontal its value is NaN while its force is
     finite. The run reports `nonfinite` (one body and batch), not `successful`."""
@@ -122,6 +128,7 @@ def test_nonfinite_potential_value_is_reported():
 # ---- forced steps are unit-invariant ----------------------------------------------------
 
 
+@pytest.mark.extended  # 15 s each
 @pytest.mark.parametrize("integrator", [lievi.DEP(), lievi.LiePoissonSplitting()])
 def test_damping_is_unit_invariant(integrator):
     """Damping `−cΩ` makes the end-of-step kick implicit; its Newton test is relative, so
@@ -178,6 +185,7 @@ def test_float32_run_continues_from_its_output():
         assert bool(traced)
 
 
+@pytest.mark.extended  # 12 s
 def test_membership_tolerance_is_the_same_eager_and_traced():
     """An element just inside the float32 tolerance is accepted eagerly and traced, one
     just outside rejected by both (one tolerance, defined once)."""
@@ -214,6 +222,7 @@ def test_membership_tolerance_is_the_same_eager_and_traced():
 # ---- Solution.advected ------------------------------------------------------------------
 
 
+@pytest.mark.extended  # 12 s
 def test_advected_whenever_g_is_saved():
     """`Solution.advected` is `gᵀe₃` whenever `g` is saved and the potential has an
     advected direction: `simulate`, and `simulate_batch` on both paths."""
@@ -234,6 +243,7 @@ def test_advected_whenever_g_is_saved():
 # ---- batched systems without `system_axis` ----------------------------------------------
 
 
+@pytest.mark.extended  # 16 s
 def test_vmapped_system_without_system_axis():
     """A system built with `jax.vmap` and no `system_axis`: the axis is inferred (its
     leaves are one dimension larger than one system's, with the batch's size), on both

@@ -254,6 +254,7 @@ def angles_and_gradients(r, sequences):
     return out
 
 
+@pytest.mark.extended  # 16–21 s each
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 def test_euler_gradients_finite_at_gimbal_lock(dtype):
     """At the identity (the usual initial attitude) and at every rotation about the first

@@ -14,6 +14,7 @@ from lievi._cli import build_parser, demo, problems
 from lievi._cli import main as cli_main
 
 
+@pytest.mark.extended  # 33 s
 def test_demo_in_process_json_and_plot(tmp_path, capsys):
     pytest.importorskip("matplotlib")
     plot, table = tmp_path / "demo.png", tmp_path / "demo.json"

@@ -11,11 +11,18 @@ import numpy as np
 import pytest
 
 import lievi
-from helpers import INTEGRATOR_IDS, INTEGRATORS, ROUNDOFF, hlw_problem, random_generalized_body
+from helpers import (
+    INTEGRATOR_IDS,
+    INTEGRATORS,
+    INTEGRATORS_EXP_EXTENDED,
+    ROUNDOFF,
+    hlw_problem,
+    random_generalized_body,
+)
 from lievi import diagnostics as dg
 
 
-@pytest.mark.parametrize("integrator", INTEGRATORS, ids=INTEGRATOR_IDS)
+@pytest.mark.parametrize("integrator", INTEGRATORS_EXP_EXTENDED)  # dep-exp: 11 s
 def test_del_residual_hlw(integrator):
     body, g0, m0 = hlw_problem()
     h = 0.1
@@ -25,7 +32,13 @@ def test_del_residual_hlw(integrator):
     assert jnp.max(jnp.abs(residual)) <= ROUNDOFF * jnp.max(jnp.abs(m0))
 
 
-@pytest.mark.parametrize("n", [4, pytest.param(5, marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "n",
+    [
+        pytest.param(4, marks=pytest.mark.extended),  # 18 s (exp), 9 s (cayley)
+        pytest.param(5, marks=pytest.mark.slow),
+    ],
+)
 @pytest.mark.parametrize("integrator", INTEGRATORS, ids=INTEGRATOR_IDS)
 def test_del_residual_generalized_rigid_body(integrator, n):
     body, g0, m0 = random_generalized_body(np.random.default_rng(n), n)
@@ -41,7 +54,7 @@ def _skewed_lagrangian(xi):
     return 0.5 * jnp.dot(xi, inertia * xi) + 0.3 * xi[0] * xi[1] * xi[2] + 0.1 * xi[0] ** 3
 
 
-@pytest.mark.parametrize("integrator", INTEGRATORS, ids=INTEGRATOR_IDS)
+@pytest.mark.parametrize("integrator", INTEGRATORS_EXP_EXTENDED)  # dep-exp: 10 s
 def test_right_invariant_is_mirrored_left_invariant(integrator):
     """Right run of (g, μ) under l = left run of (g⁻¹, −μ) under l̃(ξ) = l(−ξ) (docs/theory/conventions.md)."""
     _, g0, m0 = hlw_problem()
@@ -58,7 +71,7 @@ def test_right_invariant_is_mirrored_left_invariant(integrator):
     assert jnp.max(jnp.abs(dg.del_residual(right, integrator, sol_r.g, h))) <= ROUNDOFF
 
 
-@pytest.mark.parametrize("integrator", INTEGRATORS, ids=INTEGRATOR_IDS)
+@pytest.mark.parametrize("integrator", INTEGRATORS_EXP_EXTENDED)  # dep-exp: 11 s
 def test_generic_lagrangian_matches_rigid_body(integrator):
     body, g0, m0 = hlw_problem()
     generic = lievi.LieLagrangian(lievi.SO3, body.lagrangian)
@@ -68,6 +81,7 @@ def test_generic_lagrangian_matches_rigid_body(integrator):
     np.testing.assert_allclose(a.m, b.m, rtol=0, atol=ROUNDOFF)
 
 
+@pytest.mark.extended  # 10 s
 def test_son3_generalized_body_matches_rigid_body():
     """Λ ↦ (Λ₂+Λ₃, Λ₁+Λ₃, Λ₁+Λ₂) maps the generalized body on SO(3) to the rigid body."""
     Lambda = jnp.array([0.2, 0.9, 1.3])
@@ -92,7 +106,7 @@ def test_full_inertia_tensor_is_a_change_of_body_frame():
     np.testing.assert_allclose(b.m, a.m @ Q.T, rtol=0, atol=ROUNDOFF)
 
 
-@pytest.mark.parametrize("integrator", INTEGRATORS, ids=INTEGRATOR_IDS)
+@pytest.mark.parametrize("integrator", INTEGRATORS_EXP_EXTENDED)  # dep-exp: 14 s
 def test_start_from_two_configurations(integrator):
     """Paper §2: the discrete trajectory through (g0, g1) is the one with m0 = −D₁L_d(g0, g1)."""
     body, g0, m0 = hlw_problem()
@@ -113,7 +127,7 @@ def test_conservation_over_1e4_steps(integrator):
     assert jnp.max(dg.orthogonality_defect(body, sol.g)) <= ROUNDOFF
 
 
-@pytest.mark.parametrize("integrator", INTEGRATORS, ids=INTEGRATOR_IDS)
+@pytest.mark.parametrize("integrator", INTEGRATORS_EXP_EXTENDED)  # dep-exp: 13 s
 def test_conservation_generalized_rigid_body(integrator):
     body, g0, m0 = random_generalized_body(np.random.default_rng(7), 5)
     sol = lievi.simulate(body, integrator, g0, m0, h=0.05, n_steps=2000, save_every=10)
@@ -123,7 +137,7 @@ def test_conservation_generalized_rigid_body(integrator):
     assert dg.relative_drift(dg.spatial_momentum(body, sol.g, sol.m)) <= ROUNDOFF
 
 
-@pytest.mark.parametrize("integrator", INTEGRATORS, ids=INTEGRATOR_IDS)
+@pytest.mark.parametrize("integrator", INTEGRATORS_EXP_EXTENDED)  # dep-exp: 20 s
 def test_dlp_map_is_poisson(integrator):
     """Proposition 3.1: D B(Π_k) Dᵀ = B(Π_{k+1}) for the Jacobian D of Π_k ↦ Π_{k+1}."""
     body, g0, m0 = hlw_problem()
@@ -145,7 +159,7 @@ def test_poisson_defect_detects_a_non_poisson_map():
     assert dg.poisson_defect(body, Scaled(), g0, m0, 0.1) > 1e-4
 
 
-@pytest.mark.parametrize("integrator", INTEGRATORS, ids=INTEGRATOR_IDS)
+@pytest.mark.parametrize("integrator", INTEGRATORS_EXP_EXTENDED)  # dep-exp: 14 s
 def test_batched_equals_per_body(integrator):
     rng = np.random.default_rng(11)
     inertias = jnp.asarray(rng.uniform(0.5, 2.0, size=(4, 3)))
@@ -186,6 +200,7 @@ def test_implicit_derivative_matches_finite_differences():
     np.testing.assert_allclose(jac, jac_rev, rtol=0, atol=1e-12)
 
 
+@pytest.mark.extended  # 50 s
 def test_generalized_rigid_body_increments_that_need_scaling():
     """SO(4), exp chart, steps long enough that `dexp(ξ) = φ₁(ad_ξ)` scales `ad_ξ` and
     doubles back (the branch of `lievi._groups._expm` that a short step skips): the DEL

@@ -5,7 +5,7 @@
 - A block that cannot run here (two processes, a cluster, a GPU, a long run) is marked in
   the Markdown by an HTML comment on the line before its fence, `<!-- skip: REASON -->`
   (hidden in the built site); it gets its own test, reported skipped with that reason.
-- A page whose blocks take long to compile is `extended` (`tests/conftest.py`).
+- A page whose blocks take long to compile is `extended` (`EXTENDED_PAGES`).
 - The two-process script of `docs/cluster.md` runs as two processes
   (`test_cluster_script_in_two_processes`).
 
@@ -55,7 +55,23 @@ def _name(path: Path) -> str:
 
 
 BLOCKS = {_name(p): code_blocks(p) for p in PAGES}
-RUN = [name for name, blocks in BLOCKS.items() if any(s is None for _, _, s in blocks)]
+# The pages whose blocks compile fits, coupled bodies or SE(3) programs (seconds on one
+# worker of a 2-core machine); the quick-start pages stay in the default suite.
+EXTENDED_PAGES = (
+    "docs/identification.md",  # 70 s
+    "docs/rigid-bodies.md",  # 67 s
+    "docs/optimal-control.md",  # 58 s
+    "docs/forcing.md",  # 55 s
+    "docs/gradients.md",  # 40 s
+    "docs/se3.md",  # 24 s
+    "docs/potentials.md",  # 22 s
+    "docs/preprocessed_dmv.md",  # 15 s
+)
+RUN = [
+    pytest.param(name, marks=pytest.mark.extended) if name in EXTENDED_PAGES else name
+    for name, blocks in BLOCKS.items()
+    if any(s is None for _, _, s in blocks)
+]
 SKIPPED = [
     pytest.param(name, line, reason, id=f"{name}:{line}")
     for name, blocks in BLOCKS.items()
@@ -115,7 +131,13 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.mark.parametrize("with_fit", [False, pytest.param(True, marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "with_fit",
+    [
+        pytest.param(False, marks=pytest.mark.extended),  # 72 s
+        pytest.param(True, marks=pytest.mark.slow),
+    ],
+)
 def test_cluster_script_in_two_processes(tmp_path, with_fit):
     """The script of "Two processes on one machine" (with `-m slow`, and its fit), as the
     page says to start it (twice, process ids 0 and 1), on this machine's CPU, on a free

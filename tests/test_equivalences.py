@@ -99,7 +99,7 @@ def test_theorem_5_1_dep_equals_moser_veselov(case):
     np.testing.assert_allclose(momenta, sol.m[:-1], rtol=0, atol=ROUNDOFF)
 
 
-@pytest.mark.parametrize("n", [3, 4])
+@pytest.mark.parametrize("n", [3, pytest.param(4, marks=pytest.mark.extended)])  # 4: 6 s
 def test_moser_veselov_iterates_satisfy_5_4(n):
     """(5.4) itself, `fᵀ_{k+1,k}Λ − Λf_{k+1,k} = Λfᵀ_{k,k−1} − f_{k,k−1}Λ`, with
     `f_{k+1,k} = g_{k+1}ᵀ g_k`, and (5.6₂) `M_{k+1} = Π_k = ωᵀΛ − Λω` scaled by h."""

@@ -62,6 +62,7 @@ def rosenbrock(x):
 STARTS = jnp.array([[-1.2, 1.0], [0.0, 0.0], [2.0, 2.0], [-0.5, 3.0], [1.5, -1.0]])
 
 
+@pytest.mark.extended  # 14 s
 def test_lbfgs_rosenbrock_batch_equals_alone():
     machine = LBFGS()
     state, finished, evals, iters = minimise(machine, rosenbrock, STARTS, 400, 1e-10)

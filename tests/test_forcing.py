@@ -52,19 +52,38 @@ ALL_INTEGRATORS = KICK_INTEGRATORS + (lievi.RK4(), lievi.Composition(lievi.DEP()
 ALL_IDS = KICK_IDS + ("rk4", "composition")
 
 
-def first_in_default_suite(integrators, ids, default=("dep-exp",)):
-    """Parameters for `parametrize`: the ones in `default` run always, the rest are slow
-    (each integrator costs a compilation; the default suite must stay fast)."""
+def first_in_default_suite(integrators, ids, default=("dep-exp",), marks=()):
+    """Parameters for `parametrize`: the ones in `default` are not slow (they carry `marks`:
+    `pytest.mark.extended` where even they take long), the rest are slow (each integrator
+    costs a compilation; the default suite must stay fast)."""
     return [
-        pytest.param(i, id=name, marks=() if name in default else pytest.mark.slow)
+        pytest.param(i, id=name, marks=marks if name in default else pytest.mark.slow)
         for i, name in zip(integrators, ids)
     ]
 
 
+# The marks of each integrator's case without and with the potential: RK4 on the heavy top
+# stays in the default suite, the other cases of DEP(exp), splitting and RK4 are extended
+# (9–13 s each), the other integrators are slow.
+_E, _S = pytest.mark.extended, pytest.mark.slow
+ZERO_FORCING_MARKS = {
+    "dep-exp": (_E, _E),
+    "dep-cayley": (_S, _S),
+    "moser-veselov": (_S, _S),
+    "splitting": (_E, _E),
+    "rk4": (_E, ()),
+    "composition": (_S, _S),
+}
+
+
 @pytest.mark.parametrize(
-    "integrator", first_in_default_suite(ALL_INTEGRATORS, ALL_IDS, ("dep-exp", "splitting", "rk4"))
+    "with_potential, integrator",
+    [
+        pytest.param(with_potential, i, id=f"{where}-{name}", marks=ZERO_FORCING_MARKS[name][k])
+        for i, name in zip(ALL_INTEGRATORS, ALL_IDS)
+        for k, (with_potential, where) in enumerate([(False, "free"), (True, "heavy-top")])
+    ],
 )
-@pytest.mark.parametrize("with_potential", [False, True], ids=["free", "heavy-top"])
 def test_zero_forcing_is_the_unforced_run(integrator, with_potential):
     system = lievi.heavy_top(INERTIA, 1.0, RHO, 1.0) if with_potential else lievi.RigidBody(INERTIA)
     g0, n = g0_tilted(), 40
@@ -101,11 +120,11 @@ def observed_order(system, integrator, hs, T, forcing, args):
 @pytest.mark.parametrize(
     "integrator, order",
     [
-        (lievi.DEP(chart="exp"), 2),
+        pytest.param(lievi.DEP(chart="exp"), 2, marks=pytest.mark.extended),  # 12 s
         pytest.param(lievi.DEP(chart="cayley"), 2, marks=pytest.mark.slow),
         pytest.param(lievi.MoserVeselov(), 2, marks=pytest.mark.slow),
         pytest.param(lievi.LiePoissonSplitting(), 2, marks=pytest.mark.slow),
-        (lievi.RK4(), 4),
+        pytest.param(lievi.RK4(), 4, marks=pytest.mark.extended),  # 11 s
         pytest.param(lievi.Composition(lievi.DEP(), 4), 4, marks=pytest.mark.slow),
     ],
     ids=ALL_IDS,
@@ -119,6 +138,7 @@ def test_order_with_a_force_law_and_a_potential(integrator, order):
     assert abs(p - order) < ORDER_TOLERANCE, p
 
 
+@pytest.mark.extended  # 12 s
 def test_order_with_a_held_control():
     """A zero-order-hold control: the reference holds `u_k` on each step, DEP is order 2."""
     body, g0, T = lievi.RigidBody(INERTIA), g0_tilted(), 1.0
@@ -135,7 +155,10 @@ def test_order_with_a_held_control():
     assert abs(p - 2) < ORDER_TOLERANCE, (p, errors)
 
 
-@pytest.mark.parametrize("integrator", first_in_default_suite(KICK_INTEGRATORS, KICK_IDS))
+@pytest.mark.parametrize(
+    "integrator",
+    first_in_default_suite(KICK_INTEGRATORS, KICK_IDS, marks=pytest.mark.extended),  # 9 s
+)
 def test_forced_discrete_noether_per_step(integrator):
     """`g_{k+1}Π_{k+1} − g_kΠ_k = g_k f_k⁻ + g_{k+1} f_k⁺`, every step, to round-off."""
     body, g0, h, n = lievi.RigidBody(INERTIA), g0_tilted(), 0.1, 100
@@ -168,7 +191,10 @@ def test_torque_about_a_fixed_axis_keeps_the_other_components(integrator):
     assert float(jnp.ptp(mu[:, 2])) > 1.0  # the torque does act
 
 
-@pytest.mark.parametrize("integrator", first_in_default_suite(KICK_INTEGRATORS[:3], KICK_IDS[:3]))
+@pytest.mark.parametrize(
+    "integrator",
+    first_in_default_suite(KICK_INTEGRATORS[:3], KICK_IDS[:3], marks=pytest.mark.extended),  # 10 s
+)
 def test_damping_decays_to_rest_with_the_work_balance(integrator):
     """`u = −cΩ`: energy never increases, reaches rest, and ΔE = Σ work at O(h²)."""
     body, g0, c, T = lievi.RigidBody(INERTIA), g0_tilted(), 0.2, 40.0
@@ -226,7 +252,11 @@ def _control_loss(body, integrator, n, h):
 
 @pytest.mark.parametrize(
     "integrator",
-    first_in_default_suite([lievi.DEP(), lievi.MoserVeselov()], ["dep-exp", "moser-veselov"]),
+    first_in_default_suite(
+        [lievi.DEP(), lievi.MoserVeselov()],
+        ["dep-exp", "moser-veselov"],
+        marks=pytest.mark.extended,
+    ),  # 18 s
 )
 def test_gradient_of_a_whole_control_sequence(integrator):
     """500 × 3 controls: `jax.grad` (checkpointed) against central differences."""
@@ -322,6 +352,7 @@ def test_time_reaches_the_force_law():
     assert float(jnp.max(jnp.abs(mu3 - (sol.ts**2 - t0**2) / 2))) <= ROUNDOFF
 
 
+@pytest.mark.extended  # 8 s
 def test_batch_with_per_body_controls():
     body, integrator, n, h = lievi.RigidBody(INERTIA), lievi.DEP(), 20, 0.1
     rng = np.random.default_rng(4)
@@ -458,6 +489,7 @@ def test_bad_input():
         )
 
 
+@pytest.mark.extended  # 13 s
 def test_float32_forced_run():
     body = lievi.RigidBody(INERTIA.astype(jnp.float32))
     n = 50

@@ -10,6 +10,7 @@ import lievi
 from helpers import ROUNDOFF, hlw_problem, random_generalized_body
 
 
+@pytest.mark.extended  # 9 s
 def test_angular_velocity_matches_the_motion_of_g():
     """Central differences of the computed attitudes: `gᵀġ = Ω̂` (body), `ġgᵀ = ω̂` (world)."""
     body, g0, m0 = hlw_problem()

@@ -86,14 +86,16 @@ INTEGRATORS = {
 
 # The Cayley chart shares all code paths but the chart; its copies are `slow` (compile time).
 # So are Moser–Veselov's, but for the finite-difference check below, which runs by default.
-@pytest.fixture(
-    scope="module",
-    params=[
-        "exp",
-        pytest.param("cayley", marks=pytest.mark.slow),
-        pytest.param("moser-veselov", marks=pytest.mark.slow),
-    ],
-)
+COMPILED = [
+    "exp",
+    pytest.param("cayley", marks=pytest.mark.slow),
+    pytest.param("moser-veselov", marks=pytest.mark.slow),
+]
+# The same with the exp chart's case extended, for a heavy check's indirect parametrization.
+COMPILED_EXP_EXTENDED = [pytest.param("exp", marks=pytest.mark.extended), *COMPILED[1:]]
+
+
+@pytest.fixture(scope="module", params=COMPILED)
 def compiled(request):
     dep = INTEGRATORS[request.param]
     loss = jax.jit(lambda p: _loss(p, dep))
@@ -135,6 +137,7 @@ def test_gradient_matches_finite_differences(compiled):
     np.testing.assert_allclose(ad, fd, rtol=FD_RTOL, atol=FD_RTOL * np.max(np.abs(ad)))
 
 
+@pytest.mark.extended  # 13 s
 def test_moser_veselov_gradient_matches_finite_differences():
     """Implicit differentiation through Moser–Veselov's own Newton solve (default suite)."""
     mv = INTEGRATORS["moser-veselov"]
@@ -150,6 +153,7 @@ def _final_state(params, integrator, n_steps=200):
     return jnp.concatenate([sol.g[-1].ravel(), sol.m[-1]])
 
 
+@pytest.mark.parametrize("compiled", COMPILED_EXP_EXTENDED, indirect=True)  # exp: 11 s
 def test_jacfwd_equals_jacrev(compiled):
     dep, _, _ = compiled
     params = _params()
@@ -163,6 +167,7 @@ def test_jacfwd_equals_jacrev(compiled):
         )
 
 
+@pytest.mark.parametrize("compiled", COMPILED_EXP_EXTENDED, indirect=True)  # exp: 14 s
 def test_gradient_independent_of_newton_iterations(compiled):
     """Loose vs tight (converged) tolerances: different iteration counts, same gradient."""
     dep, _, grad = compiled
@@ -219,7 +224,7 @@ def test_gradient_finite_at_zero_momentum(compiled):
 @pytest.mark.parametrize(
     "chart",
     [
-        "exp",
+        pytest.param("exp", marks=pytest.mark.extended),  # 11 s
         pytest.param("cayley", marks=pytest.mark.slow),
         pytest.param("moser-veselov", marks=pytest.mark.slow),
     ],
@@ -253,9 +258,18 @@ def test_gradient_under_vmap(compiled):
 
 
 @pytest.mark.parametrize(
-    "checkpoint",
+    "compiled, checkpoint",
     # True → 40-step segments spanning 4 saves; 5 → two segments inside each 10-step save.
-    [True, pytest.param(5, marks=pytest.mark.slow)],
+    [
+        pytest.param("exp", True, marks=pytest.mark.extended, id="exp-True"),  # 13 s
+        pytest.param("exp", 5, marks=pytest.mark.slow, id="exp-5"),
+    ]
+    + [
+        pytest.param(chart, checkpoint, marks=pytest.mark.slow, id=f"{chart}-{checkpoint}")
+        for chart in ("cayley", "moser-veselov")
+        for checkpoint in (True, 5)
+    ],
+    indirect=["compiled"],
 )
 def test_checkpointing_changes_nothing(compiled, checkpoint):
     dep, loss, grad = compiled
@@ -275,6 +289,7 @@ def test_checkpoint_argument_checked():
         lievi.simulate(body, lievi.DEP(), g0, m0, h=0.1, n_steps=100, save_every=10, checkpoint=3)
 
 
+@pytest.mark.extended  # 12 s
 def test_gradient_finite_when_a_step_fails():
     """A step that fails (here: rotation ≥ π in one step) is reported and masked; the
     gradient of a loss over the valid part of the trajectory stays finite."""

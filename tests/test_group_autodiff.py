@@ -183,6 +183,7 @@ def test_so3_derivatives_are_finite(dtype):
     assert _not_finite(_so3_report(dtype)) == []
 
 
+@pytest.mark.extended  # 8 s
 @pytest.mark.parametrize("n", SON_NS)
 def test_son_derivatives_are_finite(n):
     """At 0, 1e-9, a plane at π − 1e-7, and the other samples."""
@@ -208,6 +209,7 @@ def test_so3_exp_derivative_at_identity_is_the_basis(dtype):
     _check_exp_derivative_at_zero(r["exp/jacfwd"][i], r["exp/grad"][i], SO3, dtype, TOL[dtype])
 
 
+@pytest.mark.extended  # 19 s
 @pytest.mark.parametrize("n", SON_NS)
 def test_son_exp_derivative_at_identity_is_the_basis(n):
     jac = _son_report(n)["exp/jacfwd"][0]  # test_son puts x = 0 first

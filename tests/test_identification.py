@@ -83,6 +83,7 @@ def batch_fit():
     return inertias, momenta, observed, fit
 
 
+@pytest.mark.extended  # 32 s
 def test_batch_shapes_and_report(batch_fit):
     inertias, _, observed, fit = batch_fit
     assert fit.inertia.shape == (3, 3) and fit.m0.shape == (3, 3) and fit.g0.shape == (3, 3, 3)
@@ -105,6 +106,7 @@ def test_batch_shapes_and_report(batch_fit):
             assert history[it] < 1e-20
 
 
+@pytest.mark.extended  # reads `batch_fit` (a batched fit, 65 s)
 def test_hlw_noise_free_recovers_moments(batch_fit):
     inertias, _, _, fit = batch_fit
     err = np.abs(_normalised(fit.inertia[0]) / _normalised(inertias[0]) - 1)
@@ -115,6 +117,7 @@ def test_hlw_noise_free_recovers_moments(batch_fit):
     np.testing.assert_allclose(np.asarray(fit.m0[0]) * scale, m0, atol=1e-6)
 
 
+@pytest.mark.extended  # reads `batch_fit` (a batched fit, 65 s)
 def test_hlw_noisy_recovers_moments(batch_fit):
     inertias, _, _, fit = batch_fit
     err = np.abs(_normalised(fit.inertia[1]) / _normalised(inertias[1]) - 1)
@@ -122,6 +125,7 @@ def test_hlw_noisy_recovers_moments(batch_fit):
     assert err.max() > 1e-5  # the noise did reach the fit
 
 
+@pytest.mark.extended  # reads `batch_fit` (a batched fit, 65 s)
 def test_random_bodies_noise_free(batch_fit):
     inertias, _, _, fit = batch_fit
     err = np.abs(_normalised(fit.inertia[2:]) / _normalised(inertias[2:]) - 1)
@@ -626,6 +630,7 @@ def test_stopping_test_is_invariant_to_the_weights_scale():
 # ---- the default start: a linear least-squares estimate -------------------------------
 
 
+@pytest.mark.extended  # 15 s
 def test_default_inertia_estimate():
     """Noise-free orientations (and angular velocities) of the HLW body: the estimate's
     normalised moments within 2e-2 of the truth (the finite differences are O(Δt²)); a

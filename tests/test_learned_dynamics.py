@@ -23,6 +23,7 @@ INERTIA = jnp.array([1.0, 1.2, 0.6])
 H = 0.05
 
 
+@pytest.mark.extended  # 16 s
 def test_neural_potential_keeps_its_symmetry_and_is_differentiable():
     """With `features="vertical"` V depends on Γ = gᵀe₃ only: `e₃·(gΠ)` is conserved."""
     potential = lievi.NeuralPotential(

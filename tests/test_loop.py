@@ -56,6 +56,7 @@ def small_blocks(monkeypatch):
     jax.clear_caches()
 
 
+@pytest.mark.extended  # 8–14 s each
 @pytest.mark.parametrize("n_steps, save_every", [(9, 1), (12, 3), (5, 5)])
 @pytest.mark.parametrize(
     "system, integrator, m0",
@@ -85,6 +86,7 @@ FAST_AND_GENERIC = pytest.mark.parametrize(
 )
 
 
+@pytest.mark.extended  # 9–14 s each
 @FAST_AND_GENERIC
 @pytest.mark.parametrize("save", [("g", "m", "stats"), ("m",)])
 @pytest.mark.parametrize("h", [0.1, 0.1 + 0.01 * jnp.arange(5.0)], ids=["shared-h", "h-per-body"])
@@ -96,6 +98,7 @@ def test_simulate_batch_eager_equals_jit(small_blocks, fast, integrator, save, h
     _same(eager, traced(BODY, MOMENTA), exact=False)
 
 
+@pytest.mark.extended  # 10–11 s each
 @FAST_AND_GENERIC
 def test_failure_is_recorded_across_blocks(small_blocks, fast, integrator):
     """A failed body: its code, failed step and NaN saves in every later block, as under
@@ -154,6 +157,7 @@ def test_progress_meter_of_an_eager_run(small_blocks, capsys):
     assert out.count("\n") == 1
 
 
+@pytest.mark.extended  # 13 s
 def test_under_transformations_the_static_scan_is_used():
     """`jit`, `grad` and `vmap` trace the run: the static scan (reverse mode needs it)."""
     assert not tracing()

@@ -124,7 +124,13 @@ def test_dlp_map_is_poisson(hlw_run):
         assert poisson_defect(body, MV, sol.g[k], sol.m[k], H) <= ROUNDOFF
 
 
-@pytest.mark.parametrize("n", [4, pytest.param(5, marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "n",
+    [
+        pytest.param(4, marks=pytest.mark.extended),  # 11 s
+        pytest.param(5, marks=pytest.mark.slow),
+    ],
+)
 def test_generalized_rigid_body(n):
     body, g0, m0 = random_generalized_body(np.random.default_rng(n), n)
     h = 0.05
@@ -233,6 +239,7 @@ def test_float32_run():
     np.testing.assert_allclose(sol32.m, sol64.m, rtol=0, atol=1e-4)
 
 
+@pytest.mark.extended  # 12 s
 def test_implicit_derivative_matches_finite_differences():
     """Gradients with respect to inertia and h through 10 steps (implicit function theorem)."""
     body, g0, m0 = hlw_problem()

@@ -22,14 +22,17 @@ CELL_TIMEOUT = 300  # seconds per cell
 _WHICH_PYTHON = "import sys; print(sys.prefix)"
 
 
-# The default suite runs the introduction and the heavy top; the others (each a minute or
-# more of compiling) run with `-m slow`.
-_DEFAULT = ("01_free_rigid_body.ipynb", "05_heavy_top.ipynb")
+# `-m extended` runs the introduction (19 s) and the heavy top (32 s); the others (each a
+# minute or more of compiling) run with `-m slow`.
+_EXTENDED = ("01_free_rigid_body.ipynb", "05_heavy_top.ipynb")
 
 
 @pytest.mark.parametrize(
     "path",
-    [p if p.name in _DEFAULT else pytest.param(p, marks=pytest.mark.slow) for p in NOTEBOOKS],
+    [
+        pytest.param(p, marks=pytest.mark.extended if p.name in _EXTENDED else pytest.mark.slow)
+        for p in NOTEBOOKS
+    ],
     ids=[p.name for p in NOTEBOOKS],
 )
 def test_notebook_runs(path, monkeypatch):

@@ -34,6 +34,7 @@ def solve_sphere(n, j=1.0, **kwargs):
     )
 
 
+@pytest.mark.extended  # 13 s
 def test_sphere_rest_to_rest_matches_the_closed_form():
     r = solve_sphere(N)
     assert isinstance(r, lievi.OptimalControlSolution)
@@ -55,6 +56,7 @@ def test_sphere_rest_to_rest_matches_the_closed_form():
     assert r.multipliers.shape == (6,)
 
 
+@pytest.mark.extended  # 24 s
 def test_unconverged_solve_is_reported():
     """One multiplier update (same size, same compilation) leaves the O(1/ρ) defect."""
     r = solve_sphere(N, max_iterations=1)

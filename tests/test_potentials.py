@@ -54,7 +54,12 @@ SECOND_ORDER_IDS = ("dep-exp", "dep-cayley", "moser-veselov", "splitting")
 
 @pytest.mark.parametrize(
     "integrator",
-    SECOND_ORDER[:2] + (pytest.param(SECOND_ORDER[2], marks=pytest.mark.slow), SECOND_ORDER[3]),
+    (
+        pytest.param(SECOND_ORDER[0], marks=pytest.mark.extended),  # 10 s
+        SECOND_ORDER[1],
+        pytest.param(SECOND_ORDER[2], marks=pytest.mark.slow),
+        SECOND_ORDER[3],
+    ),
     ids=SECOND_ORDER_IDS,
 )
 def test_second_order_heavy_top(integrator):
@@ -118,6 +123,7 @@ def test_heavy_top_long_run_dep(n_steps):
     assert jnp.max(jnp.abs(energy[-tenth:])) <= 1.5 * jnp.max(jnp.abs(energy[:tenth]))
 
 
+@pytest.mark.extended  # 17 s
 def test_lagrange_top_keeps_its_spin():
     """The variational methods are equivariant under rotations about the symmetry axis, so
     (discrete Noether) they keep `Π₃`. The splitting does not: its sub-flows about the first
@@ -149,6 +155,7 @@ def test_del_residual_detects_a_missing_kick():
     assert jnp.max(jnp.abs(dg.del_residual(top, lievi.DEP(), sol.g, h))) > 1e-6
 
 
+@pytest.mark.extended  # 10 s
 def test_start_from_two_configurations():
     top, h = asymmetric_top(), 0.05
     sol = lievi.simulate(top, lievi.DEP(), g0_tilted(), M0, h=h, n_steps=3)
@@ -156,13 +163,29 @@ def test_start_from_two_configurations():
     assert jnp.max(jnp.abs(again.m - sol.m)) <= ROUNDOFF
 
 
-@pytest.mark.parametrize(
-    "potential",
-    (lievi.UniformGravity(0.0, RHO), lambda g: 0.0 * g[0, 0]),
-    ids=("zero-mass", "zero-callable"),
+ZERO_POTENTIALS = (
+    (lievi.UniformGravity(0.0, RHO), "zero-mass"),
+    (lambda g: 0.0 * g[0, 0], "zero-callable"),
 )
+ZERO_POTENTIAL_EXTENDED = (
+    "dep-exp-zero-mass",  # 12 s
+    "dep-exp-zero-callable",  # 11 s
+    "moser-veselov-zero-mass",  # 9 s
+)
+
+
 @pytest.mark.parametrize(
-    "integrator", SECOND_ORDER + (lievi.RK4(),), ids=SECOND_ORDER_IDS + ("rk4",)
+    "integrator, potential",
+    [
+        pytest.param(
+            integrator,
+            potential,
+            id=f"{name}-{kind}",
+            marks=pytest.mark.extended if f"{name}-{kind}" in ZERO_POTENTIAL_EXTENDED else (),
+        )
+        for integrator, name in zip(SECOND_ORDER + (lievi.RK4(),), SECOND_ORDER_IDS + ("rk4",))
+        for potential, kind in ZERO_POTENTIALS
+    ],
 )
 def test_zero_potential_is_the_free_body(potential, integrator):
     body, g0, m0 = hlw_problem()
@@ -182,6 +205,7 @@ def test_torque_is_gamma_cross_rho():
     assert jnp.max(jnp.abs(top.force(g) - expected)) <= 1e-13
 
 
+@pytest.mark.extended  # 11 s
 def test_three_d_pendulum():
     """A slender rod on a spherical joint: inertia about the pivot, long arm."""
     length, mass = 1.0, 1.0
@@ -200,6 +224,7 @@ def test_three_d_pendulum():
     assert jnp.max(jnp.abs(dg.del_residual(pendulum, lievi.DEP(), short.g, h))) <= ROUNDOFF
 
 
+@pytest.mark.extended  # 19 s
 def test_potential_on_son():
     """A heavy generalized rigid body on SO(4): gravity along the last axis."""
     rng = np.random.default_rng(7)
@@ -221,6 +246,7 @@ def test_potential_on_son():
             assert jnp.max(jnp.abs(residual)) <= ROUNDOFF
 
 
+@pytest.mark.extended  # 13 s
 def test_right_invariant_mirror_image():
     """Right-invariant `(g_k, μ_k)` = left-invariant `(g_k⁻¹, −μ_k)` for `l(−ξ)`, `V(g⁻¹)`."""
     inertia = jnp.array([1.5, 1.0, 0.7])
@@ -247,6 +273,7 @@ def test_right_invariant_mirror_image():
     assert abs(order - 2) <= ORDER_TOLERANCE, (order, errors)
 
 
+@pytest.mark.extended  # 8 s
 def test_gradients_match_finite_differences():
     """d/d(I, mρ, Π₀) of a loss of a 1000-step heavy-top run, against central differences."""
     g0, h, n = g0_tilted(), 0.01, 1000
@@ -302,6 +329,7 @@ def test_nonfinite_potential_is_reported():
         lievi.simulate(body, lievi.LiePoissonSplitting(), jnp.eye(3), M0, h=0.1, n_steps=5)
 
 
+@pytest.mark.extended  # 10 s
 def test_potential_parameters_under_vmap():
     """A batch of tops with their own centres of mass, by `jax.vmap(simulate)`."""
     rhos = jnp.asarray(np.random.default_rng(1).normal(size=(4, 3)))

@@ -177,6 +177,7 @@ def test_unprepared_step_equals_prepared():
     assert jnp.max(jnp.abs(g1 - g2)) <= ROUNDOFF
 
 
+@pytest.mark.extended  # 10 s
 def test_structure_over_1000_steps():
     body = lievi.RigidBody(BODIES["hv"])
     integrator = prepare(lievi.PreprocessedMoserVeselov(6), body, Y0, jnp.asarray(0.05))
@@ -224,6 +225,7 @@ def test_gradient_matches_finite_differences(wrt):
     np.testing.assert_allclose(jacobian, jnp.stack(columns, axis=1), rtol=1e-6, atol=1e-8)
 
 
+@pytest.mark.extended  # 10 s
 def test_full_inertia_tensor_equals_principal_frame():
     """A rotated body (full tensor `R diag(I) Rᵀ`, momentum `RΠ`, attitude `Q Rᵀ`) gives the
     conjugated trajectory: the modified moments are built from trace invariants."""
@@ -317,6 +319,7 @@ def test_bad_input():
         lievi.PreprocessedMoserVeselov(6).prepare(top, Y0, 0.1)
 
 
+@pytest.mark.extended  # 13 s
 def test_prepared_for_another_step_size():
     """The series of a prepared integrator belong to one h. `simulate` prepares every run
     for its own h (`init`): a copy prepared for another h runs as one prepared for this h

@@ -153,6 +153,7 @@ def test_tqdm_meter_with_a_stand_in_tqdm(monkeypatch):
         assert bar.closed and bar.positions == [5.0 * k for k in range(21)], bar.positions
 
 
+@pytest.mark.extended  # 13–14 s each
 @pytest.mark.parametrize("fast", [True, False])
 def test_batch_meter_updates_one_line(capsys, fast):
     """`simulate_batch(progress_meter=...)`: one line for the whole batch, on the fast path

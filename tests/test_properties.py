@@ -64,6 +64,7 @@ def _scale_invariance(name, inertia, direction, exponent, dtype, atol):
         )
 
 
+@pytest.mark.extended  # 11 s
 @settings(max_examples=25, **SETTINGS)
 @given(
     name=st.sampled_from(["dep-exp", "dep-cayley", "moser-veselov"]),
@@ -75,6 +76,7 @@ def test_scale_invariance_float64(name, inertia, direction, exponent):
     _scale_invariance(name, inertia, direction, exponent, jnp.float64, 1e-11)
 
 
+@pytest.mark.extended  # 15 s
 @settings(max_examples=15, **SETTINGS)
 @given(
     name=st.sampled_from(["dep-exp", "moser-veselov"]),
@@ -139,6 +141,7 @@ def _son_round_trip(n):
     return run
 
 
+@pytest.mark.extended  # 11 s
 @settings(max_examples=20, **SETTINGS)
 @given(
     n=st.sampled_from([2, 4]),
@@ -201,6 +204,7 @@ def _traced_run(integrator, tensor):
     return run
 
 
+@pytest.mark.extended  # 16 s
 @settings(max_examples=25, **SETTINGS)
 @given(bad=st.sampled_from(list(BAD_INPUTS)), scale=st.floats(1e-3, 1e3))
 def test_traced_and_eager_validation_agree(bad, scale):
@@ -287,6 +291,7 @@ def _fast_equals_generic(name, seed, fraction):
     assert np.all(np.asarray(fast.result)[beyond] == lievi.RESULTS.step_too_large)
 
 
+@pytest.mark.extended  # 9 s
 @settings(max_examples=10, **SETTINGS)
 @given(seed=st.integers(0, 2**31 - 1))
 def test_fast_path_equals_generic_path(seed):

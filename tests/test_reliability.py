@@ -24,8 +24,22 @@ IMPLICIT = {
 # ---- relative Newton tolerance: the solution does not depend on the units -----------------
 
 
-@pytest.mark.parametrize("name", list(IMPLICIT))
-@pytest.mark.parametrize("c", [1e-13, 1e13])
+# The small units of the Cayley chart, the composition and the preprocessed method are
+# extended (4–5 s each).
+@pytest.mark.parametrize(
+    "c, name",
+    [
+        pytest.param(
+            c,
+            name,
+            marks=pytest.mark.extended
+            if c < 1 and name in ("dep-cayley", "composition", "preprocessed")
+            else (),
+        )
+        for c in (1e-13, 1e13)
+        for name in IMPLICIT
+    ],
+)
 def test_tolerance_is_relative_scaled_body_gives_same_trajectory(name, c):
     """`(I, Π) → (cI, cΠ)` leaves the attitude unchanged; with an absolute tolerance a
     small-unit body "converged" at the explicit-Euler guess with 0 iterations."""
@@ -42,6 +56,7 @@ def test_tolerance_is_relative_scaled_body_gives_same_trajectory(name, c):
     np.testing.assert_allclose(scaled.m / c, ref.m, atol=1e-12)
 
 
+@pytest.mark.extended  # 13 s
 @pytest.mark.parametrize("c", [1e-4])
 def test_tolerance_is_relative_float32_satellite_units(c):
     body, g0, m0 = hlw_problem()
@@ -128,6 +143,7 @@ def test_son2_log_of_half_turn_is_exact():
     assert abs(abs(float(x[0])) - np.pi) < 1e-15
 
 
+@pytest.mark.extended  # 10 s
 def test_son4_near_half_turns_exact():
     """60 random SO(4) rotations with one plane within 1e-16…1e-4 of π: exp(log g) = g."""
     rng = np.random.default_rng(0)
@@ -147,6 +163,7 @@ def test_son4_near_half_turns_exact():
     assert np.all(error <= 256 * 4 * np.finfo(float).eps)
 
 
+@pytest.mark.extended  # 12 s
 def test_log_checked_rejects_non_rotations():
     x = jnp.array([0.3, -0.2, 0.1])
     gs = jnp.stack(
@@ -223,6 +240,7 @@ def test_moser_veselov_branch_rule_same_on_both_paths():
 # ---- prepared PreprocessedMoserVeselov -----------------------------------------------------------
 
 
+@pytest.mark.extended  # 16 s
 def test_prepared_preprocessed_rejects_another_trajectory_and_bad_h():
     """`simulate` prepares each run for its own trajectory (`init`): a copy prepared for
     another one runs as the unprepared method. Its `step` on a state of another
@@ -298,6 +316,7 @@ def test_so3_dexpinv_singular_at_two_pi_is_not_finite():
     assert np.all(np.isfinite(np.asarray(lievi.SO3.dexpinv(jnp.array([3.0, 0.0, 0.0])))))
 
 
+@pytest.mark.extended  # 8 s
 def test_overridden_step_is_run_on_every_path():
     """A subclass that overrides `step` runs its own step, not its parent's kernel: one
     body, `jax.vmap(simulate)` and `simulate_batch` (the fast path used to run the parent's

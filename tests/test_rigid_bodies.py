@@ -149,7 +149,7 @@ def observed_order(problem, integrator, T, hs):
 
 ORDER_CASES = [
     pytest.param(lievi.DEP(chart="cayley"), "molecules", 2, marks=SLOW),
-    (lievi.LiePoissonSplitting(), "molecules", 2),
+    pytest.param(lievi.LiePoissonSplitting(), "molecules", 2, marks=pytest.mark.extended),  # 11 s
     pytest.param(lievi.DEP(chart="exp"), "binary", 2, marks=SLOW),
     pytest.param(lievi.MoserVeselov(), "binary", 2, marks=SLOW),
     pytest.param(lievi.Composition(lievi.DEP(chart="exp"), order=4), "molecules", 4, marks=SLOW),
@@ -270,8 +270,8 @@ def _check_conservation(system, sol, energy_amplitude, drift_check=False, moment
 # to 2.6e-4 (measured); the binary's stays near 1e-5.
 ENERGY_AMPLITUDE = {"molecules": 1e-3, "binary": 1e-4}
 CONSERVATION_CASES = [
-    ("molecules", lievi.DEP(chart="cayley")),
-    ("molecules", lievi.LiePoissonSplitting()),
+    pytest.param("molecules", lievi.DEP(chart="cayley"), marks=pytest.mark.extended),  # 17 s
+    pytest.param("molecules", lievi.LiePoissonSplitting(), marks=pytest.mark.extended),  # 17 s
     pytest.param("binary", lievi.DEP(chart="exp"), marks=SLOW),
     pytest.param("binary", lievi.MoserVeselov(), marks=SLOW),
     pytest.param("molecules", lievi.Composition(lievi.DEP(chart="cayley"), order=4), marks=SLOW),
@@ -337,7 +337,11 @@ def test_diagnostics_one_body_and_kinetic_energy():
 
 
 @pytest.mark.parametrize(
-    "integrator", (lievi.LiePoissonSplitting(), pytest.param(lievi.DEP(chart="cayley"), marks=SLOW))
+    "integrator",
+    (
+        pytest.param(lievi.LiePoissonSplitting(), marks=pytest.mark.extended),  # 10 s
+        pytest.param(lievi.DEP(chart="cayley"), marks=SLOW),
+    ),
 )
 def test_gradient_of_coupling_parameter(integrator):
     """d(final state)/dε of the Lennard-Jones ε equals central differences (through the
@@ -392,7 +396,13 @@ def test_gradient_of_binary_equals_central_differences():
     assert abs(segmented - gradient) <= 1e-12 * abs(gradient)
 
 
-@pytest.mark.parametrize("integrator", (lievi.DEP(chart="cayley"), lievi.LiePoissonSplitting()))
+@pytest.mark.parametrize(
+    "integrator",
+    (
+        pytest.param(lievi.DEP(chart="cayley"), marks=pytest.mark.extended),  # 9 s
+        lievi.LiePoissonSplitting(),
+    ),
+)
 def test_reverse_pass_stores_little_per_step(integrator):
     """What reverse mode stores per step of the run: the carry, the roots and the survival
     mask (`simulate`'s `jax.checkpoint` policy), not every intermediate of the step — 177
@@ -516,6 +526,7 @@ def test_gravitating_bodies_compiles_few_programs():
 # ---- batches of systems ----------------------------------------------------------------------
 
 
+@pytest.mark.extended  # 10 s
 def test_simulate_batch_of_systems():
     """`simulate_batch` over independent N-body systems equals one `simulate` each."""
     system, g0, m0 = molecules_problem()
@@ -529,6 +540,7 @@ def test_simulate_batch_of_systems():
         assert float(jnp.max(jnp.abs(batch.m[b] - one.m))) <= ROUNDOFF
 
 
+@pytest.mark.extended  # 8 s
 def test_damping_force_law_per_body():
     """A force law per body, linear damping `f_i = −c m_i`: each kick scales every body's
     momentum, the coupling's kicks and the free steps keep the total momentum, so the
@@ -548,6 +560,7 @@ def test_damping_force_law_per_body():
     assert float(dg.energy(system, sol.m[-1], sol.g[-1])) < float(dg.energy(system, m0, g0))
 
 
+@pytest.mark.extended  # 14 s
 def test_control_per_body_equals_each_body_alone():
     """A control per body, `u` of shape `(n_steps, N, 6)`: N free bodies each under its own
     body-frame torque and force step exactly as each body alone (`RigidBodySE3` under its
@@ -569,6 +582,7 @@ def test_control_per_body_equals_each_body_alone():
         assert float(jnp.max(jnp.abs(sol.g[:, i] - one.g))) <= 10 * ROUNDOFF
 
 
+@pytest.mark.extended  # 22 s
 def test_control_per_body_in_a_batch_of_systems():
     """`(batch, n_steps, N, 6)`: one control sequence per system of the batch, each row per
     body; the batch equals one `simulate` per system. A one-body shape for an N-body
@@ -596,6 +610,7 @@ def test_control_per_body_in_a_batch_of_systems():
         )
 
 
+@pytest.mark.extended  # 25–27 s each
 @pytest.mark.parametrize(
     "integrator",
     [lievi.DEP(chart="cayley"), lievi.Composition(lievi.LiePoissonSplitting(), order=4)],

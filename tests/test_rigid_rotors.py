@@ -106,11 +106,16 @@ def euler_reference(problem, T):
 
 
 ORDER_CASES = [
-    (lievi.LiePoissonSplitting(), "dipoles", 2),
+    pytest.param(lievi.LiePoissonSplitting(), "dipoles", 2, marks=pytest.mark.extended),  # 19 s
     pytest.param(lievi.DEP(chart="cayley"), "alignment", 2, marks=SLOW),
     pytest.param(lievi.DEP(chart="exp"), "dipoles", 2, marks=SLOW),
     pytest.param(lievi.MoserVeselov(), "alignment", 2, marks=SLOW),
-    (lievi.Composition(lievi.LiePoissonSplitting(), order=4), "alignment", 4),
+    pytest.param(
+        lievi.Composition(lievi.LiePoissonSplitting(), order=4),
+        "alignment",
+        4,
+        marks=pytest.mark.extended,  # 10 s
+    ),
     pytest.param(lievi.Composition(lievi.DEP(chart="exp"), order=4), "dipoles", 4, marks=SLOW),
     pytest.param(lievi.RK4(), "alignment", 4, marks=SLOW),
     (lievi.RKMK4(), "alignment", 4),  # on the product group: each body's `exp`, `dexpinv`
@@ -139,7 +144,7 @@ def test_order(integrator, problem, expected):
 @pytest.mark.parametrize(
     "integrator",
     (
-        lievi.DEP(chart="exp"),
+        pytest.param(lievi.DEP(chart="exp"), marks=pytest.mark.extended),  # 14 s
         lievi.LiePoissonSplitting(),
         pytest.param(lievi.DEP(chart="cayley"), marks=SLOW),
         pytest.param(lievi.MoserVeselov(), marks=SLOW),
@@ -220,6 +225,7 @@ def test_dipoles_on_a_line_conserve_the_axial_momentum_only(integrator):
     assert _energy_error(system, sol) <= 1e-3
 
 
+@pytest.mark.extended  # 11 s
 def test_free_rotors_keep_each_body_casimir_and_momentum():
     """Without a coupling every rotor is a free rigid body: its |Π_i| and its `R_i Π_i`
     conserved to round-off, and `total_momentum` is the sum of the `spatial_momentum`s."""
@@ -246,7 +252,11 @@ def test_free_rotors_keep_each_body_casimir_and_momentum():
 
 
 @pytest.mark.parametrize(
-    "integrator", (lievi.LiePoissonSplitting(), pytest.param(lievi.DEP(chart="cayley"), marks=SLOW))
+    "integrator",
+    (
+        pytest.param(lievi.LiePoissonSplitting(), marks=pytest.mark.extended),  # 17 s
+        pytest.param(lievi.DEP(chart="cayley"), marks=SLOW),
+    ),
 )
 def test_gradient_of_coupling_parameter(integrator):
     """d(final state)/d(dipole strength) equals central differences (step 1e-5) to ≤ 1e-6
@@ -268,6 +278,7 @@ def test_gradient_of_coupling_parameter(integrator):
 # ---- batches of systems ----------------------------------------------------------------------
 
 
+@pytest.mark.extended  # 13 s
 def test_simulate_batch_of_systems():
     """`simulate_batch` over independent rotor systems (a sweep of the dipole strength,
     built with `jax.vmap`, each from its own state) equals one `simulate` each, to

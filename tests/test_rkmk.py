@@ -38,6 +38,7 @@ def observed_order(system, g0, m0, T, hs, forcing=None, integrator=RKMK4):
 HS = [0.2 / 2**k for k in range(3)]
 
 
+@pytest.mark.extended  # 8–11 s each
 @pytest.mark.parametrize("side", ["left", "right"])
 def test_fourth_order_and_more_accurate_than_embedded_rk4(side):
     """HLW's free rigid body, T = 2: order 4.0 ± 0.1 on both sides, and at equal step more
@@ -50,6 +51,7 @@ def test_fourth_order_and_more_accurate_than_embedded_rk4(side):
     assert errors[0] < rk4_error / 5, (errors[0], rk4_error)
 
 
+@pytest.mark.extended  # 13 s
 def test_fourth_order_heavy_top_with_control():
     """A heavy top (a potential) driven by a time-varying control torque: order 4."""
     top = lievi.heavy_top(jnp.array([2.0, 1.0, 2 / 3]), 1.0, jnp.array([0.1, 0.05, 0.4]), 1.0)
@@ -76,6 +78,7 @@ HIGHER_ORDERS = [
 ]
 
 
+@pytest.mark.extended  # 15–16 s each
 @pytest.mark.parametrize("integrator, free_hs, forced_hs", HIGHER_ORDERS, ids=["rkmk5", "rkmk8"])
 def test_order_of_the_tableau(integrator, free_hs, forced_hs):
     """RKMK5 and RKMK8 have the order of their tableau (± 0.1) in `g` and `m` together,
@@ -115,7 +118,11 @@ def test_step_bound_is_the_tableaus_stability(integrator):
     assert integrator.step_bound() == min(tableau.imaginary_stability, 3.0)
 
 
-@pytest.mark.parametrize("integrator", [lievi.RKMK4(), lievi.RKMK8()], ids=str)
+@pytest.mark.parametrize(
+    "integrator",
+    [lievi.RKMK4(), pytest.param(lievi.RKMK8(), marks=pytest.mark.extended)],  # RKMK8: 8 s
+    ids=str,
+)
 def test_stays_on_the_group_where_rk4_drifts(integrator):
     """Heavy top, h = 0.1, 1e4 steps: ‖gᵀg − I‖ stays at round-off (the attitude moves only
     by exponentials), while the embedded RK4's drifts by orders of magnitude more."""
@@ -176,6 +183,7 @@ SE3_M0 = jnp.array([0.5, -0.3, 0.8, 1.0, 0.2, -0.5])
 HS_SE3 = [0.1 / 2**k for k in range(3)]
 
 
+@pytest.mark.extended  # 13–14 s each
 @pytest.mark.parametrize("gravity", [False, True], ids=["free", "gravity"])
 def test_fourth_order_on_se3_through_the_kernel(gravity):
     """`simulate_batch` on SE(3) (the structure-of-arrays kernel): order 4.0 ± 0.1 in `g`
@@ -245,6 +253,7 @@ def test_se3_kernel_gradient_equals_generic_and_differences():
     assert abs(difference - derivative) <= 1e-7 * abs(derivative), (difference, derivative)
 
 
+@pytest.mark.extended  # 11–15 s each
 @pytest.mark.parametrize("integrator", [lievi.RKMK4(), lievi.RKMK8()], ids=str)
 def test_saves_the_advected_parameter(integrator):
     """`simulate_batch(..., save=("m", "advected"))` on the heavy top: `Γ = gᵀe₃` from the

@@ -256,7 +256,11 @@ def _derivative_report(dtype):
     return np.asarray(x), {k: np.asarray(v) for k, v in out.items()}
 
 
-@pytest.mark.parametrize("dtype", (np.float32, np.float64), ids=("f32", "f64"))
+@pytest.mark.parametrize(
+    "dtype",
+    (np.float32, pytest.param(np.float64, marks=pytest.mark.extended)),  # f64: 14 s
+    ids=("f32", "f64"),
+)
 def test_derivatives_finite_at_zero_and_near_pi(dtype):
     """jacfwd and grad of exp, dexp, dexpinv, cay, dcayinv and log ∘ exp are finite at
     rotation angle 0, 1e-9 and near π, and `d(log ∘ exp) = I` there."""

@@ -67,6 +67,7 @@ def test_fast_equals_generic(chart, kind):
     np.testing.assert_array_equal(fast.g[:, :, 3], np.broadcast_to([0, 0, 0, 1.0], (BATCH, 5, 4)))
 
 
+@pytest.mark.extended  # 51 s
 def test_float32():
     """float32 in, float32 out: the fast path matches the generic float32 run and the
     float64 one to float32 round-off."""
@@ -104,7 +105,13 @@ def test_shared_system_one_fixed_iteration_then_tail():
     assert np.all(one.stats["newton_iterations"] >= 2)  # the tail ran
 
 
-@pytest.mark.parametrize("chart", ["exp", pytest.param("cayley", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "chart",
+    [
+        pytest.param("exp", marks=pytest.mark.extended),  # 33 s
+        pytest.param("cayley", marks=pytest.mark.slow),
+    ],
+)
 def test_stragglers_take_the_gathered_tail(chart):
     """A few bodies with large steps among many small ones: only they continue after the
     fixed iterations (gathered into a small batch, `compacted_tail`), and every body ends
@@ -332,6 +339,7 @@ def test_gradient_equals_generic(chart):
             )
 
 
+@pytest.mark.extended  # 40 s
 def test_failures_are_reported_per_body():
     """A body with a far too large step fails with the generic path's result code at the
     same step, the others carry on unchanged; a Newton budget below what the step needs
@@ -434,6 +442,7 @@ def assert_kernel_converges_where_newton_does(tensors, m0, h, chart):
     assert np.all(error[converges] <= 1e-10 * scale[converges])
 
 
+@pytest.mark.extended  # 15–21 s each
 @pytest.mark.parametrize("chart", CHARTS)
 def test_kernel_converges_where_newton_does(chart):
     """Tensors of condition number up to 1e4 and translation/rotation per step from 1e-3
@@ -455,7 +464,13 @@ def test_kernel_converges_where_newton_does_wide(chart):
         assert_kernel_converges_where_newton_does(tensors, m0, h, chart)
 
 
-@pytest.mark.parametrize("chart", ["exp", pytest.param("cayley", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "chart",
+    [
+        pytest.param("exp", marks=pytest.mark.extended),  # 39 s
+        pytest.param("cayley", marks=pytest.mark.slow),
+    ],
+)
 def test_linear_momentum_sets_the_tolerance(chart):
     """A body whose angular momentum is 10⁻⁵ of its linear momentum (a slow-spinning
     body in orbit): the Newton tolerance is 64 ulps of `‖m‖_∞` over all six components,

@@ -106,13 +106,13 @@ def _run(problem, chart, n_steps=None, save_every=1):
 # ---- variational structure ------------------------------------------------------------------
 
 
-# Each case compiles its own solver: the default set covers both charts and all three
+# Each case compiles its own solver: the extended set covers both charts and all three
 # problems in three cases, the slow set every combination.
-SLOW = pytest.mark.slow
+SLOW, EXTENDED = pytest.mark.slow, pytest.mark.extended
 DEL_CASES = [
-    ("exp", "kirchhoff"),
-    ("cayley", "satellite"),
-    ("exp", "falling"),
+    pytest.param("exp", "kirchhoff", marks=EXTENDED),  # 14 s
+    pytest.param("cayley", "satellite", marks=EXTENDED),  # 18 s
+    pytest.param("exp", "falling", marks=EXTENDED),  # 10 s
     pytest.param("cayley", "kirchhoff", marks=SLOW),
     pytest.param("exp", "satellite", marks=SLOW),
     pytest.param("cayley", "falling", marks=SLOW),
@@ -133,7 +133,7 @@ def test_del_residual(chart, problem):
 
 
 ORDER_CASES = [
-    ("exp", "satellite"),
+    pytest.param("exp", "satellite", marks=EXTENDED),  # 22 s
     pytest.param("cayley", "kirchhoff", marks=SLOW),
     pytest.param("exp", "kirchhoff", marks=SLOW),
     pytest.param("cayley", "satellite", marks=SLOW),
@@ -183,7 +183,10 @@ def _energy_bounded(body, sol, amplitude, growth=True):
         assert last <= 1.5 * first + 10 * ROUNDOFF
 
 
-@pytest.mark.parametrize("chart", ("exp", pytest.param("cayley", marks=SLOW)))
+@pytest.mark.parametrize(
+    "chart",
+    (pytest.param("exp", marks=EXTENDED), pytest.param("cayley", marks=SLOW)),  # exp: 23 s
+)
 def test_kirchhoff_conservation(chart, n_steps=None, save_every=1):
     """Casimirs |P|², P·Π and the spatial momentum to round-off; energy bounded; g rigid.
 
@@ -231,6 +234,7 @@ def test_full_body_angular_momentum(chart, n_steps=None, save_every=1):
     _energy_bounded(body, sol, 1e-3, growth=False)
 
 
+@pytest.mark.extended  # 21 s
 def test_free_fall_momenta():
     """Uniform gravity: the spatial linear momentum falls by exactly m γ h per step and
     the vertical angular momentum is conserved (rotations about e₃ leave V unchanged)."""
@@ -325,7 +329,7 @@ def test_non_rigid_g0_is_rejected(g0):
 @pytest.mark.parametrize(
     "chart, gradients",
     [
-        ("exp", False),
+        pytest.param("exp", False, marks=EXTENDED),  # 15 s
         pytest.param("exp", True, marks=SLOW),
         pytest.param("cayley", True, marks=SLOW),
     ],

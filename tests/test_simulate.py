@@ -9,6 +9,7 @@ import lievi
 from helpers import INTEGRATOR_IDS, INTEGRATORS, hlw_problem
 
 
+@pytest.mark.extended  # 11–13 s each
 @pytest.mark.parametrize("integrator", INTEGRATORS, ids=INTEGRATOR_IDS)
 def test_newton_converges_fast_for_moderate_steps(integrator):
     """Residual ≤ 1e-13 within ≤ 5 iterations whenever h·|Ω| ≤ 0.5."""
@@ -48,6 +49,7 @@ def test_newton_not_converging_is_reported():
         lievi.simulate(body, lievi.DEP(max_steps=1), g0, m0, h=0.1, n_steps=5)
 
 
+@pytest.mark.extended  # 9 s
 def test_failure_in_a_batch_is_per_body():
     """Under vmap with throw=False a NaN body fails alone; the others carry on."""
     body, g0, m0 = hlw_problem()
@@ -62,6 +64,7 @@ def test_failure_in_a_batch_is_per_body():
     assert jnp.all(jnp.isfinite(sol.m[0])) and jnp.all(jnp.isfinite(sol.m[2]))
 
 
+@pytest.mark.extended  # 10 s
 def test_save_every_and_times():
     body, g0, m0 = hlw_problem()
     full = lievi.simulate(body, lievi.DEP(), g0, m0, h=0.1, n_steps=12)
@@ -95,6 +98,7 @@ def test_float32_run():
     np.testing.assert_allclose(sol32.m, sol64.m, rtol=0, atol=1e-4)
 
 
+@pytest.mark.extended  # 18 s each
 @pytest.mark.parametrize("integrator", [lievi.DEP(), lievi.MoserVeselov()], ids=["dep", "mv"])
 def test_mixed_precision_promotes(integrator):
     """A float64 system with a float32 state (or the reverse) runs in float64, NumPy's
@@ -186,6 +190,7 @@ def test_bad_integrator_settings():
         lievi.LieLagrangian(lievi.SO3, lambda x: x @ x, side="middle")
 
 
+@pytest.mark.extended  # 10 s
 def test_simulate_under_outer_jit_and_vmap():
     """Eager checks must not break when `simulate` is traced with concrete captured values."""
     body, g0, m0 = hlw_problem()

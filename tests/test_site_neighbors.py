@@ -256,6 +256,7 @@ def segmented():
     return system, g0, m0, sol
 
 
+@pytest.mark.extended  # 10 s
 def test_segmented_run_equals_all_pairs_run(segmented):
     """200 steps, a rebuild every 10: the saves equal one `simulate` on the all-pairs
     cut-off potential to 1e-12 (absolute; the state is of order 1)."""
@@ -304,6 +305,7 @@ def test_reused_lists_equal_all_pairs_run(segmented, rebuild_after):
     assert jnp.max(jnp.abs(sol.m - reference.m)) < 1e-12
 
 
+@pytest.mark.extended  # 20 s
 def test_segmented_run_with_forcing(segmented):
     """A control per body over the whole run (each segment reads its own rows) plus a
     time-dependent damping law (each segment starts at its own time): the saves equal
@@ -340,6 +342,7 @@ def test_segmented_run_with_forcing(segmented):
         )
 
 
+@pytest.mark.extended  # 11 s
 def test_batch_of_systems_with_their_own_lists():
     """`simulate_batch` over boxes that each carry their own list (built at each one's
     initial poses, one capacity): each system equals its own all-pairs `simulate` to

@@ -213,6 +213,7 @@ def _closed_on_son3_samples():
     return jax.jit(_evaluate_like_son_report, compiler_options=FAST_COMPILE)(x, y, g)
 
 
+@pytest.mark.extended  # 10 s
 def test_son3_coordinates_are_so3_coordinates():
     """SOn(3) and SO3 share hat, hence the basis and all coordinates, exactly."""
     closed, generic = _closed_on_son3_samples(), test_son._report(3)

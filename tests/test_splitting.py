@@ -233,7 +233,13 @@ def test_float32_run():
     np.testing.assert_allclose(sol32.m, sol64.m, rtol=0, atol=1e-4)
 
 
-@pytest.mark.parametrize("tensor", [False, pytest.param(True, marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "tensor",
+    [
+        pytest.param(False, marks=pytest.mark.extended),  # 12 s
+        pytest.param(True, marks=pytest.mark.slow),
+    ],
+)
 def test_derivative_matches_finite_differences(tensor):
     """Explicit, so reverse mode goes straight through the sub-rotations (and `eigh`)."""
     body, g0, m0 = hlw_problem()

@@ -71,7 +71,10 @@ def _assert_equal_to_in_memory(written, solution):
     )
 
 
-@pytest.mark.parametrize("fast", [True, False])
+@pytest.mark.parametrize(
+    "fast",
+    [pytest.param(True, marks=pytest.mark.extended), False],  # True: 14 s
+)
 def test_streamed_equals_in_memory(tmp_path, fast):
     solution = _in_memory(fast)
     assert int(solution.result[7]) == lievi.RESULTS.step_too_large  # the failing body ...
@@ -100,6 +103,7 @@ class _StopAfter(lievi.NpyWriter):
         super().write(chunk, rows, saves, values, state)
 
 
+@pytest.mark.extended  # 15 s
 def test_resume_after_a_stop(tmp_path):
     per_chunk = N_STEPS // SEGMENT  # 5 segments a chunk, 15 in all
     first = _StopAfter(tmp_path, 7)  # chunk 0 done, chunk 1 two segments in
@@ -118,6 +122,7 @@ def test_resume_after_a_stop(tmp_path):
     assert again.written == []
 
 
+@pytest.mark.extended  # 14 s
 def test_save_m_only_and_progress(tmp_path, capsys):
     meter = lievi.TextProgressMeter(delay=0.0, prefix="stream")
     _stream(tmp_path, save=("m",), progress_meter=meter)
@@ -132,6 +137,7 @@ def test_save_m_only_and_progress(tmp_path, capsys):
     np.testing.assert_allclose(written["m"], _in_memory().m, rtol=0, atol=1e-13)
 
 
+@pytest.mark.extended  # 19 s
 def test_bad_arguments(tmp_path):
     with pytest.raises(ValueError, match="`segment_steps`"):
         _stream(tmp_path, segment_steps=6)

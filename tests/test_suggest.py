@@ -17,7 +17,13 @@ def problem():
     return body, g0, m0, np.asarray(g_ref[-1])
 
 
-@pytest.mark.parametrize("tolerance", [pytest.param(1e-4, marks=pytest.mark.slow), 1e-8])
+@pytest.mark.parametrize(
+    "tolerance",
+    [
+        pytest.param(1e-4, marks=pytest.mark.slow),
+        pytest.param(1e-8, marks=pytest.mark.extended),  # 30 s
+    ],
+)
 def test_suggested_step_reaches_the_tolerance(problem, tolerance):
     body, g0, m0, g_ref = problem
     candidates = (lievi.DEP(), lievi.Composition(lievi.DEP(), 4), lievi.RKMK4())
