@@ -273,6 +273,8 @@ def _diffrax_binary(system, g0, m0, h, n):
     import jax.numpy as jnp
 
     inertia, mass = system.inertia, system.mass
+    # Body-frame inverse inertia tensors, once (principal moments or full tensors).
+    inverse = jnp.linalg.inv(inertia) if inertia.ndim == 3 else jax.vmap(jnp.diag)(1 / inertia)
 
     def pose(y):
         R, x = y[:, :9].reshape(-1, 3, 3), y[:, 9:12]
@@ -286,7 +288,7 @@ def _diffrax_binary(system, g0, m0, h, n):
         GR, force = dV[:, :3, :3], -dV[:, :3, 3]
         M = jnp.einsum("bki,bkj->bij", GR, R) - jnp.einsum("bki,bkj->bij", R, GR)
         torque = jnp.stack([M[:, 2, 1], M[:, 0, 2], M[:, 1, 0]], axis=-1)
-        W, v = P / inertia, L / mass[:, None]
+        W, v = jnp.einsum("bij,bj->bi", inverse, P), L / mass[:, None]
         dR = jnp.einsum("bik,bkj->bij", R, jax.vmap(_hat)(W))
         return jnp.concatenate(
             [
