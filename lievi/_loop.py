@@ -204,9 +204,10 @@ def _start_program(run, g0, m0, h, t0):
 
 
 @eqx.filter_jit
-def _block_program(run, g0, m0, h, t0, carry, n_steps, save_every, count, size: int):
+def _block_program(run, inputs, carry, n_steps, save_every, count, size: int):
     """`count ≤ size` saves of `save_every` steps each (all traced), into buffers of
-    `size` saves: one program for every horizon."""
+    `size` saves: one program for every horizon. `inputs`: the run's `(g0, m0, h, t0)`."""
+    g0, m0, h, t0 = inputs
     stepper, _, _ = start(run, g0, m0, h, t0)
     dtype = run.dtype
     h, t0 = jnp.asarray(h, dtype), jnp.asarray(t0, dtype)
@@ -249,7 +250,7 @@ def run_eager(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     outputs = []
     for begin in range(0, n_saves, size):
         count = np.asarray(min(size, n_saves - begin), np.int32)
-        carry, out = _block_program(run, g0, m0, h, t0, carry, steps, every, count, size)
+        carry, out = _block_program(run, (g0, m0, h, t0), carry, steps, every, count, size)
         outputs.append(out)
     saves = {
         name: sum(np.asarray(x[name]) for x in outputs)
@@ -290,7 +291,7 @@ def finish(carry, initial, saves, n_steps: int, save: eqx.Module, xp=jnp) -> Sol
 
 
 def execute(
-    run: Run, g0, m0, h, t0, n_steps: int, save_every: int, explain, one: bool = False
+    run: Run, g0, m0, h, t0, n_steps: int, save_every: int, *, explain, one: bool = False
 ) -> Solution:
     """The run of a batch, eagerly (`run_eager`, the outputs joined on the host) or traced
     (`run_static`), and its `Solution` (`one`: of the batch's one body, without the batch

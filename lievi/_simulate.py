@@ -150,7 +150,9 @@ def simulate(
         # An eager run with a bad input: the eager checks name it (`ValueError`).
         system.check_element("g0", g0)
 
-    solution = execute(run, _lead(g0), _lead(m0), h, t0, n_steps, save_every, explain, one=True)
+    solution = execute(
+        run, _lead(g0), _lead(m0), h, t0, n_steps, save_every, explain=explain, one=True
+    )
     if throw:
         solution = raise_if_failed(solution, "lievi.simulate", "a step")
     return solution

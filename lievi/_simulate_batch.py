@@ -327,7 +327,7 @@ def simulate_batch(
         # the body (on SE(3) a pose is not an orthogonal matrix).
         system.check_elements("g0", g0)
 
-    solution = execute(run, g0, m0, h, 0.0, n_steps, save_every, explain)
+    solution = execute(run, g0, m0, h, 0.0, n_steps, save_every, explain=explain)
     if throw:
         solution = raise_if_failed(solution, "lievi.simulate_batch", "a body")
     return solution
