@@ -30,7 +30,7 @@ def triple_pendulum(gravity=GRAVITY):
     `(system, g0, m0)`, the links tilted and spinning in 3-D."""
     masses = jnp.array([1.0, 0.8, 0.6])
     lengths = jnp.array([1.0, 0.8, 0.7])
-    inertia = jnp.stack([_rod(m, ell) for m, ell in zip(masses, lengths)])
+    inertia = jnp.stack([_rod(m, ell, radius=0.2) for m, ell in zip(masses, lengths)])
     joints = [lievi.BallJoint(jnp.zeros(3), jnp.array([0.0, 0.0, lengths[0] / 2]))]
     for i in (1, 2):
         joints.append(

@@ -5,6 +5,7 @@ the order against an independent Newton–Euler reference (tests/articulated_pro
 the heavy top as a one-link chain, gradients, batches and bad input.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -24,6 +25,7 @@ JOINTS = 1e-12  # joints, relative to the link length, at every step
 MOMENTUM = 1e-12  # conserved momenta, relative
 
 
+@eqx.filter_jit
 def _velocity_defect(system, g, m):
     """`max |C(g) ξ|` relative to the speeds of the joint points, `ℓ|Ω| + |v|`, per state."""
     xi = jax.vmap(system.velocity)(m)
@@ -32,6 +34,7 @@ def _velocity_defect(system, g, m):
     return jnp.max(jnp.abs(defect)) / speed
 
 
+@eqx.filter_jit
 def _joint_defects(system, g):
     return jax.vmap(system.joint_defect)(g)
 
@@ -121,10 +124,10 @@ def test_one_link_chain_is_the_heavy_top():
 
 
 def test_simulate_batch_runs_states_and_reports_broken_joints():
-    # A batch through `simulate_batch` (`jax.vmap` of the step): the good state as
+    # A batch through `simulate_batch` (`jax.vmap` of the step): each good state as
     # `simulate` runs it, and a state whose joint is broken reported as invalid input.
-    system, g0, m0 = hinge_chain(2)
-    broken = g0.at[1, 0, 3].add(0.1)
+    system, g0, m0 = hinge_chain(1)
+    broken = g0.at[0, 0, 3].add(0.1)
     batch = lievi.simulate_batch(
         system,
         lievi.RATTLE(),
@@ -172,7 +175,8 @@ def test_order_two(problem):
 def test_composition_order_four(problem):
     system, g0, m0 = problem()
     method = lievi.Composition(lievi.RATTLE(), 4)
-    assert abs(_order(system, g0, m0, method, [0.02, 0.01, 0.005]) - 4.0) <= 0.1
+    # Past the pre-asymptotic range of the triple pendulum's fast links (h ≤ 0.01).
+    assert abs(_order(system, g0, m0, method, [0.01, 0.005, 0.0025]) - 4.0) <= 0.1
 
 
 # ---- gradients -------------------------------------------------------------------------------
