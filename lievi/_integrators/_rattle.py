@@ -43,7 +43,7 @@ from .._groups._se3 import SE3
 from .._newton import check_newton_options, newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
-from ._base import AbstractIntegrator, StepInfo, _checked_force, forced_end_kick
+from ._base import AbstractIntegrator, StepInfo, checked_force, forced_end_kick
 
 
 def _constrained(system):
@@ -95,7 +95,7 @@ class RATTLE(AbstractIntegrator):
             start = start + h / 2 * system.force(g)
         if force is not None:
             # The discrete Lagrange–d'Alembert force at g_k: f_k⁻ = (h/2) f(t_k, g_k, m_k).
-            start = start + h / 2 * _checked_force(force, t, g, m)
+            start = start + h / 2 * checked_force(force, t, g, m)
         C0 = system.constraint_jacobian(g).astype(m.dtype)
         c = C0.shape[0]
         length = system.length_scale().astype(m.dtype)
