@@ -169,3 +169,26 @@ def reference_poses(system, y):
     """`(R, x)` of a reference state."""
     y = y.reshape(system.n_bodies, 18)
     return y[:, :9].reshape(-1, 3, 3), y[:, 9:12]
+
+
+def satellite():
+    """A floating base (a box) with two hinged panels, one on each side: a tree whose root
+    has two children, spinning and deploying in free space. `(system, g0, m0)`."""
+    inertia = jnp.array([[1.0, 1.2, 0.8], [0.02, 0.05, 0.07], [0.02, 0.05, 0.07]])
+    masses = jnp.array([5.0, 0.5, 0.5])
+    side = jnp.array([0.5, 0.0, 0.0])
+    reach = jnp.array([0.6, 0.0, 0.0])
+    joints = [
+        None,
+        lievi.HingeJoint(side, -reach, E2),
+        lievi.HingeJoint(-side, reach, E2),
+    ]
+    system = lievi.ArticulatedBodies(inertia, masses, [-1, 0, 0], joints)
+    base = lievi.SO3.exp(jnp.array([0.2, -0.1, 0.3]))
+    angles, rates = jnp.array([0.4, -0.3]), jnp.array([0.5, -0.7])
+    w_base = jnp.array([0.1, 0.2, 0.3])
+    R = [base] + [base @ lievi.SO3.exp(a * E2) for a in angles]
+    w = [w_base] + [w_base + r * (base @ E2) for r in rates]
+    g0 = system.place(jnp.stack(R), base=jnp.array([1.0, 2.0, -0.5]))
+    m0 = system.momentum(g0, jnp.stack(w), base_velocity=jnp.array([0.05, -0.02, 0.01]))
+    return system, g0, m0
