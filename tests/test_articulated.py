@@ -156,6 +156,7 @@ def _hinge_torque(system, torque):
     return u.at[:, 0, :3].set(-torque[:, None] * n_p).at[:, 1, :3].set(torque[:, None] * n_c)
 
 
+@pytest.mark.extended
 def test_joint_torque_keeps_total_momentum_of_floating_chain():
     # A joint torque is a pair of opposite torques (discrete Lagrange–d'Alembert forces):
     # it does work, but the total linear and angular momentum stay.
