@@ -28,6 +28,11 @@ of a symmetry of `L_d` and of the joints — the total linear and angular moment
 floating base, the vertical angular momentum about the pivot of a fixed base in gravity —
 is conserved exactly (discrete Noether theorem): each DEP step keeps its body's spatial
 momentum whatever its root's accuracy, and the reactions are internal forces.
+
+An external force `f` (`lievi.Control`, `lievi.ForceLaw`) adds the discrete
+Lagrange–d'Alembert kicks `(h/2) f(t_k, g_k, m_k)` to the first line and
+`(h/2) f(t_{k+1}, g_{k+1}, m_{k+1})` to the fourth (implicit in `m_{k+1}` when `f` depends
+on the momentum: solved before the projection, as the kick methods solve it).
 """
 
 from __future__ import annotations
