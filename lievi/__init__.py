@@ -44,6 +44,7 @@ from ._integrators._composition import Composition as Composition
 from ._integrators._dep import DEP as DEP
 from ._integrators._moser_veselov import MoserVeselov as MoserVeselov
 from ._integrators._preprocessed_dmv import PreprocessedMoserVeselov as PreprocessedMoserVeselov
+from ._integrators._rattle import RATTLE as RATTLE
 from ._integrators._rk4 import RK4 as RK4
 from ._integrators._rkmk import RKMK4 as RKMK4
 from ._integrators._rkmk import RKMK5 as RKMK5
@@ -77,6 +78,7 @@ from ._stream_writer import NpyWriter as NpyWriter
 from ._stream_writer import StreamLayout as StreamLayout
 from ._suggest import Suggestion as Suggestion
 from ._suggest import suggest_integrator as suggest_integrator
+from ._systems._articulated import ArticulatedBodies as ArticulatedBodies
 from ._systems._base import AbstractLieSystem as AbstractLieSystem
 from ._systems._couplings import MutualGravity as MutualGravity
 from ._systems._couplings import SitePotential as SitePotential
@@ -84,6 +86,8 @@ from ._systems._couplings import SiteSprings as SiteSprings
 from ._systems._couplings import gravitating_bodies as gravitating_bodies
 from ._systems._dipoles import DipoleCoupling as DipoleCoupling
 from ._systems._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
+from ._systems._joints import BallJoint as BallJoint
+from ._systems._joints import HingeJoint as HingeJoint
 from ._systems._lie_lagrangian import LieLagrangian as LieLagrangian
 from ._systems._neighbors import AbstractNeighborBuilder as AbstractNeighborBuilder
 from ._systems._neighbors import BruteForceNeighbors as BruteForceNeighbors

@@ -265,7 +265,7 @@ class AbstractKickIntegrator(AbstractIntegrator):
             m_plus = m + h / 2 * start_force
         if force is not None:
             # The discrete Lagrange–d'Alembert force at g_k: f_k⁻ = (h/2) f(t_k, g_k, m_k).
-            m_plus = m_plus + h / 2 * _checked_force(force, t, g, m)
+            m_plus = m_plus + h / 2 * checked_force(force, t, g, m)
         g_next, m_next, info = system.free_flow(self, g, m_plus, h)
         if system.potential is not None:
             end_force = system.force(g_next)
@@ -288,7 +288,7 @@ class AbstractKickIntegrator(AbstractIntegrator):
         return g_next, m_next, StepInfo(result, iterations, residual), end_force
 
 
-def _checked_force(force, t, g, m):
+def checked_force(force, t, g, m):
     """`force(t, g, m)`, of the momentum's shape, in the momentum's dtype.
 
     The run's dtype is that of the state (a float64 constant inside a force law must not
@@ -324,7 +324,7 @@ def forced_end_kick(
     """
     zero = jnp.zeros((), m_minus.dtype)
     if not force.depends_on_momentum():
-        m = m_minus + h / 2 * _checked_force(force, t, g, m_minus)
+        m = m_minus + h / 2 * checked_force(force, t, g, m_minus)
         return m, StepInfo(
             jnp.asarray(RESULTS.successful, jnp.int32), jnp.zeros((), jnp.int32), zero
         )
@@ -334,9 +334,9 @@ def forced_end_kick(
 
     def residual(flat):
         m = flat.reshape(shape)
-        return (m - m_minus - h / 2 * _checked_force(force, t, g, m)).reshape(-1)
+        return (m - m_minus - h / 2 * checked_force(force, t, g, m)).reshape(-1)
 
-    guess = m_minus + h / 2 * _checked_force(force, t, g, m_minus)
+    guess = m_minus + h / 2 * checked_force(force, t, g, m_minus)
     # The terms of the equation are of the size of `m⁻` and of the root (≈ the guess).
     scale = jnp.maximum(jnp.max(jnp.abs(m_minus)), jnp.max(jnp.abs(guess)))
     tolerance = newton_tolerance(scale, m_minus.dtype, rtol, atol)

@@ -1,0 +1,162 @@
+"""Joints between two rigid bodies: holonomic constraints on a pair of poses.
+
+A joint connects a *parent* pose `g_p = [[R_p, x_p], [0, 1]]` (a body, or the world:
+`g_p = I`) and a *child* pose `g_c`, each body's origin at its centre of mass. Its
+constraint `Φ(g_p, g_c) = 0` is written in length units, so that "satisfied to `ε`
+relative to the link length" reads the same for every joint (docs/articulated.md):
+
+- `BallJoint` (3 equations): the joint point, `a_p` in the parent's frame and `a_c` in
+  the child's, is the same point in space, `x_p + R_p a_p − x_c − R_c a_c = 0`.
+- `HingeJoint` (5 equations): a ball joint whose child also keeps its axis `n_c` (child
+  frame) along the parent's `n_p` (parent frame): with `u₁, u₂` an orthonormal pair
+  perpendicular to `n_p`, `ℓ (R_p u_α)·(R_c n_c) = 0`, `α = 1, 2`, the length `ℓ` the
+  system's length scale (so these equations are in length units too).
+
+The constraints are functions of the matrix entries; their derivatives along the group
+(the constraint Jacobian of `lievi.ArticulatedBodies`) are taken by autodiff.
+"""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._checks import check_real_dtype, is_concrete
+
+
+def _vector(name: str, value) -> Array:
+    check_real_dtype(name, value)
+    value = jnp.asarray(value, jnp.result_type(value, float))
+    if value.shape != (3,):
+        raise ValueError(f"`{name}` must be a 3-vector, got shape {value.shape}.")
+    return value
+
+
+def _axis(name: str, value) -> Array:
+    value = _vector(name, value)
+    if is_concrete(value) and not np.linalg.norm(np.asarray(value)) > 0:
+        raise ValueError(
+            f"`{name}` has zero length: a hinge needs the direction of its axis (a nonzero "
+            "3-vector, any length)."
+        )
+    return value
+
+
+def _unit(v):
+    return v / jnp.sqrt(jnp.sum(v**2))
+
+
+def _perpendicular_pair(n):
+    """An orthonormal pair `(u₁, u₂)` perpendicular to the unit `n`: Gram–Schmidt on the
+    coordinate axis least aligned with `n` (a smooth choice near the given axis, so the
+    derivative with respect to the axis exists)."""
+    e = jnp.eye(3, dtype=n.dtype)[jnp.argmin(jnp.abs(n))]
+    u1 = _unit(e - jnp.dot(e, n) * n)
+    return u1, jnp.cross(n, u1)
+
+
+def _rotation(g):
+    return g[..., :3, :3]
+
+
+def _position(g):
+    return g[..., :3, 3]
+
+
+class AbstractJoint(eqx.Module):
+    """A holonomic joint between a parent pose and a child pose."""
+
+    parent_point: eqx.AbstractVar[Float[Array, 3]]
+    child_point: eqx.AbstractVar[Float[Array, 3]]
+
+    @property
+    @abc.abstractmethod
+    def size(self) -> int:
+        """The number of constraint equations."""
+
+    @abc.abstractmethod
+    def residual(self, parent, child, length):
+        """`Φ(g_p, g_c)` in length units (`length`: the system's length scale)."""
+
+    @abc.abstractmethod
+    def describe(self) -> str:
+        """A name for messages."""
+
+
+class BallJoint(AbstractJoint):
+    """A ball (spherical) joint: a point of the parent and a point of the child coincide.
+
+    **Arguments:**
+
+    - `parent_point`: the joint point in the parent's frame, from its centre of mass (for
+      a joint to the world, the point in the world frame: the pivot).
+    - `child_point`: the joint point in the child's frame, from its centre of mass.
+    """
+
+    parent_point: Float[Array, 3]
+    child_point: Float[Array, 3]
+
+    def __init__(self, parent_point, child_point):
+        self.parent_point = _vector("parent_point", parent_point)
+        self.child_point = _vector("child_point", child_point)
+
+    @property
+    def size(self) -> int:
+        return 3
+
+    def residual(self, parent, child, length):
+        """`Φ(g_p, g_c)`, `(3,)`: the parent's joint point minus the child's, in space."""
+        del length
+        a = _position(parent) + _rotation(parent) @ self.parent_point
+        b = _position(child) + _rotation(child) @ self.child_point
+        return a - b
+
+    def describe(self) -> str:
+        return "ball joint"
+
+
+class HingeJoint(AbstractJoint):
+    """A hinge (revolute) joint: a ball joint that also keeps an axis of the child along an
+    axis of the parent, leaving one rotation free.
+
+    **Arguments:**
+
+    - `parent_point`, `child_point`: a point on the hinge axis, in each body's frame from
+      its centre of mass (for a joint to the world, the point in the world frame).
+    - `axis`: the hinge axis in the child's frame (any nonzero length).
+    - `parent_axis`: the hinge axis in the parent's frame (the world's for a joint to the
+      world); default `axis` (the frames aligned, as the bodies are assembled).
+    """
+
+    parent_point: Float[Array, 3]
+    child_point: Float[Array, 3]
+    axis: Float[Array, 3]
+    parent_axis: Float[Array, 3]
+
+    def __init__(self, parent_point, child_point, axis, parent_axis=None):
+        self.parent_point = _vector("parent_point", parent_point)
+        self.child_point = _vector("child_point", child_point)
+        self.axis = _axis("axis", axis)
+        self.parent_axis = self.axis if parent_axis is None else _axis("parent_axis", parent_axis)
+
+    @property
+    def size(self) -> int:
+        return 5
+
+    def residual(self, parent, child, length):
+        """`Φ(g_p, g_c)`, `(5,)`: the ball joint's three equations, then
+        `ℓ (R_p u_α)·(R_c n_c)` for the two directions `u_α` perpendicular to the parent's
+        axis."""
+        ball = BallJoint(self.parent_point, self.child_point).residual(parent, child, length)
+        n_child = _rotation(child) @ _unit(self.axis)
+        u1, u2 = _perpendicular_pair(_unit(self.parent_axis))
+        R = _rotation(parent)
+        tilt = jnp.stack([jnp.dot(R @ u1, n_child), jnp.dot(R @ u2, n_child)])
+        return jnp.concatenate([ball, length * tilt])
+
+    def describe(self) -> str:
+        return "hinge joint"
