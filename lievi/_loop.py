@@ -302,6 +302,9 @@ def execute(
         and is_concrete(*jax.tree.leaves((run, g0, m0, h, t0)))
         and run.plan.per_step() is None
         and run.unroll == 1
+        # A batch placed over several devices (`lievi.shard_batch`) runs as one program
+        # that keeps its sharding; the eager blocks join their outputs on one host.
+        and not _spans_devices(g0, m0)
     )
     if not eager:
         return _static_program(run, g0, m0, h, t0, n_steps, save_every, one)
@@ -321,6 +324,11 @@ def _static_program(run, g0, m0, h, t0, n_steps: int, save_every: int, one: bool
     carry, initial, saves = run_static(run, g0, m0, h, t0, n_steps, save_every)
     solution = finish(carry, initial, saves, n_steps, run.save)
     return _first(solution) if one else solution
+
+
+def _spans_devices(*arrays) -> bool:
+    """Whether any of `arrays` is a JAX array placed over more than one device."""
+    return any(isinstance(x, jax.Array) and len(x.sharding.device_set) > 1 for x in arrays)
 
 
 def _first(solution: Solution) -> Solution:
