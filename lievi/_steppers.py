@@ -60,9 +60,21 @@ class AbstractStepper(eqx.Module):
         """Stacked saves `(T, …)` of `stored` as `g` `(B, T, n, n)`, `m`/`advected`
         `(B, T, ·)`."""
 
-    @abc.abstractmethod
     def initial(self, g0, m0, save) -> dict:
         """The initial save, batch-major with one save: `(B, 1, …)`."""
+        out = {}
+        if save.g:
+            out["g"] = g0[:, None]
+        if save.m:
+            out["m"] = m0[:, None]
+        advected = self.advected_at(g0) if save.with_advected() else None
+        if advected is not None:
+            out["advected"] = advected[:, None]
+        return out
+
+    @abc.abstractmethod
+    def advected_at(self, g0):
+        """The advected parameter `Γ` `(B, k)` at the elements `g0`, or `None`."""
 
     @abc.abstractmethod
     def configuration(self, state):
@@ -136,16 +148,9 @@ class KernelStepper(AbstractStepper):
                 out[name] = jnp.moveaxis(stacked[name], -1, 0)
         return out
 
-    def initial(self, g0, m0, save):
-        out = {}
-        if save.g:
-            out["g"] = g0[:, None]
-        if save.m:
-            out["m"] = m0[:, None]
-        advected = self.kernel.advected(self.kernel.carried(g0)) if save.with_advected() else None
-        if advected is not None:
-            out["advected"] = jnp.stack(advected, -1)[:, None]
-        return out
+    def advected_at(self, g0):
+        advected = self.kernel.advected(self.kernel.carried(g0))
+        return None if advected is None else jnp.stack(advected, -1)
 
     def configuration(self, state):
         g = self.kernel.elements(jnp.stack(state[0])[None])[:, 0]
@@ -221,16 +226,8 @@ class VmapStepper(AbstractStepper):
     def layout(self, stacked):
         return {name: jnp.swapaxes(x, 0, 1) for name, x in stacked.items()}
 
-    def initial(self, g0, m0, save):
-        out = {}
-        if save.g:
-            out["g"] = g0[:, None]
-        if save.m:
-            out["m"] = m0[:, None]
-        advected = self._advected(g0) if save.with_advected() else None
-        if advected is not None:
-            out["advected"] = advected[:, None]
-        return out
+    def advected_at(self, g0):
+        return self._advected(g0)
 
     def configuration(self, state):
         return state[0], state[1]
