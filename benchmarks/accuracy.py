@@ -20,6 +20,18 @@ ratios within one run are the figure to quote.
     python benchmarks/accuracy.py            # full (~5–10 min on 2 cores)
     python benchmarks/accuracy.py --quick    # smoke test (a few methods, small sizes)
     python benchmarks/accuracy.py --cost-only  # re-measure the cost per step only
+    python benchmarks/accuracy.py --drift    # 10⁶ steps: error against time (~10 min)
+
+`--drift` is the long-run picture: 10⁶ steps of h = 0.1 (T = 10⁵) of one body, the
+Hairer–Lubich–Wanner free body and the benchmark's heavy top (`work_precision.py`'s), with
+structure-preserving methods (splitting, `DEP`, the order-8 composition of the splitting,
+the preprocessed Moser–Veselov of order 8) beside methods that are not (`RKMK8`, diffrax's
+`Dopri8` and `Tsit5` at the same step). It plots against time the energy error (bounded
+for the variational methods, growing for the others), the momentum-map error, and, on the
+integrable HLW body, the attitude error against an independent diffrax `Dopri8` run at
+rtol = atol = 1e-13 (phase error linear in t for the symplectic methods, quadratic for the
+others). The heavy top is chaotic: only its invariants are compared. Writes
+`results/accuracy_drift.json` and `.png`.
 """
 
 from __future__ import annotations
@@ -284,6 +296,183 @@ def cost_ratio(quick: bool):
     return out
 
 
+# ---- the long-run drift picture (`--drift`) -----------------------------------------------
+
+DRIFT_PROBLEMS = {
+    # name: (moments, Π₀, tilt of g₀ (rotation vector), gravity)
+    "HLW body": ((2.0, 1.0, 2.0 / 3.0), (np.cos(1.1), 0.0, np.sin(1.1)), (0, 0, 0), False),
+    "heavy top": ((0.6, 0.8, 1.0), (0.5, 0.3, 1.2), (0.3, -0.2, 0.1), True),
+}
+# The heavy top's constants (mass, centre of mass, gravity), as in work_precision.py.
+TOP = (1.0, (0.0, 0.0, 0.5), 1.0)
+
+
+def drift_methods(gravity: bool):
+    split = lievi.LiePoissonSplitting()
+    chosen = {
+        "splitting": split,
+        "DEP exp": lievi.DEP(),
+        "splitting ∘ 8": lievi.Composition(split, order=8),
+        "RKMK8": lievi.RKMK8(),
+    }
+    if not gravity:
+        chosen["pDMV8"] = lievi.PreprocessedMoserVeselov(8)
+    return chosen
+
+
+def drift_system(moments, gravity):
+    if gravity:
+        mass, rho, gee = TOP
+        return lievi.heavy_top(
+            jnp.asarray(moments), mass, jnp.asarray(rho), gee, inertia_about="center_of_mass"
+        )
+    return lievi.RigidBody(jnp.asarray(moments))
+
+
+def diffrax_drift(system, gravity, g0, m0, t1, n_saves, solver, h=None, tol=None):
+    """One body, state `(Π, g)`: `Π̇ = Π × Ω (+ m γ Γ × ρ)`, `ġ = g Ω̂`, saved at `n_saves + 1`
+    evenly spaced times; constant step `h`, or PID at rtol = atol = `tol`. The inertia is the
+    system's (about the fixed point, for the top)."""
+    import diffrax
+
+    inverse = 1.0 / jnp.asarray(system.inertia)
+    mass, rho, gee = TOP
+    torque = mass * gee * jnp.asarray(rho)
+
+    def field(t, y, args):
+        Pi, g = y
+        omega = Pi * inverse
+        dPi = jnp.cross(Pi, omega) + (jnp.cross(g[2], torque) if gravity else 0.0)
+        return dPi, g @ lievi.SO3.hat(omega)
+
+    ts = jnp.linspace(0.0, t1, n_saves + 1)
+    if tol is None:
+        control = dict(dt0=h, stepsize_controller=diffrax.ConstantStepSize())
+        max_steps = int(round(t1 / h)) + 1
+    else:
+        control = dict(dt0=None, stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol))
+        max_steps = int(t1 * 200)
+
+    @jax.jit
+    def run(y0):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(field), getattr(diffrax, solver)(), t0=0.0, t1=t1, y0=y0,
+            saveat=diffrax.SaveAt(ts=ts), max_steps=max_steps, adjoint=diffrax.ForwardMode(),
+            throw=False, **control,
+        )  # fmt: skip
+        return sol.ys, sol.result == diffrax.RESULTS.successful
+
+    seconds, ((m, g), ok) = timed(run, (m0, g0), repeats=1)
+    return g, m, seconds, bool(ok)
+
+
+def three_digits(values):
+    """A list of errors to three significant digits (the JSON stays small)."""
+    return [float(f"{v:.3g}") for v in np.asarray(values)]
+
+
+def drift(n_steps: int, h: float = 0.1, n_saves: int = 1000):
+    t1 = n_steps * h
+    out = {"h": h, "n_steps": n_steps, "T": t1, "problems": {}}
+    for pname, (moments, m0, tilt, gravity) in DRIFT_PROBLEMS.items():
+        system = drift_system(moments, gravity)
+        g0 = lievi.SO3.exp(jnp.asarray(tilt, dtype=float))
+        m0 = jnp.asarray(m0)
+        runs = {}
+        for name, integrator in drift_methods(gravity).items():
+            start = time.perf_counter()
+            sol = lievi.simulate(
+                system, integrator, g0, m0, h=h, n_steps=n_steps,
+                save_every=n_steps // n_saves, throw=False,
+            )  # fmt: skip
+            ok = bool(sol.result == lievi.RESULTS.successful)
+            runs[name] = (sol.g, sol.m, time.perf_counter() - start, ok)  # with compilation
+        for solver in ("Dopri8", "Tsit5"):
+            runs[f"diffrax {solver}"] = diffrax_drift(
+                system, gravity, g0, m0, t1, n_saves, solver, h=h
+            )
+        ts = np.linspace(0.0, t1, n_saves + 1)
+        reference = None
+        if not gravity:  # integrable: the attitude is a fair target
+            g_ref, _, ref_s, ref_ok = diffrax_drift(
+                system, gravity, g0, m0, t1, n_saves, "Dopri8", tol=1e-13
+            )
+            reference = np.asarray(g_ref) if ref_ok else None
+            print(f"{pname}: reference (diffrax Dopri8, tol 1e-13) {ref_s:.0f} s, ok {ref_ok}")
+        H0 = float(dg.energy(system, m=m0, g=g0))
+        J0 = np.asarray(dg.spatial_momentum(system, g0, m0))
+        rows = {}
+        for name, (g, m, seconds, ok) in runs.items():
+            g, m = np.asarray(g), np.asarray(m)
+            H = np.asarray(dg.energy(system, m=jnp.asarray(m), g=jnp.asarray(g)))
+            J = np.asarray(dg.spatial_momentum(system, jnp.asarray(g), jnp.asarray(m)))
+            dJ = (J - J0)[:, 2:] if gravity else J - J0  # the tops keep only the vertical part
+            row = {
+                "seconds": seconds,
+                "ok": ok,
+                "energy_error": three_digits(np.abs(H - H0) / abs(H0)),
+                "momentum_error": three_digits(
+                    np.linalg.norm(dJ, axis=-1) / float(jnp.linalg.norm(m0))
+                ),
+            }
+            if reference is not None:
+                chord = np.linalg.norm(g - reference, axis=(-2, -1)) / (2 * np.sqrt(2))
+                row["attitude_error"] = three_digits(2 * np.arcsin(np.clip(chord, 0.0, 1.0)))
+            rows[name] = row
+            half = len(ts) // 2
+            energy = np.asarray(row["energy_error"])
+            print(
+                f"{pname:9s} {name:16s} {seconds:7.1f} s (with compiling)  max |ΔH/H| {energy.max():.1e} "
+                f"(2nd half mean / 1st half mean {energy[half:].mean() / max(energy[1:half].mean(), 1e-300):.2f}), "
+                f"momentum {max(row['momentum_error']):.1e}"
+                + (
+                    f", attitude at T {row['attitude_error'][-1]:.1e}"
+                    if reference is not None
+                    else ""
+                )
+            )
+        out["problems"][pname] = {"t": ts.tolist(), "methods": rows}
+    return out
+
+
+def plot_drift(results, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    problems = results["problems"]
+    fig, axes = plt.subplots(len(problems), 3, figsize=(16, 4.4 * len(problems)))
+    axes = np.atleast_2d(axes)
+    quantities = ("energy_error", "momentum_error", "attitude_error")
+    labels = ("|ΔH / H₀|", "momentum-map error / |Π₀|", "attitude error [rad]")
+    names = list(dict.fromkeys(n for p in problems.values() for n in p["methods"]))
+    colour = {name: f"C{k}" for k, name in enumerate(names)}  # one colour a method
+    for row, (pname, p) in enumerate(problems.items()):
+        t = np.asarray(p["t"][1:])
+        for col, (quantity, label) in enumerate(zip(quantities, labels)):
+            ax = axes[row, col]
+            drawn = [(name, r[quantity]) for name, r in p["methods"].items() if quantity in r]
+            if not drawn:  # the chaotic top: no attitude target
+                ax.text(0.5, 0.5, "chaotic: no trajectory target", ha="center", va="center")
+                ax.set_axis_off()
+                continue
+            for name, values in drawn:
+                style = "--" if name.startswith(("RKMK", "diffrax")) else "-"
+                ax.loglog(
+                    t, np.maximum(values[1:], 1e-17), style, color=colour[name], lw=0.9, label=name
+                )
+            ax.set(xlabel="t", ylabel=label, title=f"{pname}: {label}")
+            ax.grid(True, which="both", alpha=0.3)
+        axes[row, 0].legend(fontsize=7)
+    fig.suptitle(
+        f"{results['n_steps']:,} steps of h = {results['h']} (T = {results['T']:g}); solid: "
+        "structure-preserving, dashed: not"
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
 def plot(results, path):
     import matplotlib
 
@@ -348,11 +537,26 @@ def main():
         action="store_true",
         help="re-measure only the cost per step; keep the other stored results",
     )
+    parser.add_argument(
+        "--drift",
+        type=int,
+        nargs="?",
+        const=1_000_000,
+        default=None,
+        help="only the long-run drift picture, with this many steps (default 10⁶)",
+    )
     args = parser.parse_args()
     out_dir = pathlib.Path(args.out) if args.out else RESULTS_DIR
     out_dir.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if args.quick else ""
     start = time.perf_counter()
+    if args.drift:
+        results = {"device": str(jax.devices()[0]), "dtype": "float64", **drift(args.drift)}
+        results["total_s"] = time.perf_counter() - start
+        (out_dir / "accuracy_drift.json").write_text(json.dumps(results, indent=1))
+        plot_drift(results, out_dir / "accuracy_drift.png")
+        print(f"wrote {out_dir / 'accuracy_drift.json'} and .png in {results['total_s']:.0f}s")
+        return
     if args.cost_only:
         results = json.loads((out_dir / f"accuracy{suffix}.json").read_text())
         results["cost"] = cost_ratio(args.quick)
