@@ -67,9 +67,8 @@ def _stacked(v) -> bool:
     """Whether `materialise` stores `v` in a stack: a scalar, or the values of 2 to
     `STACKED_MAX` bodies. A batch of one, `(1,)` (an eager one-body `simulate` runs the
     batch kernel), keeps one array per value: stacked, its SO(3) DEP run of 10⁴ steps,
-    every step saved, was 1.15× slower, the SE(3) one 1.15× faster
-    (`benchmarks/compile_time.py --throughput`,
-    `benchmarks/results/s50_throughput_{before,after}_{1,2}.json`); its layout stays."""
+    every step saved, was 1.15× slower, the SE(3) one 1.15× faster (2-core CPU); its
+    layout stays."""
     return jnp.ndim(v) == 0 or (jnp.ndim(v) == 1 and 1 < jnp.size(v) <= STACKED_MAX)
 
 
@@ -93,8 +92,7 @@ def materialise(values, one, stack: bool = True):
     bodies (`(N,)` arrays): the bodies of a binary (`lievi.RigidBodies`) stepped together
     by `bodies_step` keep the layout they had as scalars under `jax.vmap` of the
     one-body step. Not more: a batch of 8 SE(3) bodies ran at 0.8× the body-steps/s
-    stacked (measured with the retired `before_after.py --se3 --batches 8`,
-    `benchmarks/results/before_after_s50_batch8.json`).
+    stacked (2-core CPU).
     `stack=False` stores them one by one (see its use in `_se3`).
     """
     if stack and all(_stacked(v) for v in values):
@@ -127,8 +125,7 @@ def compacted_tail(need, run, state, args, fraction: int = 8):
     that do not need it (its loop runs no iteration when none does). For them a
     `lax.cond` on "any body needs it" cost more than that: a binary of
     `lievi.RigidBodies` ran 1000 DEP steps in 7.3 ms with it, 6.5 ms before
-    (`benchmarks/rigid_bodies_throughput.py --gradient-only`, the forward run of one
-    binary, `benchmarks/results/s50_with_cond_rb_gradient_{before,after}.json`). One body
+    (the forward run of `benchmarks/rigid_bodies_throughput.py --gradient-only`). One body
     (scalars) keeps the `cond`.
     """
     batch = jnp.shape(need)[0] if jnp.ndim(need) else 0

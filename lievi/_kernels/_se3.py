@@ -379,8 +379,7 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
 # `_so3.DEPEquation.fixed_iterations`): a chord step and two Newton steps. From the
 # explicit-Euler guess they reach 64 ulps for every one of 2·10⁴ random free bodies
 # (|ω| ≤ 0.3, speeds up to 3) over 5 steps of 0.05, 0.1 and 0.2, with either chart
-# (measured with the retired `se3_fixed_iterations.py`, see the changelog; `tests/test_se3_batch.py` runs 2000 of them at
-# 0.2); with the momentum-free chord matrix, 19 of them (Cayley) and 2 (exp) needed the
+# (`tests/test_se3_batch.py` runs 2000 of them at 0.2); with the momentum-free chord matrix, 19 of them (Cayley) and 2 (exp) needed the
 # gathered tail at 0.1 and 1738 and 162 at 0.2. Measured with
 # `benchmarks/se3_step_cost.py --one-thread` (with that matrix): 11–16 % less time a step
 # than three Newton steps from the guess.
