@@ -107,15 +107,46 @@ _YOSHIDA_W8 = (
 )
 _YOSHIDA_8 = _palindrome(_YOSHIDA_W8 + (1.0 - 2.0 * sum(_YOSHIDA_W8),))
 
+# Sofroniou & Spaletta (2005, Optim. Methods Softw. 20, 597), Table 3: s13odr6, γ_1 … γ_7,
+# then mirrored; and s21odr8, γ_1 … γ_11, then mirrored.
+_SOFRONIOU_SPALETTA_6 = _palindrome(
+    (
+        0.13861930854051695245808013042625,
+        0.13346562851074760407046858832209,
+        0.13070531011449225190542755785015,
+        0.12961893756907034772505366537091,
+        -0.35000324893920896516170830911323,
+        0.11805530653002387170273438954049,
+        0.39907751534871587459988795520665,
+    )
+)
+_SOFRONIOU_SPALETTA_8 = _palindrome(
+    (
+        0.10647728984550031823931967854896,
+        0.10837408645835726397433410591546,
+        0.35337821052654342419534541324080,
+        -0.23341414023165082198780281128319,
+        -0.24445266791528841269462171413216,
+        0.11317848435755633314700952515599,
+        0.11892905625000350062692972283951,
+        0.12603912321825988140305670268365,
+        0.12581718736176041804392391641587,
+        0.11699135019217642180722881433533,
+        -0.38263596012643665350944670744040,
+    )
+)
+
 SCHEMES: dict[tuple[int, str], tuple[float, ...]] = {
     (4, "triple-jump"): _triple_jump((1.0,), 2),
     (4, "suzuki"): (_SUZUKI_4, _SUZUKI_4, 1.0 - 4.0 * _SUZUKI_4, _SUZUKI_4, _SUZUKI_4),
     (6, "kahan-li"): _KAHAN_LI_6,
     (6, "yoshida"): _YOSHIDA_6,
     (6, "triple-jump"): _triple_jump(_triple_jump((1.0,), 2), 4),
+    (6, "sofroniou-spaletta"): _SOFRONIOU_SPALETTA_6,
     (8, "kahan-li"): _KAHAN_LI_8,
     (8, "yoshida"): _YOSHIDA_8,
     (8, "triple-jump"): _triple_jump(_triple_jump(_triple_jump((1.0,), 2), 4), 6),
+    (8, "sofroniou-spaletta"): _SOFRONIOU_SPALETTA_8,
 }
 DEFAULT_SCHEME = {4: "triple-jump", 6: "kahan-li", 8: "kahan-li"}
 
