@@ -77,6 +77,8 @@ SLOW_CASES = [
     (lievi.MoserVeselov(), 6, "triple-jump"),
     (lievi.LiePoissonSplitting(), 8, "yoshida"),
     (lievi.DEP(), 8, "triple-jump"),
+    (lievi.LiePoissonSplitting(), 6, "sofroniou-spaletta"),
+    (lievi.LiePoissonSplitting(), 8, "sofroniou-spaletta"),
 ]
 SLOW_IDS = [
     "dep-cayley-4-suzuki",
@@ -84,6 +86,8 @@ SLOW_IDS = [
     "mv-6-triple-jump",
     "splitting-8-yoshida",
     "dep-8-triple-jump",
+    "splitting-6-sofroniou-spaletta",
+    "splitting-8-sofroniou-spaletta",
 ]
 
 
@@ -115,8 +119,10 @@ def test_coefficients_are_consistent():
     for (order, scheme), gammas in SCHEMES.items():
         assert abs(sum(gammas) - 1) <= 1e-14, scheme
         np.testing.assert_allclose(gammas, gammas[::-1], rtol=0, atol=1e-15, err_msg=scheme)
-        # Σγ³ = 0: the first order condition beyond 2 (HLW §V.3.2).
+        # Σγ³ = 0: the first order condition beyond 2 (HLW §V.3.2); Σγ⁵ = 0 from order 6.
         assert abs(sum(g**3 for g in gammas)) <= 1e-12, scheme
+        if order >= 6:
+            assert abs(sum(g**5 for g in gammas)) <= 1e-12, scheme
 
 
 def test_symmetric():
