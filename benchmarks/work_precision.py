@@ -546,16 +546,18 @@ KNOWLEDGE_METHODS = ("splitting", "splitting ∘ 4", "splitting ∘ 6", "splitti
 # The table's quantities: the attitude is the trajectory's on the integrable problems only
 # (the heavy top's is chaotic beyond short horizons).
 KNOWLEDGE_QUANTITIES = ("attitude", "energy", "momentum")
+ROUNDOFF_LEVEL = 1e-12
 
 
 def knowledge(results):
     """`lievi/_suggest_knowledge.py`'s `TABLE` from the runs: for each class (the problems
     pooled by `problem_class`), method and quantity, `(C, a, floor)` of `error ≈ C (ωh)^p
     (ωT)^a + floor` by least squares on the logarithms (`p` the method's order), and the
-    cheapest measured seconds per body-step. A quantity whose errors stay within 100× of
-    their smallest over every step and horizon is kept to round-off: `C = 0`, `floor` their
-    largest. Otherwise errors below 1e-12 (the reference's accuracy) are left out of the
-    fit and the smallest error reached is the floor."""
+    cheapest measured seconds per body-step. A quantity whose errors all stay below
+    `ROUNDOFF_LEVEL` is kept to round-off: `C = 0`, `floor` their largest. Otherwise the
+    errors between 1e-12 (the reference's accuracy) and 0.1 (not asymptotic) are fitted,
+    `C` raised to bound every one of them; the floor is the smallest error reached where
+    that is below 1e-11 (the reference's accuracy, or round-off), else 0."""
     from lievi._suggest_knowledge import problem_class
 
     points, costs = {}, {}
@@ -588,10 +590,13 @@ def knowledge(results):
             if len(data) == 0:
                 continue
             e = data[:, 2]
-            if e.max() <= 100 * e.min():
+            if e.max() <= ROUNDOFF_LEVEL:
                 errors[q] = (0.0, 0.0, float(e.max()))
                 continue
-            fit = data[e > 1e-12]
+            # The asymptotic points: above the reference's accuracy, below O(1) errors.
+            fit = data[(e > 1e-12) & (e < 0.1)]
+            if len(fit) == 0:
+                continue
             y = np.log(fit[:, 2]) - order * np.log(fit[:, 0])
             if len(np.unique(fit[:, 1])) > 1:
                 X = np.stack([np.ones(len(fit)), np.log(fit[:, 1])], axis=1)
@@ -600,10 +605,15 @@ def knowledge(results):
                 logC, a = float(np.mean(y - np.log(fit[:, 1]))), 1.0
             # The constant that bounds every fitted point (the model is an upper estimate).
             logC = float(np.max(y - a * np.log(fit[:, 1])))
-            errors[q] = (float(np.exp(logC)), round(float(a), 3), float(e.min()))
+            # The floor: the reference's accuracy where a run reached it, else none.
+            floor = float(e.min()) if e.min() < 1e-11 else 0.0
+            errors[q] = (float(np.exp(logC)), round(float(a), 3), floor)
+        # The model holds where it was fitted: no step larger than the benchmark's.
+        largest = max(x for q in KNOWLEDGE_QUANTITIES for x, *_ in points.get((cls, method, q), []))
         table[(cls, method)] = {
             "order": order,
             "seconds_per_body_step": float(cost),
+            "largest_omega_h": float(largest),
             "errors": errors,
         }
     return table

@@ -266,8 +266,9 @@ def _from_knowledge(system, known, horizon, tolerance, tolerance_on, g0, m0):
         if name != known.name or quantity not in entry["errors"]:
             continue
         integrator = METHODS[method]()
-        # Within the method's stability bound, and at most the horizon.
-        h_max = min(horizon, integrator.step_bound() / omega)
+        # Within the method's stability bound, the steps the table was fitted on, and the
+        # horizon.
+        h_max = min(horizon, integrator.step_bound() / omega, entry["largest_omega_h"] / omega)
         h = min(largest_step(entry, quantity, omega, horizon, target), h_max)
         if h <= 0:
             rows.append({"name": method, "order": entry["order"], "failed": "floor above target"})

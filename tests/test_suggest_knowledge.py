@@ -44,22 +44,27 @@ def test_a_known_problem_is_answered_without_a_run(monkeypatch):
 
 
 def test_trajectory_targets_beyond_the_predictability_horizon_are_refused(monkeypatch):
-    monkeypatch.setattr(_suggest, "_final", _no_run)
+    calls = []
+    monkeypatch.setattr(_suggest, "_final", _stand_in(calls))
     g0 = lievi.SO3.exp(jnp.array([0.3, -0.2, 0.1]))
     top = _top((0.6, 0.8, 1.0))  # asymmetric, off-axis gravity: chaotic
     m0 = jnp.array([0.5, 0.3, 1.2])
     with pytest.raises(ValueError, match="chaotic.*predictability horizon"):
         lievi.suggest_integrator(top, g0, m0, horizon=2e4, tolerance=1e-6, tolerance_on="attitude")
-    # Its invariants can be targets at any horizon; a short horizon's attitude too.
-    for kwargs in (dict(horizon=2e4, tolerance_on="energy"), dict(horizon=20.0)):
-        s = lievi.suggest_integrator(top, g0, m0, tolerance=1e-6, **kwargs)
-        assert s.source == "knowledge"
-    # The Lagrange top (I₁ = I₂, centre of mass on the axis) is integrable: no refusal.
+    assert not calls  # refused before any run
+    # Its invariants can be targets at any horizon, from the table.
+    s = lievi.suggest_integrator(top, g0, m0, horizon=2e4, tolerance=1e-6, tolerance_on="energy")
+    assert s.source == "knowledge" and 0 < s.predicted_error <= 1e-6 * (1 + 1e-9)
+    assert not calls
+    # A short horizon's attitude is within reach (the table has no chaotic attitude: a
+    # pilot), and so is the integrable Lagrange top's (I₁ = I₂, centre of mass on the axis)
+    # at any horizon.
     lagrange = _top((0.8, 0.8, 1.0))
-    s = lievi.suggest_integrator(
-        lagrange, g0, jnp.array([0.3, -0.2, 2.0]), horizon=2e4, tolerance=1e-6
-    )
-    assert s.source == "knowledge"
+    for system, m, horizon in ((top, m0, 20.0), (lagrange, jnp.array([0.3, -0.2, 2.0]), 2e4)):
+        s = lievi.suggest_integrator(
+            system, g0, m, horizon=horizon, tolerance=1e-6, tolerance_on="attitude"
+        )
+        assert s.source == "pilot"
 
 
 def _stand_in(calls):
