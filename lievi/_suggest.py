@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._checks import check_integer, check_scalar
-from ._integrators._composition import Composition
+from ._integrators._composition import Composition, _is_symmetric
 from ._integrators._dep import DEP
 from ._integrators._rkmk import RKMK4, RKMK5, RKMK8
 from ._results import RESULTS
@@ -300,11 +300,6 @@ def _from_knowledge(system, known, horizon, tolerance, tolerance_on, g0, m0):
         rows,
         source="knowledge",
     )
-
-
-def _is_symmetric(integrator) -> bool:
-    is_symmetric = getattr(integrator, "is_symmetric", None)
-    return bool(is_symmetric()) if callable(is_symmetric) else False
 
 
 def _extrapolated(row, factor, tolerance, horizon):
