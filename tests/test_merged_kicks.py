@@ -34,7 +34,7 @@ def _initial(batch=4):
 
 @functools.cache
 def _runner(merged: bool):
-    """`(g_N, Π_N)` of the order-4 composition of the splitting's kick kernel after `n` steps
+    """`(Γ_N, Π_N)` of the order-4 composition of the splitting's kick kernel after `n` steps
     `h`, its stages run by the kick kernel's own loop (`merged`) or by the default loop of
     `AbstractBatchKernel` (the stages one after the other, two half kicks each)."""
     kernel = _kernel()
