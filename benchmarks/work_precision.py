@@ -112,6 +112,8 @@ LIEVI_METHODS = {
     "splitting ∘ 4": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=4), 4, True, False),
     "splitting ∘ 6": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=6), 6, True, False),
     "splitting ∘ 8": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), order=8), 8, True, False),
+    "splitting ∘ 6 SS": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), 6, "sofroniou-spaletta"), 6, True, False),
+    "splitting ∘ 8 SS": (lambda: lievi.Composition(lievi.LiePoissonSplitting(), 8, "sofroniou-spaletta"), 8, True, False),
     "preprocessed MV(6)": (lambda: lievi.PreprocessedMoserVeselov(6), 6, True, True),
     "preprocessed MV(8)": (lambda: lievi.PreprocessedMoserVeselov(8), 8, True, True),
     "RKMK4": (lambda: lievi.RKMK4(), 4, False, False),
@@ -409,7 +411,7 @@ def sweep(problem, horizon, t1, args, ref):
 
     B, r = args.batch, args.repeats
     for method, (_, order, structure, free_only) in LIEVI_METHODS.items():
-        if free_only and spec["gravity"]:
+        if (free_only and spec["gravity"]) or method not in (args.methods or LIEVI_METHODS):
             continue
         for h in steps_for(order, horizon, quick):
             run = partial(lievi_run, problem, method, h, B, t1, r)
@@ -419,6 +421,8 @@ def sweep(problem, horizon, t1, args, ref):
     except ImportError:
         print("  diffrax not installed: skipped")
     else:
+        if args.knowledge:  # lievi's methods alone
+            return rows
         for solver, order in DIFFRAX_SOLVERS.items():
             for h in steps_for(order, horizon, quick):
                 run = partial(diffrax_run, problem, solver, h, False, B, t1, r)
@@ -533,6 +537,88 @@ def plot(results, path):
     fig.savefig(path, dpi=110)
 
 
+# ---- suggest_integrator's knowledge ---------------------------------------------------------
+
+# The benchmark's problems and methods in `lievi/_suggest_knowledge.py` (its `METHODS`).
+KNOWLEDGE_PROBLEMS = ("free body", "HLW body", "heavy top", "Lagrange top")
+KNOWLEDGE_METHODS = ("splitting", "splitting ∘ 4", "splitting ∘ 6", "splitting ∘ 8",
+                     "RKMK4", "RKMK5", "RKMK8")  # fmt: skip
+# The table's quantities: the attitude is the trajectory's on the integrable problems only
+# (the heavy top's is chaotic beyond short horizons).
+KNOWLEDGE_QUANTITIES = ("attitude", "energy", "momentum")
+ROUNDOFF_LEVEL = 1e-12
+
+
+def knowledge(results):
+    """`lievi/_suggest_knowledge.py`'s `TABLE` from the runs: for each class (the problems
+    pooled by `problem_class`), method and quantity, `(C, a, floor)` of `error ≈ C (ωh)^p
+    (ωT)^a + floor` by least squares on the logarithms (`p` the method's order), and the
+    cheapest measured seconds per body-step. A quantity whose errors all stay below
+    `ROUNDOFF_LEVEL` is kept to round-off: `C = 0`, `floor` their largest. Otherwise the
+    errors between 1e-12 (the reference's accuracy) and 0.1 (not asymptotic) are fitted,
+    `C` raised to bound every one of them; the floor is the smallest error reached where
+    that is below 1e-11 (the reference's accuracy, or round-off), else 0."""
+    from lievi._suggest_knowledge import problem_class
+
+    points, costs = {}, {}
+    for problem, horizons in results["problems"].items():
+        system = system_of(problem)
+        g0, m0 = initial_states(problem, 1)
+        known = problem_class(system, jnp.asarray(g0), jnp.asarray(m0[0]))
+        omega = known.frequency
+        for run in horizons.values():
+            T = run["T"]
+            for row in run["rows"]:
+                method = row["method"].removeprefix("lievi ")
+                if row["family"] != "lievi" or method not in KNOWLEDGE_METHODS or not row["ok"]:
+                    continue
+                key = (known.name, method)
+                n_steps = T / row["knob"]
+                costs[key] = min(costs.get(key, np.inf), row["cost"] * 1e-6 / n_steps)
+                for q in KNOWLEDGE_QUANTITIES:
+                    if q == "attitude" and known.chaotic:
+                        continue
+                    points.setdefault((*key, q), []).append(
+                        (omega * row["knob"], omega * T, row[q])
+                    )
+    table = {}
+    for (cls, method), cost in sorted(costs.items()):
+        order = LIEVI_METHODS[method][1]
+        errors = {}
+        for q in KNOWLEDGE_QUANTITIES:
+            data = np.array(points.get((cls, method, q), []), float)
+            if len(data) == 0:
+                continue
+            e = data[:, 2]
+            if e.max() <= ROUNDOFF_LEVEL:
+                errors[q] = (0.0, 0.0, float(e.max()))
+                continue
+            # The asymptotic points: above the reference's accuracy, below O(1) errors.
+            fit = data[(e > 1e-12) & (e < 0.1)]
+            if len(fit) == 0:
+                continue
+            y = np.log(fit[:, 2]) - order * np.log(fit[:, 0])
+            if len(np.unique(fit[:, 1])) > 1:
+                X = np.stack([np.ones(len(fit)), np.log(fit[:, 1])], axis=1)
+                (logC, a), *_ = np.linalg.lstsq(X, y, rcond=None)
+            else:
+                logC, a = float(np.mean(y - np.log(fit[:, 1]))), 1.0
+            # The constant that bounds every fitted point (the model is an upper estimate).
+            logC = float(np.max(y - a * np.log(fit[:, 1])))
+            # The floor: the reference's accuracy where a run reached it, else none.
+            floor = float(e.min()) if e.min() < 1e-11 else 0.0
+            errors[q] = (float(np.exp(logC)), round(float(a), 3), floor)
+        # The model holds where it was fitted: no step larger than the benchmark's.
+        largest = max(x for q in KNOWLEDGE_QUANTITIES for x, *_ in points.get((cls, method, q), []))
+        table[(cls, method)] = {
+            "order": order,
+            "seconds_per_body_step": float(cost),
+            "largest_omega_h": float(largest),
+            "errors": errors,
+        }
+    return table
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=256)
@@ -547,10 +633,23 @@ def main():
     parser.add_argument("--no-mujoco", action="store_true")
     parser.add_argument("--all-cores", action="store_true", help="do not pin to one core")
     parser.add_argument("--quick", action="store_true", help="two steps, batch 64, T_long = 200")
+    parser.add_argument(
+        "--methods", nargs="+", default=None, choices=list(LIEVI_METHODS),
+        help="lievi methods to run (default: all)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--knowledge", action="store_true",
+        help="fit and print suggest_integrator's table (lievi/_suggest_knowledge.py) from the "
+        "runs: its problems and methods, long horizon at most 2000, lievi only",
+    )  # fmt: skip
     parser.add_argument("--out", default=None, help="default work_precision[_quick]")
     parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
     args = parser.parse_args()
     args.threads = os.cpu_count() if args.all_cores else 1
+    if args.knowledge:
+        args.problems = [p for p in args.problems if p in KNOWLEDGE_PROBLEMS]
+        args.methods = args.methods or list(KNOWLEDGE_METHODS)
+        args.no_mujoco, args.long_T = True, min(args.long_T, 2000.0)
     if args.quick:
         args.batch, args.mujoco_batch = min(args.batch, 64), min(args.mujoco_batch, 16)
         args.reference, args.long_T = min(args.reference, 4), min(args.long_T, 200.0)
@@ -561,7 +660,8 @@ def main():
     for problem in args.problems:
         results["problems"][problem] = {}
         print(f"{problem}:")
-        check = baseline_check(problem, args) if "short" in args.horizons else None
+        short = "short" in args.horizons and not args.knowledge
+        check = baseline_check(problem, args) if short else None
         for horizon in args.horizons:
             t1 = T_SHORT if horizon == "short" else args.long_T
             quantities = ("attitude",) if horizon == "short" else PROBLEMS[problem]["long_targets"]
@@ -592,6 +692,14 @@ def main():
     outdir.mkdir(parents=True, exist_ok=True)
     (outdir / f"{out}.json").write_text(json.dumps(results, indent=1))
     plot(results, outdir / f"{out}.png")
+    if args.knowledge:
+        table = knowledge(results)
+        flat = {f"{cls} | {method}": entry for (cls, method), entry in table.items()}
+        (outdir / "suggest_knowledge.json").write_text(json.dumps(flat, indent=1))
+        print("TABLE = {")
+        for (cls, method), entry in table.items():
+            print(f"    ({cls!r}, {method!r}): {entry!r},")
+        print("}")
     print(f"wrote {outdir / out}.json and .png (load average at start {load[0]:.1f})")
 
 

@@ -1,8 +1,20 @@
-"""`suggest_integrator`: the method and step that reach a target accuracy most cheaply,
-from a short pilot run (the work–precision diagram, for the user's own problem).
+"""`suggest_integrator`: the method and step that reach a target accuracy most cheaply —
+from the work–precision benchmark's knowledge where it has measured the kind of problem
+(`_suggest_knowledge.py`: the free rigid body, the heavy and the Lagrange top; no run at
+all), else from a short pilot run (the work–precision diagram, for the user's own problem).
+
+**Pilot.** Its cost is bounded to a fraction `pilot_fraction` of the run it predicts
+(compilation apart): it integrates a window `T_p = max(pilot_fraction·T/7, 8h₀)` (at most
+`T`), so that its `n + 2n + 4n = 7n` steps of each candidate cost at most that fraction of
+the run's `T/h₀` steps of one body (the run's own step is at most `h₀`, its batch at least
+one body). The errors at the end of the window are extrapolated to the horizon by their
+growth law: trajectory errors grow like `t` for a symmetric method (linear phase error)
+and `t²` otherwise; the energy's and the momentum map's are bounded for a symmetric
+method and grow like `t` otherwise (Hairer–Lubich–Wanner, *Geometric Numerical
+Integration*, §X.3, §XI.3).
 
 For each candidate of order `p` the pilot integrates the user's initial state over the
-whole horizon at three steps `h₀, h₀/2, h₀/4` and compares a final quantity `q(T)` — the
+window at three steps `h₀, h₀/2, h₀/4` and compares a final quantity `q(T)` — the
 element `g` (the default), its attitude or position, the momentum `m`, or the energy (the
 `tolerance_on` argument of `suggest_integrator`). With `d₁ = ‖q_{h₀} − q_{h₀/2}‖`,
 `d₂ = ‖q_{h₀/2} − q_{h₀/4}‖` (the Euclidean/Frobenius norm over every body at the end of
@@ -26,12 +38,20 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._checks import check_integer, check_scalar
-from ._integrators._composition import Composition
+from ._integrators._composition import Composition, _is_symmetric
 from ._integrators._dep import DEP
 from ._integrators._rkmk import RKMK4, RKMK5, RKMK8
 from ._results import RESULTS
 from ._simulate_batch import simulate_batch
-from .diagnostics import energy
+from ._suggest_knowledge import (
+    MEASURED,
+    METHODS,
+    TABLE,
+    largest_step,
+    predicted_error,
+    problem_class,
+)
+from .diagnostics import energy, spatial_momentum
 
 
 def _attitudes(system, g, m):
@@ -40,6 +60,18 @@ def _attitudes(system, g, m):
 
 def _positions(system, g, m):
     return system.group.translation(g)
+
+
+def _momentum_map(system, g, m):
+    """The conserved part of the Noether momentum: all of it for a free system; in a
+    potential of advected direction `a` (gravity), its component along `a` (the symmetry
+    left is the rotations about `a`)."""
+    J = spatial_momentum(system, g, m)
+    a = None if system.potential is None else system.potential.advected_direction()
+    if a is None:
+        return J
+    a = jnp.asarray(a, J.dtype)[..., : J.shape[-1]]
+    return (J @ a / jnp.linalg.norm(a))[..., None]
 
 
 # What `tolerance_on` names: the final quantity whose error the pilot estimates, from the
@@ -51,7 +83,19 @@ MEASURES = {
     "position": _positions,
     "momentum": lambda system, g, m: m,
     "energy": lambda system, g, m: energy(system, m, g),
+    "momentum map": _momentum_map,
 }
+# Growth of each quantity's error with the horizon, `t^a`, for a symmetric method and for
+# another (module docstring).
+GROWTH = {
+    "g": (1, 2),
+    "attitude": (1, 2),
+    "position": (1, 2),
+    "momentum": (1, 2),
+    "energy": (0, 1),
+    "momentum map": (0, 1),
+}
+TRAJECTORY = ("g", "attitude", "position", "momentum")
 
 
 def default_candidates():
@@ -80,8 +124,9 @@ class Suggestion:
       quantity `suggest_integrator`'s `tolerance_on` names (`g` by default).
     - `seconds_per_body`: the predicted cost of one body's run on this machine
       (`simulate_batch`'s path, measured on the pilot batch).
-    - `table`: one row per candidate (`name`, `order`, `observed_order`, `h`, `n_steps`,
-      `predicted_error`, `seconds_per_body`, or `failed` with the pilot's message).
+    - `table`: one row per candidate (`name`, `order`, `h`, `n_steps`, `predicted_error`,
+      `seconds_per_body`; a pilot's also `observed_order`, or `failed` with its message).
+    - `source`: `"knowledge"` (the benchmark's table, no run) or `"pilot"`.
     """
 
     integrator: object
@@ -90,6 +135,7 @@ class Suggestion:
     predicted_error: float
     seconds_per_body: float
     table: list[dict] = field(default_factory=list)
+    source: str = "pilot"
 
 
 def suggest_integrator(
@@ -103,9 +149,12 @@ def suggest_integrator(
     h0=None,
     batch: int = 256,
     tolerance_on: str = "g",
+    pilot_fraction: float = 0.1,
 ) -> Suggestion:
     """The method and step `h` that reach a final error `tolerance` over `horizon` at the
-    least cost, from a pilot run of each candidate (module docstring).
+    least cost: from the benchmark's knowledge where it has measured this kind of problem
+    and `candidates` is not given, else from a pilot run of each candidate (module
+    docstring).
 
     **Arguments:**
 
@@ -120,33 +169,69 @@ def suggest_integrator(
       rotation and the position, in the position's units), `"attitude"` (the rotation part
       only, `‖R_h(T) − R(T)‖_F`, dimensionless), `"position"` (the translation only,
       `‖p_h(T) − p(T)‖`, on SE(3)), `"momentum"` (the momentum coordinates,
-      `‖m_h(T) − m(T)‖`), or `"energy"` (the total energy `|E_h(T) − E(T)|`,
-      `lievi.diagnostics.energy`).
-    - `candidates`: integrators to compare (default: `DEP()`, its compositions of order
-      4, 6, 8, and `RKMK4()`, `RKMK5()`, `RKMK8()`). Each needs `order()`.
+      `‖m_h(T) − m(T)‖`), `"energy"` (the total energy `|E_h(T) − E(T)|`,
+      `lievi.diagnostics.energy`) or `"momentum map"` (the conserved part of
+      `lievi.diagnostics.spatial_momentum`: all of it for a free body, its vertical
+      component in gravity).
+    - `candidates`: integrators to compare by a pilot run. By default: for a problem the
+      benchmark knows (one rigid body on SO(3) with principal moments, free or in uniform
+      gravity; `tolerance_on` `"g"`, `"attitude"`, `"energy"` or `"momentum map"`) the
+      methods of its table, without any run; else `DEP()`, its compositions of order 4, 6,
+      8, and `RKMK4()`, `RKMK5()`, `RKMK8()` by a pilot. Each needs `order()`.
     - `h0`: the pilot's largest step (default: the step that turns `0.4` rad at the
       initial angular speed — of the fastest body, for several — at most `horizon/8`).
     - `batch`: the bodies in the pilot's timing run.
+    - `pilot_fraction`: the pilot's cost bound, as a fraction of the predicted run's (module
+      docstring); `0 < pilot_fraction`. A larger fraction integrates a longer window and
+      extrapolates less.
 
-    **Returns:** a `Suggestion`. Raises `ValueError` if no candidate's pilot succeeds.
+    **Returns:** a `Suggestion`. Raises `ValueError` if no candidate's pilot succeeds, or if
+    the problem is chaotic and `tolerance` bounds a trajectory quantity beyond the
+    predictability horizon (no method can meet it there: errors of round-off at the start
+    have grown past the tolerance; bound the energy or the momentum map instead).
     """
     check_scalar("horizon", horizon, positive=True)
     check_scalar("tolerance", tolerance, positive=True)
+    check_scalar("pilot_fraction", pilot_fraction, positive=True)
     batch = check_integer("batch", batch, 1)
     horizon, tolerance = float(horizon), float(tolerance)
     system.check_element("g0", g0)
     system.check_momentum("m0", m0)
     g0, m0 = jnp.asarray(g0), jnp.asarray(m0)
     measure = _measure(system, tolerance_on, g0, m0)
+    known = problem_class(system, g0, m0)
+    if known is not None and tolerance_on in TRAJECTORY:
+        reachable = known.predictability_horizon(tolerance)
+        if horizon > reachable:
+            raise ValueError(
+                f"`horizon={horizon:g}`: this {known.name} is chaotic, and a trajectory "
+                f"target (`tolerance_on={tolerance_on!r}`, `tolerance={tolerance:g}`) cannot "
+                f"be met beyond its predictability horizon, about {reachable:.3g} here "
+                "(round-off errors at the start grow past the tolerance for every method). "
+                "Bound an invariant instead (`tolerance_on='energy'` or 'momentum map'), or "
+                "shorten the horizon."
+            )
+    if candidates is None and known is not None and tolerance_on in KNOWN_QUANTITIES:
+        suggestion = _from_knowledge(system, known, horizon, tolerance, tolerance_on, g0, m0)
+        if suggestion is not None:
+            return suggestion
     if h0 is None:
         # The fastest body's angular speed (one value per body for a system of several).
         speed = float(jnp.max(system.group.exp_norm(system.velocity(m0))))
         h0 = min(horizon / 8, 0.4 / speed) if speed > 0 else horizon / 8
     check_scalar("h0", h0, positive=True)
     candidates = default_candidates() if candidates is None else tuple(candidates)
+    # The window: 7n steps a candidate at most `pilot_fraction` of the run's T/h₀ steps,
+    # and at least 8 steps of h₀ for the errors to be asymptotic.
+    window = min(horizon, max(pilot_fraction * horizon / 7, 8 * float(h0)))
     rows, best = [], None
     for integrator in candidates:
-        row = _pilot(system, integrator, g0, m0, horizon, tolerance, float(h0), batch, measure)
+        row = _pilot(
+            system, integrator, g0, m0, horizon, window, tolerance, float(h0), batch, measure
+        )
+        if "failed" not in row:
+            growth = GROWTH[tolerance_on][0 if _is_symmetric(integrator) else 1]
+            row = _extrapolated(row, (horizon / window) ** growth, tolerance, horizon)
         rows.append(row)
         if "failed" not in row and (best is None or row["seconds_per_body"] < best[1]):
             best = (integrator, row["seconds_per_body"], row)
@@ -158,6 +243,82 @@ def suggest_integrator(
         )
     integrator, seconds, row = best
     return Suggestion(integrator, row["h"], row["n_steps"], row["predicted_error"], seconds, rows)
+
+
+# The quantities of the table: `tolerance_on` ↦ (the benchmark's quantity, its scale from
+# the initial state: the benchmark's energy and momentum errors are relative).
+KNOWN_QUANTITIES = {
+    # ‖R_h − R‖_F = 2√2 sin(θ/2) ≈ √2 θ for the rotation angle θ between them.
+    "g": ("attitude", lambda system, g0, m0: math.sqrt(2.0)),
+    "attitude": ("attitude", lambda system, g0, m0: math.sqrt(2.0)),
+    "energy": ("energy", lambda system, g0, m0: abs(float(energy(system, m0, g0)))),
+    "momentum map": ("momentum", lambda system, g0, m0: float(jnp.linalg.norm(m0))),
+}
+
+
+def _from_knowledge(system, known, horizon, tolerance, tolerance_on, g0, m0):
+    """The cheapest method of the table for this class, with its largest step meeting the
+    tolerance; `None` where the table has nothing for the class."""
+    quantity, scale = KNOWN_QUANTITIES[tolerance_on]
+    target = tolerance / scale(system, g0, m0)
+    omega, rows, best = known.frequency, [], None
+    for (name, method), entry in TABLE.items():
+        if name != known.name or quantity not in entry["errors"]:
+            continue
+        integrator = METHODS[method]()
+        # Within the method's stability bound, the steps the table was fitted on, and the
+        # horizon.
+        h_max = min(horizon, integrator.step_bound() / omega, entry["largest_omega_h"] / omega)
+        h = min(largest_step(entry, quantity, omega, horizon, target), h_max)
+        if h <= 0:
+            rows.append({"name": method, "order": entry["order"], "failed": "floor above target"})
+            continue
+        n_steps = max(1, math.ceil(horizon / h))
+        h = horizon / n_steps
+        error = predicted_error(entry, quantity, omega, h, horizon) * scale(system, g0, m0)
+        row = {
+            "name": method,
+            "order": entry["order"],
+            "h": h,
+            "n_steps": n_steps,
+            "predicted_error": error,
+            "seconds_per_body": entry["seconds_per_body_step"] * n_steps,
+            "measured": MEASURED,
+        }
+        rows.append(row)
+        if best is None or row["seconds_per_body"] < best[1]["seconds_per_body"]:
+            best = (integrator, row)
+    if best is None:
+        return None
+    integrator, row = best
+    return Suggestion(
+        integrator,
+        row["h"],
+        row["n_steps"],
+        row["predicted_error"],
+        row["seconds_per_body"],
+        rows,
+        source="knowledge",
+    )
+
+
+def _extrapolated(row, factor, tolerance, horizon):
+    """The pilot's row at the window's end carried to the horizon: errors times `factor`
+    (the growth law), and the step shrunk by `factor^(1/q)` to meet the tolerance."""
+    q = min(max(row["observed_order"], 1.0), float(row["order"]))
+    error = row["predicted_error"] * factor
+    if error <= tolerance:
+        return {**row, "predicted_error": error}
+    h = row["h"] * (tolerance / error) ** (1.0 / q)
+    n_steps = max(1, math.ceil(horizon / h))
+    h_new = horizon / n_steps
+    return {
+        **row,
+        "h": h_new,
+        "n_steps": n_steps,
+        "predicted_error": error * (h_new / row["h"]) ** q,
+        "seconds_per_body": row["seconds_per_body"] / row["n_steps"] * n_steps,
+    }
 
 
 def _measure(system, tolerance_on, g0, m0):
@@ -176,15 +337,17 @@ def _measure(system, tolerance_on, g0, m0):
     return measure
 
 
-def _pilot(system, integrator, g0, m0, horizon, tolerance, h0, batch, measure):
+def _pilot(system, integrator, g0, m0, horizon, window, tolerance, h0, batch, measure):
+    """The pilot over `window` (module docstring): the step meeting `tolerance` at the
+    window's end, and the run's steps and cost over `horizon` at that step."""
     order = integrator.order()
     row = {"name": f"{type(integrator).__name__} (order {order})", "order": order}
-    # The pilot's steps: the largest dividing the horizon at most h₀, then its halves.
-    n0 = max(1, math.ceil(horizon / h0))
+    # The pilot's steps: the largest dividing the window at most h₀, then its halves.
+    n0 = max(1, math.ceil(window / h0))
     finals = []
     for level in range(3):
         solution = _final(
-            system, integrator, g0[None], m0[None], horizon / (n0 * 2**level), n0 * 2**level
+            system, integrator, g0[None], m0[None], window / (n0 * 2**level), n0 * 2**level
         )
         code = int(solution.result[0])
         if code != RESULTS.successful:
@@ -196,7 +359,7 @@ def _pilot(system, integrator, g0, m0, horizon, tolerance, h0, batch, measure):
     d2 = float(np.linalg.norm(finals[1] - finals[2]))
     observed = math.log2(d1 / d2) if d1 > 0 and d2 > 0 else float(order)
     q = min(max(observed, 1.0), float(order))
-    h_fine, h_cap = horizon / (4 * n0), horizon / n0
+    h_fine, h_cap = window / (4 * n0), window / n0
     error = d2 / (2.0**q - 1.0)  # Richardson, at h_fine
     h = h_fine * (tolerance / error) ** (1.0 / q) if error > 0 else h_cap
     n_steps = max(1, math.ceil(horizon / min(h, h_cap)))

@@ -71,12 +71,19 @@ CASES = [
     (lievi.DEP(), 8, None),
 ]
 CASE_IDS = ["dep-4", "dep-6", "mv-4", "mv-6", "splitting-4", "splitting-6", "splitting-8", "dep-8"]
+# Larger error constants than the defaults: finer steps (4× those of `STEPS`, 6× at order
+# 8) to reach the asymptotic regime (Yoshida's order 8 at 4× the steps still had local
+# slopes 7.70, 7.81, 7.87); smaller ones (Sofroniou–Spaletta's): `STEPS`' coarser end, whose
+# errors (~4e-8 … 8e-11 at order 6, ~1e-9 … 3e-11 at order 8) stay above the reference's.
+COARSER = {6: (5, 7, 10, 14), 8: (2, 3, 4, 5)}
 SLOW_CASES = [
-    (lievi.DEP(chart="cayley"), 4, "suzuki"),
-    (lievi.DEP(chart="cayley"), 6, "yoshida"),
-    (lievi.MoserVeselov(), 6, "triple-jump"),
-    (lievi.LiePoissonSplitting(), 8, "yoshida"),
-    (lievi.DEP(), 8, "triple-jump"),
+    (lievi.DEP(chart="cayley"), 4, "suzuki", tuple(4 * n for n in STEPS[4])),
+    (lievi.DEP(chart="cayley"), 6, "yoshida", tuple(4 * n for n in STEPS[6])),
+    (lievi.MoserVeselov(), 6, "triple-jump", tuple(4 * n for n in STEPS[6])),
+    (lievi.LiePoissonSplitting(), 8, "yoshida", tuple(6 * n for n in STEPS[8])),
+    (lievi.DEP(), 8, "triple-jump", tuple(6 * n for n in STEPS[8])),
+    (lievi.LiePoissonSplitting(), 6, "sofroniou-spaletta", COARSER[6]),
+    (lievi.LiePoissonSplitting(), 8, "sofroniou-spaletta", COARSER[8]),
 ]
 SLOW_IDS = [
     "dep-cayley-4-suzuki",
@@ -84,6 +91,8 @@ SLOW_IDS = [
     "mv-6-triple-jump",
     "splitting-8-yoshida",
     "dep-8-triple-jump",
+    "splitting-6-sofroniou-spaletta",
+    "splitting-8-sofroniou-spaletta",
 ]
 
 
@@ -99,11 +108,8 @@ def test_order(hlw_reference, method, order, scheme):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("method, order, scheme", SLOW_CASES, ids=SLOW_IDS)
-def test_order_other_schemes(hlw_reference, method, order, scheme):
-    # Larger error constants than the defaults: finer steps to reach the asymptotic regime
-    # (Yoshida's order 8 at 4× the steps still had local slopes 7.70, 7.81, 7.87).
-    steps = tuple((6 if order == 8 else 4) * n for n in STEPS[order])
+@pytest.mark.parametrize("method, order, scheme, steps", SLOW_CASES, ids=SLOW_IDS)
+def test_order_other_schemes(hlw_reference, method, order, scheme, steps):
     slope, errors = observed_order(hlw_reference, lievi.Composition(method, order, scheme), steps)
     assert abs(slope - order) <= ORDER_TOLERANCE, (slope, errors)
 
@@ -115,8 +121,10 @@ def test_coefficients_are_consistent():
     for (order, scheme), gammas in SCHEMES.items():
         assert abs(sum(gammas) - 1) <= 1e-14, scheme
         np.testing.assert_allclose(gammas, gammas[::-1], rtol=0, atol=1e-15, err_msg=scheme)
-        # Σγ³ = 0: the first order condition beyond 2 (HLW §V.3.2).
+        # Σγ³ = 0: the first order condition beyond 2 (HLW §V.3.2); Σγ⁵ = 0 from order 6.
         assert abs(sum(g**3 for g in gammas)) <= 1e-12, scheme
+        if order >= 6:
+            assert abs(sum(g**5 for g in gammas)) <= 1e-12, scheme
 
 
 def test_symmetric():
