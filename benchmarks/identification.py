@@ -59,7 +59,7 @@ def orientations(inertias, momenta, **kwargs):
         momenta,
         h=H,
         n_steps=N_STEPS,
-        save_every=EVERY,
+        save=lievi.Save(every=EVERY),
         system_axis=0,
         **kwargs,
     ).g
@@ -111,7 +111,7 @@ def default_start_problem(n=64, seed=0, sigma=0.01, h=0.05, every=5, n_steps=200
         momenta,
         h=h,
         n_steps=n_steps,
-        save_every=every,
+        save=lievi.Save(every=every),
         system_axis=0,
     ).g
     observed = clean @ SO3.exp(jnp.asarray(sigma * rng.normal(size=clean.shape[:-1])))

@@ -189,7 +189,7 @@ def run_lievi(system, method, g0, m0, steps, h):
 
     @jax.jit
     def trajectory(g0, m0):
-        sol = lievi.simulate(system, method, g0, m0, h=h, n_steps=steps, save_every=1)
+        sol = lievi.simulate(system, method, g0, m0, h=h, n_steps=steps, save=lievi.Save())
         # One saved state at a time, as jax-md's `total` inside its scan: vectorised over
         # every save at once, the site-pair arrays of hundreds of molecules would take
         # gigabytes.
@@ -197,7 +197,9 @@ def run_lievi(system, method, g0, m0, steps, h):
 
     @jax.jit
     def final(g0, m0):
-        sol = lievi.simulate(system, method, g0, m0, h=h, n_steps=steps, save_every=steps)
+        sol = lievi.simulate(
+            system, method, g0, m0, h=h, n_steps=steps, save=lievi.Save(every=steps)
+        )
         return sol.g, sol.m
 
     return (

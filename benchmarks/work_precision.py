@@ -225,8 +225,8 @@ def lievi_run(problem, method, h, batch, t1, repeats):
     @jax.jit
     def run(m0):
         sol = lievi.simulate_batch(
-            system, integrator, jnp.asarray(g0), m0, h=h, n_steps=n, save_every=every,
-            save=lievi.Save(g=True, m=True, stats=False), throw=False,
+            system, integrator, jnp.asarray(g0), m0, h=h, n_steps=n, throw=False,
+            save=lievi.Save(g=True, m=True, stats=False, every=every),
         )  # fmt: skip
         return sol.g[:, 1:], sol.m[:, 1:], sol.result
 

@@ -30,6 +30,7 @@ from ._integrators._composition import Composition
 from ._integrators._dep import DEP
 from ._integrators._rkmk import RKMK4, RKMK5, RKMK8
 from ._results import RESULTS
+from ._save import Save
 from ._simulate_batch import simulate_batch
 from .diagnostics import energy
 
@@ -219,6 +220,5 @@ def _pilot(system, integrator, g0, m0, horizon, tolerance, h0, batch, measure):
 
 
 def _final(system, integrator, g0, m0, h, n_steps):
-    return simulate_batch(
-        system, integrator, g0, m0, h=h, n_steps=n_steps, save=("g", "m"), throw=False
-    )
+    final = Save(g=True, m=True, stats=False, every=n_steps)
+    return simulate_batch(system, integrator, g0, m0, h=h, n_steps=n_steps, save=final, throw=False)

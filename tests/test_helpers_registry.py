@@ -64,9 +64,15 @@ def _trajectory(system, g0, m0, n_steps=4):
     """`(T, *element_shape)`, or `(B, T, …)` for a batch of states."""
     if _leading(system, m0):
         return lievi.simulate_batch(
-            system, lievi.DEP(), g0, m0, h=H, n_steps=n_steps, save_every=1, save=("g",)
+            system,
+            lievi.DEP(),
+            g0,
+            m0,
+            h=H,
+            n_steps=n_steps,
+            save=lievi.Save(m=False, stats=False, every=n_steps),
         ).g
-    return lievi.simulate(system, lievi.DEP(), g0, m0, h=H, n_steps=n_steps, save_every=1).g
+    return lievi.simulate(system, lievi.DEP(), g0, m0, h=H, n_steps=n_steps, save=lievi.Save()).g
 
 
 # ---- the diagnostics and the reference solution ------------------------------------------

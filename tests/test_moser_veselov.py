@@ -108,7 +108,7 @@ def test_second_order_on_so4():
 
 def test_conservation_over_1e4_steps():
     body, g0, m0 = hlw_problem()
-    sol = lievi.simulate(body, MV, g0, m0, h=H, n_steps=10_000, save_every=10)
+    sol = lievi.simulate(body, MV, g0, m0, h=H, n_steps=10_000, save=lievi.Save(every=10))
     assert sol.result == lievi.RESULTS.successful
     assert dg.relative_drift(dg.casimirs(body, sol.m)) <= ROUNDOFF
     assert dg.relative_drift(dg.spatial_momentum(body, sol.g, sol.m)) <= ROUNDOFF

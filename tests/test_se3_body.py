@@ -97,7 +97,7 @@ def _run(problem, chart, n_steps=None, save_every=1):
         m0,
         h=STEP[problem],
         n_steps=n_steps,
-        save_every=save_every,
+        save=lievi.Save(every=save_every),
     )
     assert sol.result == lievi.RESULTS.successful
     return body, sol

@@ -32,7 +32,15 @@ def _problem():
 def _in_memory(fast=True):
     bodies, g0, m0, h = _problem()
     return lievi.simulate_batch(
-        bodies, lievi.DEP(), g0, m0, h=h, n_steps=N_STEPS, save_every=EVERY, throw=False, fast=fast
+        bodies,
+        lievi.DEP(),
+        g0,
+        m0,
+        h=h,
+        n_steps=N_STEPS,
+        save=lievi.Save(every=EVERY),
+        tuning=lievi.advanced.Tuning(fast=fast),
+        throw=False,
     )
 
 
@@ -46,7 +54,7 @@ def _stream(directory, writer=None, **kwargs):
         m0,
         h=h,
         n_steps=N_STEPS,
-        save_every=EVERY,
+        save=lievi.Save(every=EVERY),
         writer=writer or lievi.NpyWriter(directory),
         **kwargs,
     )
@@ -154,7 +162,9 @@ def test_bad_arguments(tmp_path):
 
 # ---- data integrity: small runs of one shared body, one compiled program for all ----------
 
-SMALL = dict(h=0.05, n_steps=8, save_every=2, segment_steps=4, chunk_size=2)  # 2 × 2 pieces
+SMALL = dict(
+    h=0.05, n_steps=8, save=lievi.Save(every=2), segment_steps=4, chunk_size=2
+)  # 2 × 2 pieces
 NOT_RUN = lievi.RESULTS.not_run
 
 
@@ -196,7 +206,7 @@ def test_other_physics_on_an_existing_directory_is_refused(tmp_path):
         (dict(system=other_body), "system"),
         (dict(g0=np.broadcast_to(np.eye(3), (4, 3, 3))), "g0"),
         (dict(n_steps=16), "n_steps"),
-        (dict(fast=False), "options"),
+        (dict(tuning=lievi.advanced.Tuning(fast=False)), "options"),
     ]:
         with pytest.raises(ValueError, match=f"differs in .*`{field}`"):
             _small(tmp_path, _StopAfter(tmp_path, 0), **change)
@@ -394,7 +404,7 @@ def test_batch_of_several_body_systems(tmp_path):
     system = lievi.RigidRotors(jnp.array([[1.0, 2.0, 3.0], [2.0, 2.5, 1.5]]))
     m0 = np.random.default_rng(4).normal(size=(2, 2, 3))
     g0 = np.broadcast_to(np.eye(3), (2, 2, 3, 3))
-    kwargs = dict(h=0.05, n_steps=8, save_every=2)
+    kwargs = dict(h=0.05, n_steps=8, save=lievi.Save(every=2))
     lievi.stream_batch(
         system,
         lievi.LiePoissonSplitting(),
