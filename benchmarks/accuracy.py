@@ -224,7 +224,7 @@ def long_time_energy(quick: bool):
             n_steps=n_steps,
             save=lievi.Save(every=save_every),
         )
-        energy = dg.energy(body, sol.m)
+        energy = dg.energy(body, sol.g, sol.m)
         error = np.abs(np.asarray((energy - energy[0]) / energy[0]))
         casimir = float(dg.relative_drift(dg.casimirs(body, sol.m)))
         out["methods"][name] = {

@@ -193,7 +193,7 @@ def run_lievi(system, method, g0, m0, steps, h):
         # One saved state at a time, as jax-md's `total` inside its scan: vectorised over
         # every save at once, the site-pair arrays of hundreds of molecules would take
         # gigabytes.
-        return jax.lax.map(lambda s: diagnostics.energy(system, s[1], s[0]), (sol.g, sol.m))
+        return jax.lax.map(lambda s: diagnostics.energy(system, s[0], s[1]), (sol.g, sol.m))
 
     @jax.jit
     def final(g0, m0):

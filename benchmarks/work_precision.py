@@ -188,7 +188,7 @@ def errors(problem, g, m, ref):
     def invariants(g, m):
         g, m = jnp.asarray(g), jnp.asarray(m)
         J = np.asarray(lievi.diagnostics.spatial_momentum(system, g, m))
-        return np.asarray(lievi.diagnostics.energy(system, m, g)), (J[..., 2:] if gravity else J)
+        return np.asarray(lievi.diagnostics.energy(system, g, m)), (J[..., 2:] if gravity else J)
 
     g0, m0 = initial_states(problem, count)
     (H, J), (H0, J0) = (

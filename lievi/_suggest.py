@@ -51,7 +51,7 @@ MEASURES = {
     "attitude": _attitudes,
     "position": _positions,
     "momentum": lambda system, g, m: m,
-    "energy": lambda system, g, m: energy(system, m, g),
+    "energy": lambda system, g, m: energy(system, g, m),
 }
 
 

@@ -320,8 +320,8 @@ def test_energy_of_a_system_with_a_potential_needs_g():
     that names `g` (raised while tracing, before anything is compiled)."""
     top = lievi.RigidBody(jnp.ones(3), lievi.UniformGravity(1.0, jnp.ones(3)))
     with pytest.raises(ValueError, match="pass `g`"):
-        lievi.diagnostics.energy(top, jnp.ones((5, 3)))
+        lievi.diagnostics.energy(top, None, jnp.ones((5, 3)))
     energy = lievi.diagnostics.energy(
-        top, jnp.ones((5, 3)), jnp.broadcast_to(jnp.eye(3), (5, 3, 3))
+        top, jnp.broadcast_to(jnp.eye(3), (5, 3, 3)), jnp.ones((5, 3))
     )
     assert energy.shape == (5,)

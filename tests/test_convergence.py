@@ -70,7 +70,7 @@ def test_energy_bounded_without_drift_over_1e5_steps(integrator):
         body, integrator, g0, m0, h=0.1, n_steps=100_000, save=lievi.Save(every=10)
     )
     assert sol.result == lievi.RESULTS.successful
-    energy = dg.energy(body, sol.m)
+    energy = dg.energy(body, sol.g, sol.m)
     error = np.asarray((energy - energy[0]) / energy[0])
     tenth = len(error) // 10
     first, last = np.max(np.abs(error[:tenth])), np.max(np.abs(error[-tenth:]))
@@ -92,7 +92,7 @@ def test_energy_bounded_over_1e6_steps():
     sol = lievi.simulate(
         body, lievi.DEP(), g0, m0, h=0.1, n_steps=1_000_000, save=lievi.Save(every=100)
     )
-    energy = dg.energy(body, sol.m)
+    energy = dg.energy(body, sol.g, sol.m)
     error = np.asarray((energy - energy[0]) / energy[0])
     tenth = len(error) // 10
     assert np.max(np.abs(error[-tenth:])) <= 1.01 * np.max(np.abs(error[:tenth]))

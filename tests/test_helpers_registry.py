@@ -79,10 +79,10 @@ def _trajectory(system, g0, m0, n_steps=4):
 
 
 def energy(system, g0, m0, kind):
-    E = dg.energy(system, m0, g0)
+    E = dg.energy(system, g0, m0)
     assert E.shape == _leading(system, m0) and np.all(np.isfinite(E))
     if kind == "batch":  # each state's own
-        np.testing.assert_allclose(E[1], dg.energy(system, m0[1], g0[1]), rtol=ROUNDOFF)
+        np.testing.assert_allclose(E[1], dg.energy(system, g0[1], m0[1]), rtol=ROUNDOFF)
 
 
 def total_momentum(system, g0, m0, kind):

@@ -215,7 +215,7 @@ def test_invariant_monitor_reports_a_drift(batched):
             lievi.simulate(bodies, lievi.LiePoissonSplitting(), g, m, monitor=monitor, **kwargs),
         )
     plain = run(None, m0)
-    energies = lievi.diagnostics.energy(bodies, plain.m[0], plain.g[0])
+    energies = lievi.diagnostics.energy(bodies, plain.g[0], plain.m[0])
     assert int(plain.result[0]) == lievi.RESULTS.successful
     assert np.max(np.abs(energies - energies[0])) > 10 * abs(energies[0])  # it went wrong
     watched = run(lievi.EnergyMonitor(rtol=1e-2), m0)

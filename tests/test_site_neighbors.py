@@ -528,7 +528,7 @@ def test_energy_error_bounded_with_cutoff():
         save=lievi.Save(every=5),
         builder=builder,
     )
-    energy = dg.energy(system, sol.m, sol.g)
+    energy = dg.energy(system, sol.g, sol.m)
     error = jnp.abs(energy - energy[0]) / jnp.abs(energy[0])
     half = len(error) // 2
     assert jnp.max(error) < 2e-2

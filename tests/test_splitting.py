@@ -66,7 +66,7 @@ def test_conservation_over_1e4_steps():
     assert dg.relative_drift(dg.casimirs(body, sol.m)) <= ROUNDOFF
     assert dg.relative_drift(dg.spatial_momentum(body, sol.g, sol.m)) <= ROUNDOFF
     assert dg.orthogonality_defect(body, sol.g[-1]) <= ROUNDOFF
-    energy = np.asarray(dg.energy(body, sol.m))
+    energy = np.asarray(dg.energy(body, sol.g, sol.m))
     error = np.abs(energy / energy[0] - 1)
     tenth = len(error) // 10
     assert np.max(error) <= 1e-2
