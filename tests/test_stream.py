@@ -46,7 +46,7 @@ def _in_memory(fast=True):
 
 def _stream(directory, writer=None, **kwargs):
     bodies, g0, m0, h = _problem()
-    kwargs = dict(dict(chunk_size=CHUNK, segment_steps=SEGMENT), **kwargs)
+    kwargs = dict(dict(chunk_size=CHUNK, segment_steps=SEGMENT, throw=False), **kwargs)
     lievi.stream_batch(
         bodies,
         lievi.DEP(),
@@ -150,10 +150,10 @@ def test_bad_arguments(tmp_path):
     with pytest.raises(ValueError, match="`segment_steps`"):
         _stream(tmp_path, segment_steps=6)
     with pytest.raises(ValueError, match="`save`"):
-        _stream(tmp_path, save=("m", "stats"))
+        _stream(tmp_path, save=lievi.Save(g=False, m=False))
     with pytest.raises(TypeError, match="`writer`"):
         _stream(tmp_path, writer=object())
-    with pytest.raises(TypeError, match="forcing"):
+    with pytest.raises(ValueError, match="forcing"):
         _stream(tmp_path, forcing=lievi.Control(jnp.zeros((N_STEPS, 3))))
     _stream(tmp_path / "run", save=("m",))
     with pytest.raises(ValueError, match="differs in `fields`"):
@@ -372,7 +372,9 @@ def test_a_bad_body_gets_invalid_input_and_the_others_run(tmp_path):
     m0, g0 = _small_m0(), np.array(np.broadcast_to(np.eye(3), (4, 3, 3)))
     m0[1, 2] = np.nan
     g0[2] *= 2.0
-    _small(tmp_path / "bad", m0=m0, g0=g0)
+    # `throw=True` (the default of every run function) raises once everything is written.
+    with pytest.raises(RuntimeError, match="lievi.stream_batch: a body failed"):
+        _small(tmp_path / "bad", m0=m0, g0=g0)
     bad, clean = _read(tmp_path / "bad"), _read(tmp_path / "clean")
     invalid, ok = lievi.RESULTS.invalid_input, lievi.RESULTS.successful
     np.testing.assert_array_equal(bad["result"], [ok, invalid, invalid, ok])
