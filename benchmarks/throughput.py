@@ -628,7 +628,7 @@ def heavy_top_runner(integrator, steps: int, reduced: bool, fast: bool = True):
             h=jnp.asarray(H, m0.dtype),
             n_steps=steps,
             system_axis=0,
-            save=("m", "advected") if reduced else ("g", "m"),
+            save=lievi.Save(g=not reduced, stats=False, advected=reduced, every=steps),
             tuning=lievi.advanced.Tuning(fast=fast),
             throw=False,
         )

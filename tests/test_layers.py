@@ -27,6 +27,7 @@ LAYERS = (
             "_save",
             "_solution",
             "_monitor",
+            "_options",
             "_steppers",
             "_loop",
             "_simulate",
@@ -47,6 +48,7 @@ LAYERS = (
         "applications",
         (
             "_reference",
+            "advanced",
             "diagnostics",
             "_identification",
             "_fit_optimizer",
