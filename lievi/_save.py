@@ -89,20 +89,10 @@ def _keywords(names) -> str:
 
 
 def deprecated(label: str, old: str, new: str) -> None:
-    """A `DeprecationWarning` for a spelling of an earlier release, pointing at the
-    caller of the public run function (`label`) that was given it."""
+    """A `DeprecationWarning` for a spelling of an earlier release, pointing at the call of
+    the public run function (`label`): user → run function → `options` → reader → here."""
     warnings.warn(
         f"{label}: {old} is deprecated and will be removed in the next release; pass {new}.",
         DeprecationWarning,
-        stacklevel=_caller_level(),
+        stacklevel=5,
     )
-
-
-def _caller_level() -> int:
-    """The stack level of the first frame outside lievi (the user's call)."""
-    import sys
-
-    frame, level = sys._getframe(2), 2
-    while frame is not None and frame.f_globals.get("__name__", "").startswith("lievi."):
-        frame, level = frame.f_back, level + 1
-    return level
