@@ -726,12 +726,14 @@ def eqx_set(tree, where, index, value):
 
 
 def test_saving_the_advected_parameter_needs_one():
-    """`save=("advected",)` for a system whose potential has no advected parameter (a free
-    body, or a plain `V(g)`) is an error naming `save`."""
+    """`save=lievi.Save(advected=True)` for a system whose potential has no advected
+    parameter (a free body, or a plain `V(g)`) is an error naming `save.advected`."""
     _, g0, m0, h = random_batch(np.random.default_rng(2), 3)
     inertia = jnp.array([1.0, 2.0, 3.0])
     for system in (lievi.RigidBody(inertia), lievi.RigidBody(inertia, potential=lambda g: g[2, 2])):
-        with pytest.raises(ValueError, match="`save` contains 'advected'"):
+        with pytest.raises(
+            ValueError, match="`save.advected` but the system's potential has no advected parameter"
+        ):
             lievi.simulate_batch(
                 system,
                 FAST["dep-exp"],

@@ -17,6 +17,7 @@ import pytest
 import lievi
 
 B, N_STEPS, EVERY, SEGMENT, CHUNK = 10, 40, 4, 8, 4  # chunks of 4, 4, 2 bodies
+M_ONLY = lievi.Save(g=False, every=EVERY)  # `m` alone, every `EVERY` steps
 
 
 def _problem():
@@ -133,7 +134,7 @@ def test_resume_after_a_stop(tmp_path):
 @pytest.mark.extended  # 14 s
 def test_save_m_only_and_progress(tmp_path, capsys):
     meter = lievi.TextProgressMeter(delay=0.0, prefix="stream")
-    _stream(tmp_path, save=("m",), progress_meter=meter)
+    _stream(tmp_path, save=M_ONLY, progress_meter=meter)
     jax.effects_barrier()
     out = capsys.readouterr().out
     values = [float(x) for x in re.findall(r"stream:\s+([\d.]+)%", out)]
@@ -155,9 +156,9 @@ def test_bad_arguments(tmp_path):
         _stream(tmp_path, writer=object())
     with pytest.raises(ValueError, match="forcing"):
         _stream(tmp_path, forcing=lievi.Control(jnp.zeros((N_STEPS, 3))))
-    _stream(tmp_path / "run", save=("m",))
+    _stream(tmp_path / "run", save=M_ONLY)
     with pytest.raises(ValueError, match="differs in `fields`"):
-        _stream(tmp_path / "run", save=("g", "m"))
+        _stream(tmp_path / "run", save=lievi.Save(every=EVERY))
 
 
 # ---- data integrity: small runs of one shared body, one compiled program for all ----------
@@ -166,6 +167,7 @@ SMALL = dict(
     h=0.05, n_steps=8, save=lievi.Save(every=2), segment_steps=4, chunk_size=2
 )  # 2 × 2 pieces
 NOT_RUN = lievi.RESULTS.not_run
+SMALL_M_ONLY = lievi.Save(g=False, every=2)  # `m` alone, at `SMALL`'s saves
 
 
 def _small_m0():
@@ -266,18 +268,18 @@ def test_short_write_raises_and_the_segment_is_redone(tmp_path, monkeypatch):
     _small(tmp_path / "whole")
     run = tmp_path / "run"
     with pytest.raises(_Stop):
-        _small(run, _StopAfter(run, 3), save=("m",))  # all but chunk 1's second segment
+        _small(run, _StopAfter(run, 3), save=SMALL_M_ONLY)  # all but chunk 1's second segment
     header = np.load(run / "m.npy", mmap_mode="r").offset
     per_row, per_save = 5 * 3 * 8, 3 * 8  # 5 saves of (3,) float64
     limit = header + 3 * per_row + 3 * per_save + per_save // 2  # within body 3's save 3
     monkeypatch.setattr(os, "pwrite", _size_limit(limit, "m.npy"))
     with pytest.raises(OSError, match="m.npy"):
-        _small(run, save=("m",))
+        _small(run, save=SMALL_M_ONLY)
     monkeypatch.undo()
     assert lievi.NpyWriter(run).resume_state(1).steps_done == 4  # the first segment only
     np.testing.assert_array_equal(np.load(run / "result.npy")[2:], NOT_RUN)
     assert not (run / "complete.json").exists()
-    _small(run, save=("m",))
+    _small(run, save=SMALL_M_ONLY)
     np.testing.assert_array_equal(np.load(run / "m.npy"), np.load(tmp_path / "whole" / "m.npy"))
     np.testing.assert_array_equal(np.load(run / "result.npy"), lievi.RESULTS.successful)
 
