@@ -228,9 +228,15 @@ def long_time_energy(quick: bool):
         if isinstance(integrator, lievi.PreprocessedMoserVeselov):
             integrator = integrator.prepare(body, m0, h)
         sol = lievi.simulate(
-            body, integrator, jnp.eye(3), m0, h=h, n_steps=n_steps, save_every=save_every
+            body,
+            integrator,
+            jnp.eye(3),
+            m0,
+            h=h,
+            n_steps=n_steps,
+            save=lievi.Save(every=save_every),
         )
-        energy = dg.energy(body, sol.m)
+        energy = dg.energy(body, sol.g, sol.m)
         error = np.abs(np.asarray((energy - energy[0]) / energy[0]))
         casimir = float(dg.relative_drift(dg.casimirs(body, sol.m)))
         out["methods"][name] = {

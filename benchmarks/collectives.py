@@ -100,7 +100,7 @@ def main() -> None:
             m0,
             h=0.1,
             n_steps=100,
-            save_every=10,
+            save=lievi.Save(every=10),
             throw=throw,
         )
 
@@ -113,7 +113,14 @@ def main() -> None:
 
     def se3(m0, g0):
         return lievi.simulate_batch(
-            body_se3, lievi.DEP(), g0, m0, h=0.1, n_steps=100, save_every=10, throw=False
+            body_se3,
+            lievi.DEP(),
+            g0,
+            m0,
+            h=0.1,
+            n_steps=100,
+            save=lievi.Save(every=10),
+            throw=False,
         )
 
     cases = {

@@ -110,7 +110,9 @@ def _calls(case: str, engine: str):
         body = lievi.RigidBody(inertia)
         m = m_so3 * scale
         if engine == "lievi":
-            run = lambda n, h, m: lievi.simulate_batch(body, lievi.RKMK8(), eye3, m, h=h, n_steps=n)  # noqa: E731
+            run = lambda n, h, m: lievi.simulate_batch(
+                body, lievi.RKMK8(), eye3, m, h=h, n_steps=n, save=lievi.Save(every=n)
+            )  # noqa: E731
         else:
             run = lambda n, h, m: _diffrax_so3(
                 solver="Dopri8", inertia=inertia, m=m, h=h, n=n, every=False
@@ -132,7 +134,9 @@ def _calls(case: str, engine: str):
             method = lievi.LiePoissonSplitting()
 
             def final(n, h, m):
-                sol = lievi.simulate_batch(system, method, g0, m, h=h, n_steps=n, save=("g", "m"))
+                sol = lievi.simulate_batch(
+                    system, method, g0, m, h=h, n_steps=n, save=lievi.Save(stats=False, every=n)
+                )
                 return sol.g[:, -1], sol.m[:, -1]
         else:
 

@@ -70,7 +70,7 @@ def make_loss(n_steps: int, checkpoint):
             params["m0"],
             h=params["h"],
             n_steps=n_steps,
-            save_every=n_steps // N_SAVES,
+            save=lievi.Save(every=n_steps // N_SAVES),
             throw=False,
             checkpoint=checkpoint,
         )
@@ -202,8 +202,8 @@ def batch_loss(integrator, steps: int, fast: bool, checkpoint):
             h=params["h"],
             n_steps=steps,
             system_axis=0,
-            save=("g", "m"),
-            fast=fast,
+            save=lievi.Save(stats=False, every=steps),
+            tuning=lievi.advanced.Tuning(fast=fast),
             throw=False,
             checkpoint=checkpoint,
         )
@@ -356,7 +356,7 @@ def forcing_loss(n_steps: int, checkpoint):
             jnp.array([np.cos(1.1), 0.0, np.sin(1.1)]),
             h=FORCING_H,
             n_steps=n_steps,
-            save_every=n_steps,
+            save=lievi.Save(every=n_steps),
             throw=False,
             checkpoint=checkpoint,
             forcing=(lievi.Control(params["u"]), lievi.ForceLaw(damping)),

@@ -49,9 +49,10 @@ H, N_STEPS, EVERY, NOISE = 0.05, 400, 10, 0.01
 GUESS = jnp.array([1.5, 1.2, 1.0])
 
 
-def orientations(inertias, momenta, **kwargs):
+def orientations(inertias, momenta, save=None, **kwargs):
     """The sampled orientations of the model, every body from the identity."""
     n = inertias.shape[0]
+    save = lievi.Save(every=EVERY) if save is None else save
     return lievi.simulate_batch(
         jax.vmap(lievi.RigidBody)(inertias),
         lievi.DEP(),
@@ -59,7 +60,7 @@ def orientations(inertias, momenta, **kwargs):
         momenta,
         h=H,
         n_steps=N_STEPS,
-        save_every=EVERY,
+        save=save,
         system_axis=0,
         **kwargs,
     ).g
@@ -84,7 +85,9 @@ def baseline(inertias, momenta, observed):
     """Seconds of one batched forward run and one batched gradient of the orientation loss."""
 
     def loss(I):
-        g = orientations(I, momenta, save=("g",), throw=False)
+        g = orientations(
+            I, momenta, save=lievi.Save(m=False, stats=False, every=EVERY), throw=False
+        )
         return jnp.sum((g - observed) ** 2)
 
     out = {}
@@ -111,7 +114,7 @@ def default_start_problem(n=64, seed=0, sigma=0.01, h=0.05, every=5, n_steps=200
         momenta,
         h=h,
         n_steps=n_steps,
-        save_every=every,
+        save=lievi.Save(every=every),
         system_axis=0,
     ).g
     observed = clean @ SO3.exp(jnp.asarray(sigma * rng.normal(size=clean.shape[:-1])))

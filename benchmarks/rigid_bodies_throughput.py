@@ -190,7 +190,7 @@ def neighbor_rows(args, methods, rng, baseline):
                 h=0.005,
                 n_steps=args.steps,
                 rebuild_every=args.rebuild_every,
-                save_every=args.steps,
+                save=lievi.Save(every=args.steps),
                 builder=builder,
                 rebuild_after=args.rebuild_after,
             )
@@ -206,7 +206,13 @@ def neighbor_rows(args, methods, rng, baseline):
         assert int(sol.result) == lievi.RESULTS.successful
         steps_only, _, _ = _timed(
             lambda method=method: lievi.simulate(
-                listed, method, g0, m0, h=0.005, n_steps=args.steps, save_every=args.steps
+                listed,
+                method,
+                g0,
+                m0,
+                h=0.005,
+                n_steps=args.steps,
+                save=lievi.Save(every=args.steps),
             ),
             rounds=1,
         )
@@ -315,7 +321,13 @@ def main():
         # The baseline: the free SE(3) body's structure-of-arrays fast path (DEP, Cayley chart).
         seconds, compile_s, _ = _timed(
             lambda: lievi.simulate_batch(
-                free, lievi.DEP(chart="cayley"), g_free, m_free, h=H, n_steps=args.steps, save=()
+                free,
+                lievi.DEP(chart="cayley"),
+                g_free,
+                m_free,
+                h=H,
+                n_steps=args.steps,
+                save=lievi.Save(g=False, m=False, stats=False, every=args.steps),
             )
         )
         baseline = free_bodies * args.steps / seconds
@@ -338,14 +350,27 @@ def main():
                     f"{args.systems} two-body systems (simulate_batch)",
                     2 * args.systems,
                     lambda m=method: lievi.simulate_batch(
-                        systems, m, g_bin, m_bin, h=H, n_steps=args.steps, save=(), throw=False
+                        systems,
+                        m,
+                        g_bin,
+                        m_bin,
+                        h=H,
+                        n_steps=args.steps,
+                        save=lievi.Save(g=False, m=False, stats=False, every=args.steps),
+                        throw=False,
                     ),
                 ),
                 (
                     f"one system of {args.bodies} Lennard-Jones bodies (all pairs)",
                     args.bodies,
                     lambda m=method: lievi.simulate(
-                        cloud, m, g_cloud, m_cloud, h=H, n_steps=args.steps, save_every=args.steps
+                        cloud,
+                        m,
+                        g_cloud,
+                        m_cloud,
+                        h=H,
+                        n_steps=args.steps,
+                        save=lievi.Save(every=args.steps),
                     ),
                 ),
             )
@@ -373,13 +398,21 @@ def main():
 
         def binary_final(G, method=method):
             coupled = eqx.tree_at(lambda s: s.potential.G, one, G)
-            sol = lievi.simulate(coupled, method, g0, m0, h=H, n_steps=n_steps, save_every=n_steps)
+            sol = lievi.simulate(
+                coupled, method, g0, m0, h=H, n_steps=n_steps, save=lievi.Save(every=n_steps)
+            )
             return jnp.sum(sol.m[-1] ** 2) + jnp.sum(sol.g[-1, :, :3, 3] ** 2)
 
         def cloud_final(epsilon, method=method):
             coupled = eqx.tree_at(lambda s: s.potential.pair[0].epsilon, cloud, epsilon)
             sol = lievi.simulate(
-                coupled, method, g_cloud, m_cloud, h=H, n_steps=args.steps, save_every=args.steps
+                coupled,
+                method,
+                g_cloud,
+                m_cloud,
+                h=H,
+                n_steps=args.steps,
+                save=lievi.Save(every=args.steps),
             )
             return jnp.sum(sol.m[-1] ** 2) + jnp.sum(sol.g[-1, :, :3, 3] ** 2)
 
@@ -394,7 +427,7 @@ def main():
                 m_batch,
                 h=H,
                 n_steps=args.steps,
-                save_every=args.steps,
+                save=lievi.Save(every=args.steps),
             )
             return jnp.sum(sol.m[:, -1] ** 2) + jnp.sum(sol.g[:, -1, :, :3, 3] ** 2)
 

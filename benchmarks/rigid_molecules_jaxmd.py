@@ -189,15 +189,17 @@ def run_lievi(system, method, g0, m0, steps, h):
 
     @jax.jit
     def trajectory(g0, m0):
-        sol = lievi.simulate(system, method, g0, m0, h=h, n_steps=steps, save_every=1)
+        sol = lievi.simulate(system, method, g0, m0, h=h, n_steps=steps, save=lievi.Save())
         # One saved state at a time, as jax-md's `total` inside its scan: vectorised over
         # every save at once, the site-pair arrays of hundreds of molecules would take
         # gigabytes.
-        return jax.lax.map(lambda s: diagnostics.energy(system, s[1], s[0]), (sol.g, sol.m))
+        return jax.lax.map(lambda s: diagnostics.energy(system, s[0], s[1]), (sol.g, sol.m))
 
     @jax.jit
     def final(g0, m0):
-        sol = lievi.simulate(system, method, g0, m0, h=h, n_steps=steps, save_every=steps)
+        sol = lievi.simulate(
+            system, method, g0, m0, h=h, n_steps=steps, save=lievi.Save(every=steps)
+        )
         return sol.g, sol.m
 
     return (

@@ -18,7 +18,7 @@ compile time apart) on
 
 and reports the time per step for one body (`simulate`), for a vmapped batch
 (`jax.vmap(simulate)`), and for the same batch through `lievi.simulate_batch` where the
-pair has a structure-of-arrays fast path (`lievi.has_fast_path`: DEP on "SO(3)", and on
+pair has a structure-of-arrays fast path (`lievi.advanced.has_fast_path`: DEP on "SO(3)", and on
 "SE(3)" and "SE(3) block-diagonal" through `lievi/_kernels/_se3.py`), with the ratios
 SE(3)/SO(3) of each (and to "SO(3) tensor"). Writes
 `benchmarks/results/se3_step_cost.json`, with the load average at the start.
@@ -132,13 +132,27 @@ def measure(body, g0, d, integrator, batch, steps, repeats=3):
 
     def final(m0):
         sol = lievi.simulate(
-            body, integrator, g0, m0, h=0.05, n_steps=steps, save_every=steps, throw=False
+            body,
+            integrator,
+            g0,
+            m0,
+            h=0.05,
+            n_steps=steps,
+            save=lievi.Save(every=steps),
+            throw=False,
         )
         return sol.m[-1]
 
     def final_batch(m0):
         sol = lievi.simulate_batch(
-            body, integrator, poses, m0, h=0.05, n_steps=steps, save=("m",), throw=False
+            body,
+            integrator,
+            poses,
+            m0,
+            h=0.05,
+            n_steps=steps,
+            save=lievi.Save(g=False, stats=False, every=steps),
+            throw=False,
         )
         return sol.m[:, -1]
 
@@ -150,7 +164,7 @@ def measure(body, g0, d, integrator, batch, steps, repeats=3):
         "batched_us_per_body_step": 1e6 * run_batch / (batch * steps),
         "simulate_batch_us_per_body_step": None,
     }
-    if lievi.has_fast_path(body, integrator):
+    if lievi.advanced.has_fast_path(body, integrator):
         _, run_fast = timed(jax.jit(final_batch), momenta, repeats=repeats)
         result["simulate_batch_us_per_body_step"] = 1e6 * run_fast / (batch * steps)
     return result

@@ -85,7 +85,7 @@ def main() -> None:
         m0,
         h=H,
         n_steps=args.steps,
-        save_every=args.save_every,
+        save=lievi.Save(every=args.save_every),
         writer=lievi.NpyWriter(directory),
         chunk_size=args.chunk,
         segment_steps=args.segment,
@@ -105,8 +105,7 @@ def main() -> None:
         m0[rows],
         h=H,
         n_steps=args.steps,
-        save_every=args.save_every,
-        save=("g", "m"),
+        save=lievi.Save(stats=False, every=args.save_every),
     )
     g = np.load(directory / "g.npy", mmap_mode="r")[rows]
     m = np.load(directory / "m.npy", mmap_mode="r")[rows]

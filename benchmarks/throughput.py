@@ -143,10 +143,9 @@ def lievi_runner(integrator, steps: int, fast: bool = True, **options):
             h=jnp.asarray(H, m0.dtype),
             n_steps=steps,
             system_axis=0,
-            save=("g", "m"),
-            fast=fast,
+            save=lievi.Save(stats=False, every=steps),
+            tuning=lievi.advanced.Tuning(fast=fast, **options),
             throw=False,
-            **options,
         )
         return sol.g[:, -1], sol.m[:, -1], sol.result
 
@@ -676,8 +675,8 @@ def heavy_top_runner(integrator, steps: int, reduced: bool, fast: bool = True):
             h=jnp.asarray(H, m0.dtype),
             n_steps=steps,
             system_axis=0,
-            save=("m", "advected") if reduced else ("g", "m"),
-            fast=fast,
+            save=lievi.Save(g=not reduced, stats=False, advected=reduced, every=steps),
+            tuning=lievi.advanced.Tuning(fast=fast),
             throw=False,
         )
         gamma = sol.advected[:, -1] if reduced else sol.g[:, -1, 2]

@@ -190,7 +190,7 @@ def errors(problem, g, m, ref):
     def invariants(g, m):
         g, m = jnp.asarray(g), jnp.asarray(m)
         J = np.asarray(lievi.diagnostics.spatial_momentum(system, g, m))
-        return np.asarray(lievi.diagnostics.energy(system, m, g)), (J[..., 2:] if gravity else J)
+        return np.asarray(lievi.diagnostics.energy(system, g, m)), (J[..., 2:] if gravity else J)
 
     g0, m0 = initial_states(problem, count)
     (H, J), (H0, J0) = (
@@ -227,8 +227,8 @@ def lievi_run(problem, method, h, batch, t1, repeats):
     @jax.jit
     def run(m0):
         sol = lievi.simulate_batch(
-            system, integrator, jnp.asarray(g0), m0, h=h, n_steps=n, save_every=every,
-            save=lievi.Save(g=True, m=True, stats=False), throw=False,
+            system, integrator, jnp.asarray(g0), m0, h=h, n_steps=n, throw=False,
+            save=lievi.Save(g=True, m=True, stats=False, every=every),
         )  # fmt: skip
         return sol.g[:, 1:], sol.m[:, 1:], sol.result
 

@@ -6,6 +6,7 @@ equations*, Nonlinearity 12 (1999) 1647–1662, in JAX.
 
 from importlib import metadata as _metadata
 
+from . import advanced as advanced
 from . import diagnostics as diagnostics
 from ._forcing import AbstractForcing as AbstractForcing
 from ._forcing import Control as Control
@@ -67,7 +68,6 @@ from ._sharding import process_rows as process_rows
 from ._sharding import shard_batch as shard_batch
 from ._sharding import shard_process_batch as shard_process_batch
 from ._simulate import simulate as simulate
-from ._simulate_batch import has_fast_path as has_fast_path
 from ._simulate_batch import simulate_batch as simulate_batch
 from ._simulate_neighbors import simulate_with_neighbor_list as simulate_with_neighbor_list
 from ._solution import Solution as Solution
@@ -121,6 +121,16 @@ except _metadata.PackageNotFoundError:  # running from a source tree that is not
 
 def __getattr__(name: str):
     # Old names kept for one release, with a warning (CHANGELOG, "Deprecated").
+    if name == "has_fast_path":
+        import warnings
+
+        warnings.warn(
+            "`lievi.has_fast_path` is deprecated: it is `lievi.advanced.has_fast_path` (an "
+            "implementation detail, with the other knobs in `lievi.advanced`); use that name.",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return advanced.has_fast_path
     if name == "InertiaFit":
         import warnings
 

@@ -25,6 +25,7 @@ Two drivers run the same `one_step` and the same save:
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Any
 
@@ -62,6 +63,14 @@ class Run(eqx.Module):
     segment: int | None = eqx.field(static=True, default=None)
     unroll: int = eqx.field(static=True, default=1)
     monitor: Any = None  # an invariant monitor (`lievi.EnergyMonitor`), checked at saves
+
+    @classmethod
+    def of(cls, plan, opts, dtype) -> Run:
+        """The run of `plan` with the checked options `opts` (`lievi._options.Options`).
+        The saves' interval is left out (`execute` takes it): a static field would make a
+        new `save.every` compile the eager run again."""
+        save = dataclasses.replace(opts.save, every=1)
+        return cls(plan, save, opts.progress, dtype, opts.segment, opts.tuning.unroll, opts.monitor)
 
 
 def _zero_counters(batch, dtype):

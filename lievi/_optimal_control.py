@@ -20,6 +20,7 @@ import optax.tree_utils as otu
 from jaxtyping import Array, Float
 
 from ._forcing import Control
+from ._save import Save
 from ._simulate import simulate
 from ._solution import Solution
 
@@ -73,7 +74,7 @@ class _Problem(eqx.Module):
             self.m0,
             h=self.h,
             n_steps=n,
-            save_every=n,
+            save=Save(g=True, m=True, stats=False, every=n),
             forcing=Control(u),
             throw=False,
         )

@@ -7,7 +7,9 @@ batch of many bodies carries on and reports which ones failed.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
 
 
 class RESULTS:
@@ -87,3 +89,11 @@ class RESULTS:
         failed_step = jnp.where(newly_failed, k, failed_step)
         result = RESULTS.first_failure(result, step_result)
         return result, failed_step, result == RESULTS.successful
+
+
+class StepInfo(eqx.Module):
+    """Per-step report: `result` code, Newton `iterations`, final `residual` (∞-norm)."""
+
+    result: Int[Array, ""]
+    iterations: Int[Array, ""]
+    residual: Float[Array, ""]

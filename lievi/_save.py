@@ -1,39 +1,46 @@
-"""What a batched run stores at each save: one object (`Save`), as diffrax's `SaveAt`."""
+"""What a run stores and how often: one object (`Save`), as diffrax's `SaveAt`."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import warnings
 
 import equinox as eqx
+import numpy as np
 
 
 class Save(eqx.Module):
-    """Which per-save fields `lievi.simulate_batch` stores; the others are `None` in the
-    `Solution` (the summary statistics `failed_step`, `total_newton_iterations` and
-    `num_steps` are always kept). Storing nothing but the final state is what makes very
-    large batches fit in memory.
+    """What every run function (`lievi.simulate`, `simulate_batch`, `stream_batch`,
+    `simulate_with_neighbor_list`) stores, and how often; the fields not stored are
+    `None` in the `Solution` (the summary statistics `failed_step`,
+    `total_newton_iterations` and `num_steps` are always kept). The default, `Save()`,
+    stores `g`, `m` and the statistics at every step.
 
     **Arguments:**
 
-    - `g`: the group elements `(B, T, n, n)`. Also picks the algorithm of a system whose
+    - `g`: the group elements `(…, T, n, n)`. Also picks the algorithm of a system whose
       potential has an advected parameter (e.g. `UniformGravity`): without `g` the fast
       path carries the reduced state `(Π, Γ)` of the paper's §7 instead of `(Π, g)`.
-    - `m`: the momenta `(B, T, d)`.
+    - `m`: the momenta `(…, T, d)`.
     - `stats`: the per-save Newton statistics (`newton_iterations`, `residual`).
     - `advected`: the advected parameter `Γ_k = g_kᵀa` (`Solution.advected`), also given
       whenever `g` is saved.
-
-    `simulate_batch(save=("g", "m"))` — a sequence of these names — is the same as
-    `save=Save(g=True, m=True, stats=False)`.
+    - `every`: save every this many steps (as diffrax's `SaveAt(steps=...)`); it must
+      divide `n_steps`. The initial state is always saved, so a run keeps
+      `n_steps // every + 1` saves; `every=n_steps` keeps the initial and the final state
+      only, the cheapest output (what makes very large batches fit in memory).
     """
 
     g: bool = eqx.field(default=True, static=True)
     m: bool = eqx.field(default=True, static=True)
     stats: bool = eqx.field(default=True, static=True)
     advected: bool = eqx.field(default=False, static=True)
+    every: int = eqx.field(default=1, static=True)
 
     def __check_init__(self):
-        for name in ("g", "m", "stats", "advected"):
+        every = self.every
+        if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
+            raise ValueError(f"`Save.every` must be an integer ≥ 1, got {every!r}.")
+        for name in FIELDS:
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(
                     f"`Save.{name}` must be True or False, got {getattr(self, name)!r}."
@@ -51,18 +58,41 @@ class Save(eqx.Module):
 FIELDS = ("g", "m", "stats", "advected")
 
 
-def as_save(save: Save | Sequence[str]) -> Save:
-    """`save` as a `Save`: itself, or from a sequence of field names (`ValueError` for a
-    string or an unknown name)."""
-    if isinstance(save, Save):
-        return save
-    if isinstance(save, str):
-        raise ValueError(
-            f"`save` must be a `lievi.Save` or a sequence of field names, e.g. ('g', 'm'), "
-            f"got the string {save!r}."
-        )
-    save = tuple(save)
-    unknown = set(save) - set(FIELDS)
-    if unknown:
-        raise ValueError(f"`save` may only contain {FIELDS}, got {sorted(unknown)}.")
-    return Save(**{name: name in save for name in FIELDS})
+def as_save(save, save_every=None, label: str = "this run") -> Save:
+    """`save` as a `Save`. The spellings of earlier releases are read with a
+    `DeprecationWarning`: a sequence of field names (`save=("g", "m")`) and a separate
+    `save_every` (which overrides `save.every`)."""
+    if not isinstance(save, Save):
+        if isinstance(save, str) or not _is_sequence(save):
+            raise ValueError(
+                f"`save` must be a `lievi.Save`, e.g. lievi.Save(every=10, stats=False); "
+                f"got {save!r}."
+            )
+        names = tuple(save)
+        unknown = set(names) - set(FIELDS)
+        if unknown:
+            raise ValueError(f"`save` may only contain {FIELDS}, got {sorted(unknown)}.")
+        deprecated(label, f"`save={names!r}`", f"`save=lievi.Save({_keywords(names)})`")
+        save = Save(**{name: name in names for name in FIELDS})
+    if save_every is not None:
+        deprecated(label, "`save_every=`", f"`save=lievi.Save(every={save_every!r})`")
+        save = Save(save.g, save.m, save.stats, save.advected, save_every)
+    return save
+
+
+def _is_sequence(x) -> bool:
+    return isinstance(x, (tuple, list))
+
+
+def _keywords(names) -> str:
+    return ", ".join(f"{name}={name in names}" for name in FIELDS)
+
+
+def deprecated(label: str, old: str, new: str) -> None:
+    """A `DeprecationWarning` for a spelling of an earlier release, pointing at the call of
+    the public run function (`label`): user → run function → `options` → reader → here."""
+    warnings.warn(
+        f"{label}: {old} is deprecated and will be removed in the next release; pass {new}.",
+        DeprecationWarning,
+        stacklevel=5,
+    )

@@ -8,27 +8,21 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._checks import (
-    check_integer,
     check_real_dtype,
     check_scalar,
     check_shape,
     is_concrete,
     state_dtype,
 )
-from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator, AbstractVariationalIntegrator
 from ._loop import Run, execute, raise_if_failed
-from ._monitor import AbstractInvariantMonitor, as_monitor
-from ._progress import AbstractProgressMeter, as_progress_meter
+from ._monitor import AbstractInvariantMonitor
+from ._options import OPTIONS, Tuning, options
+from ._progress import AbstractProgressMeter
 from ._save import Save
-from ._scan import checkpoint_segment
 from ._solution import Solution
 from ._steppers import plan_for
 from ._systems._base import AbstractLieSystem
-
-
-def _check_step_size(h) -> None:
-    check_scalar("h", h, positive=True)
 
 
 def simulate(
@@ -39,15 +33,17 @@ def simulate(
     *,
     h,
     n_steps: int,
-    save_every: int = 1,
+    save: Save = OPTIONS["save"],
+    t0=OPTIONS["t0"],
+    throw: bool = OPTIONS["throw"],
+    checkpoint: bool | int = OPTIONS["checkpoint"],
+    progress_meter: AbstractProgressMeter | bool | str = OPTIONS["progress_meter"],
+    forcing=OPTIONS["forcing"],
+    args=OPTIONS["args"],
+    monitor: AbstractInvariantMonitor | None = OPTIONS["monitor"],
+    tuning: Tuning = OPTIONS["tuning"],
     g1: Float[Array, "n n"] | None = None,
-    t0=0.0,
-    throw: bool = True,
-    checkpoint: bool | int = False,
-    progress_meter: AbstractProgressMeter | bool | str = False,
-    forcing=None,
-    args=None,
-    monitor: AbstractInvariantMonitor | None = None,
+    **deprecated,
 ) -> Solution:
     """Integrate `system` with `integrator` from `(g0, m0)` for `n_steps` steps of size `h`.
 
@@ -60,11 +56,17 @@ def simulate(
       left-invariant systems). Give either `m0` or `g1`.
     - `h`: step size `> 0` (may be traced, e.g. differentiated or vmapped).
     - `n_steps`: number of steps, a Python `int ≥ 1`.
-    - `save_every`: save every this many steps; must divide `n_steps`.
     - `g1`: instead of `m0`, the second configuration of the discrete trajectory (paper
       §2: a variational integrator is started from `(g0, g1)`); `m0` is then the discrete
       Legendre transform `−D₁L_d(g0, g1)`.
-    - `t0`: initial time.
+
+    **Options** — every run function (`simulate_batch`, `stream_batch`,
+    `simulate_with_neighbor_list`) takes these, with these defaults:
+
+    - `save`: what is stored and how often, a `lievi.Save` (default `Save()`: `g`, `m`
+      and the Newton statistics at every step; `Save(every=k)` every `k`-th step, `k`
+      dividing `n_steps`).
+    - `t0`: initial time; save `j` is at `t0 + j·every·h`.
     - `throw`: if a step fails (see `RESULTS`), raise an error saying what to do; with
       `throw=False` the failure is returned in `Solution.result` instead. Inside your own
       `jax.jit` the error is raised by Equinox's runtime check and reaches you wrapped in
@@ -72,12 +74,12 @@ def simulate(
       a readable error, or pass `throw=False` and read `result`.
     - `checkpoint`: memory of reverse-mode differentiation (`jax.grad`). `False` (default)
       stores each step's state and the roots of its implicit solves, O(`n_steps`)
-      memory, and recomputes the rest of the step in the backward pass. `True` splits the run into
-      segments of about √`n_steps` steps, each wrapped in `jax.checkpoint`: the backward
-      pass stores only the state at segment boundaries and recomputes one segment at a
-      time, O(√`n_steps`) memory for one extra forward pass. An `int` sets the segment
-      length in steps; it must divide `save_every` or be a multiple of it that divides
-      `n_steps`. No effect on values or on forward-mode derivatives.
+      memory, and recomputes the rest of the step in the backward pass. `True` splits the
+      run into segments of about √`n_steps` steps, each wrapped in `jax.checkpoint`: the
+      backward pass stores only the state at segment boundaries and recomputes one
+      segment at a time, O(√`n_steps`) memory for one extra forward pass. An `int` sets
+      the segment length in steps; it must divide `save.every` or be a multiple of it
+      that divides `n_steps`. No effect on values or on forward-mode derivatives.
     - `progress_meter`: report progress of a long run while it computes (diffrax's
       `progress_meter` convention): `lievi.NoProgressMeter()` (the default, also `False`),
       `lievi.TextProgressMeter()` (also `"text"`: the percentage done on one line updated
@@ -95,13 +97,20 @@ def simulate(
     - `monitor`: an invariant checked at every save, `lievi.EnergyMonitor(rtol)` or
       `lievi.MomentumMonitor(rtol)`: a run whose invariant drifts past the tolerance ends
       with `RESULTS.invariant_drift` (off by default; docs/concepts/failure.md).
+    - `tuning`: how the run is computed, never what it computes
+      (`lievi.advanced.Tuning`: the kernel, its fixed Newton iterations, loop unrolling).
+
+    The keywords of earlier releases — `save_every=k` (now `save=Save(every=k)`),
+    `save=("g", "m")` (now `Save(g=True, m=True, stats=False)`), `fast`,
+    `fixed_iterations`, `unroll` (now `tuning=lievi.advanced.Tuning(...)`) — still work
+    for one release, with a `DeprecationWarning`.
 
     **Returns:** a `Solution`.
 
     The run computes in the promoted dtype of `g0`, `m0`, `h` and the system's parameters
     (NumPy rules: float32 throughout needs a float32 system too).
 
-    Shapes, dtypes, `h`, `t0`, `n_steps`, `save_every` and concrete values of `g0`,
+    Shapes, dtypes, `h`, `t0`, `n_steps`, the options and concrete values of `g0`,
     `m0` and the system's parameters are checked eagerly and raise `ValueError`. The same
     value checks run inside the computation, so under `jit`/`vmap` a bad value (an
     inertia that is not positive definite, `g0` not a rotation, NaN, `h ≤ 0`) gives
@@ -111,12 +120,9 @@ def simulate(
     `jax.vmap` (many bodies) use `throw=False` to let a batch carry on and read the
     per-body `result`.
     """
-    n_steps = check_integer("n_steps", n_steps, 1)
-    save_every = check_integer("save_every", save_every, 1)
-    if n_steps % save_every:
-        raise ValueError(f"`save_every` ({save_every}) must divide `n_steps` ({n_steps}).")
-    _check_step_size(h)
-    check_scalar("t0", t0)
+    opts = options("lievi.simulate", n_steps, locals(), deprecated)
+    n_steps, forcing = opts.n_steps, opts.forcing
+    check_scalar("h", h, positive=True)
     if (m0 is None) == (g1 is None):
         raise ValueError(
             "Give exactly one of `m0` (initial momentum) and `g1` (second configuration)."
@@ -132,26 +138,18 @@ def simulate(
         m0 = _momentum_from_g1(system, integrator, g0, g1, h)
     m0 = _as_array("m0", m0)
     system.check_momentum("m0", m0)
-    segment = checkpoint_segment(checkpoint, n_steps, save_every)
-    forcing = as_forcing(forcing)
     dtype = state_dtype(system, g0, m0, h)
     if forcing is not None:
         forcing.check(system, n_steps, dtype, args)
-    run = Run(
-        plan_for(system, integrator, None, forcing, args, one_body=True),
-        Save(g=True, m=True, stats=True),
-        as_progress_meter(progress_meter),
-        dtype,
-        segment,
-        monitor=as_monitor(monitor),
-    )
+    plan = plan_for(system, integrator, None, forcing, args, one_body=True, tuning=opts.tuning)
+    run = Run.of(plan, opts, dtype)
 
     def explain():
         # An eager run with a bad input: the eager checks name it (`ValueError`).
         system.check_element("g0", g0)
 
     solution = execute(
-        run, _lead(g0), _lead(m0), h, t0, n_steps, save_every, explain=explain, one=True
+        run, _lead(g0), _lead(m0), h, t0, n_steps, opts.save.every, explain=explain, one=True
     )
     if throw:
         solution = raise_if_failed(solution, "lievi.simulate", "a step")

@@ -16,7 +16,6 @@ synchronisation per step. For a potential with an advected parameter (`UniformGr
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
 
 import equinox as eqx
 import jax
@@ -27,23 +26,18 @@ from ._checks import (
     abstract_key,
     abstract_tree,
     check_finite,
-    check_integer,
     check_real_dtype,
     is_concrete,
     state_dtype,
 )
-from ._forcing import as_forcing
 from ._integrators._base import AbstractIntegrator
 from ._loop import Run, execute, raise_if_failed
-from ._monitor import as_monitor
-from ._progress import AbstractProgressMeter, as_progress_meter
-from ._save import Save, as_save
-from ._scan import checkpoint_segment
+from ._options import OPTIONS, Tuning, options
+from ._progress import AbstractProgressMeter
+from ._save import Save
 from ._solution import Solution
 from ._steppers import plan_for
 from ._systems._base import AbstractLieSystem
-
-SAVE_FIELDS = ("g", "m", "stats")  # the default `save`
 
 
 def has_fast_path(
@@ -131,18 +125,17 @@ def simulate_batch(
     *,
     h,
     n_steps: int,
-    save_every: int | None = None,
-    save: Save | Sequence[str] = SAVE_FIELDS,
+    save: Save = OPTIONS["save"],
+    t0=OPTIONS["t0"],
+    throw: bool = OPTIONS["throw"],
+    checkpoint: bool | int = OPTIONS["checkpoint"],
+    progress_meter: AbstractProgressMeter | bool | str = OPTIONS["progress_meter"],
+    forcing=OPTIONS["forcing"],
+    args=OPTIONS["args"],
+    monitor=OPTIONS["monitor"],
+    tuning: Tuning = OPTIONS["tuning"],
     system_axis: int | None = None,
-    fast: bool = True,
-    fixed_iterations: int | None = None,
-    unroll: int = 1,
-    throw: bool = True,
-    checkpoint: bool | int = False,
-    forcing=None,
-    args=None,
-    progress_meter: AbstractProgressMeter | bool | str = False,
-    monitor=None,
+    **deprecated,
 ) -> Solution:
     """Integrate a batch of `B` bodies: `jax.vmap(simulate)` with a fast path.
 
@@ -156,66 +149,36 @@ def simulate_batch(
       initial momenta, `(B, d)`.
     - `h`: one step size, or one per body, shape `(B,)`.
     - `n_steps`: number of steps.
-    - `save_every`: save every this many steps (must divide `n_steps`). Default: only the
-      initial and the final state are kept (`save_every = n_steps`), the cheapest output.
-    - `save`: which per-save fields to store, a `lievi.Save` or a sequence of its field
-      names, a subset of `("g", "m", "stats", "advected")` (default `("g", "m",
-      "stats")`); the omitted ones are `None` in the `Solution` (the summary statistics
-      `failed_step`, `total_newton_iterations`, `num_steps` are always kept). Storing
-      nothing but the final state is what makes very large batches fit in memory. For a
-      potential with an advected parameter (e.g. `UniformGravity`:
-      `AbstractPotential.advected_direction`) `Γ_k = g_kᵀa` is `Solution.advected`,
-      `(B, T, 3)`, whenever `"g"` or `"advected"` is saved.
-      **`save` also picks the algorithm of such a system's fast path:** without `"g"`
-      it carries the reduced state `(Π, Γ)` instead of `(Π, g)` — the reduced discrete
-      Lie–Poisson equations of the paper's §7, `Γ_{k+1} = F_kᵀΓ_k`, half the state —
-      which gives the same `Π_k`, `Γ_k` to round-off (docs/potentials.md); with `"g"` it
-      carries `g`.
     - `system_axis`: `None` or `0`, as `in_axes` of `jax.vmap` for `system`. Left at
       `None` for a batch of systems built with `jax.vmap` (every array leaf one dimension
       larger than one system's, with leading size `B`), it is inferred as `0`; a system
       that is neither one system nor such a batch raises a `ValueError`. (A batch of
       three principal-moment vectors, `(3, 3)`, is also one valid inertia tensor: pass
       `system_axis=0` for it.)
-    - `fast`: use the structure-of-arrays fast path when there is one (the integrator's
-      `batch_kernel`, for a system with `principal_moments`: today the rigid body with
-      principal moments of inertia and `DEP` (both charts), `MoserVeselov`,
-      `LiePoissonSplitting` or `RK4`; in `UniformGravity` (the heavy top) the first three;
-      `RigidBodySE3` without a potential, any kinetic tensor, and `DEP`, both charts). Its iterates equal the generic path's to
-      round-off, and so do its derivatives: reverse mode (`jax.grad`, `jax.vjp`) goes
-      through the fast path, implicit steps by the implicit function theorem at each
-      step's converged root with the closed-form 3×3 Jacobian (the Newton iterations are
-      not differentiated). `fast=False` runs `jax.vmap(simulate)`.
-    - `fixed_iterations`: (fast path) Newton iterations every body takes before the one
-      convergence check; bodies still above tolerance then continue, alone, up to the
-      integrator's `max_steps`. Default: 3 (exp chart) or 4 (Cayley chart;
-      Moser–Veselov, whose fixed iterations are scalar ones, see `_kernels/_so3.py`); on
-      SE(3) 3 for both charts, the first a chord step (the Jacobian at `ω = 0` for the
-      body's momentum, see `_kernels/_se3.py`). With
-      `max_steps` equal to it (e.g. `DEP(max_steps=3)`) there is no data-dependent loop
-      at all; bodies not converged then are reported as failed.
-    - `unroll`: (fast path) steps per iteration of the compiled loop (`lax.scan`'s
-      `unroll`). On a GPU a few steps per iteration amortise the per-iteration launch
-      cost; it multiplies the compiled code, hence the compile time, by `unroll`.
-    - `throw`: raise if any body failed. With `throw=False` each body's `result` says
-      whether it succeeded; a failed body does not stop the others.
-    - `checkpoint`: memory of reverse-mode differentiation, as in `simulate`: `False`
-      stores each step's state (and, on the fast path, its Newton root), O(`n_steps`)
-      memory; `True` stores only the state every ≈√`n_steps` steps and recomputes the
-      segments in between during the backward pass (one extra forward run); an `int` sets
-      the segment length. No effect on values or on forward runs.
-    - `forcing`, `args`: an external force, as for `lievi.simulate`. A `lievi.Control(u)`
-      with `u` of shape `(batch, n_steps, d)` gives each body its own control sequence;
-      of shape `(n_steps, d)`, one shared by all (for systems of N bodies, `(batch,
-      n_steps, N, 6)` and `(n_steps, N, 6)`). A force law and `args` are shared.
-      Forced runs take the generic path.
-    - `progress_meter`: report the steps done while the batch computes, as in
-      `lievi.simulate` (the same meters and shorthands: `"text"`, `"tqdm"`, `True`): one
-      line or bar for the whole batch, updated in place about every 1% of the steps from
-      inside the compiled loop. The default (`False`, `NoProgressMeter`) compiles nothing
-      into the loop; no effect on values.
-    - `monitor`: an invariant checked at every save for every body, as in
-      `lievi.simulate` (`lievi.EnergyMonitor`, `lievi.MomentumMonitor`).
+    - `save`, `t0`, `throw`, `checkpoint`, `progress_meter`, `forcing`, `args`,
+      `monitor`, `tuning`: the options of every run function, as `lievi.simulate` (the
+      same defaults). For a batch: `throw=True` raises if any body failed, while with
+      `throw=False` each body's `result` says whether it succeeded and a failed body does
+      not stop the others; a `lievi.Control(u)` with `u` of shape `(B, n_steps, d)` gives
+      each body its own control sequence, of shape `(n_steps, d)` one shared by all (for
+      systems of N bodies, `(B, n_steps, N, 6)` and `(n_steps, N, 6)`); a force law and
+      `args` are shared; one progress line or bar for the whole batch. For a potential
+      with an advected parameter (e.g. `UniformGravity`) `Γ_k = g_kᵀa` is
+      `Solution.advected`, `(B, T, 3)`, whenever `save.g` or `save.advected`, and
+      **`save` also picks the algorithm of its fast path:** without `g` it carries the
+      reduced state `(Π, Γ)` instead of `(Π, g)` — the reduced discrete Lie–Poisson
+      equations of the paper's §7, `Γ_{k+1} = F_kᵀΓ_k`, half the state — which gives the
+      same `Π_k`, `Γ_k` to round-off (docs/potentials.md).
+
+    The fast path (`lievi.advanced.has_fast_path`): the integrator's structure-of-arrays
+    kernel, for a system with `principal_moments` — the rigid body with `DEP` (both
+    charts), `MoserVeselov`, `LiePoissonSplitting` or `RK4`; in `UniformGravity` (the
+    heavy top) the first three; `RigidBodySE3` without a potential, any kinetic tensor,
+    and `DEP`, both charts. Forced runs take the generic path. Its iterates equal the
+    generic path's to round-off, and so do its derivatives: reverse mode goes through
+    the fast path, implicit steps by the implicit function theorem at each step's
+    converged root with the closed-form 3×3 Jacobian (the Newton iterations are not
+    differentiated). `tuning=lievi.advanced.Tuning(fast=False)` runs `jax.vmap(simulate)`.
 
     Both paths apply the same checks as `simulate`, per body: a bad value of a body's
     system, `g0`, `m0` or `h` gives `RESULTS.invalid_input` (also when they are traced,
@@ -230,25 +193,18 @@ def simulate_batch(
     To spread the batch over several devices, place the inputs with
     `lievi.shard_batch`; the jit-compiled loop then runs sharded (see the README).
     """
-    n_steps = check_integer("n_steps", n_steps, 1)
-    save_every = n_steps if save_every is None else check_integer("save_every", save_every, 1)
-    if n_steps % save_every:
-        raise ValueError(f"`save_every` ({save_every}) must divide `n_steps` ({n_steps}).")
-    save = as_save(save)
+    opts = options("lievi.simulate_batch", n_steps, locals(), deprecated)
+    n_steps, save, forcing = opts.n_steps, opts.save, opts.forcing
     if save.advected and (
         system.potential is None or system.potential.advected_direction() is None
     ):
         raise ValueError(
-            "`save` contains 'advected' but the system's potential has no advected parameter "
+            "`save.advected` but the system's potential has no advected parameter "
             "(`AbstractPotential.advected_direction` is None; e.g. `lievi.UniformGravity` has "
-            "one); save 'g' instead."
+            "one); save `g` instead."
         )
     if system_axis not in (None, 0):
         raise ValueError(f"`system_axis` must be None (shared system) or 0, got {system_axis!r}.")
-    if fixed_iterations is not None:
-        fixed_iterations = check_integer("fixed_iterations", fixed_iterations, 1)
-    unroll = check_integer("unroll", unroll, 1)
-    progress = as_progress_meter(progress_meter)
     # One state's shapes, `(n, n)` and `(d,)` (per body for a system of several bodies).
     element, momentum = system.element_shape(), system.momentum_shape()
     for name, x in (("g0", g0), ("m0", m0), ("h", h)):
@@ -275,19 +231,7 @@ def simulate_batch(
         raise ValueError(
             f"`g0` and `m0` must have the same batch size, got {batch} and {jnp.shape(m0)[0]}."
         )
-    if jnp.ndim(h) not in (0, 1) or (jnp.ndim(h) == 1 and jnp.shape(h)[0] != batch):
-        raise ValueError(
-            f"`h` must be a scalar or have shape ({batch},) (one per body), got {jnp.shape(h)}."
-        )
-    if is_concrete(h):
-        check_finite("h", h)
-        if not np.all(np.asarray(h) > 0):
-            raise ValueError("`h` must be > 0 for every body; pass positive step sizes.")
-        tiny = float(jnp.finfo(jnp.result_type(h, float)).tiny)
-        if np.any(np.asarray(h) < tiny):
-            raise ValueError(
-                f"`h` has subnormal values (below {tiny:.3g}); pass normal step sizes."
-            )
+    check_batch_h(h, batch)
     system_axis = infer_system_axis(system, system_axis, batch)
     if system_axis == 0:
         sizes = {
@@ -299,7 +243,6 @@ def simulate_batch(
                 f"{batch}, got leading sizes {sorted(sizes)}; build it with "
                 "`jax.vmap(lievi.RigidBody)(inertias)`."
             )
-    forcing = as_forcing(forcing)
     dtype = state_dtype(system, g0, m0, h)
     if forcing is not None:
         forcing.check_batch(system, batch)
@@ -314,23 +257,38 @@ def simulate_batch(
         system_axis,
         forcing,
         args,
-        fast=fast,
-        fixed_iterations=fixed_iterations,
+        tuning=opts.tuning,
         # A monitor reads `g` at every save: not the reduced state.
-        carry_g=save.g or monitor is not None,
+        carry_g=save.g or opts.monitor is not None,
     )
-    segment = checkpoint_segment(checkpoint, n_steps, save_every)
-    run = Run(plan, save, progress, dtype, segment, unroll, as_monitor(monitor))
+    run = Run.of(plan, opts, dtype)
 
     def explain():
         # An eager run with a bad input: the group's own test (`check_element`'s) names
         # the body (on SE(3) a pose is not an orthogonal matrix).
         system.check_elements("g0", g0)
 
-    solution = execute(run, g0, m0, h, 0.0, n_steps, save_every, explain=explain)
+    solution = execute(run, g0, m0, h, t0, n_steps, opts.save.every, explain=explain)
     if throw:
         solution = raise_if_failed(solution, "lievi.simulate_batch", "a body")
     return solution
+
+
+def check_batch_h(h, batch: int) -> None:
+    """`h`: a scalar or one per body `(batch,)`; concrete values finite, positive, normal."""
+    if jnp.ndim(h) not in (0, 1) or (jnp.ndim(h) == 1 and jnp.shape(h)[0] != batch):
+        raise ValueError(
+            f"`h` must be a scalar or have shape ({batch},) (one per body), got {jnp.shape(h)}."
+        )
+    if is_concrete(h):
+        check_finite("h", h)
+        if not np.all(np.asarray(h) > 0):
+            raise ValueError("`h` must be > 0 for every body; pass positive step sizes.")
+        tiny = float(jnp.finfo(jnp.result_type(h, float)).tiny)
+        if np.any(np.asarray(h) < tiny):
+            raise ValueError(
+                f"`h` has subnormal values (below {tiny:.3g}); pass normal step sizes."
+            )
 
 
 def _member(tree, axes):

@@ -26,8 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._checks import check_integer
-from ._forcing import as_forcing
+from ._options import OPTIONS, Tuning, options
 from ._results import RESULTS
+from ._save import Save
 from ._simulate import simulate
 from ._solution import Solution
 from ._systems._neighbors import AbstractNeighborBuilder
@@ -67,24 +68,28 @@ def simulate_with_neighbor_list(
     n_steps: int,
     rebuild_every: int,
     builder: AbstractNeighborBuilder,
-    save_every: int = 1,
     where: Callable = _default_where,
-    throw: bool = True,
-    forcing=None,
-    args=None,
     rebuild_after: float | None = None,
+    save: Save = OPTIONS["save"],
+    t0=OPTIONS["t0"],
+    throw: bool = OPTIONS["throw"],
+    checkpoint: bool | int = OPTIONS["checkpoint"],
+    progress_meter=OPTIONS["progress_meter"],
+    forcing=OPTIONS["forcing"],
+    args=OPTIONS["args"],
+    monitor=OPTIONS["monitor"],
+    tuning: Tuning = OPTIONS["tuning"],
+    **deprecated,
 ) -> Solution:
     """`simulate` with the neighbour list of a `lievi.SitePotential` rebuilt every
     `rebuild_every` steps and checked.
 
     **Arguments:**
 
-    - `system`, `integrator`, `g0`, `m0`, `h`, `n_steps`, `save_every`, `throw`,
-      `forcing`, `args`: as `simulate` (`g0` `(N, 4, 4)`, `m0` `(N, 6)` for
-      `lievi.RigidBodies`; a `lievi.Control` has the whole run's `n_steps` rows, each
-      segment runs on its own, `AbstractForcing.steps`).
+    - `system`, `integrator`, `g0`, `m0`, `h`, `n_steps`: as `simulate` (`g0`
+      `(N, 4, 4)`, `m0` `(N, 6)` for `lievi.RigidBodies`).
     - `rebuild_every`: steps per segment, dividing `n_steps`. Each segment runs with
-      every step saved (for the displacement check), thinned to every `save_every`-th
+      every step saved (for the displacement check), thinned to every `save.every`-th
       step of the run as it finishes: memory of one segment's steps plus the saves.
     - `builder`: `lievi.BruteForceNeighbors(skin)` (no dependency, `O((N k)²)` per build)
       or `lievi.JaxMDNeighbors(skin)` (jax-md's cell list, `O(N k)`), with the list's
@@ -100,6 +105,13 @@ def simulate_with_neighbor_list(
     - `where`: where the `SitePotential` sits in `system` (default
       `lambda system: system.potential`), for `eqx.tree_at`; the potential needs a
       `cutoff` (and may have a `box`); its own `neighbors` are replaced.
+    - `save`, `t0`, `throw`, `checkpoint`, `progress_meter`, `forcing`, `args`,
+      `tuning`: the options of every run function, as `simulate` (the same defaults); a
+      `lievi.Control` has the whole run's `n_steps` rows, each segment runs on its own
+      (`AbstractForcing.steps`); `checkpoint` and `tuning` apply to each segment's run;
+      the progress meter shows the fraction done after each segment. `monitor` is not
+      taken (an invariant's reference would be each segment's start): any value but
+      `None` is a `ValueError`.
 
     **Returns:** a `Solution` over the whole horizon, as one `simulate` call gives it,
     with `stats` adding `neighbor_builds` (the lists built), `neighbor_pairs` (the most
@@ -114,11 +126,11 @@ def simulate_with_neighbor_list(
     `capacity`. With `throw=False` a failed step (`RESULTS`) ends the run: the result
     and `failed_step` are reported and the later saves are NaN, as in `simulate`.
     """
-    n_steps = check_integer("n_steps", n_steps, 1)
-    save_every = check_integer("save_every", save_every, 1)
+    label = "lievi.simulate_with_neighbor_list"
+    opts = options(label, n_steps, locals(), deprecated, unsupported=("monitor",))
+    n_steps, save, forcing = opts.n_steps, opts.save, opts.forcing
+    save_every = save.every
     rebuild_every = check_integer("rebuild_every", rebuild_every, 1)
-    if n_steps % save_every:
-        raise ValueError(f"`save_every` ({save_every}) must divide `n_steps` ({n_steps}).")
     if n_steps % rebuild_every:
         raise ValueError(
             f"`rebuild_every` ({rebuild_every}) must divide `n_steps` ({n_steps}): the "
@@ -134,9 +146,11 @@ def simulate_with_neighbor_list(
             "`builder` must be a neighbour-list builder (lievi.BruteForceNeighbors(skin) or "
             f"lievi.JaxMDNeighbors(skin)), got {type(builder).__name__}."
         )
-    forcing = as_forcing(forcing)
     if forcing is not None:  # the whole run's data, once (each segment checks its own)
         forcing.check(system, n_steps, jnp.result_type(m0), args)
+    # Every step of a segment saved (the displacement check reads them), on `g` and `m`.
+    each = Save(g=True, m=True, stats=True, advected=save.advected, every=1)
+    segment_options = dict(save=each, throw=throw, checkpoint=checkpoint, tuning=opts.tuning)
     potential = where(system)
     g, m = jnp.asarray(g0), jnp.asarray(m0)
     h_value = float(h)
@@ -164,11 +178,10 @@ def simulate_with_neighbor_list(
                 m,
                 h=h,
                 n_steps=rebuild_every,
-                save_every=1,
-                t0=start * h_value,
-                throw=throw,
+                t0=t0 + start * h_value,
                 forcing=None if forcing is None else forcing.steps(start, rebuild_every),
                 args=args,
+                **segment_options,
             )
             if int(sol.result) != RESULTS.successful:
                 break
@@ -195,7 +208,8 @@ def simulate_with_neighbor_list(
             listed = None
         pieces.append(_kept(sol, start, save_every))
         g, m = sol.g[-1], sol.m[-1]
-    joined = _join(pieces, h, n_steps, save_every, failure)
+        opts.progress.show((start + rebuild_every) / n_steps)
+    joined = _join(pieces, h, t0, n_steps, save_every, failure)
     stats = dict(
         joined.stats,
         neighbor_builds=jnp.asarray(builds),
@@ -204,7 +218,16 @@ def simulate_with_neighbor_list(
         neighbor_max_displacement=jnp.asarray(largest),
         neighbor_reruns=jnp.asarray(reruns),
     )
-    return eqx.tree_at(lambda s: s.stats, joined, stats)
+    if not save.stats:
+        del stats["newton_iterations"], stats["residual"]
+    return Solution(
+        joined.ts,
+        joined.g if save.g else None,
+        joined.m if save.m else None,
+        joined.result,
+        stats,
+        joined.advected if save.with_advected() else None,
+    )
 
 
 def _kept(sol: Solution, start: int, save_every: int) -> Solution:
@@ -218,7 +241,7 @@ def _kept(sol: Solution, start: int, save_every: int) -> Solution:
     return Solution(ts, g, m, sol.result, sol.stats, advected)
 
 
-def _join(pieces, h, n_steps: int, save_every: int, failure) -> Solution:
+def _join(pieces, h, t0, n_steps: int, save_every: int, failure) -> Solution:
     """One `Solution` over the horizon from the segments' (NaN-padded after a failure
     that ended the run early)."""
     n_saves = n_steps // save_every + 1
@@ -249,7 +272,7 @@ def _join(pieces, h, n_steps: int, save_every: int, failure) -> Solution:
         "num_steps": jnp.asarray(n_steps),
     }
     return Solution(
-        ts=h * save_every * jnp.arange(n_saves, dtype=m.dtype),
+        ts=t0 + h * save_every * jnp.arange(n_saves, dtype=m.dtype),
         g=joined("g"),
         m=m,
         result=jnp.asarray(result, jnp.int32),

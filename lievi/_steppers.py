@@ -325,30 +325,39 @@ class VmapPlan(AbstractPlan):
         )
 
 
-def plan_for(system, integrator, system_axis, forcing=None, args=None, **kernel_options):
+def plan_for(
+    system,
+    integrator,
+    system_axis,
+    forcing=None,
+    args=None,
+    *,
+    tuning=None,
+    one_body=False,
+    carry_g=True,
+):
     """How a run of `integrator` on `system` steps: on the integrator's kernel for it
     (`AbstractIntegrator.batch_kernel`; never for a forced run: the kernels integrate
     unforced bodies), else by its own step under `jax.vmap`.
 
-    `kernel_options`: `fast=False` takes the method's own step; `fixed_iterations`, the
-    kernel's Newton iterations before its convergence check; `one_body=True`, the kernel as
-    it runs one body (`AbstractBatchKernel.one_body`); `carry_g=False`, the kernel's
-    reduced form where it has one (a run that does not save `g`)."""
-    fast = kernel_options.get("fast", True)
+    `tuning` (`lievi.advanced.Tuning`, `None` for its defaults): `fast=False` takes the method's own step;
+    `fixed_iterations`, the kernel's Newton iterations before its convergence check.
+    `one_body=True`: the kernel as it runs one body (`AbstractBatchKernel.one_body`);
+    `carry_g=False`: the kernel's reduced form where it has one (a run that does not save
+    `g`)."""
     batched = system_axis is not None
+    fast, fixed = (True, None) if tuning is None else (tuning.fast, tuning.fixed_iterations)
     kernel = None
     if fast and forcing is None:
         kernel = integrator.batch_kernel(system, batched)
     if kernel is None:
         return VmapPlan(system, system_axis, integrator, forcing, args)
     constants = kernel.physics(system, batched)
-    carry_g = kernel_options.get("carry_g", True)
     if not carry_g:
         kernel = kernel.reduced() or kernel
-    fixed = kernel_options.get("fixed_iterations")
     if fixed is not None:
         kernel = kernel.with_fixed_iterations(fixed)
-    elif kernel_options.get("one_body", False):
+    elif one_body:
         # One body stops at convergence: no fixed iterations unrolled before the check
         # (`AbstractBatchKernel.one_body`), a smaller program that runs as fast.
         kernel = kernel.one_body()

@@ -10,41 +10,30 @@ segmented run computes the same iterates as one `simulate_batch` call over the h
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import equinox as eqx
 import jax
 import numpy as np
 
 from ._checks import check_integer, check_scalar, input_valid, state_dtype
-from ._progress import AbstractProgressMeter, as_progress_meter
+from ._options import OPTIONS, Tuning, options
+from ._progress import AbstractProgressMeter
 from ._results import RESULTS
-from ._save import Save, as_save
+from ._save import Save
 from ._simulate_batch import infer_system_axis, simulate_batch
 from ._stream_record import run_record
 from ._stream_writer import AbstractStreamWriter, ChunkState, StreamLayout
 
 
-def _check_options(n_steps, save_every, chunk_size, segment_steps, save, batch):
-    n_steps = check_integer("n_steps", n_steps, 1)
-    save_every = check_integer("save_every", save_every, 1)
-    if n_steps % save_every:
-        raise ValueError(f"`save_every` ({save_every}) must divide `n_steps` ({n_steps}).")
+def _check_chunking(n_steps, every, chunk_size, segment_steps, batch):
     chunk_size = min(check_integer("chunk_size", chunk_size, 1), batch)
     segment_steps = n_steps if segment_steps is None else segment_steps
     segment_steps = check_integer("segment_steps", segment_steps, 1)
-    if segment_steps % save_every or n_steps % segment_steps:
+    if segment_steps % every or n_steps % segment_steps:
         raise ValueError(
-            f"`segment_steps` ({segment_steps}) must be a multiple of `save_every` "
-            f"({save_every}) that divides `n_steps` ({n_steps}): a segment ends on a save."
+            f"`segment_steps` ({segment_steps}) must be a multiple of `save.every` "
+            f"({every}) that divides `n_steps` ({n_steps}): a segment ends on a save."
         )
-    save = as_save(save)
-    if save.stats or save.advected or not (save.g or save.m):
-        raise ValueError(
-            f"`save` of a streamed run is 'g', 'm' or both, got {save.names()}; the summary "
-            "per body (result, failed_step, total_newton_iterations) is always written."
-        )
-    return n_steps, save_every, chunk_size, segment_steps, save
+    return chunk_size, segment_steps
 
 
 def stream_batch(
@@ -55,14 +44,20 @@ def stream_batch(
     *,
     h,
     n_steps: int,
-    save_every: int,
     writer: AbstractStreamWriter,
     chunk_size: int = 10_000,
     segment_steps: int | None = None,
-    save: Save | Sequence[str] = ("g", "m"),
+    save: Save = OPTIONS["save"],
+    t0=OPTIONS["t0"],
+    throw: bool = OPTIONS["throw"],
+    checkpoint: bool | int = OPTIONS["checkpoint"],
+    progress_meter: AbstractProgressMeter | bool | str = OPTIONS["progress_meter"],
+    forcing=OPTIONS["forcing"],
+    args=OPTIONS["args"],
+    monitor=OPTIONS["monitor"],
+    tuning: Tuning = OPTIONS["tuning"],
     system_axis: int | None = None,
-    progress_meter: AbstractProgressMeter | bool | str = False,
-    **options,
+    **deprecated,
 ) -> None:
     """`simulate_batch` for output larger than memory: written chunk by chunk, resumable.
 
@@ -88,36 +83,41 @@ def stream_batch(
       for systems of several bodies (`m0` `(batch, N, 6)` for `lievi.RigidBodies`); `g0`,
       `m0` may be NumPy memory maps: only one chunk's rows are read at a time (and once,
       a chunk at a time, for the run's record).
-    - `n_steps`, `save_every`: as `simulate_batch` (`save_every` must divide `n_steps`).
     - `writer`: where the saves go, e.g. `lievi.NpyWriter("run/")`; any
       `lievi.AbstractStreamWriter`.
     - `chunk_size`: bodies per chunk (default 10 000).
-    - `segment_steps`: steps per segment, a multiple of `save_every` dividing `n_steps`
+    - `segment_steps`: steps per segment, a multiple of `save.every` dividing `n_steps`
       (default: the whole horizon). Bounds the memory of a chunk's saves and the work
       lost when a run stops.
-    - `save`: `"g"`, `"m"` or both (default). The chunk's state `(g, m)` is always
-      carried, so a potential with an advected parameter runs its `(Π, g)` algorithm.
-    - `progress_meter`: as `simulate_batch`'s (its shorthands labelled
-      `lievi.stream_batch`): the fraction of all body-steps done, shown after each
+    - `save`, `t0`, `throw`, `progress_meter`, `tuning`: the options of every run
+      function, as `lievi.simulate` (the same defaults). `save.g`, `save.m`: what is
+      written (the chunk's state `(g, m)` is always carried, so a potential with an
+      advected parameter runs its `(Π, g)` algorithm); the per-save statistics are not
+      written (`save.stats` is ignored), the summary per body always is. `throw=True`
+      raises, once everything is written, if a body failed; with `throw=False` the
+      per-body `result` written says it. The progress meter (its shorthands labelled
+      `lievi.stream_batch`) shows the fraction of all body-steps done after each
       finished segment (the chunks' own runs report nothing).
-    - `**options`: further keywords of `simulate_batch` (`fast`, `fixed_iterations`,
-      `unroll`). Forcing is not streamed.
+    - `checkpoint`, `forcing`, `args`, `monitor`: not taken by a streamed run (it is not
+      differentiated, its forcing would not be streamed, and an invariant's reference
+      is per run); any value but the default is a `ValueError`.
 
-    Time: the saves of a body are at `t = k·save_every·h`, `k = 0, …, n_steps/save_every`,
-    as in `simulate_batch`. A body that fails keeps its first failure in `result` and
-    `failed_step` (the step counted from the start) and NaN in its later saves. A body
-    whose own inputs are not admissible (a NaN in its `m0`, a `g0` off the group, its
-    `h` or its system's parameters: the checks of `simulate_batch`) gets
-    `RESULTS.invalid_input` at step 0 and NaN saves, and the others run: a streamed run
-    never raises for one body. Arguments shared by all bodies (shapes, a scalar `h`, the
-    options) are checked at once, as `ValueError`s.
+    Time: the saves of a body are at `t = t0 + k·save.every·h`, `k = 0, …,
+    n_steps/save.every`, as in `simulate_batch`. A body that fails keeps its first failure
+    in `result` and `failed_step` (the step counted from the start) and NaN in its later
+    saves. A body whose own inputs are not admissible (a NaN in its `m0`, a `g0` off the
+    group, its `h` or its system's parameters: the checks of `simulate_batch`) gets
+    `RESULTS.invalid_input` at step 0 and NaN saves, and the others run. Arguments
+    shared by all bodies (shapes, a scalar `h`, the options) are checked at once, as
+    `ValueError`s.
     """
-    unknown = set(options) - {"fast", "fixed_iterations", "unroll"}
-    if unknown:
-        raise TypeError(
-            f"stream_batch got unexpected keyword arguments {sorted(unknown)}; it takes those "
-            "of simulate_batch except `save`'s stats, `forcing`, `args`, `throw` and "
-            "`checkpoint`."
+    unsupported = ("checkpoint", "forcing", "args", "monitor")
+    opts = options("lievi.stream_batch", n_steps, locals(), deprecated, unsupported)
+    n_steps, save, every = opts.n_steps, opts.save, opts.save.every
+    if save.advected or not (save.g or save.m):
+        raise ValueError(
+            f"`save` of a streamed run writes `g`, `m` or both, got {save.names()}; the "
+            "summary per body (result, failed_step, total_newton_iterations) is always written."
         )
     if not isinstance(writer, AbstractStreamWriter):
         raise TypeError(
@@ -139,29 +139,30 @@ def stream_batch(
         raise ValueError(f"`h` must be a scalar or have shape ({batch},), got {np.shape(h)}.")
     if np.ndim(h) == 0:
         check_scalar("h", h, positive=True)  # shared by every body: an argument error
-    n_steps, save_every, chunk_size, segment_steps, save = _check_options(
-        n_steps, save_every, chunk_size, segment_steps, save, batch
-    )
+    chunk_size, segment_steps = _check_chunking(n_steps, every, chunk_size, segment_steps, batch)
     system_axis = infer_system_axis(system, system_axis, batch)
-    progress = as_progress_meter(progress_meter, label="lievi.stream_batch")
     dtype = np.dtype(state_dtype(system, np.asarray(g0[:1]), np.asarray(m0[:1]), h))
-    n_saves = n_steps // save_every + 1
+    n_saves = n_steps // every + 1
     fields = {}
     if save.g:
         fields["g"] = ((batch, n_saves, *element), dtype.name)
     if save.m:
         fields["m"] = ((batch, n_saves, *momentum), dtype.name)
+    knobs = {name: getattr(opts.tuning, name) for name in ("fast", "fixed_iterations", "unroll")}
+    record = {name: value for name, value in knobs.items() if value != getattr(Tuning(), name)}
     layout = StreamLayout(
         fields,
         batch,
         n_steps,
-        save_every,
+        every,
         chunk_size,
         segment_steps,
         (element, momentum),
         dtype.name,
-        run_record(system, integrator, g0, m0, h, options, chunk_size),
+        run_record(system, integrator, g0, m0, h, record, chunk_size),
     )
+    progress = opts.progress
+    worst = int(RESULTS.successful)
     writer.open(layout)
     try:
         total = float(batch) * n_steps
@@ -175,29 +176,28 @@ def stream_batch(
             done += (rows.stop - rows.start) * state.steps_done
             progress.show(done / total)
             while state.steps_done < n_steps:
+                piece = Save(g=True, m=True, stats=False, every=every)
+                run = dict(save=piece, t0=t0, system_axis=system_axis, tuning=opts.tuning)
                 values, state = _segment(
-                    system_rows,
-                    integrator,
-                    system_axis,
-                    h,
-                    rows,
-                    state,
-                    segment_steps,
-                    save_every,
-                    save,
-                    options,
+                    system_rows, integrator, h, rows, state, segment_steps, run
                 )
-                first = state.steps_done // save_every - segment_steps // save_every
-                saves = slice(
-                    first if first == 0 else first + 1, state.steps_done // save_every + 1
-                )
+                first = state.steps_done // every - segment_steps // every
+                saves = slice(first if first == 0 else first + 1, state.steps_done // every + 1)
+                values = {name: values[name] for name in fields}
                 writer.write(chunk, rows, saves, values, state)
                 done += (rows.stop - rows.start) * segment_steps
                 progress.show(done / total)
+            worst = max(worst, int(np.max(state.result)))
         writer.finish()
     finally:
         # Also when the run stops (an error, an interrupt): what was written is kept.
         writer.close()
+    if throw and worst != int(RESULTS.successful):
+        raise RuntimeError(
+            f"lievi.stream_batch: a body failed: {RESULTS.messages[worst]} (everything is "
+            "written: read each body's `result` and `failed_step`; pass throw=False not to "
+            "raise.)"
+        )
 
 
 def _h_rows(h, rows):
@@ -245,9 +245,9 @@ def _rows_of(tree, rows, axis):
     return jax.tree.map(lambda x: x[rows] if eqx.is_array(x) else x, tree)
 
 
-def _segment(system, integrator, system_axis, h, rows, state, steps, save_every, save, options):
-    """Run one chunk (`system`: its rows) for one segment from `state`: the values to
-    write and the new state.
+def _segment(system, integrator, h, rows, state, steps, run):
+    """Run one chunk (`system`: its rows) for one segment from `state` (`run`: the
+    options of its `simulate_batch` call): the values to write and the new state.
 
     A body that failed in an earlier segment, or whose inputs were not admissible,
     restarts from a harmless state (the identity, zero momentum, a unit step) that is
@@ -260,19 +260,7 @@ def _segment(system, integrator, system_axis, h, rows, state, steps, save_every,
     h_rows = _h_rows(h, rows)
     if np.ndim(h_rows):
         h_rows = np.where(failed, 1.0, h_rows)
-    solution = simulate_batch(
-        system,
-        integrator,
-        g,
-        m,
-        h=h_rows,
-        n_steps=steps,
-        save_every=save_every,
-        save=Save(g=True, m=True, stats=False),
-        system_axis=system_axis,
-        throw=False,
-        **options,
-    )
+    solution = simulate_batch(system, integrator, g, m, h=h_rows, n_steps=steps, throw=False, **run)
     out_g = np.where(_mask(failed, solution.g), np.nan, solution.g)
     out_m = np.where(_mask(failed, solution.m), np.nan, solution.m)
     result = np.asarray(solution.result)
@@ -291,9 +279,4 @@ def _segment(system, integrator, system_axis, h, rows, state, steps, save_every,
     )
     # The first segment writes the initial state too; later ones start at their first save.
     skip = 0 if state.steps_done == steps else 1
-    values = {}
-    if save.g:
-        values["g"] = out_g[:, skip:]
-    if save.m:
-        values["m"] = out_m[:, skip:]
-    return values, state
+    return {"g": out_g[:, skip:], "m": out_m[:, skip:]}, state

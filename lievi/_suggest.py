@@ -42,6 +42,7 @@ from ._integrators._composition import Composition, _is_symmetric
 from ._integrators._dep import DEP
 from ._integrators._rkmk import RKMK4, RKMK5, RKMK8
 from ._results import RESULTS
+from ._save import Save
 from ._simulate_batch import simulate_batch
 from ._suggest_knowledge import (
     MEASURED,
@@ -82,7 +83,7 @@ MEASURES = {
     "attitude": _attitudes,
     "position": _positions,
     "momentum": lambda system, g, m: m,
-    "energy": lambda system, g, m: energy(system, m, g),
+    "energy": lambda system, g, m: energy(system, g, m),
     "momentum map": _momentum_map,
 }
 # Growth of each quantity's error with the horizon, `t^a`, for a symmetric method and for
@@ -251,7 +252,7 @@ KNOWN_QUANTITIES = {
     # ‖R_h − R‖_F = 2√2 sin(θ/2) ≈ √2 θ for the rotation angle θ between them.
     "g": ("attitude", lambda system, g0, m0: math.sqrt(2.0)),
     "attitude": ("attitude", lambda system, g0, m0: math.sqrt(2.0)),
-    "energy": ("energy", lambda system, g0, m0: abs(float(energy(system, m0, g0)))),
+    "energy": ("energy", lambda system, g0, m0: abs(float(energy(system, g0, m0)))),
     "momentum map": ("momentum", lambda system, g0, m0: float(jnp.linalg.norm(m0))),
 }
 
@@ -382,6 +383,5 @@ def _pilot(system, integrator, g0, m0, horizon, window, tolerance, h0, batch, me
 
 
 def _final(system, integrator, g0, m0, h, n_steps):
-    return simulate_batch(
-        system, integrator, g0, m0, h=h, n_steps=n_steps, save=("g", "m"), throw=False
-    )
+    final = Save(g=True, m=True, stats=False, every=n_steps)
+    return simulate_batch(system, integrator, g0, m0, h=h, n_steps=n_steps, save=final, throw=False)

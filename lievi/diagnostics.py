@@ -7,13 +7,16 @@
 - `poisson_defect`: `‖D B(m_k) Dᵀ − B(m_{k+1})‖` for the Jacobian `D` of the DLP map
   (Proposition 3.1: the DLP map is Poisson).
 
-All functions take arrays with leading batch/time axes unless stated otherwise. Each is
+Every function of a state takes `(system, g, m)` in that order. All functions take arrays
+with leading batch/time axes unless stated otherwise. Each is
 one jit-compiled program (`eqx.filter_jit`, cached per system class and shapes): called
 eagerly on a trajectory, JAX would otherwise compile and dispatch each of its operations
 as a small program of its own.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import equinox as eqx
 import jax
@@ -31,16 +34,57 @@ def _batched(fn, core_ndim: int, x):
     return fn(x)
 
 
-@eqx.filter_jit
 def energy(
     system: AbstractLieSystem,
-    m: Float[Array, "*batch d"],
-    g: Float[Array, "*batch n n"] | None = None,
+    g: Float[Array, "*batch n n"] | None,
+    m: Float[Array, "*batch d"] | None = None,
 ) -> Float[Array, "*batch"]:
     """The total energy `H(m) + V(g)` (for the rigid body `½ Πᵀ I⁻¹ Π + V(g)`).
 
-    `g` is needed, and required, when the system has a potential.
+    Takes `(system, g, m)`, as every diagnostic of a state. `g` is needed when the system
+    has a potential; for a free system it may be `None`.
+
+    The order of earlier releases, `energy(system, m)` and `energy(system, m, g)`, still
+    works for one release with a `DeprecationWarning`: a call with one array is the old
+    `energy(system, m)`, and a call with two whose first has the momentum's trailing
+    shape (`system.momentum_shape()`) and whose second has the element's
+    (`system.element_shape()`) is the old order — the two shapes differ in their number
+    of axes on every system, so the two orders are never confused.
     """
+    g, m = _state_order(system, g, m)
+    return _energy(system, g, m)
+
+
+def _state_order(system: AbstractLieSystem, g, m):
+    """`(g, m)` of a call in the order `(system, g, m)`, or of one in the order of earlier
+    releases, `(system, m)` or `(system, m, g)` (told apart by the trailing shapes),
+    with a `DeprecationWarning`."""
+    element, momentum = system.element_shape(), system.momentum_shape()
+
+    def ends_with(x, shape):
+        x_shape = jnp.shape(x)
+        return len(x_shape) >= len(shape) and tuple(x_shape[len(x_shape) - len(shape) :]) == shape
+
+    old = m is None or (
+        g is not None
+        and ends_with(g, momentum)
+        and ends_with(m, element)
+        and jnp.ndim(g) - len(momentum) == jnp.ndim(m) - len(element)
+    )
+    if not old:
+        return g, m
+    warnings.warn(
+        "lievi.diagnostics.energy(system, m, g) is deprecated: the order is now "
+        "energy(system, g, m), as every diagnostic of a state (g may be None for a free "
+        "system).",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    return (None, g) if m is None else (m, g)
+
+
+@eqx.filter_jit
+def _energy(system, g, m):
     # One state has the system's own shapes (`(d,)`, `(n, n)`; per body for several).
     kinetic = _batched(system.energy, len(system.momentum_shape()), m)
     if system.potential is None:
@@ -48,7 +92,7 @@ def energy(
     if g is None:
         raise ValueError(
             "energy: the system has a potential, so its energy depends on the attitude: pass "
-            "`g` (e.g. `energy(system, sol.m, sol.g)`)."
+            "`g` (e.g. `energy(system, sol.g, sol.m)`)."
         )
     return kinetic + _batched(system.potential_energy, len(system.element_shape()), g)
 

@@ -151,7 +151,7 @@ assert bool(jnp.all(results == lievi.RESULTS.successful))
 ms = np.asarray(ms)  # (n_bodies, T, 3)
 
 casimir_err = np.max(np.abs(np.linalg.norm(ms, axis=-1) - 1.0))
-energies = np.asarray(diagnostics.energy(body, jnp.asarray(ms)))
+energies = np.asarray(diagnostics.energy(body, None, jnp.asarray(ms)))
 energy_err = np.max(np.abs(energies - energies[:, :1]) / energies[:, :1])
 print(f"{len(M0)} bodies x {n_polhode} steps of h = {H_POLHODE}")
 print(f"max | |Pi_k| - 1 |            = {casimir_err:.1e}   (Casimir: round-off)")
@@ -221,7 +221,7 @@ plt.show()
 
 # %%
 def energy_error(m):
-    E = np.asarray(diagnostics.energy(body, m))
+    E = np.asarray(diagnostics.energy(body, None, m))
     return np.abs(E - E[0]) / E[0]
 
 

@@ -70,7 +70,7 @@ print("lievi", lievi.__version__, "| jax", jax.__version__, "| SMALL =", SMALL)
 body = lievi.RigidBody(jnp.array([0.6, 0.8, 1.0]))
 y0 = jnp.array([1.8, 0.4, -0.9])
 sol = lievi.simulate(body, lievi.MoserVeselov(), jnp.eye(3), y0, h=0.2, n_steps=500)
-dH = float(diagnostics.relative_drift(diagnostics.energy(body, sol.m)))
+dH = float(diagnostics.relative_drift(diagnostics.energy(body, sol.g, sol.m)))
 dC = float(diagnostics.relative_drift(diagnostics.casimirs(body, sol.m)))
 print(f"DMV, h = 0.2, 500 steps: energy drift {dH:.1e}, Casimir drift {dC:.1e}")
 assert dH < 1e-12 and dC < 1e-12
@@ -197,7 +197,7 @@ if SMALL:
 fig, ax = plt.subplots(figsize=(10, 4.5))
 for name, integrator in LONG.items():
     sol = lievi.simulate(hlw, integrator, jnp.eye(3), m_hlw, h=0.1, n_steps=N_LONG, save_every=N_LONG // 1000)
-    energy = np.asarray(diagnostics.energy(hlw, sol.m))
+    energy = np.asarray(diagnostics.energy(hlw, sol.g, sol.m))
     error = np.abs(energy - energy[0]) / energy[0]
     casimir = float(diagnostics.relative_drift(diagnostics.casimirs(hlw, sol.m)))
     print(f"{name:10s} max |dH/H| = {error.max():.1e}   Casimir drift = {casimir:.1e}")

@@ -60,7 +60,7 @@ jax.config.update("jax_enable_x64", True)
 import lievi
 from lievi import diagnostics as dg
 
-print(jax.devices()[0], "| fast path:", lievi.has_fast_path(lievi.RigidBody(jnp.ones(3)), lievi.DEP()))
+print(jax.devices()[0], "| fast path:", lievi.advanced.has_fast_path(lievi.RigidBody(jnp.ones(3)), lievi.DEP()))
 
 # %% [markdown]
 # ## 1. Conservation across a batch of random bodies

@@ -130,7 +130,7 @@ total = np.asarray(dg.spatial_momentum(satellite, sol.g, sol.m))[:, :3]
 R, p, P = np.asarray(sol.g[:, :3, :3]), np.asarray(sol.g[:, :3, 3]), np.asarray(sol.m[:, 3:])
 orbital = np.cross(p, np.einsum("tij,tj->ti", R, P))
 spin = total - orbital
-energy = np.asarray(dg.energy(satellite, sol.m, sol.g))
+energy = np.asarray(dg.energy(satellite, sol.g, sol.m))
 print(f"total angular momentum drift: {dg.relative_drift(total):.1e}")
 print(f"orbital angular momentum (z) ranges over {orbital[:, 2].min():.4f} … {orbital[:, 2].max():.4f}")
 print(f"energy: relative error ≤ {np.max(np.abs(energy / energy[0] - 1)):.1e} (bounded)")

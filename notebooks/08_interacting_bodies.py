@@ -99,7 +99,7 @@ assert sol.result == lievi.RESULTS.successful
 
 # %%
 total = dg.total_momentum(binary, sol.g, sol.m)  # (T, 6)
-energy = dg.energy(binary, sol.m, sol.g)
+energy = dg.energy(binary, sol.g, sol.m)
 R, p = sol.g[:, :, :3, :3], sol.g[:, :, :3, 3]
 spin = jnp.einsum("tnij,tnj->ti", R, sol.m[:, :, :3])
 orbital = jnp.sum(jnp.cross(p, jnp.einsum("tnij,tnj->tni", R, sol.m[:, :, 3:])), axis=1)
@@ -194,7 +194,7 @@ for name, method in (
     for h in STEP_SIZES:
         run = lievi.simulate(molecules, method, g0_mol, m0_mol, h=h, n_steps=N_MOLECULES)
         assert run.result == lievi.RESULTS.successful
-        e = dg.energy(molecules, run.m, run.g)
+        e = dg.energy(molecules, run.g, run.m)
         errors[name].append(float(jnp.max(jnp.abs(e - e[0])) / jnp.abs(e[0])))
     print(name, ", ".join(f"h={h:g}: {err:.2e}" for h, err in zip(STEP_SIZES, errors[name])))
     assert all(np.isfinite(errors[name])) and errors[name][-1] > errors[name][0]

@@ -40,7 +40,14 @@ def forward(inertia, m0, h):
     bodies = jax.vmap(lievi.RigidBody)(inertia)
     g0 = jnp.broadcast_to(jnp.eye(3), (m0.shape[0], 3, 3))
     sol = lievi.simulate_batch(
-        bodies, lievi.DEP(), g0, m0, h=h, n_steps=N_STEPS, save_every=EVERY, system_axis=0
+        bodies,
+        lievi.DEP(),
+        g0,
+        m0,
+        h=h,
+        n_steps=N_STEPS,
+        save=lievi.Save(every=EVERY),
+        system_axis=0,
     )
     return sol.g, sol.m, sol.result
 

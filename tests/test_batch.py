@@ -54,10 +54,12 @@ def runs(request, problem):
     """Fast path and generic path (vmap of simulate) on the same batch."""
     bodies, g0, m0, h = problem
     dep = FAST[request.param]
-    assert lievi.has_fast_path(bodies, dep, system_axis=0)
-    kwargs = dict(h=h, n_steps=STEPS, save_every=SAVE_EVERY, system_axis=0)
+    assert lievi.advanced.has_fast_path(bodies, dep, system_axis=0)
+    kwargs = dict(h=h, n_steps=STEPS, save=lievi.Save(every=SAVE_EVERY), system_axis=0)
     fast = lievi.simulate_batch(bodies, dep, g0, m0, **kwargs)
-    generic = lievi.simulate_batch(bodies, dep, g0, m0, fast=False, **kwargs)
+    generic = lievi.simulate_batch(
+        bodies, dep, g0, m0, tuning=lievi.advanced.Tuning(fast=False), **kwargs
+    )
     return dep, fast, generic
 
 
@@ -82,7 +84,7 @@ def test_batched_equals_per_body(runs, problem):
     for b in (0, 7, BATCH - 1):
         body = lievi.RigidBody(bodies.inertia[b])
         single = lievi.simulate(
-            body, dep, g0[b], m0[b], h=h[b], n_steps=STEPS, save_every=SAVE_EVERY
+            body, dep, g0[b], m0[b], h=h[b], n_steps=STEPS, save=lievi.Save(every=SAVE_EVERY)
         )
         np.testing.assert_allclose(generic.m[b], single.m, rtol=0, atol=ROUNDOFF)
         np.testing.assert_allclose(fast.m[b], single.m, rtol=0, atol=ROUNDOFF)
@@ -155,10 +157,15 @@ def test_float32(problem):
     bodies32 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), bodies)
     args32 = (g0.astype(jnp.float32), m0.astype(jnp.float32))
     dep = lievi.DEP(chart="exp")
-    kwargs = dict(n_steps=STEPS, save_every=SAVE_EVERY, system_axis=0)
+    kwargs = dict(n_steps=STEPS, save=lievi.Save(every=SAVE_EVERY), system_axis=0)
     fast = lievi.simulate_batch(bodies32, dep, *args32, h=h.astype(jnp.float32), **kwargs)
     generic = lievi.simulate_batch(
-        bodies32, dep, *args32, h=h.astype(jnp.float32), fast=False, **kwargs
+        bodies32,
+        dep,
+        *args32,
+        h=h.astype(jnp.float32),
+        tuning=lievi.advanced.Tuning(fast=False),
+        **kwargs,
     )
     exact = lievi.simulate_batch(bodies, dep, g0, m0, h=h, **kwargs)
     assert fast.m.dtype == jnp.float32 and fast.g.dtype == jnp.float32
@@ -178,9 +185,13 @@ def test_one_fixed_iteration_then_tail(problem):
     """With one fixed Newton iteration the convergence tail finishes the job: same iterates."""
     bodies, g0, m0, h = problem
     dep = lievi.DEP(chart="exp")
-    kwargs = dict(h=h, n_steps=STEPS, save_every=SAVE_EVERY, system_axis=0)
-    one = lievi.simulate_batch(bodies, dep, g0, m0, fixed_iterations=1, **kwargs)
-    generic = lievi.simulate_batch(bodies, dep, g0, m0, fast=False, **kwargs)
+    kwargs = dict(h=h, n_steps=STEPS, save=lievi.Save(every=SAVE_EVERY), system_axis=0)
+    one = lievi.simulate_batch(
+        bodies, dep, g0, m0, tuning=lievi.advanced.Tuning(fixed_iterations=1), **kwargs
+    )
+    generic = lievi.simulate_batch(
+        bodies, dep, g0, m0, tuning=lievi.advanced.Tuning(fast=False), **kwargs
+    )
     np.testing.assert_allclose(one.m, generic.m, rtol=0, atol=ROUNDOFF)
     assert np.all(one.stats["newton_iterations"] >= 2)  # the tail ran
 
@@ -199,9 +210,11 @@ def test_failures_are_per_body(chart):
     bodies, g0, m0, _ = random_batch(rng, 6)
     h = jnp.full(6, 0.1).at[2].set(40.0)
     dep = lievi.DEP(chart=chart, max_steps=6)
-    kwargs = dict(h=h, n_steps=8, save_every=1, system_axis=0, throw=False)
+    kwargs = dict(h=h, n_steps=8, save=lievi.Save(), system_axis=0, throw=False)
     fast = lievi.simulate_batch(bodies, dep, g0, m0, **kwargs)
-    generic = lievi.simulate_batch(bodies, dep, g0, m0, fast=False, **kwargs)
+    generic = lievi.simulate_batch(
+        bodies, dep, g0, m0, tuning=lievi.advanced.Tuning(fast=False), **kwargs
+    )
     ok = np.arange(6) != 2
     assert fast.result[2] != lievi.RESULTS.successful
     assert fast.result[2] == generic.result[2]
@@ -236,10 +249,12 @@ def test_moser_veselov_scalar_solve_at_large_steps():
     residual = _soa.max_abs(_so3_equations._residual_moser_veselov(x, Pi, A, False)[0])
     assert np.sum(~(residual <= 64 * np.finfo(np.float64).eps * (1 + _soa.max_abs(Pi)))) >= 5
 
-    kwargs = dict(h=h, n_steps=10, save_every=10, system_axis=0, throw=False)
+    kwargs = dict(h=h, n_steps=10, save=lievi.Save(every=10), system_axis=0, throw=False)
     mv = lievi.MoserVeselov()
     fast = lievi.simulate_batch(bodies, mv, g0, m0, **kwargs)
-    generic = lievi.simulate_batch(bodies, mv, g0, m0, fast=False, **kwargs)
+    generic = lievi.simulate_batch(
+        bodies, mv, g0, m0, tuning=lievi.advanced.Tuning(fast=False), **kwargs
+    )
     ok = np.asarray(generic.result) == 0
     assert ok.sum() >= 32
     np.testing.assert_array_equal(np.asarray(fast.result)[ok], 0)
@@ -252,22 +267,44 @@ def test_shared_system_and_save_options(problem):
     _, g0, m0, _ = problem
     body = lievi.RigidBody(jnp.array([2.0, 1.0, 2 / 3]))
     dep = lievi.DEP()
-    final = lievi.simulate_batch(body, dep, g0, m0, h=0.1, n_steps=STEPS, save=("m",))
+    final = lievi.simulate_batch(
+        body, dep, g0, m0, h=0.1, n_steps=STEPS, save=lievi.Save(g=False, stats=False, every=STEPS)
+    )
     assert final.g is None and final.m.shape == (BATCH, 2, 3)
     assert "newton_iterations" not in final.stats
     assert final.stats["total_newton_iterations"].shape == (BATCH,)
-    single = lievi.simulate(body, dep, g0[3], m0[3], h=0.1, n_steps=STEPS, save_every=STEPS)
+    single = lievi.simulate(
+        body, dep, g0[3], m0[3], h=0.1, n_steps=STEPS, save=lievi.Save(every=STEPS)
+    )
     np.testing.assert_allclose(final.m[3], single.m, rtol=0, atol=ROUNDOFF)
-    assert lievi.has_fast_path(body, dep)
-    assert not lievi.has_fast_path(lievi.RigidBody(jnp.diag(jnp.array([2.0, 1.0, 0.5]))), dep)
+    assert lievi.advanced.has_fast_path(body, dep)
+    assert not lievi.advanced.has_fast_path(
+        lievi.RigidBody(jnp.diag(jnp.array([2.0, 1.0, 0.5]))), dep
+    )
     # One initial element for every body broadcasts.
-    shared = lievi.simulate_batch(body, dep, jnp.eye(3), m0, h=0.1, n_steps=STEPS, save=("m",))
+    shared = lievi.simulate_batch(
+        body,
+        dep,
+        jnp.eye(3),
+        m0,
+        h=0.1,
+        n_steps=STEPS,
+        save=lievi.Save(g=False, stats=False, every=STEPS),
+    )
     broadcast = jnp.broadcast_to(jnp.eye(3), (BATCH, 3, 3))
-    full = lievi.simulate_batch(body, dep, broadcast, m0, h=0.1, n_steps=STEPS, save=("m",))
+    full = lievi.simulate_batch(
+        body,
+        dep,
+        broadcast,
+        m0,
+        h=0.1,
+        n_steps=STEPS,
+        save=lievi.Save(g=False, stats=False, every=STEPS),
+    )
     np.testing.assert_array_equal(shared.m, full.m)
     # `lievi.Save` is the option the names stand for: the same fields, the same values.
     as_object = lievi.simulate_batch(
-        body, dep, g0, m0, h=0.1, n_steps=STEPS, save=lievi.Save(g=False, stats=False)
+        body, dep, g0, m0, h=0.1, n_steps=STEPS, save=lievi.Save(g=False, stats=False, every=STEPS)
     )
     assert as_object.g is None and "newton_iterations" not in as_object.stats
     np.testing.assert_array_equal(as_object.m, final.m)
@@ -281,8 +318,12 @@ def test_full_tensor_uses_generic_path(problem):
     _, g0, m0, _ = problem
     q = np.asarray(random_rotation(np.random.default_rng(3), 3))
     body = lievi.RigidBody(jnp.asarray(q @ np.diag([2.0, 1.0, 0.7]) @ q.T))
-    sol = lievi.simulate_batch(body, lievi.DEP(), g0[:3], m0[:3], h=0.1, n_steps=4)
-    single = lievi.simulate(body, lievi.DEP(), g0[1], m0[1], h=0.1, n_steps=4, save_every=4)
+    sol = lievi.simulate_batch(
+        body, lievi.DEP(), g0[:3], m0[:3], h=0.1, n_steps=4, save=lievi.Save(every=4)
+    )
+    single = lievi.simulate(
+        body, lievi.DEP(), g0[1], m0[1], h=0.1, n_steps=4, save=lievi.Save(every=4)
+    )
     np.testing.assert_allclose(sol.m[1], single.m, rtol=0, atol=ROUNDOFF)
 
 
@@ -295,7 +336,7 @@ def test_full_tensor_uses_generic_path(problem):
         (dict(h=-0.1), "`h` must be > 0"),
         (dict(save=("g", "energy")), "`save` may only contain"),
         (dict(system_axis=1), "`system_axis`"),
-        (dict(save_every=3), "must divide"),
+        (dict(save=lievi.Save(every=3)), "must divide"),
         (dict(g0=2 * jnp.broadcast_to(jnp.eye(3), (4, 3, 3))), r"`g0\[0\]` is not in the group"),
         (dict(system_axis=0), "leading axis 4"),
     ],
@@ -324,7 +365,8 @@ h = jnp.asarray(rng.uniform(0.05, 0.2, B))
 for fast in (True,):
     args = (jax.vmap(lievi.RigidBody)(inertia), g0, m0, h)
     run = lambda bodies, g0, m0, h: lievi.simulate_batch(
-        bodies, lievi.DEP(), g0, m0, h=h, n_steps=10, save_every=5, system_axis=0, fast=fast)
+        bodies, lievi.DEP(), g0, m0, h=h, n_steps=10, save=lievi.Save(every=5), system_axis=0,
+        tuning=lievi.advanced.Tuning(fast=fast))
     plain = run(*args)
     sharded_args = lievi.shard_batch(args)
     assert len(sharded_args[2].sharding.device_set) == 4
@@ -391,13 +433,19 @@ def test_batch_of_systems_with_a_function_potential():
     )(moments)
     m0 = jnp.asarray(np.random.default_rng(1).normal(size=(4, 3)))
     dep = lievi.DEP()
-    batched = lievi.simulate_batch(systems, dep, jnp.eye(3), m0, h=0.1, n_steps=6, save_every=2)
+    batched = lievi.simulate_batch(
+        systems, dep, jnp.eye(3), m0, h=0.1, n_steps=6, save=lievi.Save(every=2)
+    )
     traced = jax.jit(
-        lambda m0: lievi.simulate_batch(systems, dep, jnp.eye(3), m0, h=0.1, n_steps=6)
+        lambda m0: lievi.simulate_batch(
+            systems, dep, jnp.eye(3), m0, h=0.1, n_steps=6, save=lievi.Save(every=6)
+        )
     )(m0)
     for i, s in enumerate(moments):
         body = lievi.RigidBody(jnp.array([2.0, 1.0, s]), potential=potential)
-        alone = lievi.simulate(body, dep, jnp.eye(3), m0[i], h=0.1, n_steps=6, save_every=2)
+        alone = lievi.simulate(
+            body, dep, jnp.eye(3), m0[i], h=0.1, n_steps=6, save=lievi.Save(every=2)
+        )
         np.testing.assert_allclose(batched.m[i], alone.m, rtol=0, atol=ROUNDOFF)
         np.testing.assert_allclose(traced.m[i, -1], alone.m[-1], rtol=0, atol=ROUNDOFF)
 
@@ -454,9 +502,9 @@ def test_fast_path_gradient_equals_generic(name):
             params["m0"],
             h=params["h"],
             n_steps=steps,
-            save_every=save_every,
+            save=lievi.Save(every=save_every),
+            tuning=lievi.advanced.Tuning(fast=fast),
             system_axis=0,
-            fast=fast,
             checkpoint=checkpoint,
         )
         return jnp.sum(weights[0] * sol.g) + jnp.sum(weights[1] * sol.m)
@@ -538,7 +586,8 @@ def test_fast_path_gradient_finite_when_a_body_fails():
             h=h,
             n_steps=6,
             system_axis=0,
-            fast=fast,
+            save=lievi.Save(every=6),
+            tuning=lievi.advanced.Tuning(fast=fast),
             throw=False,
         )
         # Not |m|²: the Casimir is conserved, so its gradient is round-off noise.
@@ -574,11 +623,13 @@ def test_heavy_top_fast_path(name):
         )
 
     integrator = FAST[name]
-    assert lievi.has_fast_path(tops(bodies.inertia, mass, com), integrator, system_axis=0)
-    kwargs = dict(h=0.05, n_steps=12, save_every=4, system_axis=0)
+    assert lievi.advanced.has_fast_path(tops(bodies.inertia, mass, com), integrator, system_axis=0)
+    kwargs = dict(h=0.05, n_steps=12, save=lievi.Save(every=4), system_axis=0)
 
     def run(params, fast):
-        return lievi.simulate_batch(tops(*params), integrator, g0, m0, fast=fast, **kwargs)
+        return lievi.simulate_batch(
+            tops(*params), integrator, g0, m0, tuning=lievi.advanced.Tuning(fast=fast), **kwargs
+        )
 
     params = (bodies.inertia, mass, com)
     fast, generic = run(params, True), run(params, False)
@@ -642,7 +693,7 @@ def test_reduced_heavy_top_equals_reconstructed(name):
     integrator = FAST[name]
     kernel = plan_for(tops, integrator, 0, carry_g=False).kernel
     assert len(kernel.carried(g0)) == 3  # Γ alone, not the 9 entries of g
-    kwargs = dict(h=0.05, n_steps=60, save_every=6, system_axis=0, throw=False)
+    kwargs = dict(h=0.05, n_steps=60, save=lievi.Save(every=6), system_axis=0, throw=False)
     full = lievi.simulate_batch(tops, integrator, g0, m0, save=("g", "m", "advected"), **kwargs)
     reduced = lievi.simulate_batch(tops, integrator, g0, m0, save=("m", "advected"), **kwargs)
     assert reduced.g is None and reduced.advected.shape == (batch, 11, 3)
@@ -675,14 +726,22 @@ def eqx_set(tree, where, index, value):
 
 
 def test_saving_the_advected_parameter_needs_one():
-    """`save=("advected",)` for a system whose potential has no advected parameter (a free
-    body, or a plain `V(g)`) is an error naming `save`."""
+    """`save=lievi.Save(advected=True)` for a system whose potential has no advected
+    parameter (a free body, or a plain `V(g)`) is an error naming `save.advected`."""
     _, g0, m0, h = random_batch(np.random.default_rng(2), 3)
     inertia = jnp.array([1.0, 2.0, 3.0])
     for system in (lievi.RigidBody(inertia), lievi.RigidBody(inertia, potential=lambda g: g[2, 2])):
-        with pytest.raises(ValueError, match="`save` contains 'advected'"):
+        with pytest.raises(
+            ValueError, match="`save.advected` but the system's potential has no advected parameter"
+        ):
             lievi.simulate_batch(
-                system, FAST["dep-exp"], g0, m0, h=h, n_steps=2, save=("m", "advected")
+                system,
+                FAST["dep-exp"],
+                g0,
+                m0,
+                h=h,
+                n_steps=2,
+                save=lievi.Save(g=False, stats=False, advected=True, every=2),
             )
     with pytest.raises(ValueError, match="`save` may only contain"):
         lievi.simulate_batch(system, FAST["dep-exp"], g0, m0, h=h, n_steps=2, save=("gamma",))

@@ -80,6 +80,7 @@ def test_successful_steps_are_on_the_continued_branch(integrator):
         n_steps=1,
         system_axis=0,
         throw=False,
+        save=lievi.Save(every=1),
     )
     with reference_path():
         g_generic, code_generic = jax.jit(jax.vmap(one_step))(inertia, m0, h)

@@ -98,10 +98,19 @@ def test_parameter_check_batched_fast_path():
     masses = jnp.array([1.0, -1.0, 0.5])
     tops = jax.vmap(top_mass)(masses)
     g0, m0 = jnp.broadcast_to(jnp.eye(3), (3, 3, 3)), jnp.broadcast_to(M0, (3, 3))
-    assert lievi.has_fast_path(tops, lievi.DEP(), system_axis=0)
+    assert lievi.advanced.has_fast_path(tops, lievi.DEP(), system_axis=0)
     for fast in (True, False):
         sol = lievi.simulate_batch(
-            tops, lievi.DEP(), g0, m0, h=0.05, n_steps=4, system_axis=0, fast=fast, throw=False
+            tops,
+            lievi.DEP(),
+            g0,
+            m0,
+            h=0.05,
+            n_steps=4,
+            system_axis=0,
+            save=lievi.Save(every=4),
+            tuning=lievi.advanced.Tuning(fast=fast),
+            throw=False,
         )
         np.testing.assert_array_equal(sol.result, [SUCCESS, INVALID, SUCCESS])
 
@@ -171,7 +180,7 @@ def test_float32_run_continues_from_its_output():
     start of the next run (eagerly and traced), and its membership defect is at round-off."""
     body = lievi.RigidBody(f32(INERTIA))
     tolerance = lievi._checks.membership_tolerance(jnp.float32)
-    kwargs = dict(h=f32(0.05), n_steps=5000, save_every=5000)
+    kwargs = dict(h=f32(0.05), n_steps=5000, save=lievi.Save(every=5000))
     sol = lievi.simulate(body, lievi.DEP(), jnp.eye(3, dtype=jnp.float32), f32(M0 * 4), **kwargs)
     batch = lievi.simulate_batch(
         body, lievi.DEP(), jnp.eye(3, dtype=jnp.float32)[None], f32(M0 * 4)[None], **kwargs
@@ -202,7 +211,14 @@ def test_membership_tolerance_is_the_same_eager_and_traced():
         assert (int(sol.result) == SUCCESS) == accepted
         batch = (
             lievi.simulate_batch(
-                body, lievi.DEP(), g[None], f32(M0)[None], h=f32(0.1), n_steps=1, throw=False
+                body,
+                lievi.DEP(),
+                g[None],
+                f32(M0)[None],
+                h=f32(0.1),
+                n_steps=1,
+                throw=False,
+                save=lievi.Save(every=1),
             )
             if accepted
             else None
@@ -215,7 +231,13 @@ def test_membership_tolerance_is_the_same_eager_and_traced():
                 lievi.simulate(body, lievi.DEP(), g, f32(M0), h=f32(0.1), n_steps=1)
             with pytest.raises(ValueError, match="not in the group"):
                 lievi.simulate_batch(
-                    body, lievi.DEP(), g[None], f32(M0)[None], h=f32(0.1), n_steps=1
+                    body,
+                    lievi.DEP(),
+                    g[None],
+                    f32(M0)[None],
+                    h=f32(0.1),
+                    n_steps=1,
+                    save=lievi.Save(every=1),
                 )
 
 
@@ -232,7 +254,14 @@ def test_advected_whenever_g_is_saved():
     g0, m0 = jnp.eye(3)[None], M0[None]
     for fast in (True, False):
         batch = lievi.simulate_batch(
-            top, lievi.DEP(), g0, m0, h=0.05, n_steps=6, save_every=2, save=("g", "m"), fast=fast
+            top,
+            lievi.DEP(),
+            g0,
+            m0,
+            h=0.05,
+            n_steps=6,
+            save=lievi.Save(stats=False, every=2),
+            tuning=lievi.advanced.Tuning(fast=fast),
         )
         assert batch.advected is not None
         np.testing.assert_array_equal(batch.advected, batch.g[..., 2, :])
@@ -252,12 +281,20 @@ def test_vmapped_system_without_system_axis():
     inertias = jnp.asarray(rng.uniform(0.5, 2.0, size=(4, 3)))
     bodies = jax.vmap(lievi.RigidBody)(inertias)
     g0, m0 = jnp.broadcast_to(jnp.eye(3), (4, 3, 3)), jnp.asarray(rng.normal(size=(4, 3)))
-    assert lievi.has_fast_path(bodies, lievi.DEP())
+    assert lievi.advanced.has_fast_path(bodies, lievi.DEP())
     kwargs = dict(h=0.05, n_steps=5)
     for fast in (True, False):
-        inferred = lievi.simulate_batch(bodies, lievi.DEP(), g0, m0, fast=fast, **kwargs)
+        inferred = lievi.simulate_batch(
+            bodies, lievi.DEP(), g0, m0, tuning=lievi.advanced.Tuning(fast=fast), **kwargs
+        )
         explicit = lievi.simulate_batch(
-            bodies, lievi.DEP(), g0, m0, fast=fast, system_axis=0, **kwargs
+            bodies,
+            lievi.DEP(),
+            g0,
+            m0,
+            tuning=lievi.advanced.Tuning(fast=fast),
+            system_axis=0,
+            **kwargs,
         )
         np.testing.assert_array_equal(inferred.m, explicit.m)
 
@@ -266,7 +303,9 @@ def test_vmapped_system_of_another_batch_size_says_what_to_pass():
     bodies = jax.vmap(lievi.RigidBody)(jnp.ones((4, 3)))
     g0, m0 = jnp.broadcast_to(jnp.eye(3), (5, 3, 3)), jnp.ones((5, 3))
     with pytest.raises(ValueError, match="system_axis"):
-        lievi.simulate_batch(bodies, lievi.DEP(), g0, m0, h=0.05, n_steps=2)
+        lievi.simulate_batch(
+            bodies, lievi.DEP(), g0, m0, h=0.05, n_steps=2, save=lievi.Save(every=2)
+        )
 
 
 def test_integer_potential_is_a_clear_error():
@@ -281,8 +320,8 @@ def test_energy_of_a_system_with_a_potential_needs_g():
     that names `g` (raised while tracing, before anything is compiled)."""
     top = lievi.RigidBody(jnp.ones(3), lievi.UniformGravity(1.0, jnp.ones(3)))
     with pytest.raises(ValueError, match="pass `g`"):
-        lievi.diagnostics.energy(top, jnp.ones((5, 3)))
+        lievi.diagnostics.energy(top, None, jnp.ones((5, 3)))
     energy = lievi.diagnostics.energy(
-        top, jnp.ones((5, 3)), jnp.broadcast_to(jnp.eye(3), (5, 3, 3))
+        top, jnp.broadcast_to(jnp.eye(3), (5, 3, 3)), jnp.ones((5, 3))
     )
     assert energy.shape == (5,)

@@ -120,7 +120,7 @@ def test_start_from_two_configurations(integrator):
 @pytest.mark.parametrize("integrator", INTEGRATORS, ids=INTEGRATOR_IDS)
 def test_conservation_over_1e4_steps(integrator):
     body, g0, m0 = hlw_problem()
-    sol = lievi.simulate(body, integrator, g0, m0, h=0.1, n_steps=10_000, save_every=10)
+    sol = lievi.simulate(body, integrator, g0, m0, h=0.1, n_steps=10_000, save=lievi.Save(every=10))
     assert sol.result == lievi.RESULTS.successful
     assert dg.relative_drift(dg.casimirs(body, sol.m)) <= ROUNDOFF
     assert dg.relative_drift(dg.spatial_momentum(body, sol.g, sol.m)) <= ROUNDOFF
@@ -130,7 +130,7 @@ def test_conservation_over_1e4_steps(integrator):
 @pytest.mark.parametrize("integrator", INTEGRATORS_EXP_EXTENDED)  # dep-exp: 13 s
 def test_conservation_generalized_rigid_body(integrator):
     body, g0, m0 = random_generalized_body(np.random.default_rng(7), 5)
-    sol = lievi.simulate(body, integrator, g0, m0, h=0.05, n_steps=2000, save_every=10)
+    sol = lievi.simulate(body, integrator, g0, m0, h=0.05, n_steps=2000, save=lievi.Save(every=10))
     assert sol.result == lievi.RESULTS.successful
     assert dg.casimirs(body, sol.m).shape == (201, 2)  # tr Π̂², tr Π̂⁴
     assert dg.relative_drift(dg.casimirs(body, sol.m)) <= ROUNDOFF

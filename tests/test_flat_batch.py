@@ -96,7 +96,9 @@ def se3_bodies(count):
 
 def _run(inertia, mass, g0, m0):
     body = lievi.RigidBodySE3(inertia, mass)
-    return lievi.simulate(body, lievi.DEP(chart="cayley"), g0, m0, h=0.5, n_steps=8, save_every=4)
+    return lievi.simulate(
+        body, lievi.DEP(chart="cayley"), g0, m0, h=0.5, n_steps=8, save=lievi.Save(every=4)
+    )
 
 
 def test_vmap_of_simulate_equals_each_body():

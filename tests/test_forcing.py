@@ -288,7 +288,7 @@ def test_jacfwd_equals_jacrev_for_controls_and_law_parameters():
             M0,
             h=h,
             n_steps=n,
-            save_every=n,
+            save=lievi.Save(every=n),
             forcing=(lievi.Control(u), lievi.ForceLaw(mixed_law)),
             args=args,
         )
@@ -315,7 +315,7 @@ def test_checkpoint_and_save_every_give_the_same_run():
         body, lievi.DEP(), g0_tilted(), M0, h=h, n_steps=n, forcing=lievi.Control(u), t0=1.0, **kw
     )
     every = run()
-    sparse = run(save_every=6, checkpoint=True)
+    sparse = run(save=lievi.Save(every=6), checkpoint=True)
     assert float(jnp.max(jnp.abs(sparse.m - every.m[::6]))) == 0.0
     assert float(jnp.max(jnp.abs(sparse.ts - every.ts[::6]))) <= 1e-14
 
@@ -326,7 +326,7 @@ def test_checkpoint_and_save_every_give_the_same_run():
         return jnp.sum(sol.m[-1] ** 2)
 
     plain = jax.grad(loss)(u)
-    checkpointed = jax.grad(lambda u: loss(u, save_every=6, checkpoint=2))(u)
+    checkpointed = jax.grad(lambda u: loss(u, save=lievi.Save(every=6), checkpoint=2))(u)
     assert float(jnp.max(jnp.abs(plain - checkpointed))) <= ROUNDOFF
 
 
@@ -361,7 +361,7 @@ def test_batch_with_per_body_controls():
     g0 = jnp.stack([lievi.SO3.exp(jnp.asarray(rng.normal(size=3))) for _ in range(B)])
     m0 = jnp.asarray(rng.normal(size=(B, 3)))
     batch = lievi.simulate_batch(
-        body, integrator, g0, m0, h=h, n_steps=n, save_every=1, forcing=lievi.Control(u)
+        body, integrator, g0, m0, h=h, n_steps=n, save=lievi.Save(every=n), forcing=lievi.Control(u)
     )
     for b in range(B):
         one = lievi.simulate(
@@ -370,7 +370,15 @@ def test_batch_with_per_body_controls():
         assert float(jnp.max(jnp.abs(batch.m[b] - one.m))) <= ROUNDOFF
     # A shared force law with args.
     batch = lievi.simulate_batch(
-        body, integrator, g0, m0, h=h, n_steps=n, forcing=lievi.ForceLaw(mixed_law), args=(0.3, 0.5)
+        body,
+        integrator,
+        g0,
+        m0,
+        h=h,
+        n_steps=n,
+        forcing=lievi.ForceLaw(mixed_law),
+        args=(0.3, 0.5),
+        save=lievi.Save(every=n),
     )
     one = lievi.simulate(
         body,
@@ -384,7 +392,16 @@ def test_batch_with_per_body_controls():
     )
     assert float(jnp.max(jnp.abs(batch.m[1, -1] - one.m[-1]))) <= ROUNDOFF
     with pytest.raises(ValueError, match="forcing"):
-        lievi.simulate_batch(body, integrator, g0, m0, h=h, n_steps=n, forcing=lievi.Control(u[:2]))
+        lievi.simulate_batch(
+            body,
+            integrator,
+            g0,
+            m0,
+            h=h,
+            n_steps=n,
+            forcing=lievi.Control(u[:2]),
+            save=lievi.Save(every=n),
+        )
 
 
 @pytest.mark.slow
@@ -586,5 +603,12 @@ def test_control_with_axes_the_system_does_not_have():
         lievi.simulate(system, lievi.DEP(), jnp.eye(3), jnp.ones(3), h=0.1, n_steps=4, forcing=u)
     with pytest.raises(ValueError, match=r"must have shape \(4, 3\)"):
         lievi.simulate_batch(
-            system, lievi.DEP(), jnp.eye(3), jnp.ones((2, 3)), h=0.1, n_steps=4, forcing=u
+            system,
+            lievi.DEP(),
+            jnp.eye(3),
+            jnp.ones((2, 3)),
+            h=0.1,
+            n_steps=4,
+            forcing=u,
+            save=lievi.Save(every=4),
         )

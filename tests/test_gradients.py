@@ -59,7 +59,7 @@ def _trajectory(params, integrator, n_steps=N_STEPS, checkpoint=False):
         params["m0"],
         h=params["h"],
         n_steps=n_steps,
-        save_every=SAVE_EVERY,
+        save=lievi.Save(every=SAVE_EVERY),
         throw=False,
         checkpoint=checkpoint,
     )
@@ -284,9 +284,13 @@ def test_checkpointing_changes_nothing(compiled, checkpoint):
 def test_checkpoint_argument_checked():
     body, g0, m0 = hlw_problem()
     with pytest.raises(ValueError, match="checkpoint"):
-        lievi.simulate(body, lievi.DEP(), g0, m0, h=0.1, n_steps=100, save_every=10, checkpoint=30)
+        lievi.simulate(
+            body, lievi.DEP(), g0, m0, h=0.1, n_steps=100, save=lievi.Save(every=10), checkpoint=30
+        )
     with pytest.raises(ValueError, match="checkpoint"):
-        lievi.simulate(body, lievi.DEP(), g0, m0, h=0.1, n_steps=100, save_every=10, checkpoint=3)
+        lievi.simulate(
+            body, lievi.DEP(), g0, m0, h=0.1, n_steps=100, save=lievi.Save(every=10), checkpoint=3
+        )
 
 
 @pytest.mark.extended  # 12 s

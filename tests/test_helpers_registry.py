@@ -64,19 +64,25 @@ def _trajectory(system, g0, m0, n_steps=4):
     """`(T, *element_shape)`, or `(B, T, …)` for a batch of states."""
     if _leading(system, m0):
         return lievi.simulate_batch(
-            system, lievi.DEP(), g0, m0, h=H, n_steps=n_steps, save_every=1, save=("g",)
+            system,
+            lievi.DEP(),
+            g0,
+            m0,
+            h=H,
+            n_steps=n_steps,
+            save=lievi.Save(m=False, stats=False, every=n_steps),
         ).g
-    return lievi.simulate(system, lievi.DEP(), g0, m0, h=H, n_steps=n_steps, save_every=1).g
+    return lievi.simulate(system, lievi.DEP(), g0, m0, h=H, n_steps=n_steps, save=lievi.Save()).g
 
 
 # ---- the diagnostics and the reference solution ------------------------------------------
 
 
 def energy(system, g0, m0, kind):
-    E = dg.energy(system, m0, g0)
+    E = dg.energy(system, g0, m0)
     assert E.shape == _leading(system, m0) and np.all(np.isfinite(E))
     if kind == "batch":  # each state's own
-        np.testing.assert_allclose(E[1], dg.energy(system, m0[1], g0[1]), rtol=ROUNDOFF)
+        np.testing.assert_allclose(E[1], dg.energy(system, g0[1], m0[1]), rtol=ROUNDOFF)
 
 
 def total_momentum(system, g0, m0, kind):

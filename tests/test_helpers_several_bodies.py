@@ -116,7 +116,7 @@ def test_del_residual_moser_veselov_on_rigid_bodies():
     system = lievi.RigidBodies(INERTIA, MASS, potential=spring)
     g0, m0 = bodies_state()
     h = 0.1
-    sol = lievi.simulate(system, lievi.MoserVeselov(), g0, m0, h=h, n_steps=6, save_every=1)
+    sol = lievi.simulate(system, lievi.MoserVeselov(), g0, m0, h=h, n_steps=6, save=lievi.Save())
     residual = dg.del_residual(system, lievi.MoserVeselov(), sol.g, h)
     assert residual.shape == (5, 2, 6)
     assert float(jnp.max(jnp.abs(residual))) <= ROUNDOFF
@@ -140,7 +140,9 @@ def test_simulate_batch_infers_a_vmapped_batch_of_rotors(batch):
     systems = jax.vmap(lievi.RigidRotors)(scale * INERTIA)
     g0, m0 = rotors_state()
     gs, ms = jnp.stack([g0] * batch), jnp.stack([m0] * batch)
-    sol = lievi.simulate_batch(systems, lievi.DEP(), gs, ms, h=0.1, n_steps=3)
+    sol = lievi.simulate_batch(
+        systems, lievi.DEP(), gs, ms, h=0.1, n_steps=3, save=lievi.Save(every=3)
+    )
     for b in range(batch):
         alone = lievi.simulate(
             lievi.RigidRotors(scale[b] * INERTIA), lievi.DEP(), g0, m0, h=0.1, n_steps=3
@@ -186,7 +188,7 @@ def test_fit_system_on_rigid_bodies_reads_samples_as_samples():
     g0, m0 = bodies_state()
     h, every, samples = 0.1, 2, 6
     sol = lievi.simulate(
-        truth, lievi.DEP(), g0, m0, h=h, n_steps=every * (samples - 1), save_every=every
+        truth, lievi.DEP(), g0, m0, h=h, n_steps=every * (samples - 1), save=lievi.Save(every=every)
     )
     assert sol.g.shape == (samples, 2, 4, 4)
     guess = lievi.RigidBodies(INERTIA, 1.3 * MASS, potential=spring)

@@ -35,7 +35,13 @@ def _observe(inertia, m0, g0=None):
     """Noise-free orientations from the model itself (DEP, exp chart)."""
     g0 = jnp.eye(3) if g0 is None else g0
     sol = lievi.simulate(
-        lievi.RigidBody(inertia), lievi.DEP(), g0, m0, h=H, n_steps=N_STEPS, save_every=EVERY
+        lievi.RigidBody(inertia),
+        lievi.DEP(),
+        g0,
+        m0,
+        h=H,
+        n_steps=N_STEPS,
+        save=lievi.Save(every=EVERY),
     )
     return sol.g
 
@@ -223,7 +229,9 @@ def test_failed_steps_are_penalised_not_nan():
 def test_known_momentum_velocities_adam_tensor():
     """Other paths: angular-velocity data, Adam, a full realisable tensor, float32."""
     body, _, m0 = hlw_problem()
-    sol = lievi.simulate(body, lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=N_STEPS, save_every=EVERY)
+    sol = lievi.simulate(
+        body, lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=N_STEPS, save=lievi.Save(every=EVERY)
+    )
     omega = sol.m / body.inertia
     fit = lievi.fit_inertia(
         angular_velocities=omega, h=H, sample_every=EVERY, inertia=GUESS, m0=m0, g0=jnp.eye(3)
@@ -320,7 +328,7 @@ TOP_PARAMS = lambda s: (s.inertia, s.potential.center_of_mass)
 def _observe_top(n_steps, every=EVERY):
     top = lievi.heavy_top(TOP_INERTIA, 1.0, TOP_RHO, gravity=1.0)
     return lievi.simulate(
-        top, lievi.DEP(), TOP_G0, TOP_M0, h=H, n_steps=n_steps, save_every=every
+        top, lievi.DEP(), TOP_G0, TOP_M0, h=H, n_steps=n_steps, save=lievi.Save(every=every)
     ).g
 
 
@@ -374,7 +382,7 @@ def test_fit_with_a_function_potential():
     make = lambda inertia: lievi.RigidBody(inertia, potential=_offset_weight)  # noqa: E731
     observed = lievi.simulate_batch(
         eqx.filter_vmap(make)(true), lievi.DEP(), jnp.eye(3), m0, h=0.05, n_steps=200,
-        save_every=10, system_axis=0,
+        save=lievi.Save(every=10), system_axis=0,
     ).g  # fmt: skip
     options = dict(h=0.05, sample_every=10, m0=m0, max_iters=100)
     shared = lievi.fit_system(make(jnp.array([1.1, 2.1, 2.9])), observed, **options)
@@ -424,7 +432,7 @@ SHORT, SHORT_EVERY = 40, 5  # 9 samples
 def _free_orientations(m0):
     body, _, _ = hlw_problem()
     return lievi.simulate(
-        body, lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=SHORT, save_every=SHORT_EVERY
+        body, lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=SHORT, save=lievi.Save(every=SHORT_EVERY)
     ).g
 
 
@@ -545,7 +553,7 @@ def _free_orientations_of(inertia, m0):
         m0,
         h=H,
         n_steps=SHORT,
-        save_every=SHORT_EVERY,
+        save=lievi.Save(every=SHORT_EVERY),
     )
     return sol.g
 
@@ -555,7 +563,9 @@ def _free_orientations_of(inertia, m0):
 
 def _hlw_orientations():
     body, _, m0 = hlw_problem()
-    return lievi.simulate(body, lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=200, save_every=10).g
+    return lievi.simulate(
+        body, lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=200, save=lievi.Save(every=10)
+    ).g
 
 
 @pytest.mark.slow
@@ -638,7 +648,9 @@ def test_default_inertia_estimate():
     from lievi._identification._start import default_inertia
 
     body, _, m0 = hlw_problem()
-    sol = lievi.simulate(body, lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=200, save_every=5)
+    sol = lievi.simulate(
+        body, lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=200, save=lievi.Save(every=5)
+    )
     dt = 5 * H
     truth = _normalised(body.inertia)
     for R, W in ((sol.g, None), (None, sol.m / body.inertia)):
@@ -679,7 +691,7 @@ def test_default_start_sparse_noisy():
         momenta,
         h=H,
         n_steps=200,
-        save_every=5,
+        save=lievi.Save(every=5),
         system_axis=0,
     ).g
     observed = clean @ SO3.exp(jnp.asarray(NOISE * rng.normal(size=clean.shape[:-1])))

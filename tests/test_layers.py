@@ -27,6 +27,7 @@ LAYERS = (
             "_save",
             "_solution",
             "_monitor",
+            "_options",
             "_steppers",
             "_loop",
             "_simulate",
@@ -47,6 +48,7 @@ LAYERS = (
         "applications",
         (
             "_reference",
+            "advanced",
             "diagnostics",
             "_identification",
             "_fit_optimizer",
@@ -158,3 +160,15 @@ def test_no_import_cycles():
 def test_files_are_small(path):
     lines = len(path.read_text().splitlines())
     assert lines <= MAX_LINES, f"{path.name} has {lines} lines (at most {MAX_LINES}): split it"
+
+
+def test_the_integrator_interface_names_no_concrete_system_nor_walks_classes():
+    """`AbstractIntegrator` states its contract against `AbstractLieSystem` alone (the
+    bodies a method steps are built by the system layer, `RigidBodies.free_flow`), and an
+    integrator says which kernel it has (`own_step`, `kernels`) rather than having its
+    class hierarchy inspected."""
+    path = PACKAGE / "_integrators" / "_base.py"
+    systems = {target for target, _ in _imports(path) if target.startswith("lievi._systems")}
+    assert systems == {"lievi._systems._base"}, systems
+    for source in sorted((PACKAGE / "_integrators").glob("*.py")):
+        assert "__mro__" not in source.read_text(), source.name

@@ -38,7 +38,7 @@ def test_neural_potential_keeps_its_symmetry_and_is_differentiable():
     assert float(jnp.ptp(jax.vmap(body.force)(sol.g))) > 1e-3  # the network does act
 
     def loss(model):
-        out = lievi.simulate(model, lievi.DEP(), g0, m0, h=H, n_steps=10, save_every=10)
+        out = lievi.simulate(model, lievi.DEP(), g0, m0, h=H, n_steps=10, save=lievi.Save(every=10))
         return jnp.sum(out.m[-1] ** 2)
 
     grads = eqx.filter_grad(loss)(body)
@@ -67,7 +67,13 @@ def test_learned_potential_against_a_neural_ode():
 
     def truth(g0, m0, n):
         sol = lievi.simulate(
-            true, lievi.Composition(lievi.DEP(), 4), g0, m0, h=H / 4, n_steps=4 * n, save_every=4
+            true,
+            lievi.Composition(lievi.DEP(), 4),
+            g0,
+            m0,
+            h=H / 4,
+            n_steps=4 * n,
+            save=lievi.Save(every=4),
         )
         return sol.g, sol.m
 

@@ -69,7 +69,7 @@ def small_blocks(monkeypatch):
 )
 def test_simulate_eager_equals_jit(small_blocks, system, integrator, m0, n_steps, save_every):
     g0 = jnp.eye(system.group.matrix_dim)
-    kwargs = dict(h=0.1, n_steps=n_steps, save_every=save_every)
+    kwargs = dict(h=0.1, n_steps=n_steps, save=lievi.Save(every=save_every))
     eager = lievi.simulate(system, integrator, g0, m0, **kwargs)
     traced = eqx.filter_jit(lambda s, g, m: lievi.simulate(s, integrator, g, m, **kwargs))
     # The blocks are another program than the scan under `jit` (fused differently by XLA):
@@ -88,11 +88,13 @@ FAST_AND_GENERIC = pytest.mark.parametrize(
 
 @pytest.mark.extended  # 9–14 s each
 @FAST_AND_GENERIC
-@pytest.mark.parametrize("save", [("g", "m", "stats"), ("m",)])
+@pytest.mark.parametrize(
+    "save", [lievi.Save(every=2), lievi.Save(g=False, stats=False, every=2)], ids=["all", "m"]
+)
 @pytest.mark.parametrize("h", [0.1, 0.1 + 0.01 * jnp.arange(5.0)], ids=["shared-h", "h-per-body"])
 def test_simulate_batch_eager_equals_jit(small_blocks, fast, integrator, save, h):
     assert (integrator.batch_kernel(BODY) is None) != fast
-    kwargs = dict(h=h, n_steps=18, save_every=2, save=save, fast=fast)
+    kwargs = dict(h=h, n_steps=18, save=save, tuning=lievi.advanced.Tuning(fast=fast))
     eager = lievi.simulate_batch(BODY, integrator, G0, MOMENTA, **kwargs)
     traced = eqx.filter_jit(lambda s, m: lievi.simulate_batch(s, integrator, G0, m, **kwargs))
     _same(eager, traced(BODY, MOMENTA), exact=False)
@@ -104,7 +106,9 @@ def test_failure_is_recorded_across_blocks(small_blocks, fast, integrator):
     """A failed body: its code, failed step and NaN saves in every later block, as under
     `jit`."""
     momenta = MOMENTA.at[2].set(jnp.array([0.0, 100.0, 0.0]))  # h|Ω| = 5: past the bound
-    kwargs = dict(h=0.1, n_steps=12, save_every=1, throw=False, fast=fast)
+    kwargs = dict(
+        h=0.1, n_steps=12, save=lievi.Save(), tuning=lievi.advanced.Tuning(fast=fast), throw=False
+    )
     eager = lievi.simulate_batch(BODY, integrator, G0, momenta, **kwargs)
     assert eager.result[2] != lievi.RESULTS.successful
     assert np.all(np.isnan(eager.m[2, eager.stats["failed_step"][2] + 1 :]))
@@ -130,11 +134,18 @@ def test_an_eager_call_compiles_two_programs_and_a_new_horizon_none(fast, integr
     jax.clear_caches()
     body = lievi.RigidBody(jnp.array([1.0, 2.0, 3.1]))  # values no other test compiled
     one = lambda n, k, h, t0, m, b: lievi.simulate(  # noqa: E731
-        b, integrator, G0, m, h=h, n_steps=n, save_every=k, t0=t0
+        b, integrator, G0, m, h=h, n_steps=n, save=lievi.Save(every=k), t0=t0
     )
     many = (
         lambda n, k, h, t0, m, b: lievi.simulate_batch(  # noqa: E731
-            b, integrator, G0, m[:1] * np.asarray(MOMENTA), h=h, n_steps=n, save_every=k, fast=fast
+            b,
+            integrator,
+            G0,
+            m[:1] * np.asarray(MOMENTA),
+            h=h,
+            n_steps=n,
+            save=lievi.Save(every=k),
+            tuning=lievi.advanced.Tuning(fast=fast),
         )
     )
     # NumPy inputs: the test's own arithmetic compiles nothing.
@@ -193,7 +204,7 @@ def test_invariant_monitor_reports_a_drift(batched):
     `RESULTS.invariant_drift` at the save that saw it (NaN from there on); without it the
     same run reports success. A monitor on a run that keeps its energy changes nothing."""
     bodies, g0, m0 = _close_encounter()
-    kwargs = dict(h=0.05, n_steps=40, save_every=1, throw=False)
+    kwargs = dict(h=0.05, n_steps=40, save=lievi.Save(), throw=False)
     if batched:
         run = lambda monitor, m, g=g0: lievi.simulate_batch(  # noqa: E731
             bodies, lievi.LiePoissonSplitting(), g, m[None], monitor=monitor, **kwargs
@@ -204,7 +215,7 @@ def test_invariant_monitor_reports_a_drift(batched):
             lievi.simulate(bodies, lievi.LiePoissonSplitting(), g, m, monitor=monitor, **kwargs),
         )
     plain = run(None, m0)
-    energies = lievi.diagnostics.energy(bodies, plain.m[0], plain.g[0])
+    energies = lievi.diagnostics.energy(bodies, plain.g[0], plain.m[0])
     assert int(plain.result[0]) == lievi.RESULTS.successful
     assert np.max(np.abs(energies - energies[0])) > 10 * abs(energies[0])  # it went wrong
     watched = run(lievi.EnergyMonitor(rtol=1e-2), m0)

@@ -32,7 +32,7 @@ def percents(line: str) -> list[float]:
 
 def test_quick_run_prints_nothing_and_values_do_not_change(capsys):
     body, g0, m0 = hlw_problem()
-    kwargs = dict(h=0.1, n_steps=400, save_every=4)
+    kwargs = dict(h=0.1, n_steps=400, save=lievi.Save(every=4))
     plain = lievi.simulate(body, SPLITTING, g0, m0, **kwargs)
     assert printed(capsys) == ""
     for meter in ("text", lievi.TextProgressMeter()):  # well under the 1 s delay
@@ -45,7 +45,9 @@ def test_quick_run_prints_nothing_and_values_do_not_change(capsys):
 def test_text_meter_updates_one_line_in_place(capsys):
     body, g0, m0 = hlw_problem()
     meter = lievi.TextProgressMeter(delay=0.0)
-    lievi.simulate(body, SPLITTING, g0, m0, h=0.1, n_steps=400, save_every=4, progress_meter=meter)
+    lievi.simulate(
+        body, SPLITTING, g0, m0, h=0.1, n_steps=400, save=lievi.Save(every=4), progress_meter=meter
+    )
     out = printed(capsys)
     assert out.count("\n") == 1 and out.endswith("\n")  # one line ...
     updates = out.rstrip("\n").split("\r")[1:]  # ... rewritten after each carriage return
@@ -160,7 +162,9 @@ def test_batch_meter_updates_one_line(capsys, fast):
     and the generic one, each percentage once; the values are those of a run without it."""
     body, g0, m0 = hlw_problem()
     m0s = jnp.stack([m0, 2 * m0, -m0, 0.5 * m0])
-    kwargs = dict(h=0.1, n_steps=200, save_every=20, fast=fast)
+    kwargs = dict(
+        h=0.1, n_steps=200, save=lievi.Save(every=20), tuning=lievi.advanced.Tuning(fast=fast)
+    )
     plain = lievi.simulate_batch(body, lievi.DEP(), g0, m0s, **kwargs)
     meter = lievi.TextProgressMeter(delay=0.0, prefix="batch")
     metered = lievi.simulate_batch(body, lievi.DEP(), g0, m0s, progress_meter=meter, **kwargs)
@@ -177,5 +181,12 @@ def test_batch_bad_progress_meter():
     body, g0, m0 = hlw_problem()
     with pytest.raises(ValueError, match="`progress_meter`"):
         lievi.simulate_batch(
-            body, lievi.DEP(), g0, m0[None], h=0.1, n_steps=2, progress_meter="bar"
+            body,
+            lievi.DEP(),
+            g0,
+            m0[None],
+            h=0.1,
+            n_steps=2,
+            progress_meter="bar",
+            save=lievi.Save(every=2),
         )

@@ -251,7 +251,15 @@ def _traced_batch(integrator):
     @jax.jit
     def run(bodies, g0, m0, h):
         return lievi.simulate_batch(
-            bodies, integrator, g0, m0, h=h, n_steps=2, system_axis=0, throw=False
+            bodies,
+            integrator,
+            g0,
+            m0,
+            h=h,
+            n_steps=2,
+            system_axis=0,
+            throw=False,
+            save=lievi.Save(every=2),
         ).result
 
     return run
@@ -280,9 +288,9 @@ def _fast_equals_generic(name, seed, fraction):
     bodies = jax.vmap(lievi.RigidBody)(jnp.asarray(inertia))
     g0 = jnp.asarray(np.stack([random_rotation(rng, 3) for _ in range(BATCH)]))
     args = (bodies, integrator, g0, jnp.asarray(m0))
-    kwargs = dict(h=jnp.asarray(h), n_steps=3, save_every=1, system_axis=0, throw=False)
-    fast = lievi.simulate_batch(*args, fast=True, **kwargs)
-    generic = lievi.simulate_batch(*args, fast=False, **kwargs)
+    kwargs = dict(h=jnp.asarray(h), n_steps=3, save=lievi.Save(), system_axis=0, throw=False)
+    fast = lievi.simulate_batch(*args, tuning=lievi.advanced.Tuning(fast=True), **kwargs)
+    generic = lievi.simulate_batch(*args, tuning=lievi.advanced.Tuning(fast=False), **kwargs)
     np.testing.assert_array_equal(fast.result, generic.result)
     ok = np.asarray(generic.result) == 0
     np.testing.assert_allclose(fast.g[ok], generic.g[ok], rtol=0, atol=1e-10)

@@ -98,7 +98,16 @@ def test_vmapped_bodies_with_bad_inertia_fail_alone(integrator, fast):
     body with inertia (−1, 1, 1) must still fail, and only it."""
     bodies, g0, m0 = _hlw_batch([[2.0, 1.0, 2 / 3], [-1.0, 1.0, 1.0], [0.0, 1.0, 1.0]])
     sol = lievi.simulate_batch(
-        bodies, integrator, g0, m0, h=0.1, n_steps=2, system_axis=0, fast=fast, throw=False
+        bodies,
+        integrator,
+        g0,
+        m0,
+        h=0.1,
+        n_steps=2,
+        system_axis=0,
+        save=lievi.Save(every=2),
+        tuning=lievi.advanced.Tuning(fast=fast),
+        throw=False,
     )
     invalid = lievi.RESULTS.invalid_input
     assert [int(r) for r in sol.result] == [0, invalid, invalid]
@@ -202,7 +211,8 @@ def test_huge_steps_batched_both_paths_same_code():
                 h=jnp.array([0.1, 6.0]),
                 n_steps=2,
                 system_axis=0,
-                fast=fast,
+                save=lievi.Save(every=2),
+                tuning=lievi.advanced.Tuning(fast=fast),
                 throw=False,
             ).result
             for fast in (True, False)
@@ -230,7 +240,14 @@ def test_moser_veselov_branch_rule_same_on_both_paths():
             body, lievi.MoserVeselov(), jnp.eye(3), m0, h=h, n_steps=1, throw=False
         )
         batch = lievi.simulate_batch(
-            body, lievi.MoserVeselov(), jnp.eye(3)[None], m0[None], h=h, n_steps=1, throw=False
+            body,
+            lievi.MoserVeselov(),
+            jnp.eye(3)[None],
+            m0[None],
+            h=h,
+            n_steps=1,
+            throw=False,
+            save=lievi.Save(every=1),
         )
         assert int(single.result) == int(batch.result[0]) == expected
         if expected == 0:
@@ -302,7 +319,13 @@ def test_clear_errors_for_batches():
     body, g0, m0 = hlw_problem()
     with pytest.raises(ValueError, match="empty"):
         lievi.simulate_batch(
-            body, lievi.DEP(), jnp.zeros((0, 3, 3)), jnp.zeros((0, 3)), h=0.1, n_steps=2
+            body,
+            lievi.DEP(),
+            jnp.zeros((0, 3, 3)),
+            jnp.zeros((0, 3)),
+            h=0.1,
+            n_steps=2,
+            save=lievi.Save(every=2),
         )
     with pytest.raises(ValueError, match="sequence of field names"):
         lievi.simulate_batch(body, lievi.DEP(), g0[None], m0[None], h=0.1, n_steps=2, save="gm")
@@ -333,7 +356,13 @@ def test_overridden_step_is_run_on_every_path():
     norms = jnp.linalg.norm(one.m, axis=-1)
     np.testing.assert_allclose(norms, jnp.linalg.norm(m0) * 0.5 ** jnp.arange(4), rtol=1e-12)
     batch = lievi.simulate_batch(
-        body, Damped(), jnp.stack([g0, g0]), jnp.stack([m0, m0]), h=0.1, n_steps=3, save_every=1
+        body,
+        Damped(),
+        jnp.stack([g0, g0]),
+        jnp.stack([m0, m0]),
+        h=0.1,
+        n_steps=3,
+        save=lievi.Save(every=3),
     )
     vmapped = jax.vmap(lambda g, m: lievi.simulate(body, Damped(), g, m, h=0.1, n_steps=3).m)(
         jnp.stack([g0, g0]), jnp.stack([m0, m0])

@@ -54,8 +54,8 @@ def test_drift_over_t_1e4():
     (measured 2e-2). Every Lie–Poisson method keeps the Casimirs and `gᵀg = I` to ≤ 1e-12
     over runs as long (their tests), and its energy error bounded."""
     body, g0, m0 = hlw_problem()
-    sol = lievi.simulate(body, RK4, g0, m0, h=0.1, n_steps=100_000, save_every=100)
-    energy = np.asarray(dg.energy(body, sol.m))
+    sol = lievi.simulate(body, RK4, g0, m0, h=0.1, n_steps=100_000, save=lievi.Save(every=100))
+    energy = np.asarray(dg.energy(body, sol.g, sol.m))
     casimir = np.asarray(dg.casimirs(body, sol.m))[:, 0]
     energy_error = np.abs(energy / energy[0] - 1)
     casimir_error = np.abs(casimir / casimir[0] - 1)

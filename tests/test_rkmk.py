@@ -128,7 +128,7 @@ def test_stays_on_the_group_where_rk4_drifts(integrator):
     by exponentials), while the embedded RK4's drifts by orders of magnitude more."""
     top = lievi.heavy_top(jnp.array([2.0, 1.0, 2 / 3]), 1.0, jnp.array([0.1, 0.05, 0.4]), 1.0)
     g0, m0 = jnp.eye(3), jnp.array([0.4, -0.2, 1.1])
-    kwargs = dict(h=0.1, n_steps=10_000, save_every=10_000)
+    kwargs = dict(h=0.1, n_steps=10_000, save=lievi.Save(every=10_000))
     sol = lievi.simulate(top, integrator, g0, m0, **kwargs)
     assert int(sol.result) == lievi.RESULTS.successful
     assert dg.orthogonality_defect(top, sol.g[-1]) <= ROUNDOFF
@@ -194,7 +194,13 @@ def test_fourth_order_on_se3_through_the_kernel(gravity):
     errors = []
     for h in HS_SE3:
         sol = lievi.simulate_batch(
-            body, RKMK4, SE3_G0, SE3_M0[None], h=h, n_steps=int(round(1 / h)), save=("g", "m")
+            body,
+            RKMK4,
+            SE3_G0,
+            SE3_M0[None],
+            h=h,
+            n_steps=int(round(1 / h)),
+            save=lievi.Save(stats=False, every=int(round(1 / h))),
         )
         errors.append(
             (np.max(np.abs(sol.g[0, -1] - g_ref[-1])), np.max(np.abs(sol.m[0, -1] - m_ref[-1])))
@@ -228,7 +234,14 @@ def test_se3_kernel_gradient_equals_generic_and_differences():
         )
         g0 = SE3_G0 @ lievi.SE3.exp(params["zeta"])
         sol = lievi.simulate_batch(
-            systems, RKMK4, g0, params["m0"], h=0.1, n_steps=6, system_axis=0
+            systems,
+            RKMK4,
+            g0,
+            params["m0"],
+            h=0.1,
+            n_steps=6,
+            system_axis=0,
+            save=lievi.Save(every=6),
         )
         return jnp.sum(sol.m[:, -1] ** 2) + jnp.sum(sol.g[:, -1] * jnp.arange(4.0))
 

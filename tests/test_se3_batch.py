@@ -50,10 +50,12 @@ def test_fast_equals_generic(chart, kind):
     result codes as the generic path, residuals within the Newton tolerance."""
     bodies, g0, m0, h = random_batch(np.random.default_rng(5), BATCH, kind)
     dep = lievi.DEP(chart=chart)
-    assert lievi.has_fast_path(bodies, dep, system_axis=0)
-    kwargs = dict(h=h, n_steps=STEPS, save_every=SAVE_EVERY, system_axis=0)
+    assert lievi.advanced.has_fast_path(bodies, dep, system_axis=0)
+    kwargs = dict(h=h, n_steps=STEPS, save=lievi.Save(every=SAVE_EVERY), system_axis=0)
     fast = lievi.simulate_batch(bodies, dep, g0, m0, **kwargs)
-    generic = lievi.simulate_batch(bodies, dep, g0, m0, fast=False, **kwargs)
+    generic = lievi.simulate_batch(
+        bodies, dep, g0, m0, tuning=lievi.advanced.Tuning(fast=False), **kwargs
+    )
     assert fast.g.shape == generic.g.shape == (BATCH, STEPS // SAVE_EVERY + 1, 4, 4)
     np.testing.assert_array_equal(fast.result, 0)
     np.testing.assert_array_equal(generic.result, 0)
@@ -75,9 +77,11 @@ def test_float32():
     body = lievi.RigidBodySE3(tensor=bodies.tensor[0].astype(jnp.float32))
     g32, m32 = g0.astype(jnp.float32), m0.astype(jnp.float32)
     dep = lievi.DEP(chart="cayley")
-    kwargs = dict(n_steps=STEPS, save_every=SAVE_EVERY)
+    kwargs = dict(n_steps=STEPS, save=lievi.Save(every=SAVE_EVERY))
     fast = lievi.simulate_batch(body, dep, g32, m32, h=jnp.float32(0.05), **kwargs)
-    generic = lievi.simulate_batch(body, dep, g32, m32, h=jnp.float32(0.05), fast=False, **kwargs)
+    generic = lievi.simulate_batch(
+        body, dep, g32, m32, h=jnp.float32(0.05), tuning=lievi.advanced.Tuning(fast=False), **kwargs
+    )
     body64 = lievi.RigidBodySE3(tensor=body.tensor.astype(jnp.float64))
     exact = lievi.simulate_batch(
         body64, dep, g32.astype(float), m32.astype(float), h=0.05, **kwargs
@@ -97,9 +101,13 @@ def test_shared_system_one_fixed_iteration_then_tail():
     bodies, g0, m0, _ = random_batch(rng, BATCH)
     body = lievi.RigidBodySE3(tensor=bodies.tensor[0])
     dep = lievi.DEP(chart="exp")
-    kwargs = dict(h=0.1, n_steps=STEPS, save_every=SAVE_EVERY)
-    one = lievi.simulate_batch(body, dep, g0, m0, fixed_iterations=1, **kwargs)
-    generic = lievi.simulate_batch(body, dep, g0, m0, fast=False, **kwargs)
+    kwargs = dict(h=0.1, n_steps=STEPS, save=lievi.Save(every=SAVE_EVERY))
+    one = lievi.simulate_batch(
+        body, dep, g0, m0, tuning=lievi.advanced.Tuning(fixed_iterations=1), **kwargs
+    )
+    generic = lievi.simulate_batch(
+        body, dep, g0, m0, tuning=lievi.advanced.Tuning(fast=False), **kwargs
+    )
     np.testing.assert_allclose(one.g, generic.g, rtol=0, atol=ROUNDOFF)
     np.testing.assert_allclose(one.m, generic.m, rtol=0, atol=ROUNDOFF)
     assert np.all(one.stats["newton_iterations"] >= 2)  # the tail ran
@@ -122,9 +130,11 @@ def test_stragglers_take_the_gathered_tail(chart):
     body = lievi.RigidBodySE3(tensor=bodies.tensor[0])
     m0 = m0.at[:3].multiply(12.0)  # 3 stragglers: |ξ| ≈ 0.75, beyond what 3 iterations reach
     dep = lievi.DEP(chart=chart)
-    kwargs = dict(h=0.05, n_steps=STEPS, save_every=SAVE_EVERY, save=("g", "m", "stats"))
+    kwargs = dict(h=0.05, n_steps=STEPS, save=lievi.Save(every=SAVE_EVERY))
     fast = lievi.simulate_batch(body, dep, g0, m0, **kwargs)
-    generic = lievi.simulate_batch(body, dep, g0, m0, fast=False, **kwargs)
+    generic = lievi.simulate_batch(
+        body, dep, g0, m0, tuning=lievi.advanced.Tuning(fast=False), **kwargs
+    )
     np.testing.assert_array_equal(fast.result, 0)
     np.testing.assert_allclose(fast.g, generic.g, rtol=0, atol=ROUNDOFF)
     np.testing.assert_allclose(fast.m, generic.m, rtol=0, atol=ROUNDOFF)
@@ -261,6 +271,7 @@ def test_fixed_iterations_suffice_at_coarse_steps(chart):
         n_steps=5,
         system_axis=0,
         throw=False,
+        save=lievi.Save(every=5),
     )
     np.testing.assert_array_equal(sol.result, lievi.RESULTS.successful)
 
@@ -320,9 +331,9 @@ def test_gradient_equals_generic(chart):
             params["m0"],
             h=params["h"],
             n_steps=steps,
-            save_every=save_every,
+            save=lievi.Save(every=save_every),
+            tuning=lievi.advanced.Tuning(fast=fast),
             system_axis=0,
-            fast=fast,
             checkpoint=checkpoint,
         )
         return jnp.sum(weights[0] * sol.g) + jnp.sum(weights[1] * sol.m)
@@ -348,9 +359,11 @@ def test_failures_are_reported_per_body():
     bodies, g0, m0, _ = random_batch(rng, 6)
     h = jnp.full(6, 0.1).at[2].set(40.0)
     dep = lievi.DEP(max_steps=6)
-    kwargs = dict(h=h, n_steps=8, save_every=1, system_axis=0, throw=False)
+    kwargs = dict(h=h, n_steps=8, save=lievi.Save(), system_axis=0, throw=False)
     fast = lievi.simulate_batch(bodies, dep, g0, m0, **kwargs)
-    generic = lievi.simulate_batch(bodies, dep, g0, m0, fast=False, **kwargs)
+    generic = lievi.simulate_batch(
+        bodies, dep, g0, m0, tuning=lievi.advanced.Tuning(fast=False), **kwargs
+    )
     ok = np.arange(6) != 2
     assert fast.result[2] != lievi.RESULTS.successful
     assert fast.result[2] == generic.result[2]
@@ -365,7 +378,9 @@ def test_failures_are_reported_per_body():
     one_step = lievi.DEP(max_steps=1)
     kwargs = dict(h=0.1, n_steps=2, system_axis=0, throw=False)
     fast = lievi.simulate_batch(bodies, one_step, g0, m0, **kwargs)
-    generic = lievi.simulate_batch(bodies, one_step, g0, m0, fast=False, **kwargs)
+    generic = lievi.simulate_batch(
+        bodies, one_step, g0, m0, tuning=lievi.advanced.Tuning(fast=False), **kwargs
+    )
     np.testing.assert_array_equal(fast.result, lievi.RESULTS.newton_not_converged)
     np.testing.assert_array_equal(generic.result, lievi.RESULTS.newton_not_converged)
     assert np.all(np.isnan(fast.m[:, -1]))
@@ -376,18 +391,20 @@ def test_which_systems_take_the_fast_path():
     kernel, keeps the generic path; `g0` is checked with the group's own membership test."""
     body = lievi.RigidBodySE3(jnp.array([1.0, 2.0, 3.0]), 2.0)
     for chart in CHARTS:
-        assert lievi.has_fast_path(body, lievi.DEP(chart=chart))
-    assert not lievi.has_fast_path(body, lievi.RK4())
-    assert not lievi.has_fast_path(body, lievi.MoserVeselov())
+        assert lievi.advanced.has_fast_path(body, lievi.DEP(chart=chart))
+    assert not lievi.advanced.has_fast_path(body, lievi.RK4())
+    assert not lievi.advanced.has_fast_path(body, lievi.MoserVeselov())
     falling = lievi.RigidBodySE3(
         jnp.array([1.0, 2.0, 3.0]),
         2.0,
         potential=lievi.UniformGravitySE3(2.0, 9.81, jnp.array([0.1, 0.0, 0.05])),
     )
-    assert not lievi.has_fast_path(falling, lievi.DEP())
+    assert not lievi.advanced.has_fast_path(falling, lievi.DEP())
     g0 = jnp.broadcast_to(jnp.eye(4), (2, 4, 4)).at[1, 3, 0].set(0.5)
     with pytest.raises(ValueError, match=r"`g0\[1\]` is not in the group.*last row"):
-        lievi.simulate_batch(body, lievi.DEP(), g0, jnp.ones((2, 6)), h=0.1, n_steps=1)
+        lievi.simulate_batch(
+            body, lievi.DEP(), g0, jnp.ones((2, 6)), h=0.1, n_steps=1, save=lievi.Save(every=1)
+        )
 
 
 def sweep(rng, batch, condition, ratios, turn=0.3, h=0.1):
@@ -422,7 +439,9 @@ def assert_kernel_converges_where_newton_does(tensors, m0, h, chart):
     dep = lievi.DEP(chart=chart)
     g0 = jnp.broadcast_to(jnp.eye(4), (batch, 4, 4))
     bodies = jax.vmap(lambda M: lievi.RigidBodySE3(tensor=M))(tensors)
-    fast = lievi.simulate_batch(bodies, dep, g0, m0, h=h, n_steps=1, system_axis=0, throw=False)
+    fast = lievi.simulate_batch(
+        bodies, dep, g0, m0, h=h, n_steps=1, system_axis=0, throw=False, save=lievi.Save(every=1)
+    )
     with reference_path():
         generic = jax.jit(
             jax.vmap(
@@ -485,9 +504,11 @@ def test_linear_momentum_sets_the_tolerance(chart):
     m0 = jnp.asarray(np.concatenate([Pi, P], axis=1))
     g0 = jnp.broadcast_to(jnp.eye(4), (64, 4, 4))
     dep = lievi.DEP(chart=chart)
-    kwargs = dict(h=0.01, n_steps=100, save_every=100, system_axis=0, throw=False)
+    kwargs = dict(h=0.01, n_steps=100, save=lievi.Save(every=100), system_axis=0, throw=False)
     fast = lievi.simulate_batch(bodies, dep, g0, m0, **kwargs)
-    generic = lievi.simulate_batch(bodies, dep, g0, m0, fast=False, **kwargs)
+    generic = lievi.simulate_batch(
+        bodies, dep, g0, m0, tuning=lievi.advanced.Tuning(fast=False), **kwargs
+    )
     np.testing.assert_array_equal(generic.result, 0)
     np.testing.assert_array_equal(fast.result, 0)
     # Values: the generic path's to ROUNDOFF relative to ‖m‖_∞ (measured 1.3e-13 relative).

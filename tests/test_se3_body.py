@@ -97,7 +97,7 @@ def _run(problem, chart, n_steps=None, save_every=1):
         m0,
         h=STEP[problem],
         n_steps=n_steps,
-        save_every=save_every,
+        save=lievi.Save(every=save_every),
     )
     assert sol.result == lievi.RESULTS.successful
     return body, sol
@@ -173,7 +173,7 @@ def test_falling_body_second_order():
 
 
 def _energy_bounded(body, sol, amplitude, growth=True):
-    energy = np.asarray(dg.energy(body, sol.m, sol.g))
+    energy = np.asarray(dg.energy(body, sol.g, sol.m))
     error = (energy - energy[0]) / abs(energy[0])
     tenth = len(error) // 10
     first, last = np.max(np.abs(error[:tenth])), np.max(np.abs(error[-tenth:]))

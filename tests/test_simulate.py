@@ -68,7 +68,9 @@ def test_failure_in_a_batch_is_per_body():
 def test_save_every_and_times():
     body, g0, m0 = hlw_problem()
     full = lievi.simulate(body, lievi.DEP(), g0, m0, h=0.1, n_steps=12)
-    sparse = lievi.simulate(body, lievi.DEP(), g0, m0, h=0.1, n_steps=12, save_every=4, t0=1.0)
+    sparse = lievi.simulate(
+        body, lievi.DEP(), g0, m0, h=0.1, n_steps=12, save=lievi.Save(every=4), t0=1.0
+    )
     assert sparse.m.shape == (4, 3) and sparse.g.shape == (4, 3, 3)
     np.testing.assert_allclose(sparse.m, full.m[::4], rtol=0, atol=1e-14)
     np.testing.assert_allclose(sparse.ts, 1.0 + 0.4 * jnp.arange(4), rtol=1e-14)
@@ -114,7 +116,9 @@ def test_mixed_precision_promotes(integrator):
         assert sol.m.dtype == sol.g.dtype == jnp.float64
         if system is body:
             np.testing.assert_allclose(sol.m, reference.m, rtol=0, atol=1e-14)
-    batch = lievi.simulate_batch(body, integrator, g32[None], m32[None], h=0.1, n_steps=10)
+    batch = lievi.simulate_batch(
+        body, integrator, g32[None], m32[None], h=0.1, n_steps=10, save=lievi.Save(every=10)
+    )
     assert batch.m.dtype == jnp.float64
     np.testing.assert_allclose(batch.m[0, -1], reference.m[-1], rtol=0, atol=1e-13)
 
@@ -140,7 +144,7 @@ def _run(**overrides):
         (dict(h=jnp.ones(2)), "`h` must be a scalar"),
         (dict(n_steps=0), "`n_steps` must be an integer ≥ 1"),
         (dict(n_steps=2.5), "`n_steps` must be an integer"),
-        (dict(save_every=2), "`save_every` .* must divide `n_steps`"),
+        (dict(save=lievi.Save(every=2)), "`save.every` .* must divide `n_steps`"),
         (dict(m0=jnp.array([1.0, jnp.nan, 0.0])), "`m0` contains NaN"),
         (dict(g0=jnp.eye(3) * 1.01), "`g0` is not in the group"),
         (dict(g0=jnp.diag(jnp.array([1.0, 1.0, -1.0]))), "`g0` is not in the group"),

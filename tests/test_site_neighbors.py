@@ -251,7 +251,15 @@ def segmented():
     system, g0, m0 = box_problem()
     builder = lievi.BruteForceNeighbors(SKIN, capacity=CAPACITY)
     sol = lievi.simulate_with_neighbor_list(
-        system, METHOD, g0, m0, h=H, n_steps=200, rebuild_every=10, save_every=10, builder=builder
+        system,
+        METHOD,
+        g0,
+        m0,
+        h=H,
+        n_steps=200,
+        rebuild_every=10,
+        save=lievi.Save(every=10),
+        builder=builder,
     )
     return system, g0, m0, sol
 
@@ -261,7 +269,7 @@ def test_segmented_run_equals_all_pairs_run(segmented):
     """200 steps, a rebuild every 10: the saves equal one `simulate` on the all-pairs
     cut-off potential to 1e-12 (absolute; the state is of order 1)."""
     system, g0, m0, sol = segmented
-    reference = lievi.simulate(system, METHOD, g0, m0, h=H, n_steps=200, save_every=10)
+    reference = lievi.simulate(system, METHOD, g0, m0, h=H, n_steps=200, save=lievi.Save(every=10))
     assert sol.g.shape == reference.g.shape and jnp.all(sol.ts == reference.ts)
     assert jnp.max(jnp.abs(sol.g - reference.g)) < 1e-12
     assert jnp.max(jnp.abs(sol.m - reference.m)) < 1e-12
@@ -292,11 +300,11 @@ def test_reused_lists_equal_all_pairs_run(segmented, rebuild_after):
         h=H,
         n_steps=200,
         rebuild_every=2,
-        save_every=10,
+        save=lievi.Save(every=10),
         builder=builder,
         rebuild_after=rebuild_after,
     )
-    reference = lievi.simulate(system, METHOD, g0, m0, h=H, n_steps=200, save_every=10)
+    reference = lievi.simulate(system, METHOD, g0, m0, h=H, n_steps=200, save=lievi.Save(every=10))
     builds, reruns = int(sol.stats["neighbor_builds"]), int(sol.stats["neighbor_reruns"])
     assert int(sol.result) == 0 and builds < 50
     assert (reruns >= 1) if rebuild_after == 0.5 else (reruns == 0)
@@ -318,12 +326,14 @@ def test_segmented_run_with_forcing(segmented):
     damping = lievi.ForceLaw(lambda t, g, m, c: -c * (1 + t) * m)
     forcing = (lievi.Control(u), damping)
     builder = lievi.BruteForceNeighbors(SKIN, capacity=CAPACITY)
-    kwargs = dict(h=H, n_steps=n_steps, save_every=10, forcing=forcing, args=0.1)
+    kwargs = dict(h=H, n_steps=n_steps, save=lievi.Save(every=10), forcing=forcing, args=0.1)
     sol = lievi.simulate_with_neighbor_list(
         system, METHOD, g0, m0, rebuild_every=10, builder=builder, **kwargs
     )
     reference = lievi.simulate(system, METHOD, g0, m0, **kwargs)
-    unforced = lievi.simulate(system, METHOD, g0, m0, h=H, n_steps=n_steps, save_every=10)
+    unforced = lievi.simulate(
+        system, METHOD, g0, m0, h=H, n_steps=n_steps, save=lievi.Save(every=10)
+    )
     assert int(sol.result) == 0 and int(sol.stats["neighbor_builds"]) == 4
     assert jnp.max(jnp.abs(sol.g - reference.g)) < 1e-12
     assert jnp.max(jnp.abs(sol.m - reference.m)) < 1e-12
@@ -360,7 +370,7 @@ def test_batch_of_systems_with_their_own_lists():
     batch = jax.tree.map(lambda *leaves: jnp.stack(leaves), *listed)
     g0 = jnp.stack([g for _, g, _ in problems])
     m0 = jnp.stack([m for _, _, m in problems])
-    kwargs = dict(h=H, n_steps=10, save_every=10)
+    kwargs = dict(h=H, n_steps=10, save=lievi.Save(every=10))
     sol = lievi.simulate_batch(batch, METHOD, g0, m0, system_axis=0, **kwargs)
     for i, (system, g, m) in enumerate(problems):
         reference = lievi.simulate(system, METHOD, g, m, **kwargs)
@@ -376,7 +386,15 @@ def test_jax_md_segmented_run_equals_brute_force(segmented):
     system, g0, m0, sol = segmented
     builder = lievi.JaxMDNeighbors(SKIN, capacity=CAPACITY)
     cells = lievi.simulate_with_neighbor_list(
-        system, METHOD, g0, m0, h=H, n_steps=200, rebuild_every=10, save_every=10, builder=builder
+        system,
+        METHOD,
+        g0,
+        m0,
+        h=H,
+        n_steps=200,
+        rebuild_every=10,
+        save=lievi.Save(every=10),
+        builder=builder,
     )
     assert jnp.max(jnp.abs(cells.g - sol.g)) < 1e-12
     assert jnp.max(jnp.abs(cells.m - sol.m)) < 1e-12
@@ -500,9 +518,17 @@ def test_energy_error_bounded_with_cutoff():
     system, g0, m0 = box_problem()
     builder = lievi.BruteForceNeighbors(SKIN, capacity=CAPACITY)
     sol = lievi.simulate_with_neighbor_list(
-        system, METHOD, g0, m0, h=H, n_steps=4000, rebuild_every=5, save_every=5, builder=builder
+        system,
+        METHOD,
+        g0,
+        m0,
+        h=H,
+        n_steps=4000,
+        rebuild_every=5,
+        save=lievi.Save(every=5),
+        builder=builder,
     )
-    energy = dg.energy(system, sol.m, sol.g)
+    energy = dg.energy(system, sol.g, sol.m)
     error = jnp.abs(energy - energy[0]) / jnp.abs(energy[0])
     half = len(error) // 2
     assert jnp.max(error) < 2e-2

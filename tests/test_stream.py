@@ -17,6 +17,7 @@ import pytest
 import lievi
 
 B, N_STEPS, EVERY, SEGMENT, CHUNK = 10, 40, 4, 8, 4  # chunks of 4, 4, 2 bodies
+M_ONLY = lievi.Save(g=False, every=EVERY)  # `m` alone, every `EVERY` steps
 
 
 def _problem():
@@ -32,13 +33,21 @@ def _problem():
 def _in_memory(fast=True):
     bodies, g0, m0, h = _problem()
     return lievi.simulate_batch(
-        bodies, lievi.DEP(), g0, m0, h=h, n_steps=N_STEPS, save_every=EVERY, throw=False, fast=fast
+        bodies,
+        lievi.DEP(),
+        g0,
+        m0,
+        h=h,
+        n_steps=N_STEPS,
+        save=lievi.Save(every=EVERY),
+        tuning=lievi.advanced.Tuning(fast=fast),
+        throw=False,
     )
 
 
 def _stream(directory, writer=None, **kwargs):
     bodies, g0, m0, h = _problem()
-    kwargs = dict(dict(chunk_size=CHUNK, segment_steps=SEGMENT), **kwargs)
+    kwargs = dict(dict(chunk_size=CHUNK, segment_steps=SEGMENT, throw=False), **kwargs)
     lievi.stream_batch(
         bodies,
         lievi.DEP(),
@@ -46,7 +55,7 @@ def _stream(directory, writer=None, **kwargs):
         m0,
         h=h,
         n_steps=N_STEPS,
-        save_every=EVERY,
+        save=lievi.Save(every=EVERY),
         writer=writer or lievi.NpyWriter(directory),
         **kwargs,
     )
@@ -125,7 +134,7 @@ def test_resume_after_a_stop(tmp_path):
 @pytest.mark.extended  # 14 s
 def test_save_m_only_and_progress(tmp_path, capsys):
     meter = lievi.TextProgressMeter(delay=0.0, prefix="stream")
-    _stream(tmp_path, save=("m",), progress_meter=meter)
+    _stream(tmp_path, save=M_ONLY, progress_meter=meter)
     jax.effects_barrier()
     out = capsys.readouterr().out
     values = [float(x) for x in re.findall(r"stream:\s+([\d.]+)%", out)]
@@ -142,20 +151,23 @@ def test_bad_arguments(tmp_path):
     with pytest.raises(ValueError, match="`segment_steps`"):
         _stream(tmp_path, segment_steps=6)
     with pytest.raises(ValueError, match="`save`"):
-        _stream(tmp_path, save=("m", "stats"))
+        _stream(tmp_path, save=lievi.Save(g=False, m=False))
     with pytest.raises(TypeError, match="`writer`"):
         _stream(tmp_path, writer=object())
-    with pytest.raises(TypeError, match="forcing"):
+    with pytest.raises(ValueError, match="forcing"):
         _stream(tmp_path, forcing=lievi.Control(jnp.zeros((N_STEPS, 3))))
-    _stream(tmp_path / "run", save=("m",))
+    _stream(tmp_path / "run", save=M_ONLY)
     with pytest.raises(ValueError, match="differs in `fields`"):
-        _stream(tmp_path / "run", save=("g", "m"))
+        _stream(tmp_path / "run", save=lievi.Save(every=EVERY))
 
 
 # ---- data integrity: small runs of one shared body, one compiled program for all ----------
 
-SMALL = dict(h=0.05, n_steps=8, save_every=2, segment_steps=4, chunk_size=2)  # 2 × 2 pieces
+SMALL = dict(
+    h=0.05, n_steps=8, save=lievi.Save(every=2), segment_steps=4, chunk_size=2
+)  # 2 × 2 pieces
 NOT_RUN = lievi.RESULTS.not_run
+SMALL_M_ONLY = lievi.Save(g=False, every=2)  # `m` alone, at `SMALL`'s saves
 
 
 def _small_m0():
@@ -196,7 +208,7 @@ def test_other_physics_on_an_existing_directory_is_refused(tmp_path):
         (dict(system=other_body), "system"),
         (dict(g0=np.broadcast_to(np.eye(3), (4, 3, 3))), "g0"),
         (dict(n_steps=16), "n_steps"),
-        (dict(fast=False), "options"),
+        (dict(tuning=lievi.advanced.Tuning(fast=False)), "options"),
     ]:
         with pytest.raises(ValueError, match=f"differs in .*`{field}`"):
             _small(tmp_path, _StopAfter(tmp_path, 0), **change)
@@ -256,18 +268,18 @@ def test_short_write_raises_and_the_segment_is_redone(tmp_path, monkeypatch):
     _small(tmp_path / "whole")
     run = tmp_path / "run"
     with pytest.raises(_Stop):
-        _small(run, _StopAfter(run, 3), save=("m",))  # all but chunk 1's second segment
+        _small(run, _StopAfter(run, 3), save=SMALL_M_ONLY)  # all but chunk 1's second segment
     header = np.load(run / "m.npy", mmap_mode="r").offset
     per_row, per_save = 5 * 3 * 8, 3 * 8  # 5 saves of (3,) float64
     limit = header + 3 * per_row + 3 * per_save + per_save // 2  # within body 3's save 3
     monkeypatch.setattr(os, "pwrite", _size_limit(limit, "m.npy"))
     with pytest.raises(OSError, match="m.npy"):
-        _small(run, save=("m",))
+        _small(run, save=SMALL_M_ONLY)
     monkeypatch.undo()
     assert lievi.NpyWriter(run).resume_state(1).steps_done == 4  # the first segment only
     np.testing.assert_array_equal(np.load(run / "result.npy")[2:], NOT_RUN)
     assert not (run / "complete.json").exists()
-    _small(run, save=("m",))
+    _small(run, save=SMALL_M_ONLY)
     np.testing.assert_array_equal(np.load(run / "m.npy"), np.load(tmp_path / "whole" / "m.npy"))
     np.testing.assert_array_equal(np.load(run / "result.npy"), lievi.RESULTS.successful)
 
@@ -362,7 +374,9 @@ def test_a_bad_body_gets_invalid_input_and_the_others_run(tmp_path):
     m0, g0 = _small_m0(), np.array(np.broadcast_to(np.eye(3), (4, 3, 3)))
     m0[1, 2] = np.nan
     g0[2] *= 2.0
-    _small(tmp_path / "bad", m0=m0, g0=g0)
+    # `throw=True` (the default of every run function) raises once everything is written.
+    with pytest.raises(RuntimeError, match="lievi.stream_batch: a body failed"):
+        _small(tmp_path / "bad", m0=m0, g0=g0)
     bad, clean = _read(tmp_path / "bad"), _read(tmp_path / "clean")
     invalid, ok = lievi.RESULTS.invalid_input, lievi.RESULTS.successful
     np.testing.assert_array_equal(bad["result"], [ok, invalid, invalid, ok])
@@ -394,7 +408,7 @@ def test_batch_of_several_body_systems(tmp_path):
     system = lievi.RigidRotors(jnp.array([[1.0, 2.0, 3.0], [2.0, 2.5, 1.5]]))
     m0 = np.random.default_rng(4).normal(size=(2, 2, 3))
     g0 = np.broadcast_to(np.eye(3), (2, 2, 3, 3))
-    kwargs = dict(h=0.05, n_steps=8, save_every=2)
+    kwargs = dict(h=0.05, n_steps=8, save=lievi.Save(every=2))
     lievi.stream_batch(
         system,
         lievi.LiePoissonSplitting(),

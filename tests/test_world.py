@@ -63,7 +63,7 @@ def test_round_trip_and_spatial_momentum(kind):
         J_world = R @ (inertia[..., None] * jnp.eye(3)) @ jnp.swapaxes(R, -1, -2)
         expected = 0.5 * jnp.einsum("...i,...ij,...j->...", omega, J_world, omega)
         expected = jnp.sum(expected + 0.5 * mass * jnp.sum(p_dot**2, -1), axis=-1)
-        np.testing.assert_allclose(dg.energy(system, m), expected, rtol=ROUNDOFF)
+        np.testing.assert_allclose(dg.energy(system, g, m), expected, rtol=ROUNDOFF)
         # The spatial momentum: linear m ṗ, angular J_world ω + p × m ṗ.
         spatial = dg.spatial_momentum(system, g, m)
         linear = mass[:, None] * p_dot

@@ -45,7 +45,7 @@ def _diagnostics(body, integrator, g, m, h, invariants):
     # The rotation blocks: `g` itself on SO(3), each pose's on SE(3) (several bodies: each).
     R = g[-1][..., :3, :3]
     eye = jnp.eye(3, dtype=g.dtype)
-    energy = diagnostics.energy(body, m, g)
+    energy = diagnostics.energy(body, g, m)
     out = {
         "energy": energy,
         "energy_drift": diagnostics.relative_drift(energy),

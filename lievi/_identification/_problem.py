@@ -20,6 +20,7 @@ import optax
 
 from .._groups._so3 import SO3
 from .._integrators._base import AbstractIntegrator
+from .._save import Save
 from .._simulate import simulate
 from .._simulate_batch import simulate_batch
 from .._systems._base import AbstractLieSystem
@@ -90,7 +91,7 @@ class Problem(eqx.Module):
             m0,
             h=h,
             n_steps=self.n_steps,
-            save_every=self.sample_every,
+            save=Save(every=self.sample_every),
             throw=False,
         )
         return (*self.residual_terms(system, sol.g, sol.m, data, horizon), sol.result)
@@ -168,8 +169,7 @@ class Problem(eqx.Module):
             m0,
             h=h,
             n_steps=self.n_steps,
-            save_every=self.sample_every,
-            save=("g", "m"),
+            save=Save(g=True, m=True, stats=False, every=self.sample_every),
             system_axis=0,
             throw=False,
         )

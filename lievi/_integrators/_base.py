@@ -14,24 +14,14 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int, Scalar
+from jaxtyping import Array, Float, Scalar
 
 from .._forcing import AbstractStepForce
 from .._kernels._base import AbstractBatchKernel, kernels_enabled
 from .._kernels._kick import KickKernel
 from .._newton import newton_solve, newton_tolerance
-from .._results import RESULTS
+from .._results import RESULTS, StepInfo
 from .._systems._base import AbstractLieSystem
-from .._systems._bodies import each_body, worst_body_report
-from .._systems._se3_body import RigidBodySE3
-
-
-class StepInfo(eqx.Module):
-    """Per-step report: `result` code, Newton `iterations`, final `residual` (∞-norm)."""
-
-    result: Int[Array, ""]
-    iterations: Int[Array, ""]
-    residual: Float[Array, ""]
 
 
 class AbstractIntegrator(eqx.Module):
@@ -68,13 +58,22 @@ class AbstractIntegrator(eqx.Module):
         `force(t, g, m) -> (d,)` (see `lievi.Control`, `lievi.ForceLaw`).
         """
 
+    def own_step(self) -> bool:
+        """Whether this object's `step` is the one its class's kernels (`kernels`) and step
+        cache (`step_cache`) compute. Each integrator with a kernel or a cache says so for
+        its own class alone (`type(self) is DEP`), so a subclass that changes the step (a
+        test's broken method, a user's modified step) runs its own `step` everywhere —
+        `simulate`, `simulate_batch`, under `jax.vmap` — rather than its parent's kernel.
+        Default `False`: no kernel, no cache."""
+        return False
+
     def step_cache(self, system: AbstractLieSystem, g):
         """What a step may take over from the step before it, a function of the state
         `g` alone (e.g. a kick method's potential force, `AbstractKickIntegrator`), or
-        `None` (nothing: the default, and wherever `step` runs as written). The loops
-        compute it once at the start of a run and carry what `cached_step` returns from
-        step to step."""
-        return None if self._steps_as_written() else self._start_cache(system, g)
+        `None` (nothing: the default, and wherever `step` runs as written, `own_step`).
+        The loops compute it once at the start of a run and carry what `cached_step`
+        returns from step to step."""
+        return self._start_cache(system, g) if self.own_step() else None
 
     def cached_step(
         self, system: AbstractLieSystem, g, m, h: Scalar, cache, force=None, t: Scalar = 0.0
@@ -82,7 +81,7 @@ class AbstractIntegrator(eqx.Module):
         """`step` given `cache = step_cache(system, g)`, also returning
         `step_cache(system, g_{k+1})`: `(g_{k+1}, m_{k+1}, info, cache_{k+1})`; what the
         loops run. The default is `step`, with nothing to take over."""
-        if not self._steps_as_written():
+        if self.own_step():
             return self._step_from_cache(system, g, m, h, cache, force, t)
         # Unforced, `step` is called without `force` and `t`: a user's step written for
         # unforced runs (`step(system, g, m, h)`) keeps working.
@@ -97,19 +96,10 @@ class AbstractIntegrator(eqx.Module):
         return None
 
     def _step_from_cache(self, system, g, m, h, cache, force, t):
-        """`cached_step` of a method that takes something over from step to step: a
-        subclass that defines it defines `_start_cache` too."""
-        raise NotImplementedError
-
-    def _steps_as_written(self) -> bool:
-        """Whether `cached_step` is `step` itself: for a method without a cache
-        (`_step_from_cache` not defined), and for a subclass that overrides `step` below
-        the class that defines it (a test's broken method, a user's modified step), whose
-        own step then runs — the rule `kernels` follows."""
-        mro = type(self).__mro__
-        if not any("_step_from_cache" in vars(cls) for cls in mro):
-            return True
-        return self._overridden_below("_step_from_cache", ("step",))
+        """`cached_step` of a method that takes something over from step to step (with
+        `own_step`); by default `step`, the cache passed on unchanged."""
+        g, m, info = self.step(system, g, m, h, force, t)
+        return g, m, info, cache
 
     def step_bound(self) -> float:
         """The largest angle `h·|ξ|` a step may turn (`ξ` the velocity of the current
@@ -140,28 +130,14 @@ class AbstractIntegrator(eqx.Module):
         """The kernel of `kernels()` that applies to `system` (free of its potential), or
         `None`: then the generic step runs. `batched`: `system` is a batch built with
         `jax.vmap`. The one place that decides (`kernels_enabled` turns every kernel off,
-        for the reference path the kernels are tested against)."""
-        if not kernels_enabled() or not self._kernels_compute_step():
+        for the reference path the kernels are tested against; a subclass that changes the
+        step has none, `own_step`)."""
+        if not kernels_enabled() or not self.own_step():
             return None
         for kernel in self.kernels():
             if kernel.physics(system, batched) is not None:
                 return kernel
         return None
-
-    def _kernels_compute_step(self) -> bool:
-        """Whether `kernels()` compute this object's `step`: false for a subclass that
-        overrides `step` or `free_step` below the class that defined its kernels (e.g. a
-        test's deliberately broken method, a user's modified step), which then runs its
-        own step everywhere — `simulate`, `simulate_batch`, under `jax.vmap` — rather than
-        its parent's kernel."""
-        return not self._overridden_below("kernels", ("step", "free_step"))
-
-    def _overridden_below(self, owner: str, names: tuple[str, ...]) -> bool:
-        """Whether a class below the one that defines `owner` (a faster way to compute
-        this object's step) overrides one of `names`: then the override is what runs."""
-        mro = type(self).__mro__
-        index = next(i for i, cls in enumerate(mro) if owner in vars(cls))
-        return any(name in vars(cls) for cls in mro[:index] for name in names)
 
     def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
         """The kernel `simulate_batch` runs for `system` (its potential included), or
@@ -206,29 +182,12 @@ class AbstractKickIntegrator(AbstractIntegrator):
         """The step of the system without its potential."""
 
     def free_body_step(self, inertia, mass, g, m, h: Scalar):
-        """The free step of a rigid body in vacuum, `lievi.RigidBodySE3(inertia, mass)`
-        (origin at its centre of mass): what `lievi.RigidBodies` runs on each of its bodies.
-        By default this method's `free_step` of that body; a method of the rotation alone
-        steps the rotation and translates exactly (`_drift.rotation_and_drift`)."""
-        return self.free_step(RigidBodySE3(inertia, mass), g, m, h)
-
-    def free_bodies_step(self, bodies, g, m, h: Scalar):
-        """The free steps of the N rigid bodies of `bodies` (`lievi.RigidBodies`, each body
-        in vacuum) at once, `g` `(N, 4, 4)`, `m` `(N, 6)`: `free_body_step` of each body;
-        where that is the step of this method's kernel for the free body on SE(3), the
-        kernel's step with the N bodies as its batch (`AbstractBatchKernel.bodies_step`:
-        the same code, traced once, not under `jax.vmap`). The report is that of the
-        worst body."""
-        tensors = bodies.tensor
-        kernel = None
-        if not self._overridden_below("kernels", ("free_body_step",)):
-            kernel = self.free_kernel(RigidBodySE3(tensor=tensors[0]))
-        if kernel is None:
-            return each_body(
-                lambda *body: self.free_body_step(*body, h), bodies.inertia, bodies.mass, g, m
-            )
-        g_next, m_next, *info = kernel.bodies_step(tensors, g, m, h)
-        return g_next, m_next, worst_body_report(StepInfo(*info))
+        """The free step of a rigid body in vacuum (mass `mass`, `inertia` about its centre
+        of mass, the body origin there) where this method has its own, or `None` (the
+        default): `lievi.RigidBodies` then takes this method's `free_step` of the body
+        (`RigidBodies.free_flow`). A method of the rotation alone steps the rotation and
+        translates exactly (`_drift.rotation_and_drift`)."""
+        return None
 
     def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
         free = self.free_kernel(system, batched)
@@ -360,13 +319,13 @@ class AbstractVariationalIntegrator(AbstractKickIntegrator):
     ) -> Scalar:
         """`L_d` of the reduced Lagrangian `l(ξ)` alone (the free system)."""
 
-    def body_discrete_lagrangian(self, inertia, mass, g0, g1, h: Scalar) -> Scalar:
-        """The kinetic discrete Lagrangian of a rigid body in vacuum,
-        `lievi.RigidBodySE3(inertia, mass)` (origin at its centre of mass), whose discrete
-        Euler–Lagrange equations `free_body_step` solves: by default this method's
-        `kinetic_discrete_lagrangian` of that body; a method of the rotation alone adds the
-        exact translation's (`_drift.rotation_and_drift_lagrangian`)."""
-        return self.kinetic_discrete_lagrangian(RigidBodySE3(inertia, mass), g0, g1, h)
+    def body_discrete_lagrangian(self, inertia, mass, g0, g1, h: Scalar) -> Scalar | None:
+        """The discrete Lagrangian of `free_body_step` where this method has its own free
+        body step, or `None` (the default): `lievi.RigidBodies` then takes this method's
+        `kinetic_discrete_lagrangian` of the body (`RigidBodies.free_discrete_lagrangian`).
+        A method of the rotation alone adds the exact translation's
+        (`_drift.rotation_and_drift_lagrangian`)."""
+        return None
 
     def discrete_lagrangian(
         self, system: AbstractLieSystem, g0: Float[Array, "n n"], g1: Float[Array, "n n"], h: Scalar

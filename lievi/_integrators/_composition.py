@@ -224,9 +224,14 @@ class Composition(AbstractIntegrator):
         # The longest stage is max|γ_i|·h; each stage must obey the inner method's bound.
         return self.method.step_bound() / max(abs(c) for c in self.coefficients)
 
+    def own_step(self) -> bool:
+        # The kernels and the step cache compute this class's own step (not a subclass's).
+        return type(self) is Composition
+
     def kernels(self):
         # The inner method's kernels, each run at every stage (`_kernels/_composition.py`).
-        return tuple(CompositionKernel(k, self.coefficients) for k in self.method.kernels())
+        inner = self.method.kernels() if self.method.own_step() else ()
+        return tuple(CompositionKernel(k, self.coefficients) for k in inner)
 
     def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
         # The inner method decides (its potential's kicks included); the stages wrap it.

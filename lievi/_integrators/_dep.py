@@ -100,6 +100,10 @@ class DEP(AbstractVariationalIntegrator):
         # The adjoint Lagrangian −L_d(g_{k+1}, g_k; −h) equals L_d: φ⁻¹(F⁻¹) = −φ⁻¹(F).
         return True
 
+    def own_step(self) -> bool:
+        # The kernels and the step cache compute this class's own step (not a subclass's).
+        return type(self) is DEP
+
     def kernels(self):
         # Closed forms for the rigid body with principal moments, and for any free body on SE(3).
         options = (self.chart, self.rtol, self.atol, self.max_steps)

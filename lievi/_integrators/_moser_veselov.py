@@ -127,6 +127,10 @@ class MoserVeselov(AbstractVariationalIntegrator):
         # The discrete Lagrangian of `free_body_step`: the rotation's, the exact drift's.
         return rotation_and_drift_lagrangian(self, inertia, mass, g0, g1, h)
 
+    def own_step(self) -> bool:
+        # The kernels and the step cache compute this class's own step (not a subclass's).
+        return type(self) is MoserVeselov
+
     def kernels(self):
         return (NewtonKernel(MoserVeselovEquation(), self.rtol, self.atol, self.max_steps),)
 

@@ -69,6 +69,10 @@ class RK4(AbstractIntegrator):
         # y ≤ 2√2; beyond it `g` and `m` grow geometrically (det g → −4e4 was seen).
         return 2 * math.sqrt(2)
 
+    def own_step(self) -> bool:
+        # The kernels and the step cache compute this class's own step (not a subclass's).
+        return type(self) is RK4
+
     def kernels(self):
         return (RK4Kernel(),)
 

@@ -87,6 +87,10 @@ class AbstractRKMK(AbstractIntegrator):
         # h|Ω| a step), and the chart's own bound.
         return min(self.tableau().imaginary_stability, CHART_BOUND)
 
+    def own_step(self) -> bool:
+        # The kernels and the step cache compute this class's own step (not a subclass's).
+        return type(self) in (RKMK4, RKMK5, RKMK8)
+
     def kernels(self):
         # Closed forms for the rigid body with principal moments (`_kernels/_rkmk.py`) and
         # for any body on SE(3) (`_kernels/_rkmk_se3.py`), each running this tableau.
@@ -96,7 +100,7 @@ class AbstractRKMK(AbstractIntegrator):
         # With a potential linear in `g` (gravity) the same kernels take its wrench per stage.
         if system.potential is None:
             return self.free_kernel(system, batched)
-        if not kernels_enabled() or not self._kernels_compute_step():
+        if not kernels_enabled() or not self.own_step():
             return None
         for kernel in self.kernels():
             kernel = dataclasses.replace(kernel, potential=system.potential)

@@ -96,6 +96,10 @@ class LiePoissonSplitting(AbstractKickIntegrator):
         # A method of the rotation: the body's rotation by it, its translation exactly.
         return rotation_and_drift(self, inertia, mass, g, m, h)
 
+    def own_step(self) -> bool:
+        # The kernels and the step cache compute this class's own step (not a subclass's).
+        return type(self) is LiePoissonSplitting
+
     def kernels(self):
         return (SplittingKernel(),)
 

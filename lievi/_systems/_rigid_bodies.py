@@ -37,10 +37,11 @@ from jaxtyping import Array, Float, Scalar
 from .._checks import check_real_dtype
 from .._groups._base import MatrixLieGroup
 from .._groups._se3 import SE3
+from .._results import StepInfo
 from ._base import AbstractLieSystem
-from ._bodies import check_per_body_inertia, inertia_conditions
+from ._bodies import check_per_body_inertia, each_body, inertia_conditions, worst_body_report
 from ._potential import AbstractPotential, as_potential
-from ._se3_body import rigid_body_tensor, spd_solve
+from ._se3_body import RigidBodySE3, rigid_body_tensor, spd_solve
 from ._side import Side
 
 
@@ -117,18 +118,40 @@ class RigidBodies(AbstractLieSystem):
         return flat.reshape(*mass.shape, 6, 6)
 
     def free_flow(self, integrator, g, m, h: Scalar):
-        """Each body's free step by `integrator`, the N bodies at once
-        (`AbstractKickIntegrator.free_bodies_step`: a body in vacuum, origin at its centre
-        of mass). The step's report is that of the worst body: the first failing body's
+        """Each body's free step by `integrator`, the N bodies at once: a body in vacuum
+        (origin at its centre of mass) takes the method's own free body step where it has
+        one (`AbstractKickIntegrator.free_body_step`), else its `free_step` of the body as
+        a `RigidBodySE3`; where that is the step of the method's kernel for the free body
+        on SE(3), the kernel's step with the N bodies as its batch
+        (`AbstractBatchKernel.bodies_step`: the same code, traced once, not under
+        `jax.vmap`). The step's report is that of the worst body: the first failing body's
         code, the most Newton iterations, the largest residual."""
-        return integrator.free_bodies_step(self, g, m, h)
+        tensors = self.tensor
+        kernel = integrator.free_kernel(RigidBodySE3(tensor=tensors[0]))
+        if kernel is not None:
+            g_next, m_next, result, iterations, residual = kernel.bodies_step(tensors, g, m, h)
+            return g_next, m_next, worst_body_report(StepInfo(result, iterations, residual))
+
+        def one(inertia, mass, g, m):
+            own = integrator.free_body_step(inertia, mass, g, m, h)
+            return (
+                integrator.free_step(RigidBodySE3(inertia, mass), g, m, h) if own is None else own
+            )
+
+        return each_body(one, self.inertia, self.mass, g, m)
 
     def free_discrete_lagrangian(self, integrator, g0, g1, h: Scalar) -> Scalar:
-        """`Σ_i L_d^i(g0_i, g1_i)`: each body's discrete Lagrangian in vacuum
-        (`AbstractVariationalIntegrator.body_discrete_lagrangian`, the discrete Lagrangian
-        of the step `free_flow` takes on the body)."""
-        each = jax.vmap(lambda J, mass, a, b: integrator.body_discrete_lagrangian(J, mass, a, b, h))
-        return jnp.sum(each(self.inertia, self.mass, g0, g1))
+        """`Σ_i L_d^i(g0_i, g1_i)`: each body's discrete Lagrangian in vacuum, the discrete
+        Lagrangian of the step `free_flow` takes on the body
+        (`AbstractVariationalIntegrator.body_discrete_lagrangian`, else the method's
+        `kinetic_discrete_lagrangian` of the body as a `RigidBodySE3`)."""
+
+        def one(inertia, mass, a, b):
+            own = integrator.body_discrete_lagrangian(inertia, mass, a, b, h)
+            body = RigidBodySE3(inertia, mass)
+            return integrator.kinetic_discrete_lagrangian(body, a, b, h) if own is None else own
+
+        return jnp.sum(jax.vmap(one)(self.inertia, self.mass, g0, g1))
 
     def lagrangian(self, xi: Float[Array, "N 6"]) -> Scalar:
         return jnp.sum(xi * self.legendre(xi)) / 2
