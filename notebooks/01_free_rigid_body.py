@@ -215,7 +215,7 @@ plt.show()
 # ## 2. Energy error over $10^5$ steps at $h = 0.1$
 #
 # The HLW problem is integrated for $10^5$ steps of $h = 0.1$ (to $t = 10^4$, several
-# hundred rotations) with both charts, keeping every 10th state (`save_every=10`). For
+# hundred rotations) with both charts, keeping every 10th state (`save=lievi.Save(every=10)`). For
 # contrast, the same problem is integrated with the explicit midpoint rule (a second-order
 # Runge–Kutta method, not symplectic) applied to Euler's equations.
 
@@ -228,7 +228,7 @@ def energy_error(m):
 long_runs = {}
 for name, dep in CHARTS.items():
     start = time.perf_counter()
-    sol = lievi.simulate(body, dep, g0, m0, h=H_LONG, n_steps=N_LONG, save_every=SAVE_EVERY)
+    sol = lievi.simulate(body, dep, g0, m0, h=H_LONG, n_steps=N_LONG, save=lievi.Save(every=SAVE_EVERY))
     sol.m.block_until_ready()
     long_runs[name] = (np.asarray(sol.ts), energy_error(sol.m),
                        np.asarray(sol.m), np.asarray(sol.g))
@@ -318,7 +318,7 @@ g_ref, m_ref = lievi.reference_solution(body, g0, m0, np.array([0.0, T_CONV]))
 
 def final_error(dep, h):
     n = int(round(T_CONV / h))
-    sol = lievi.simulate(body, dep, g0, m0, h=h, n_steps=n, save_every=n)
+    sol = lievi.simulate(body, dep, g0, m0, h=h, n_steps=n, save=lievi.Save(every=n))
     return max(np.max(np.abs(np.asarray(sol.m[-1]) - m_ref[-1])),
                np.max(np.abs(np.asarray(sol.g[-1]) - g_ref[-1])))
 

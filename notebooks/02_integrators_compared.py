@@ -196,7 +196,7 @@ if SMALL:
     LONG = {k: LONG[k] for k in ("MV", "RK4", "pDMV6")}
 fig, ax = plt.subplots(figsize=(10, 4.5))
 for name, integrator in LONG.items():
-    sol = lievi.simulate(hlw, integrator, jnp.eye(3), m_hlw, h=0.1, n_steps=N_LONG, save_every=N_LONG // 1000)
+    sol = lievi.simulate(hlw, integrator, jnp.eye(3), m_hlw, h=0.1, n_steps=N_LONG, save=lievi.Save(every=N_LONG // 1000))
     energy = np.asarray(diagnostics.energy(hlw, sol.g, sol.m))
     error = np.abs(energy - energy[0]) / energy[0]
     casimir = float(diagnostics.relative_drift(diagnostics.casimirs(hlw, sol.m)))

@@ -85,7 +85,7 @@ TRUE_M0 = jnp.array([np.cos(1.1), 0.0, np.sin(1.1)])
 
 
 def observe(inertia, m0, n_steps=N_STEPS):
-    sol = lievi.simulate(lievi.RigidBody(inertia), lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=n_steps, save_every=EVERY)
+    sol = lievi.simulate(lievi.RigidBody(inertia), lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=n_steps, save=lievi.Save(every=EVERY))
     return sol
 
 
@@ -199,7 +199,7 @@ n_pred = 2 * N_STEPS
 pred_true = observe(TRUE_I, TRUE_M0, n_pred)
 fig, axes = plt.subplots(1, 2, figsize=(12, 3.8), sharey=True)
 for ax, (name, fit) in zip(axes, (("noise-free", fit_clean), ("1% noise", fit_noisy))):
-    pred = lievi.simulate(lievi.RigidBody(fit.inertia), lievi.DEP(), fit.g0, fit.m0, h=H, n_steps=n_pred, save_every=EVERY)
+    pred = lievi.simulate(lievi.RigidBody(fit.inertia), lievi.DEP(), fit.g0, fit.m0, h=H, n_steps=n_pred, save=lievi.Save(every=EVERY))
     omega_true = np.asarray(pred_true.m / TRUE_I)
     omega_fit = np.asarray(pred.m / fit.inertia)
     for i, c in enumerate("C0 C1 C2".split()):

@@ -67,7 +67,7 @@ print(jax.devices()[0], "| fast path:", lievi.advanced.has_fast_path(lievi.Rigid
 #
 # Principal moments uniform in $[0.5, 2]$, unit momenta in random directions, $g_0 = I_3$.
 # Each body's inertia is a leaf of a batched `RigidBody` (`jax.vmap(lievi.RigidBody)`),
-# passed with `system_axis=0`. Only the momenta are stored (`save=("m",)`), every
+# passed with `system_axis=0`. Only the momenta are stored (`save=lievi.Save(g=False, stats=False)`), every
 # `N_STEPS // N_SAVES` steps.
 
 # %%
@@ -84,8 +84,8 @@ INTEGRATORS = {"DEP exp": lievi.DEP(chart="exp"), "DEP Cayley": lievi.DEP(chart=
 def run(integrator, dtype):
     bodies = jax.vmap(lievi.RigidBody)(jnp.asarray(inertia, dtype))
     args = (bodies, integrator, jnp.asarray(g0, dtype), jnp.asarray(m0, dtype))
-    kwargs = dict(h=jnp.asarray(H, dtype), n_steps=N_STEPS, save_every=N_STEPS // N_SAVES,
-                  save=("m",), system_axis=0, throw=False)
+    kwargs = dict(h=jnp.asarray(H, dtype), n_steps=N_STEPS, save=lievi.Save(every=N_STEPS // N_SAVES, g=False, stats=False),
+                   system_axis=0, throw=False)
     compiled = jax.jit(lambda b, g, m: lievi.simulate_batch(b, integrator, g, m, **kwargs)).lower(
         bodies, *args[2:]).compile()  # timed apart from the run below
     start = time.perf_counter()
@@ -167,7 +167,7 @@ m_flip /= np.linalg.norm(m_flip, axis=1, keepdims=True)
 n_flip = int(round(100 / H))
 sol = lievi.simulate_batch(lievi.RigidBody(jnp.asarray(I_FLIP)), lievi.DEP(),
                            jnp.broadcast_to(jnp.eye(3), (N_FLIP, 3, 3)), jnp.asarray(m_flip),
-                           h=H, n_steps=n_flip, save_every=1, save=("m",))
+                           h=H, n_steps=n_flip, save=lievi.Save(g=False, stats=False))
 pi2 = np.asarray(sol.m[:, :, 1])
 t = np.asarray(sol.ts[0])
 first_flip = np.array([t[np.argmax(p < 0)] if np.any(p < 0) else np.nan for p in pi2])

@@ -82,7 +82,7 @@ fig, ax = plt.subplots(figsize=(7, 3.5), layout="constrained")
 tilts = {}
 for factor in (1.3, 0.7):
     m0 = jnp.array([1e-3, 0.0, factor * critical])
-    sol = lievi.simulate(top, lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=N_TOP, save_every=5)
+    sol = lievi.simulate(top, lievi.DEP(), jnp.eye(3), m0, h=H, n_steps=N_TOP, save=lievi.Save(every=5))
     tilt = np.degrees(np.arccos(np.clip(vertical(sol)[:, 2], -1, 1)))
     tilts[factor] = tilt
     ax.plot(sol.ts, tilt, label=f"Π₃ = {factor:g} × critical")
@@ -186,7 +186,7 @@ every = N_LONG // 500
 fig, ax = plt.subplots(figsize=(9, 4.5), layout="constrained")
 errors = {}
 for name, integrator in integrators.items():
-    sol = lievi.simulate(asym, integrator, g0, m0, h=0.05, n_steps=N_LONG, save_every=every)
+    sol = lievi.simulate(asym, integrator, g0, m0, h=0.05, n_steps=N_LONG, save=lievi.Save(every=every))
     err = np.abs(np.asarray(dg.energy(asym, sol.g, sol.m)) - E0)
     errors[name] = err
     ax.loglog(sol.ts[1:], np.maximum(err[1:], 1e-17), lw=0.8, label=name)

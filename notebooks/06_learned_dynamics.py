@@ -90,7 +90,7 @@ def random_state(rng):
 
 
 def truth(g0, m0, n_steps):
-    sol = lievi.simulate(TRUE, lievi.Composition(lievi.DEP(), 4), g0, m0, h=H / 4, n_steps=4 * n_steps, save_every=4)
+    sol = lievi.simulate(TRUE, lievi.Composition(lievi.DEP(), 4), g0, m0, h=H / 4, n_steps=4 * n_steps, save=lievi.Save(every=4))
     return sol.g, sol.m
 
 

@@ -94,7 +94,7 @@ fig, ax = plt.subplots(figsize=(6, 3.5))
 for axis in range(3):
     P0 = jnp.zeros(3).at[axis].set(1.0)
     m0 = jnp.concatenate([jnp.array([1e-3, 1e-3, 1e-3]), P0])
-    sol = lievi.simulate(ellipsoid, lievi.DEP(), SE3.identity(), m0, h=h, n_steps=N_FLUID, save_every=10)
+    sol = lievi.simulate(ellipsoid, lievi.DEP(), SE3.identity(), m0, h=h, n_steps=N_FLUID, save=lievi.Save(every=10))
     casimir_drift = dg.relative_drift(dg.casimirs(ellipsoid, sol.m))
     momentum_drift = dg.relative_drift(dg.spatial_momentum(ellipsoid, sol.g, sol.m))
     angle = np.degrees(np.arccos(np.clip(np.abs(np.asarray(sol.m[:, 3 + axis])), 0, 1)))
@@ -125,7 +125,7 @@ R0 = lievi.SO3.exp(jnp.array([0.2, 0.1, 0.3]))
 g0 = SE3.from_rotation_translation(R0, jnp.array([1.0, 0.0, 0.0]))
 m0 = satellite.tensor @ jnp.concatenate([jnp.array([0.5, -0.3, 1.2]), R0.T @ jnp.array([0.0, 1.0, 0.0])])
 h = 0.01
-sol = lievi.simulate(satellite, lievi.DEP(), g0, m0, h=h, n_steps=N_ORBIT, save_every=10)
+sol = lievi.simulate(satellite, lievi.DEP(), g0, m0, h=h, n_steps=N_ORBIT, save=lievi.Save(every=10))
 total = np.asarray(dg.spatial_momentum(satellite, sol.g, sol.m))[:, :3]
 R, p, P = np.asarray(sol.g[:, :3, :3]), np.asarray(sol.g[:, :3, 3]), np.asarray(sol.m[:, 3:])
 orbital = np.cross(p, np.einsum("tij,tj->ti", R, P))

@@ -84,7 +84,7 @@ m0 = jnp.concatenate([Pi, P], axis=1)
 
 start = time.perf_counter()
 sol = lievi.simulate(
-    binary, lievi.DEP(chart="cayley"), g0, m0, h=0.01, n_steps=N_BINARY, save_every=100
+    binary, lievi.DEP(chart="cayley"), g0, m0, h=0.01, n_steps=N_BINARY, save=lievi.Save(every=100)
 )
 jax.block_until_ready(sol.m)
 print(f"{N_BINARY} steps in {time.perf_counter() - start:.1f} s (compilation included)")
