@@ -51,12 +51,13 @@ def body_offset_pairs(n: int):
     values at the pairs' first and second sites, `(1, n, k, 1, …)` and `(D, n, 1, k, …)`;
     `spread(pull)` the site forces `(n, k, 3)` of forces `pull` `(D, n, k, k, 3)` on the
     first sites and their opposites on the second. Whole bodies are gathered (`n·D`
-    rows of `k` sites), no site-by-site index pairs. NumPy index arrays, fixed by `n`."""
-    offsets = np.arange(1, n // 2 + 1)
-    bodies = np.arange(n)
+    rows of `k` sites), no site-by-site index pairs. The indices are computed in the
+    program (not `n²/2`-sized constants in it)."""
+    offsets = jnp.arange(1, n // 2 + 1)
+    bodies = jnp.arange(n)
     partner = (bodies + offsets[:, None]) % n  # (D, n)
     source = (bodies - offsets[:, None]) % n  # the body whose partner at offset δ is b
-    weight = np.where(2 * offsets == n, 0.5, 1.0)[:, None, None, None]
+    weight = jnp.where(2 * offsets == n, 0.5, 1.0)[:, None, None, None]
 
     def first(v):
         v = jnp.asarray(v)
@@ -72,7 +73,7 @@ def body_offset_pairs(n: int):
         received = jnp.take_along_axis(jnp.sum(pull, axis=2), source[:, :, None, None], axis=1)
         return jnp.sum(pull, axis=(0, 3)) - jnp.sum(received, axis=0)
 
-    return first, second, spread, jnp.asarray(weight)
+    return first, second, spread, weight
 
 
 def listed_pairs(pairs, n: int, k: int):
