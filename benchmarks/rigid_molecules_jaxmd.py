@@ -21,15 +21,20 @@ Coulomb between all sites (charges −0.8, +0.4, +0.4, `k = 1`).
 The same initial state in both (`g = [[R(q), x], [0, 1]]`, `Π` the body angular
 momentum, `P = Rᵀp`); the initial energies are checked equal. For each step size `h` the
 run takes `--steps` steps; the energy error is `max_k |E_k − E_0| / |E_0|`, from a run that
-evaluates the energy at every step. Wall time per step is the best of 3 compiled runs at
-each `h` of the steps alone, the final state kept (`seconds_per_step`,
-`molecule_steps_per_second`), and of the run with the energy (`seconds_per_step_with_energy`;
+evaluates the energy at every step. Wall time per step is the best of `--rounds` (5)
+compiled runs at each `h` of the steps alone, the final state kept (`seconds_per_step`,
+`molecule_steps_per_second`; `cpu_seconds_per_step` the process's CPU time, steadier on a
+loaded machine), and of the run with the energy (`seconds_per_step_with_energy`;
 not like for like: jax-md evaluates its total energy inside its loop, right after the
 force at the same positions, and XLA can share the site pass between the two, while
-lievi's energies are `lievi.diagnostics.energy` of the saved states after the run).
+lievi's energies are `lievi.diagnostics.energy` of the saved states after the run). The
+programs are timed in rounds, each calling every program once in turn, so that a
+change of the machine's load falls on all of them; `speed_vs_jaxmd` is jax-md's time per
+step over each method's, from the same rounds. The `uptime` at the start and end is
+recorded.
 
     python benchmarks/rigid_molecules_jaxmd.py [--molecules 8] [--steps 1000]
-                                                [--out rigid_molecules_jaxmd]
+        [--h 0.0025 0.005 0.01 0.02] [--rounds 5] [--out rigid_molecules_jaxmd]
 
 Needs jax-md (`pip install -e ".[jaxmd]"`). Writes `benchmarks/results/<out>.json` and
 `<out>.png`.
@@ -43,6 +48,7 @@ import json
 import os
 import pathlib
 import platform
+import subprocess
 import time
 
 import jax
@@ -178,10 +184,7 @@ def run_jaxmd(n, state0, steps, h):
         state = jax.lax.fori_loop(0, steps, lambda _, s: apply_fn(s), start(position, momentum))
         return state.position, state.momentum
 
-    return (
-        *_timed(lambda: trajectory(body, momentum), steps),
-        _timed(lambda: final(body, momentum), steps)[1],
-    )
+    return lambda: trajectory(body, momentum), lambda: final(body, momentum)
 
 
 def run_lievi(system, method, g0, m0, steps, h):
@@ -202,21 +205,23 @@ def run_lievi(system, method, g0, m0, steps, h):
         )
         return sol.g, sol.m
 
-    return (
-        *_timed(lambda: trajectory(g0, m0), steps),
-        _timed(lambda: final(g0, m0), steps)[1],
-    )
+    return lambda: trajectory(g0, m0), lambda: final(g0, m0)
 
 
-def _timed(run, steps):
-    """`(run's output, its best wall time of 3 per step)`, after one call to compile."""
-    out = jax.block_until_ready(run())
-    best = []
-    for _ in range(3):
-        start = time.perf_counter()
-        jax.block_until_ready(run())
-        best.append(time.perf_counter() - start)
-    return jax.tree.map(np.asarray, out), min(best) / steps
+def _interleaved(programs, steps, rounds):
+    """`{name: (best wall time, best CPU time)}` per step of each compiled program, timed
+    in `rounds` rounds that call every program once in turn: on a shared, loaded machine
+    the load then falls on all alike, where timing one program's repeats after another's
+    compares them at different loads. The CPU time (`time.process_time`, this process's
+    threads) is the steadier figure under load."""
+    best = {name: [np.inf, np.inf] for name in programs}
+    for _ in range(rounds):
+        for name, run in programs.items():
+            wall, cpu = time.perf_counter(), time.process_time()
+            jax.block_until_ready(run())
+            wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+            best[name] = [min(best[name][0], wall / steps), min(best[name][1], cpu / steps)]
+    return best
 
 
 def main():
@@ -226,9 +231,12 @@ def main():
     parser.add_argument("--molecules", type=int, default=8)
     parser.add_argument("--steps", type=int, default=1000)
     parser.add_argument("--out", default="rigid_molecules_jaxmd")
+    parser.add_argument("--h", type=float, nargs="+", default=list(STEP_SIZES))
+    parser.add_argument("--rounds", type=int, default=5)
     args = parser.parse_args()
     n, steps = args.molecules, args.steps
     load = os.getloadavg()[0]
+    uptime = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     print(f"load average at start: {load:.2f}; {platform.processor() or platform.machine()}")
 
     system, g0, m0, (centres, q, angular, linear) = lievi_molecules(n)
@@ -254,30 +262,47 @@ def main():
         "lievi splitting": lievi.LiePoissonSplitting(),
     }
     rows = []
-    for h in STEP_SIZES:
+    for h in args.h:
+        programs, energies = {}, {}
         for name, method in methods.items():
             if method is None:
                 state0 = (shape, centres, q, angular, linear)
-                energies, with_energy, per_step = run_jaxmd(n, state0, steps, h)
+                trajectory, final = run_jaxmd(n, state0, steps, h)
             else:
-                energies, with_energy, per_step = run_lievi(system, method, g0, m0, steps, h)
-            error = float(np.max(np.abs(energies - energies[0])) / abs(energies[0]))
+                trajectory, final = run_lievi(system, method, g0, m0, steps, h)
+            # The first calls compile.
+            energies[name] = np.asarray(jax.block_until_ready(trajectory()))
+            jax.block_until_ready(final())
+            programs[name], programs[name + " with energy"] = final, trajectory
+        times = _interleaved(programs, steps, args.rounds)
+        for name in methods:
+            (per_step, cpu), (with_energy, _) = times[name], times[name + " with energy"]
+            error = float(np.max(np.abs(energies[name] - energies[name][0])))
+            error /= abs(energies[name][0])
             rows.append(
                 {
                     "method": name,
                     "h": h,
-                    "energy_0": float(energies[0]),
+                    "energy_0": float(energies[name][0]),
                     "relative_energy_error": error,
                     "seconds_per_step": per_step,
+                    "cpu_seconds_per_step": cpu,
                     "seconds_per_step_with_energy": with_energy,
                     "molecule_steps_per_second": n / per_step,
-                    "finite": bool(np.all(np.isfinite(energies))),
+                    "finite": bool(np.all(np.isfinite(energies[name]))),
                 }
             )
             print(
-                f"h={h:<7g} {name:24s} E0 {energies[0]: .12f}  max|ΔE|/|E0| {error:.3e}  "
-                f"{per_step * 1e6:8.1f} µs/step ({with_energy * 1e6:8.1f} with the energy)",
+                f"h={h:<7g} {name:24s} E0 {energies[name][0]: .12f}  max|ΔE|/|E0| "
+                f"{error:.3e}  {per_step * 1e6:8.1f} µs/step ({cpu * 1e6:8.1f} CPU; "
+                f"{with_energy * 1e6:8.1f} with the energy)",
                 flush=True,
+            )
+        baseline = rows[-len(methods)]
+        for row in rows[-len(methods) :]:
+            row["speed_vs_jaxmd"] = baseline["seconds_per_step"] / row["seconds_per_step"]
+            row["cpu_speed_vs_jaxmd"] = (
+                baseline["cpu_seconds_per_step"] / row["cpu_seconds_per_step"]
             )
     e0 = {r["energy_0"] for r in rows}
     assert max(e0) - min(e0) <= 1e-12 * max(abs(e) for e in e0), e0
@@ -287,6 +312,10 @@ def main():
         "steps": steps,
         "dtype": "float64",
         "load_average_start": load,
+        "uptime_start": uptime,
+        "uptime_end": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip(),
+        "rounds": args.rounds,
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "load_average_end": os.getloadavg()[0],
         "device": str(jax.devices()[0]),
         "jax": jax.__version__,

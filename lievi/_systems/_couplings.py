@@ -42,6 +42,64 @@ def site_positions(g: Float[Array, "N 4 4"], sites: Float[Array, "N k 3"]):
     return jnp.einsum("nij,nkj->nki", g[:, :3, :3], sites) + g[:, None, :3, 3]
 
 
+def body_offset_pairs(n: int):
+    """Every pair of sites on different bodies of `n` bodies, laid out by body offset:
+    `(first, second, spread, weight)`. Pair `(δ, b, a, c)` is site `a` of body `b` and
+    site `c` of body `(b + δ) mod n`, for `δ = 1, …, ⌊n/2⌋`: each pair of bodies once,
+    except for even `n` those `n/2` apart, listed from both ends (`weight` ½ there, else
+    1, `(D, 1, 1, 1)`). `first(v)`, `second(v)` of a per-site array `v` `(n, k, …)` are its
+    values at the pairs' first and second sites, `(1, n, k, 1, …)` and `(D, n, 1, k, …)`;
+    `spread(pull)` the site forces `(n, k, 3)` of forces `pull` `(D, n, k, k, 3)` on the
+    first sites and their opposites on the second. Whole bodies are gathered (`n·D`
+    rows of `k` sites), no site-by-site index pairs. The indices are computed in the
+    program (not `n²/2`-sized constants in it)."""
+    offsets = jnp.arange(1, n // 2 + 1)
+    bodies = jnp.arange(n)
+    partner = (bodies + offsets[:, None]) % n  # (D, n)
+    source = (bodies - offsets[:, None]) % n  # the body whose partner at offset δ is b
+    weight = jnp.where(2 * offsets == n, 0.5, 1.0)[:, None, None, None]
+
+    def first(v):
+        v = jnp.asarray(v)
+        return v[None, :, :, None]
+
+    def second(v):
+        v = jnp.asarray(v)
+        return v[partner][:, :, None, :]
+
+    def spread(pull):
+        # Body b's sites take Σ_c of their pulls; body b' takes minus the pulls on the
+        # sites of the bodies δ places before it, gathered back by `source`.
+        received = jnp.take_along_axis(jnp.sum(pull, axis=2), source[:, :, None, None], axis=1)
+        return jnp.sum(pull, axis=(0, 3)) - jnp.sum(received, axis=0)
+
+    return first, second, spread, weight
+
+
+def listed_pairs(pairs, n: int, k: int):
+    """The pairs of a neighbour list `(P, 2)` of flat site indices (padding rows with the
+    index `n·k`), in the form of `body_offset_pairs`: `(first, second, spread, listed)`,
+    `first(v)`, `second(v)` `(P, …)`, `listed` the rows that are pairs (padding rows read
+    site 0 twice and count nothing)."""
+    listed = is_pair(pairs, n * k)
+    i = jnp.where(listed, pairs[:, 0], 0)
+    j = jnp.where(listed, pairs[:, 1], 0)
+
+    def first(v):
+        v = jnp.asarray(v)
+        return v.reshape(n * k, *v.shape[2:])[i]
+
+    def second(v):
+        v = jnp.asarray(v)
+        return v.reshape(n * k, *v.shape[2:])[j]
+
+    def spread(pull):
+        forces = jnp.zeros((n * k, 3), pull.dtype).at[i].add(pull).at[j].add(-pull)
+        return forces.reshape(n, k, 3)
+
+    return first, second, spread, listed
+
+
 def cross_body_pairs(n_bodies: int, n_sites: int):
     """Index arrays `(i, j)`, `i < j`, of the flattened sites (body-major) that lie on
     different bodies: every pair once, none within a body. NumPy, fixed by the shapes."""
@@ -248,44 +306,84 @@ class SitePotential(AbstractPotential):
             mask=self.mask,
         )
 
-    def __call__(self, g):
-        x = self.flat_positions(g)
-        n_sites = x.shape[0]
+    def _pairs(self, g):
+        """The pairs summed over: `(d, r, counted, energy, spread)` — `d = x_i − x_j`
+        `(..., 3)` (minimum image in a box), the distances `r` (set to a safe value where a
+        pair does not count), `counted` (booleans, or `None`: every pair counts),
+        `energy(r)` each pair's energy (shifted at the cut-off, halved for a pair listed
+        twice) before `counted`, and `spread(pull)` the site forces `(N, k, 3)` of forces
+        `pull` `(..., 3)` on each pair's first site and their opposites on its second.
+
+        Without a neighbour list the pairs are laid out by body offset
+        (`body_offset_pairs`): each body's sites against those of the bodies 1, 2, …, N/2
+        places on, whole bodies at a time, rather than one site at a time from a list of
+        index pairs (whose gathers, and their scatters for the forces, were most of the
+        cost of a small system's step)."""
+        n, k = jnp.shape(self.sites)[:2]
+        x = site_positions(g, jnp.asarray(self.sites, g.dtype))
+        charges = jnp.zeros((n, k), g.dtype) if self.charges is None else self.charges
         if self.neighbors is None:
-            i, j = cross_body_pairs(*jnp.shape(self.sites)[:2])
+            first, second, spread, weight = body_offset_pairs(n)
             listed = True
         else:
-            listed = is_pair(self.neighbors, n_sites)
-            i = jnp.where(listed, self.neighbors[:, 0], 0)
-            j = jnp.where(listed, self.neighbors[:, 1], 0)
+            first, second, spread, listed = listed_pairs(self.neighbors, n, k)
+            weight = None
         if self.mask is not None:  # a pair with a padding site is none
-            present = self.mask.reshape(-1)
-            listed = listed & present[i] & present[j]
-        d = x[i] - x[j]
+            listed = listed & first(self.mask) & second(self.mask)
+        d = first(x) - second(x)
         if self.box is not None:
             d = minimum_image(d, self.box.astype(d.dtype))
         squared = jnp.sum(d * d, axis=-1)
-        types = self.types.reshape(-1)
-        charges = (
-            jnp.zeros(types.shape, g.dtype) if self.charges is None else self.charges.reshape(-1)
-        )
-        args = (types[i], types[j], charges[i], charges[j])
-        if self.cutoff is None and self.mask is None:
-            r = jnp.sqrt(squared)
-            return sum(jnp.sum(e(r, *args)) for e in self.pair)
+        args = (first(self.types), second(self.types), first(charges), second(charges))
+
+        def scaled(total):
+            return lambda r: total(r) if weight is None else weight.astype(r.dtype) * total(r)
+
         if self.cutoff is None:
+            total = scaled(lambda r: sum(e(r, *args) for e in self.pair))
+            if self.mask is None:
+                return d, jnp.sqrt(squared), None, total, spread
             # A padding site may sit anywhere, on another body's site too: its pairs take
             # the distance 1 before the square root (both branches of `where` are
             # differentiated), then count 0.
-            r = jnp.sqrt(jnp.where(listed, squared, 1.0))
-            return jnp.sum(jnp.where(listed, sum(e(r, *args) for e in self.pair), 0.0))
+            return d, jnp.sqrt(jnp.where(listed, squared, 1.0)), listed, total, spread
         cutoff = self.cutoff.astype(squared.dtype)
         inside = listed & (squared < cutoff * cutoff)
         # Outside (and for padding rows, whose distance is 0) r is set to r_c before the
         # square root: both branches of `where` are differentiated.
         r = jnp.sqrt(jnp.where(inside, squared, cutoff * cutoff))
-        total = sum(shifted_force(e, r, cutoff, *args) for e in self.pair)
-        return jnp.sum(jnp.where(inside, total, 0.0))
+        total = scaled(lambda r: sum(shifted_force(e, r, cutoff, *args) for e in self.pair))
+        return d, r, inside, total, spread
+
+    def __call__(self, g):
+        _, r, counted, energy, _ = self._pairs(g)
+        if counted is None:
+            return jnp.sum(energy(r))
+        return jnp.sum(jnp.where(counted, energy(r), 0.0))
+
+    def value_and_body_wrenches(self, g):
+        """`V(g)` and each body's wrench `(N, 6)` from the site forces in closed form
+        (`site_wrenches`): per pair, `e(r)` and its slope `e'(r)` in one forward-mode
+        pass, the force `−e'(r) d/r` on site `i` and its opposite on `j` — no reverse
+        pass through the pair table."""
+        d, r, counted, energy, spread = self._pairs(g)
+        e, slope = jax.jvp(energy, (r,), (jnp.ones_like(r),))
+        along = -slope / r  # the pull on the first site is `along · d`
+        if counted is not None:
+            e = jnp.where(counted, e, 0.0)
+            along = jnp.where(counted, along, 0.0)
+        forces = spread(along[..., None] * d)  # the pull on each pair's first site
+        return jnp.sum(e), site_wrenches(g, jnp.asarray(self.sites, g.dtype), forces)
+
+
+def site_wrenches(g: Float[Array, "N 4 4"], sites: Float[Array, "N k 3"], forces):
+    """Each body's body-frame wrench `(τ_i, F_i)` `(N, 6)` from world forces `f_ia`
+    `(N, k, 3)` on its sites: with `φ_ia = R_iᵀ f_ia`, `F_i = Σ_a φ_ia` and
+    `τ_i = Σ_a s_ia × φ_ia`, the generalised force `−dV` along `g_i exp(ε ξ)`, as
+    `AbstractLieSystem.force` defines it (`dx_ia = R_i(ω × s_ia + v)`)."""
+    body = jnp.einsum("nji,nkj->nki", g[:, :3, :3], forces)
+    torque = jnp.sum(jnp.cross(sites, body), axis=1)
+    return jnp.concatenate([torque, jnp.sum(body, axis=1)], axis=-1)
 
 
 class SiteSprings(AbstractPotential):

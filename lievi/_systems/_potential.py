@@ -69,6 +69,15 @@ class AbstractPotential(eqx.Module):
             return None
         return jnp.einsum("i,...ij->...j", jnp.asarray(a, jnp.result_type(g, float)), g)
 
+    def value_and_body_wrenches(self, g: Float[Array, "N 4 4"]) -> tuple | None:
+        """For a potential of N rigid bodies' poses (`lievi.RigidBodies`): `(V(g), M(g))`
+        with `M` `(N, 6)` each body's generalised force `−dV` along `g_i exp(ε ξ)` (torque,
+        force; as `AbstractLieSystem.force`), in closed form — or `None` (the default:
+        the force is the reverse-mode derivative of `V`). A potential that sums over many
+        pairs of sites gives it where one forward pass of the pair terms is cheaper than a
+        reverse pass through them (`lievi.SitePotential`)."""
+        return None
+
     def linear_coupling(self) -> tuple[Float[Array, " n"], Float[Array, " n"]] | None:
         """`(a, b)` if the potential is linear in `g`, `V(g) = aᵀ g b` (a fixed spatial
         vector `a`, a body vector `b`), else `None` (the default).

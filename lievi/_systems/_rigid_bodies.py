@@ -117,6 +117,18 @@ class RigidBodies(AbstractLieSystem):
         flat = jax.vmap(rigid_body_tensor)(inertia.reshape(-1, *per_body), mass.reshape(-1))
         return flat.reshape(*mass.shape, 6, 6)
 
+    def force(self, g: Float[Array, "N 4 4"]) -> Float[Array, "N 6"]:
+        """Each body's wrench `M_i = −d/dε V(…, g_i exp(ε e_a), …)`: in closed form where
+        the potential gives it (`AbstractPotential.value_and_body_wrenches`, e.g. the site
+        forces of `lievi.SitePotential`), else by autodiff (`AbstractLieSystem.force`).
+        NaN where `V(g)` is not finite, either way."""
+        closed = None if self.potential is None else self.potential.value_and_body_wrenches(g)
+        if closed is None:
+            return super().force(g)
+        value, wrench = closed
+        wrench = wrench.astype(jnp.result_type(g, float))
+        return jnp.where(jnp.isfinite(value), wrench, jnp.nan)
+
     def free_flow(self, integrator, g, m, h: Scalar):
         """Each body's free step by `integrator`, the N bodies at once: a body in vacuum
         (origin at its centre of mass) takes the method's own free body step where it has
