@@ -332,7 +332,37 @@ def test_floating_joint_only_at_a_root():
         lievi.ArticulatedBodies(*_rods(2), [-1, 0], [joint, None])
 
 
-def test_other_methods_refuse_the_joints():
-    system, g0, m0 = hinge_chain(2)
+@pytest.fixture(scope="module")
+def two_hinges():
+    return hinge_chain(2)
+
+
+def test_other_methods_refuse_the_joints(two_hinges):
+    system, g0, m0 = two_hinges
     with pytest.raises(ValueError, match="only lievi.RATTLE enforces"):
         lievi.simulate(system, lievi.DEP(), g0, m0, h=0.01, n_steps=2)
+
+
+@pytest.mark.parametrize(
+    "method, name",
+    [
+        (lievi.RK4(), "RK4"),
+        (lievi.RKMK4(), "RKMK4"),
+        (lievi.RKMK8(), "RKMK8"),
+    ],
+)
+def test_runge_kutta_methods_refuse_the_joints(two_hinges, method, name):
+    """The Runge–Kutta methods integrate the free bodies' Euler–Poincaré equations: on an
+    articulated system they would let the joints drift apart, so they refuse it, naming
+    themselves and RATTLE (the error is raised while tracing: nothing is compiled)."""
+    system, g0, m0 = two_hinges
+    with pytest.raises(ValueError, match=rf"only lievi.RATTLE enforces; {name} would step"):
+        lievi.simulate(system, method, g0, m0, h=0.01, n_steps=2)
+    with pytest.raises(ValueError, match=rf"{name} would step"):
+        lievi.simulate_batch(system, method, g0[None], m0[None], h=0.01, n_steps=2)
+
+
+def test_reference_solution_refuses_the_joints(two_hinges):
+    system, g0, m0 = two_hinges
+    with pytest.raises(ValueError, match="lievi.reference_solution would step"):
+        lievi.reference_solution(system, g0, m0, [0.0, 0.1])

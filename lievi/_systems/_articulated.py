@@ -186,12 +186,18 @@ class ArticulatedBodies(AbstractLieSystem):
         """The kinetic energy (`lievi.diagnostics.energy` adds the potential)."""
         return self.bodies.energy(m)
 
-    def free_flow(self, integrator, g, m, h: Scalar):
+    def check_unconstrained(self, method: str) -> None:
+        """A `ValueError`: the joints are constraints that `method` (a kick method's free
+        step, a Runge–Kutta method or the reference solution of the free Euler–Poincaré
+        equations) would ignore, letting them drift apart."""
         raise ValueError(
             "ArticulatedBodies: the joints are constraints that only lievi.RATTLE enforces; "
-            f"{type(integrator).__name__} would step the bodies as if they were free. Run it "
-            "with `lievi.RATTLE()` (or `lievi.Composition(lievi.RATTLE(), 4)`)."
+            f"{method} would step the bodies as if they were free. Run it with "
+            "`lievi.RATTLE()` (or `lievi.Composition(lievi.RATTLE(), 4)`)."
         )
+
+    def free_flow(self, integrator, g, m, h: Scalar):
+        self.check_unconstrained(type(integrator).__name__)
 
     # ---- the joints ------------------------------------------------------------------------
 
