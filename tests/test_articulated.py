@@ -280,6 +280,14 @@ def test_gradients_match_central_differences():
         assert abs(float(grad[index]) - float(difference)) <= 1e-6 * abs(float(difference))
 
 
+def test_masses_are_one_leaf_for_inertia_and_weight():
+    # A fit of the masses replaces `bodies.mass`; gravity must weigh the new masses.
+    system, g0, _ = triple_pendulum()
+    heavier = eqx.tree_at(lambda s: s.bodies.mass, system, 2.0 * system.mass)
+    weight = 9.81 * jnp.sum(2.0 * system.mass * g0[:, 2, 3])
+    assert abs(float(heavier.potential_energy(g0)) - float(weight)) <= 1e-12 * abs(float(weight))
+
+
 # ---- long runs -------------------------------------------------------------------------------
 
 
