@@ -288,6 +288,38 @@ def test_masses_are_one_leaf_for_inertia_and_weight():
     assert abs(float(heavier.potential_energy(g0)) - float(weight)) <= 1e-12 * abs(float(weight))
 
 
+@pytest.mark.slow
+def test_fit_system_identifies_link_masses():
+    # Poses observed every 5 steps; the model's masses 10 % off, the rest known.
+    system, g0, m0 = triple_pendulum()
+    observed = lievi.simulate(system, lievi.RATTLE(), g0, m0, h=0.02, n_steps=20)
+    guess = eqx.tree_at(lambda s: s.bodies.mass, system, 1.1 * system.mass)
+    fit = lievi.fit_system(
+        guess, observed.g[::5], h=0.02, sample_every=5, params=lambda s: s.bodies.mass,
+        m0=m0, g0=g0, integrator=lievi.RATTLE(), max_iters=100,
+    )  # fmt: skip
+    assert np.allclose(np.asarray(fit.system.mass), np.asarray(system.mass), rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_solve_optimal_control_reaches_a_pose_of_the_chain():
+    # A reachable target: the pose two hinged rods reach, from rest, under a hinge torque.
+    system, g0, m0 = hinge_chain(2, gravity=0.0)
+    rest, n, h = jnp.zeros_like(m0), 6, 0.1
+    tau = jnp.concatenate([jnp.full(3, 0.5), jnp.full(3, -0.5)])[:, None]
+    wrench = jnp.zeros((n, 2, 6))
+    wrench = wrench.at[:, 1, :3].set(tau * system.joints[1].axis)
+    wrench = wrench.at[:, 0, :3].set(-tau * system.joints[1].parent_axis)
+    target = lievi.simulate(system, lievi.RATTLE(), g0, rest, h=h, n_steps=n,
+                            forcing=lievi.Control(wrench)).g[-1]  # fmt: skip
+    out = lievi.solve_optimal_control(
+        system, lievi.RATTLE(), g0, rest, (target, None), n, h, max_iterations=5
+    )
+    assert out.converged
+    assert float(jnp.max(jnp.abs(out.solution.g[-1] - target))) <= 1e-10
+    assert float(_joint_defects(system, out.solution.g).max()) <= JOINTS
+
+
 # ---- long runs -------------------------------------------------------------------------------
 
 
