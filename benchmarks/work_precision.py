@@ -852,6 +852,7 @@ def main():
         "--articulated", action="store_true",
         help="the articulated chains (triple pendulum, 5-link hinge chain) instead",
     )  # fmt: skip
+    parser.add_argument("--chains", nargs="+", default=list(CHAINS), choices=list(CHAINS))
     parser.add_argument("--out", default=None, help="default work_precision[_articulated][_quick]")
     parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
     args = parser.parse_args()
@@ -918,7 +919,7 @@ def main_articulated(args):
     out = args.out or ("work_precision_articulated" + ("_quick" if args.quick else ""))
     load, start = os.getloadavg(), time.perf_counter()
     results = {"problems": {}}
-    for problem in CHAINS:
+    for problem in args.chains:
         results["problems"][problem] = {}
         print(f"{problem}:")
         for horizon in args.horizons:
@@ -933,7 +934,7 @@ def main_articulated(args):
             results["problems"][problem][horizon] = dict(
                 T=t1, quantities=quantities, rows=rows, summary=table
             )
-    save(results, args, load, start, out)
+            save(results, args, load, start, out)  # after each table: a long run keeps its
 
 
 if __name__ == "__main__":
