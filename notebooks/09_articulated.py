@@ -176,8 +176,10 @@ def pose(turn, fold):
 n_steps, h_slew = (10, 0.2) if SMALL else (40, 0.05)
 start, goal = pose(0.0, 0.0), pose(0.6, 0.5)
 rest = jnp.zeros((3, 6))
+# A small nonzero first guess: from rest with zero controls the gradient is not finite yet.
+u0 = jnp.full((n_steps, 3, 6), 1e-3)
 slew = lievi.solve_optimal_control(
-    satellite, lievi.RATTLE(), start, rest, (goal, rest), n_steps, h_slew, tol=1e-9
+    satellite, lievi.RATTLE(), start, rest, (goal, rest), n_steps, h_slew, u0=u0, tol=1e-9
 )
 print("converged:", slew.converged, " terminal violation:", slew.constraint_violation)
 assert slew.converged
