@@ -503,7 +503,9 @@ def print_summary(table):
             e = entry.get(name)
             return f"{e['cost']:.3g} ({e['method']}, {e['knob']:g})" if e else "—"
 
-        ratios = "  ".join(f"{k}: {v:.2g}×" for k, v in entry.items() if k.startswith("diffrax /"))
+        ratios = "  ".join(
+            f"{k}: {v:.2g}×" for k, v in entry.items() if k.startswith(("diffrax /", "MuJoCo /"))
+        )
         print(f"  {target}: lievi {cell('lievi')} | structure-preserving "
               f"{cell('lievi structure-preserving')} | diffrax {cell('diffrax')} | MuJoCo "
               f"{cell('MuJoCo')}  {ratios}")  # fmt: skip
@@ -521,7 +523,7 @@ def plot(results, path):
         data = results["problems"][problem][horizon]
         for method in sorted({r["method"] for r in data["rows"]}):
             rows = [r for r in data["rows"] if r["method"] == method]
-            error = [max(r[q] for q in data["quantities"]) for r in rows]
+            error = [max(r.get(q, np.nan) for q in data["quantities"]) for r in rows]
             keep = [i for i, e in enumerate(error) if np.isfinite(e)]
             if not keep:
                 continue
@@ -535,6 +537,305 @@ def plot(results, path):
     axes[0][-1].legend(fontsize=6, loc="lower left")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+
+
+# ---- articulated bodies (`--articulated`) ---------------------------------------------------
+#
+# The triple spherical pendulum and the 5-link hinge chain of tests/articulated_problems.py
+# (a pivot at the world origin, gravity 9.81), each body of the batch with its own initial
+# momentum (the problem's times `1 + 0.05·noise`, projected onto the joints). lievi: RATTLE
+# and its compositions. diffrax: the index-reduced Newton–Euler equations with Lagrange
+# multipliers of tests/articulated_problems.py (`reference_rhs`, maximal coordinates, the
+# KKT system solved at every evaluation), the whole batch one `(B, 18N)` state. MuJoCo:
+# the same chain in joint coordinates (an MJCF built here), `rollout`. Errors over the
+# first `--reference` bodies: `pose` (the largest rotation angle between a body's attitude
+# and the reference's, or distance between centres of mass over the link length, at the
+# final time), `energy` (relative, largest over `SAMPLES` times), `momentum` (the vertical
+# angular momentum about the pivot, relative to the largest body momentum, where it is
+# conserved: the ball-jointed pendulum), and `joints` (the largest joint defect over the
+# link length; MuJoCo's is zero by construction).
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent / "tests"))
+CHAINS = ("triple pendulum", "hinge chain")
+CHAIN_T_SHORT = 2.0
+CHAIN_JOINTS = 1e-10  # a long run counts only if its joints hold to this, relative
+LIEVI_CHAIN_METHODS = {
+    "RATTLE": (lambda: lievi.RATTLE(), 2),
+    "RATTLE ∘ 4": (lambda: lievi.Composition(lievi.RATTLE(), order=4), 4),
+    "RATTLE ∘ 6": (lambda: lievi.Composition(lievi.RATTLE(), order=6), 6),
+}
+
+
+def chain_problem(problem):
+    import articulated_problems as ap
+
+    return ap.triple_pendulum() if problem == "triple pendulum" else ap.hinge_chain(5)
+
+
+def chain_states(problem, batch, seed=0):
+    """`(system, g0 (N, 4, 4), m0 (B, N, 6))`: one pose, perturbed momenta on the joints."""
+    system, g0, m0 = chain_problem(problem)
+    noise = np.random.default_rng(seed).normal(size=(batch, *m0.shape))
+    m = jnp.asarray(m0) * (1 + 0.05 * noise)
+    m = jax.jit(jax.vmap(system.project_momentum, (None, 0)))(g0, m)
+    return system, np.asarray(g0), np.asarray(m)
+
+
+def chain_steps(order, horizon, quick):
+    if quick:
+        return [0.02, 0.01]
+    if horizon == "long":
+        return [0.04, 0.02, 0.01] if order >= 4 else [0.02, 0.01, 0.005]
+    return [0.04, 0.02, 0.01, 0.005] if order >= 4 else [0.01, 0.005, 0.0025, 0.00125]
+
+
+def chain_reference(problem, count, t1):
+    """DOP853 (rtol = atol = 1e-13) of the Newton–Euler equations: `(R, x)` at `t1`."""
+    import articulated_problems as ap
+    from scipy.integrate import solve_ivp
+
+    system, g0, m0 = chain_states(problem, count)
+    rhs = ap.reference_rhs(system)
+    R, x = [], []
+    for k in range(count):
+        y0 = np.asarray(ap.reference_state(system, jnp.asarray(g0), jnp.asarray(m0[k])))
+        sol = solve_ivp(lambda t, y: np.asarray(rhs(jnp.asarray(y))), (0.0, t1), y0,
+                        method="DOP853", rtol=1e-13, atol=1e-13)  # fmt: skip
+        Rk, xk = ap.reference_poses(system, sol.y[:, -1])
+        R.append(np.asarray(Rk))
+        x.append(np.asarray(xk))
+    return np.array(R), np.array(x)
+
+
+def chain_errors(problem, g, m, ref, count):
+    """`g (B, K, N, 4, 4)`, `m (B, K, N, 6)` at the `SAMPLES` times; `ref` the reference's
+    final `(R, x)` (None at the long horizon). Over the first `count` bodies."""
+    system, g0, m0 = chain_states(problem, count)
+    g, m = jnp.asarray(np.asarray(g[:count])), jnp.asarray(np.asarray(m[:count]))
+    start = jnp.broadcast_to(jnp.asarray(g0), (count, *g0.shape))
+    energy = lievi.diagnostics.energy(system, g, m)
+    H0 = lievi.diagnostics.energy(system, start, jnp.asarray(m0))[:, None]
+    out = dict(energy=float(np.max(np.abs(energy - H0) / np.abs(H0))))
+    if problem == "triple pendulum":
+        L = lievi.diagnostics.total_momentum(system, g, m)[..., 2]
+        L0 = lievi.diagnostics.total_momentum(system, start, jnp.asarray(m0))[:, 2]
+        out["momentum"] = float(np.max(np.abs(L - L0[:, None])) / np.max(np.abs(m0)))
+    defects = jax.jit(jax.vmap(jax.vmap(system.joint_defect)))(g)
+    out["joints"] = float(np.max(defects))
+    if ref is not None:
+        R, x = np.asarray(g[:, -1, :, :3, :3]), np.asarray(g[:, -1, :, :3, 3])
+        chord = np.linalg.norm(R - ref[0], axis=(-2, -1)) / (2 * np.sqrt(2))
+        angle = 2 * np.arcsin(np.clip(chord, 0.0, 1.0))
+        apart = np.linalg.norm(x - ref[1], axis=-1) / float(system.length_scale())
+        out["pose"] = float(max(np.max(angle), np.max(apart)))
+    return {k: v if np.isfinite(v) else float("nan") for k, v in out.items()}
+
+
+def chain_lievi_run(problem, method, h, batch, t1, repeats):
+    """Eager `simulate_batch` (its programs compiled by a first call), the best CPU time."""
+    system, g0, m0 = chain_states(problem, batch)
+    n = int(round(t1 / h))
+    integrator = LIEVI_CHAIN_METHODS[method][0]()
+    g0 = jnp.broadcast_to(jnp.asarray(g0), (batch, *g0.shape))
+
+    def run():
+        sol = lievi.simulate_batch(
+            system, integrator, g0, jnp.asarray(m0), h=h, n_steps=n,
+            save=lievi.Save(g=True, m=True, stats=False, every=sample_every(n)),
+            throw=False,
+        )  # fmt: skip
+        return jax.block_until_ready((sol.g[:, 1:], sol.m[:, 1:], sol.result))
+
+    run()
+    best = np.inf
+    for _ in range(repeats):
+        start = time.process_time()
+        g, m, result = run()
+        best = min(best, time.process_time() - start)
+    return g, m, best, bool(np.all(np.asarray(result) == 0))
+
+
+def chain_diffrax_run(problem, solver, knob, adaptive, batch, t1, repeats):
+    """The Newton–Euler/Lagrange-multiplier ODE, the batch one `(B, 18N)` state."""
+    import articulated_problems as ap
+    import diffrax
+
+    system, g0, m0 = chain_states(problem, batch)
+    n = system.n_bodies
+    rhs = jax.vmap(ap.reference_rhs(system))
+    y0 = jax.vmap(ap.reference_state, (None, None, 0))(system, jnp.asarray(g0), jnp.asarray(m0))
+    if adaptive:
+        control = dict(dt0=None, stepsize_controller=diffrax.PIDController(rtol=knob, atol=knob))
+        max_steps = int(t1 * 1e4)
+    else:
+        control = dict(dt0=knob, stepsize_controller=diffrax.ConstantStepSize())
+        max_steps = int(round(t1 / knob))
+
+    @jax.jit
+    def run(y0):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(lambda t, y, args: rhs(y)), getattr(diffrax, solver)(),
+            t0=0.0, t1=t1, y0=y0, saveat=diffrax.SaveAt(ts=saved_times(t1)),
+            max_steps=max_steps, adjoint=diffrax.ForwardMode(), throw=False, **control,
+        )  # fmt: skip
+        return sol.ys, sol.result == diffrax.RESULTS.successful
+
+    (ys, ok), seconds = best_cpu_seconds(run, (y0,), repeats)
+    ys = np.asarray(ys).transpose(1, 0, 2).reshape(batch, SAMPLES, n, 18)  # (B, K, N, 18)
+    g = np.zeros((batch, SAMPLES, n, 4, 4))
+    g[..., :3, :3] = ys[..., :9].reshape(batch, SAMPLES, n, 3, 3)
+    g[..., :3, 3], g[..., 3, 3] = ys[..., 9:12], 1.0
+    m = np.asarray(jax.vmap(jax.vmap(system.legendre))(jnp.asarray(ys[..., 12:])))
+    return g, m, seconds, bool(ok)
+
+
+def chain_mjcf(problem, h, integrator):
+    """The chain in joint coordinates: each body's frame at its centre of mass, placed at
+    the joints' rest configuration (every relative rotation the identity)."""
+    system, _, _ = chain_problem(problem)
+    inertia = np.asarray(system.inertia)
+    xml = ""
+    for i in reversed(range(system.n_bodies)):
+        joint = system.joints[i]
+        parent_point, child_point = np.asarray(joint.parent_point), np.asarray(joint.child_point)
+        pos = " ".join(map(str, parent_point - child_point))
+        anchor = " ".join(map(str, child_point))
+        if isinstance(joint, lievi.HingeJoint):
+            axis = " ".join(map(str, np.asarray(joint.axis)))
+            kind = f'<joint type="hinge" pos="{anchor}" axis="{axis}"/>'
+        else:
+            kind = f'<joint type="ball" pos="{anchor}"/>'
+        body = " ".join(map(str, inertia[i]))
+        xml = (f'<body pos="{pos}">{kind}<inertial pos="0 0 0" mass="{float(system.mass[i])}" '
+               f'diaginertia="{body}"/>{xml}</body>')  # fmt: skip
+    return f"""
+<mujoco>
+  <option timestep="{h}" integrator="{integrator}" gravity="0 0 -9.81"/>
+  <worldbody>{xml}</worldbody>
+</mujoco>"""
+
+
+def chain_to_mujoco(system, g, m):
+    """Joint coordinates `(qpos, qvel)` of maximal-coordinate states (one each)."""
+    R = g[:, :3, :3]
+    xi = np.asarray(system.velocity(jnp.asarray(m)))
+    w = np.einsum("nij,nj->ni", R, xi[:, :3])  # world angular velocities
+    qpos, qvel = [], []
+    for i, (p, joint) in enumerate(zip(system.parents, system.joints)):
+        Rp, wp = (np.eye(3), 0.0) if p == -1 else (R[p], w[p])
+        relative = Rp.T @ R[i]
+        if isinstance(joint, lievi.HingeJoint):
+            axis = np.asarray(joint.axis) / np.linalg.norm(joint.axis)
+            qpos.append([float(np.asarray(lievi.SO3.log(jnp.asarray(relative))) @ axis)])
+            qvel.append([(w[i] - wp) @ (R[i] @ axis)])
+        else:
+            qpos.append(np.asarray(lievi.matrix_to_quaternion_wxyz(jnp.asarray(relative))))
+            qvel.append(R[i].T @ (w[i] - wp))
+    return np.concatenate(qpos), np.concatenate(qvel)
+
+
+def chain_mujoco_run(problem, integrator, h, batch, t1, repeats, threads, count):
+    import mujoco
+    from mujoco import rollout
+
+    system, g0, m0 = chain_states(problem, batch)
+    model = mujoco.MjModel.from_xml_string(chain_mjcf(problem, h, integrator))
+    datas = [mujoco.MjData(model) for _ in range(threads)]
+    spec, data = mujoco.mjtState.mjSTATE_FULLPHYSICS, datas[0]
+    states = []
+    for k in range(batch):
+        mujoco.mj_resetData(model, data)
+        data.qpos[:], data.qvel[:] = chain_to_mujoco(system, g0, m0[k])
+        state = np.empty(mujoco.mj_stateSize(model, spec))
+        mujoco.mj_getState(model, data, state, spec)
+        states.append(state)
+    n = int(round(t1 / h))
+    every = sample_every(n)
+    best = np.inf
+    for _ in range(repeats):
+        state, saved = np.array(states), []
+        start = time.process_time()
+        for _ in range(n // every):
+            out, _ = rollout.rollout(model, datas, state, nstep=every)
+            state = out[:, -1, :]
+            saved.append(state[:count])
+        best = min(best, time.process_time() - start)
+    # Back to maximal coordinates for the reference bodies: poses and body-frame velocities.
+    nb = system.n_bodies
+    g = np.zeros((count, len(saved), nb, 4, 4))
+    xi = np.zeros((count, len(saved), nb, 6))
+    velocity = np.zeros(6)
+    for s, block in enumerate(saved):
+        for k in range(count):
+            mujoco.mj_setState(model, data, block[k], spec)
+            mujoco.mj_forward(model, data)
+            for i in range(nb):
+                g[k, s, i, :3, :3] = data.xmat[i + 1].reshape(3, 3)
+                g[k, s, i, :3, 3], g[k, s, i, 3, 3] = data.xpos[i + 1], 1.0
+                mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, i + 1, velocity, 1)
+                xi[k, s, i] = velocity
+    m = np.asarray(jax.vmap(jax.vmap(system.legendre))(jnp.asarray(xi)))
+    return g, m, best, bool(np.all(np.isfinite(np.stack(saved))))
+
+
+def chain_sweep(problem, horizon, t1, args, ref):
+    rows, quick = [], args.quick
+    count = args.reference
+
+    def record(family, method, knob, run, bodies, structure=False):
+        try:
+            g, m, seconds, ok = run()
+        except Exception as error:
+            print(f"  {method:<26} {knob:>8.3g}  skipped: {type(error).__name__}: {error}"[:160])
+            return
+        errs = chain_errors(problem, g, m, ref, count) if ok else {}
+        cost = seconds / bodies * 1e6
+        rows.append(dict(family=family, method=method, knob=knob, cost=cost, ok=ok,
+                         structure_preserving=structure, **errs))  # fmt: skip
+        shown = "  ".join(f"{q} {v:8.1e}" for q, v in errs.items())
+        print(f"  {method:<26} {knob:>8.3g}  {cost:9.3g} s/1e6 bodies  {shown}", flush=True)
+
+    B, r = args.batch, args.repeats
+    # A smoke run: the cheapest method of each order up to 4, one diffrax solver.
+    methods = list(LIEVI_CHAIN_METHODS)[:2] if quick else list(LIEVI_CHAIN_METHODS)
+    for method in methods:
+        order = LIEVI_CHAIN_METHODS[method][1]
+        for h in chain_steps(order, horizon, quick):
+            run = partial(chain_lievi_run, problem, method, h, B, t1, r)
+            record("lievi", f"lievi {method}", h, run, B, True)
+    for solver in ("Dopri8",) if quick else ("Tsit5", "Dopri8"):
+        for tol in tolerances_for(horizon, quick):
+            run = partial(chain_diffrax_run, problem, solver, tol, True, B, t1, r)
+            record("diffrax", f"diffrax {solver} PID", tol, run, B)
+    if not args.no_mujoco:
+        integrators = ("RK4",) if quick else ("implicitfast", "RK4")
+        for integrator in integrators:
+            for h in [x / 2 for x in chain_steps(4, horizon, quick)]:
+                run = partial(chain_mujoco_run, problem, integrator, h, args.mujoco_batch, t1,
+                              r, args.threads, count)  # fmt: skip
+                record("MuJoCo", f"MuJoCo {integrator}", h, run, args.mujoco_batch)
+    return rows
+
+
+def chain_quantities(problem, horizon):
+    if horizon == "short":
+        return ("pose",)
+    return ("energy", "momentum") if problem == "triple pendulum" else ("energy",)
+
+
+def chain_summary(rows, targets, quantities, horizon):
+    """`summary`, a run counting at the long horizon only if its joints held (MuJoCo's
+    joint coordinates hold them by construction)."""
+    held = [
+        r for r in rows
+        if horizon == "short" or r["family"] == "MuJoCo" or r.get("joints", 1.0) <= CHAIN_JOINTS
+    ]  # fmt: skip
+    table = summary(held, targets, quantities)
+    for entry in table.values():
+        for name in ("lievi", "lievi structure-preserving"):
+            if name in entry and "MuJoCo" in entry:
+                entry[f"MuJoCo / {name}"] = entry["MuJoCo"]["cost"] / entry[name]["cost"]
+    return table
 
 
 # ---- suggest_integrator's knowledge ---------------------------------------------------------
@@ -642,10 +943,17 @@ def main():
         help="fit and print suggest_integrator's table (lievi/_suggest_knowledge.py) from the "
         "runs: its problems and methods, long horizon at most 2000, lievi only",
     )  # fmt: skip
-    parser.add_argument("--out", default=None, help="default work_precision[_quick]")
+    parser.add_argument(
+        "--articulated", action="store_true",
+        help="the articulated chains (triple pendulum, 5-link hinge chain) instead",
+    )  # fmt: skip
+    parser.add_argument("--chains", nargs="+", default=list(CHAINS), choices=list(CHAINS))
+    parser.add_argument("--out", default=None, help="default work_precision[_articulated][_quick]")
     parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
     args = parser.parse_args()
     args.threads = os.cpu_count() if args.all_cores else 1
+    if args.articulated:
+        return main_articulated(args)
     if args.knowledge:
         args.problems = [p for p in args.problems if p in KNOWLEDGE_PROBLEMS]
         args.methods = args.methods or list(KNOWLEDGE_METHODS)
@@ -675,6 +983,19 @@ def main():
                 T=t1, quantities=quantities, rows=rows, summary=table,
                 **({"baseline_check": check} if horizon == "short" else {}),
             )  # fmt: skip
+    save(results, args, load, start, out)
+    if args.knowledge:
+        table = knowledge(results)
+        flat = {f"{cls} | {method}": entry for (cls, method), entry in table.items()}
+        outdir = pathlib.Path(args.outdir)
+        (outdir / "suggest_knowledge.json").write_text(json.dumps(flat, indent=1))
+        print("TABLE = {")
+        for (cls, method), entry in table.items():
+            print(f"    ({cls!r}, {method!r}): {entry!r},")
+        print("}")
+
+
+def save(results, args, load, start, out):
     results["meta"] = {
         "command": " ".join(["python", "benchmarks/work_precision.py", *sys.argv[1:]]),
         "machine": platform.processor() or platform.machine(),
@@ -692,15 +1013,37 @@ def main():
     outdir.mkdir(parents=True, exist_ok=True)
     (outdir / f"{out}.json").write_text(json.dumps(results, indent=1))
     plot(results, outdir / f"{out}.png")
-    if args.knowledge:
-        table = knowledge(results)
-        flat = {f"{cls} | {method}": entry for (cls, method), entry in table.items()}
-        (outdir / "suggest_knowledge.json").write_text(json.dumps(flat, indent=1))
-        print("TABLE = {")
-        for (cls, method), entry in table.items():
-            print(f"    ({cls!r}, {method!r}): {entry!r},")
-        print("}")
     print(f"wrote {outdir / out}.json and .png (load average at start {load[0]:.1f})")
+
+
+def main_articulated(args):
+    """The chains: T = 2 (pose targets) and `--long-T` (default 2·10³; energy, momentum)."""
+    if args.quick:
+        args.batch, args.mujoco_batch = min(args.batch, 16), min(args.mujoco_batch, 16)
+        args.reference, args.long_T = min(args.reference, 2), min(args.long_T, 10.0)
+        args.repeats = 1
+    elif args.long_T == 2e4:
+        args.long_T = 2e3
+    args.reference = min(args.reference, args.batch, args.mujoco_batch)
+    out = args.out or ("work_precision_articulated" + ("_quick" if args.quick else ""))
+    load, start = os.getloadavg(), time.perf_counter()
+    results = {"problems": {}}
+    for problem in args.chains:
+        results["problems"][problem] = {}
+        print(f"{problem}:")
+        for horizon in args.horizons:
+            t1 = CHAIN_T_SHORT if horizon == "short" else args.long_T
+            quantities = chain_quantities(problem, horizon)
+            targets = TARGETS_SHORT[:7] if horizon == "short" else TARGETS_LONG
+            print(f" T = {t1:g}, batch {args.batch}, targets on {', '.join(quantities)}:")
+            ref = chain_reference(problem, args.reference, t1) if horizon == "short" else None
+            rows = chain_sweep(problem, horizon, t1, args, ref)
+            table = chain_summary(rows, targets, quantities, horizon)
+            print_summary(table)
+            results["problems"][problem][horizon] = dict(
+                T=t1, quantities=quantities, rows=rows, summary=table
+            )
+            save(results, args, load, start, out)  # after each table: a long run keeps its
 
 
 if __name__ == "__main__":

@@ -50,6 +50,7 @@ def reference_solution(
             "reference_solution needs float64: call jax.config.update('jax_enable_x64', True) "
             "before creating arrays."
         )
+    system.check_unconstrained("lievi.reference_solution")
     system.check_element("g0", g0)
     system.check_momentum("m0", m0)
     # One state's shapes (per body for a system of several bodies), flattened for DOP853.

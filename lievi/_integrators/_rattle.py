@@ -105,8 +105,10 @@ class RATTLE(AbstractIntegrator):
         c = C0.shape[0]
         length = system.length_scale().astype(m.dtype)
         # The momentum equations relative to the size of the momenta, the joints to `ℓ`:
-        # one tolerance then means "to 64 ulps" for both.
-        scale = jnp.maximum(jnp.max(jnp.abs(start)), jnp.finfo(m.dtype).tiny)
+        # one tolerance then means "to 64 ulps" for both. The scale does not move the
+        # root, so it carries no derivative: from rest it is `tiny`, whose derivative
+        # `1/tiny²` overflows and made the gradient NaN.
+        scale = jax.lax.stop_gradient(jnp.maximum(jnp.max(jnp.abs(start)), jnp.finfo(m.dtype).tiny))
 
         def unpack(z):
             return z[: 6 * n].reshape(n, 6), z[6 * n :]

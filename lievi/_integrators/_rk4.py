@@ -77,6 +77,7 @@ class RK4(AbstractIntegrator):
         return (RK4Kernel(),)
 
     def step(self, system: AbstractLieSystem, g, m, h: Scalar, force=None, t: Scalar = 0.0):
+        system.check_unconstrained(type(self).__name__)
         check_shape("g", g, system.element_shape(), "the system's configuration")
         check_shape("m", m, system.momentum_shape(), "the system's momentum coordinates")
         # The kernel integrates the free, unforced body: otherwise the generic field.

@@ -113,6 +113,7 @@ class AbstractRKMK(AbstractIntegrator):
         # The system's shapes: `(n, n)` and `(d,)` for one body, with a leading axis of
         # bodies for a system of several (`RigidBodies`, on a product group), whose `exp`
         # and `dexpinv` act on each body's coordinates.
+        system.check_unconstrained(type(self).__name__)
         check_shape("g", g, system.element_shape(), "the system's configuration")
         check_shape("m", m, system.momentum_shape(), "the system's momentum coordinates")
         # The kernel integrates the unforced body (free or in gravity): otherwise the field.

@@ -113,7 +113,8 @@ class ArticulatedBodies(AbstractLieSystem):
 
     bodies: RigidBodies
     joints: tuple[AbstractJoint | None, ...]
-    potential: AbstractPotential | None
+    gravity: Float[Array, ""] | None
+    applied: AbstractPotential | None
     parents: tuple[int, ...] = eqx.field(static=True)
     group: MatrixLieGroup = eqx.field(static=True)
     side: Side = eqx.field(static=True)
@@ -137,12 +138,19 @@ class ArticulatedBodies(AbstractLieSystem):
                     f"got {type(joint).__name__}."
                 )
         self.joints = joints
-        potential = as_potential(potential)
-        if gravity is not None:
-            potential = BodiesGravity(self.bodies.mass, jnp.asarray(gravity, float), potential)
-        self.potential = potential
+        self.gravity = None if gravity is None else jnp.asarray(gravity, float)
+        self.applied = as_potential(potential)
         self.group = SE3
         self.side = Side.LEFT
+
+    @property
+    def potential(self) -> AbstractPotential | None:
+        """Gravity on the bodies' masses plus the given potential, built from the one
+        `mass` leaf (`bodies.mass`): a fit or a gradient with respect to the masses moves
+        their weights with them."""
+        if self.gravity is None:
+            return self.applied
+        return BodiesGravity(self.bodies.mass, self.gravity, self.applied)
 
     # ---- the free bodies -----------------------------------------------------------------
 
@@ -186,12 +194,18 @@ class ArticulatedBodies(AbstractLieSystem):
         """The kinetic energy (`lievi.diagnostics.energy` adds the potential)."""
         return self.bodies.energy(m)
 
-    def free_flow(self, integrator, g, m, h: Scalar):
+    def check_unconstrained(self, method: str) -> None:
+        """A `ValueError`: the joints are constraints that `method` (a kick method's free
+        step, a Runge–Kutta method or the reference solution of the free Euler–Poincaré
+        equations) would ignore, letting them drift apart."""
         raise ValueError(
             "ArticulatedBodies: the joints are constraints that only lievi.RATTLE enforces; "
-            f"{type(integrator).__name__} would step the bodies as if they were free. Run it "
-            "with `lievi.RATTLE()` (or `lievi.Composition(lievi.RATTLE(), 4)`)."
+            f"{method} would step the bodies as if they were free. Run it with "
+            "`lievi.RATTLE()` (or `lievi.Composition(lievi.RATTLE(), 4)`)."
         )
+
+    def free_flow(self, integrator, g, m, h: Scalar):
+        self.check_unconstrained(type(integrator).__name__)
 
     # ---- the joints ------------------------------------------------------------------------
 

@@ -95,6 +95,12 @@ class AbstractLieSystem(eqx.Module):
             return None
         return jax.tree.map(lambda x: axis if eqx.is_array(x) else None, self)
 
+    def check_unconstrained(self, method: str) -> None:
+        """Nothing: `method` (a method that knows only the Euler–Poincaré equations
+        (2.4)/(2.5), or a kick method's free step) applies to this system. A system with
+        constraints that such a method would ignore (`lievi.ArticulatedBodies`) raises a
+        `ValueError` naming `method` and the one that enforces them."""
+
     def free_flow(self, integrator, g, m, h: Scalar):
         """The free step of a kick integrator (`AbstractKickIntegrator.free_step`) on this
         system: the integrator's own (the default). A system of several bodies steps each
