@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._checks import check_integer, check_scalar
-from ._integrators._composition import Composition, _is_symmetric
+from ._integrators._composition import Composition
 from ._integrators._dep import DEP
 from ._integrators._rkmk import RKMK4, RKMK5, RKMK8
 from ._results import RESULTS
@@ -231,7 +231,7 @@ def suggest_integrator(
             system, integrator, g0, m0, horizon, window, tolerance, float(h0), batch, measure
         )
         if "failed" not in row:
-            growth = GROWTH[tolerance_on][0 if _is_symmetric(integrator) else 1]
+            growth = GROWTH[tolerance_on][0 if integrator.is_symmetric() else 1]
             row = _extrapolated(row, (horizon / window) ** growth, tolerance, horizon)
         rows.append(row)
         if "failed" not in row and (best is None or row["seconds_per_body"] < best[1]):

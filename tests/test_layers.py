@@ -54,6 +54,7 @@ LAYERS = (
             "_fit_optimizer",
             "_optimal_control",
             "_suggest",
+            "_suggest_knowledge",
             "_world",
         ),
     ),

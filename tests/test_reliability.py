@@ -327,7 +327,7 @@ def test_clear_errors_for_batches():
             n_steps=2,
             save=lievi.Save(every=2),
         )
-    with pytest.raises(ValueError, match="sequence of field names"):
+    with pytest.raises(ValueError, match="`save` must be a `lievi.Save`"):
         lievi.simulate_batch(body, lievi.DEP(), g0[None], m0[None], h=0.1, n_steps=2, save="gm")
     with pytest.raises(ValueError, match="`devices` is empty"):
         lievi.shard_batch(g0[None], devices=[])

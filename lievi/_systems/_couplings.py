@@ -12,8 +12,7 @@ sites on one body are excluded (their distance is fixed: a constant energy).
   optionally with a cut-off, in a periodic box, over a neighbour list (`_neighbors.py`;
   a box keeps the total linear momentum, not the angular);
 - `SiteSprings`: springs between named sites — formations, tethers;
-- `MutualGravity`: Newtonian gravity between point-mass sets — the full body problem of
-  extended bodies modelled as point masses (`gravitating_bodies` builds the system).
+- `MutualGravity` (`_mutual_gravity.py`): Newtonian gravity between point-mass sets.
 
 The torques and forces on each body are the derivatives of these energies along each
 body's own motions, by autodiff (`AbstractLieSystem.force`). A pair of sites that
@@ -33,8 +32,6 @@ from ._neighbors import is_pair, minimum_image, pair_list_conditions, shifted_fo
 from ._pair_energies import AbstractPairEnergy
 from ._potential import AbstractPotential
 from ._ragged import stack_bodies
-from ._rigid_bodies import RigidBodies
-from ._se3_potentials import point_mass_body
 
 
 def site_positions(g: Float[Array, "N 4 4"], sites: Float[Array, "N k 3"]):
@@ -108,7 +105,7 @@ def cross_body_pairs(n_bodies: int, n_sites: int):
     return i[keep], j[keep]
 
 
-def _check_sites(sites, per_site: dict) -> None:
+def check_sites(sites, per_site: dict) -> None:
     shape = jnp.shape(sites)
     if len(shape) != 3 or shape[-1] != 3:
         raise ValueError(
@@ -202,7 +199,7 @@ class SitePotential(AbstractPotential):
         self.neighbors = None if neighbors is None else jnp.asarray(neighbors)
 
     def __check_init__(self):
-        _check_sites(self.sites, {"types": self.types, "charges": self.charges, "mask": self.mask})
+        check_sites(self.sites, {"types": self.types, "charges": self.charges, "mask": self.mask})
         if not jnp.issubdtype(self.types.dtype, jnp.integer):
             raise ValueError(f"`types` must be integers, got dtype {self.types.dtype}.")
         if self.mask is not None and self.mask.dtype != jnp.bool_:
@@ -410,7 +407,7 @@ class SiteSprings(AbstractPotential):
         self.rest_length = jnp.asarray(rest_length, float)
 
     def __check_init__(self):
-        _check_sites(self.sites, {})
+        check_sites(self.sites, {})
         pairs = self.pairs
         if pairs.ndim != 2 or pairs.shape[1] != 4 or not jnp.issubdtype(pairs.dtype, jnp.integer):
             raise ValueError(
@@ -458,94 +455,3 @@ class SiteSprings(AbstractPotential):
         positive = squared > 0
         length = jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
         return jnp.sum(self.stiffness * (length - self.rest_length) ** 2) / 2
-
-
-class MutualGravity(AbstractPotential):
-    """Newtonian gravity between bodies made of point masses:
-    `V(g) = −G Σ m_ia m_jb / |x_ia − x_jb|` over pairs of points on different bodies.
-
-    **Arguments:**
-
-    - `G`: the gravitational constant of the units in use, `> 0`.
-    - `masses`: the point masses `(N, k)`, `≥ 0`, each body's sum `> 0`. A point of mass
-      0 takes part in no pair: bodies of fewer than `k` points are padded with such points
-      (`gravitating_bodies` pads a list of bodies of different sizes).
-    - `points`: their body-frame positions `(N, k, 3)`, measured from each body's centre
-      of mass (`gravitating_bodies` shifts them there).
-
-    As a model of extended bodies this is a quadrature of the mutual potential: exact for
-    the point masses themselves, and for continuous bodies correct up to the moments the
-    points reproduce. Points with each body's mass, centre of mass and inertia tensor (as
-    `gravitating_bodies` gives them) reproduce its monopole and quadrupole, so the
-    error in `V` is of relative order `(ℓ/r)³` for bodies of size `ℓ` at distance `r`.
-    """
-
-    G: Float[Array, ""]
-    masses: Float[Array, "N k"]
-    points: Float[Array, "N k 3"]
-
-    def __init__(self, G, masses, points):
-        self.G = jnp.asarray(G, float)
-        self.masses = jnp.asarray(masses, float)
-        self.points = jnp.asarray(points, float)
-
-    def __check_init__(self):
-        if jnp.ndim(self.G) != 0:
-            raise ValueError(f"`G` must be a scalar, got shape {jnp.shape(self.G)}.")
-        _check_sites(self.points, {"masses": self.masses})
-
-    def parameter_conditions(self):
-        return super().parameter_conditions() + [
-            (self.G > 0, "`G` must be > 0."),
-            (
-                jnp.all(self.masses >= 0),
-                "`masses` must all be ≥ 0 (0: a padding point, in no pair).",
-            ),
-            (
-                jnp.all(jnp.any(self.masses > 0, axis=-1)),
-                "`masses` must give each body a point of mass > 0.",
-            ),
-        ]
-
-    def __call__(self, g):
-        n, k = jnp.shape(self.points)[:2]
-        x = site_positions(g, jnp.asarray(self.points, g.dtype)).reshape(n * k, 3)
-        i, j = cross_body_pairs(n, k)
-        masses = jnp.asarray(self.masses, g.dtype).reshape(-1)
-        product = masses[i] * masses[j]
-        d = x[i] - x[j]
-        # A padding point (mass 0) may sit anywhere, on another body's point too: its
-        # pairs take the distance 1 before the square root (both branches of `where` are
-        # differentiated), then count 0.
-        real = product > 0
-        r = jnp.sqrt(jnp.where(real, jnp.sum(d * d, axis=-1), 1.0))
-        return -self.G * jnp.sum(jnp.where(real, product / r, 0.0))
-
-
-def gravitating_bodies(G, masses, points, extra_inertia=None) -> RigidBodies:
-    """N rigid bodies of point masses in mutual gravity (the full N-body problem).
-
-    Each body's points are shifted to their centre of mass (the body origin); its mass is
-    their sum and its inertia `Σ m_a (|ρ_a|² I − ρ_a ρ_aᵀ)` plus `extra_inertia` (a
-    `(N, 3, 3)` array, e.g. for a dumbbell, whose point-mass inertia is singular).
-
-    **Arguments:** `G`, `masses` `(N, k)`, `points` `(N, k, 3)`, `extra_inertia`
-    (optional). Bodies of different numbers of points: `masses` a list of `N` arrays
-    `(k_i,)` and `points` a list of `(k_i, 3)`; they are padded to `k = max k_i` with
-    points of mass 0 at the centre of mass, which take part in no pair (`MutualGravity`).
-
-    **Returns:** `RigidBodies(inertia, mass, potential=MutualGravity(G, masses, ρ))`.
-    """
-    masses, given = stack_bodies("masses", masses, 0.0)
-    points, given_points = stack_bodies("points", points, 0.0, (3,))
-    _check_sites(points, {"masses": masses})
-    if not np.array_equal(given, given_points):
-        raise ValueError(
-            "`masses` and `points` must give each body as many masses as points, got "
-            f"{given.sum(axis=1).tolist()} and {given_points.sum(axis=1).tolist()}."
-        )
-    mass, centered, inertia = jax.vmap(point_mass_body)(masses, points)
-    if extra_inertia is not None:
-        inertia = inertia + jnp.asarray(extra_inertia)
-    potential = MutualGravity(G, masses, centered)
-    return RigidBodies(inertia, mass, potential=potential)
