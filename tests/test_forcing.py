@@ -361,7 +361,7 @@ def test_batch_with_per_body_controls():
     g0 = jnp.stack([lievi.SO3.exp(jnp.asarray(rng.normal(size=3))) for _ in range(B)])
     m0 = jnp.asarray(rng.normal(size=(B, 3)))
     batch = lievi.simulate_batch(
-        body, integrator, g0, m0, h=h, n_steps=n, save=lievi.Save(every=n), forcing=lievi.Control(u)
+        body, integrator, g0, m0, h=h, n_steps=n, save=lievi.Save(every=1), forcing=lievi.Control(u)
     )
     for b in range(B):
         one = lievi.simulate(
