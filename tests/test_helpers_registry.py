@@ -70,7 +70,7 @@ def _trajectory(system, g0, m0, n_steps=4):
             m0,
             h=H,
             n_steps=n_steps,
-            save=lievi.Save(m=False, stats=False, every=n_steps),
+            save=lievi.Save(m=False, stats=False),
         ).g
     return lievi.simulate(system, lievi.DEP(), g0, m0, h=H, n_steps=n_steps, save=lievi.Save()).g
 
