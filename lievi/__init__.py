@@ -80,15 +80,15 @@ from ._suggest import Suggestion as Suggestion
 from ._suggest import suggest_integrator as suggest_integrator
 from ._systems._articulated import ArticulatedBodies as ArticulatedBodies
 from ._systems._base import AbstractLieSystem as AbstractLieSystem
-from ._systems._mutual_gravity import MutualGravity as MutualGravity
 from ._systems._couplings import SitePotential as SitePotential
 from ._systems._couplings import SiteSprings as SiteSprings
-from ._systems._mutual_gravity import gravitating_bodies as gravitating_bodies
 from ._systems._dipoles import DipoleCoupling as DipoleCoupling
 from ._systems._generalized_rigid_body import GeneralizedRigidBody as GeneralizedRigidBody
 from ._systems._joints import BallJoint as BallJoint
 from ._systems._joints import HingeJoint as HingeJoint
 from ._systems._lie_lagrangian import LieLagrangian as LieLagrangian
+from ._systems._mutual_gravity import MutualGravity as MutualGravity
+from ._systems._mutual_gravity import gravitating_bodies as gravitating_bodies
 from ._systems._neighbors import AbstractNeighborBuilder as AbstractNeighborBuilder
 from ._systems._neighbors import BruteForceNeighbors as BruteForceNeighbors
 from ._systems._neighbors import JaxMDNeighbors as JaxMDNeighbors
