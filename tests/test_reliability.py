@@ -362,7 +362,7 @@ def test_overridden_step_is_run_on_every_path():
         jnp.stack([m0, m0]),
         h=0.1,
         n_steps=3,
-        save=lievi.Save(every=3),
+        save=lievi.Save(every=1),
     )
     vmapped = jax.vmap(lambda g, m: lievi.simulate(body, Damped(), g, m, h=0.1, n_steps=3).m)(
         jnp.stack([g0, g0]), jnp.stack([m0, m0])
