@@ -539,7 +539,7 @@ def test_simulate_batch_of_systems():
     integrator = lievi.LiePoissonSplitting()
     m0s = jnp.stack([m0, 0.5 * m0])
     batch = lievi.simulate_batch(
-        system, integrator, g0, m0s, h=0.01, n_steps=20, save=lievi.Save(every=20)
+        system, integrator, g0, m0s, h=0.01, n_steps=20, save=lievi.Save(every=1)
     )
     assert batch.g.shape == (2, 21, 3, 4, 4) and batch.m.shape == (2, 21, 3, 6)
     assert jnp.all(batch.result == lievi.RESULTS.successful)
