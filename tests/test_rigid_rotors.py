@@ -293,9 +293,7 @@ def test_simulate_batch_of_systems():
     m0s = jnp.stack([m0, 0.5 * m0, -m0])
     g0s = jnp.broadcast_to(g0, (3, *g0.shape))
     integrator = lievi.LiePoissonSplitting()
-    batch = lievi.simulate_batch(
-        systems, integrator, g0s, m0s, h=0.01, n_steps=20, save=lievi.Save(every=20), system_axis=0
-    )
+    batch = lievi.simulate_batch(systems, integrator, g0s, m0s, h=0.01, n_steps=20, system_axis=0)
     assert batch.g.shape == (3, 21, 3, 3, 3) and batch.m.shape == (3, 21, 3, 3)
     assert jnp.all(batch.result == lievi.RESULTS.successful)
     for b in range(3):

@@ -47,7 +47,10 @@ def _in_memory(fast=True):
 
 def _stream(directory, writer=None, **kwargs):
     bodies, g0, m0, h = _problem()
-    kwargs = dict(dict(chunk_size=CHUNK, segment_steps=SEGMENT, throw=False), **kwargs)
+    defaults = dict(
+        chunk_size=CHUNK, segment_steps=SEGMENT, throw=False, save=lievi.Save(every=EVERY)
+    )
+    kwargs = dict(defaults, **kwargs)
     lievi.stream_batch(
         bodies,
         lievi.DEP(),
@@ -55,7 +58,6 @@ def _stream(directory, writer=None, **kwargs):
         m0,
         h=h,
         n_steps=N_STEPS,
-        save=lievi.Save(every=EVERY),
         writer=writer or lievi.NpyWriter(directory),
         **kwargs,
     )
@@ -89,7 +91,7 @@ def test_streamed_equals_in_memory(tmp_path, fast):
     assert int(solution.result[7]) == lievi.RESULTS.step_too_large  # the failing body ...
     assert np.all(np.isnan(np.asarray(solution.m[7, 1:])))  # ... is NaN after it
     assert np.all(np.asarray(solution.result)[np.arange(B) != 7] == lievi.RESULTS.successful)
-    _stream(tmp_path, fast=fast)
+    _stream(tmp_path, tuning=lievi.advanced.Tuning(fast=fast))
     _assert_equal_to_in_memory(_read(tmp_path), solution)
 
 

@@ -157,7 +157,7 @@ def main(args: argparse.Namespace) -> int:
     if args.plot:
         try:
             energy_ref = np.asarray(
-                eqx.filter_jit(diagnostics.energy)(body, jnp.asarray(m_ref), jnp.asarray(g_ref))
+                eqx.filter_jit(diagnostics.energy)(body, jnp.asarray(g_ref), jnp.asarray(m_ref))
             )
             title = problem.title.split(" (")[0] + problem.plot_note
             save_plot(args.plot, ts, m_ref, energy_ref, runs, title)
