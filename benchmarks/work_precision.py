@@ -47,6 +47,15 @@ diffrax's cost to each lievi one. Results: `benchmarks/results/<out>.json` and `
     python benchmarks/work_precision.py                     # the published figures (hours)
     python benchmarks/work_precision.py --quick             # a smoke run (minutes)
     python benchmarks/work_precision.py --problems "free body" --horizons short
+    python benchmarks/work_precision.py --free-flow         # the heavy top's free flow (~15 min)
+
+`--free-flow` asks whether a more accurate free rotation inside the heavy top's splitting
+would pay: T = 20, attitude error at equal steps of kick – free flow – kick with today's
+free flow (the three-axis splitting) and with the free flow to round-off, alone and in
+`Composition(…, 4 | 6 | 8)`; a kick – DMV – kick stage's cost against a splitting stage's
+(interleaved rounds); the preprocessed Moser–Veselov step's modified moments per body;
+the cost to 1e-4, 1e-6, 1e-8 against diffrax `Dopri8` (batch in the state) in the same
+run (`results/work_precision_free_flow.json`).
 
 `mujoco` and `diffrax` are optional (`pip install -e .[bench]`); a missing family is
 skipped and said so.
@@ -217,12 +226,13 @@ def best_cpu_seconds(fn, args, repeats):
 # ---- lievi --------------------------------------------------------------------------------
 
 
-def lievi_run(problem, method, h, batch, t1, repeats):
+def lievi_run(problem, method, h, batch, t1, repeats, integrator=None):
+    """`method` by name (`LIEVI_METHODS`), or `integrator` itself where given."""
     system = system_of(problem)
     g0, m0 = initial_states(problem, batch)
     n = int(round(t1 / h))
     every = sample_every(n)
-    integrator = LIEVI_METHODS[method][0]()
+    integrator = LIEVI_METHODS[method][0]() if integrator is None else integrator
 
     @jax.jit
     def run(m0):
@@ -920,6 +930,169 @@ def knowledge(results):
     return table
 
 
+# ---- the heavy top's free flow: what a more accurate one inside the splitting would give ----
+
+# (outer order, composition stages, step counts T/h = 25·m): the splitting kick – free – kick,
+# alone and composed (Kahan–Li's default schemes).
+FREE_FLOW_OUTER = {2: (1, (8, 16, 32, 64, 128, 256)), 4: (3, (2, 4, 8, 16, 32, 64, 128)),
+                   6: (9, (1, 2, 3, 4, 6, 8, 12, 16)), 8: (17, (1, 2, 3, 4, 6, 8))}  # fmt: skip
+FREE_FLOW_TARGETS = (1e-4, 1e-6, 1e-8)
+
+
+class ExactFreeFlowKick(lievi.AbstractKickIntegrator):
+    """Kick – free flow – kick with the free rigid body's flow to round-off (`substeps`
+    steps of `Composition(LiePoissonSplitting(), 8)`): what any more accurate Lie–Poisson
+    free flow inside the heavy top's splitting (the preprocessed Moser–Veselov step, the
+    elliptic-function flow) could at best give. For its errors only: its cost is not
+    that of such a flow."""
+
+    substeps: int = 4
+
+    def order(self):
+        return 2
+
+    def is_symmetric(self):
+        return True
+
+    def free_step(self, system, g, m, h):
+        free, inner = (
+            lievi.RigidBody(system.inertia),
+            lievi.Composition(lievi.LiePoissonSplitting(), 8),
+        )
+        for _ in range(self.substeps):
+            g, m, info = inner.step(free, g, m, h / self.substeps)
+        return g, m, info
+
+
+def cost_at(points, target):
+    """The cost at which a method's error reaches `target`, interpolated log–log between
+    its runs `(cost, error)`; `None` if no run reaches it."""
+    points = sorted((c, e) for c, e in points if np.isfinite(e))
+    for (c0, e0), (c1, e1) in zip(points, points[1:]):
+        if e0 > target >= e1:
+            w = np.log(e0 / target) / np.log(e0 / e1)
+            return float(np.exp((1 - w) * np.log(c0) + w * np.log(c1)))
+    return points[0][0] if points and points[0][1] <= target else None
+
+
+def stage_costs(problem, batch, t1, rounds):
+    """ns per body and stage of the splitting and of kick – DMV – kick (`MoserVeselov`),
+    alone (h = 0.0125) and in `Composition(…, 8)` (h = 0.2), best of interleaved rounds."""
+    system, (g0, m0) = system_of(problem), initial_states(problem, batch)
+    m0 = jnp.asarray(m0)
+    programs = {}
+    for label, method, h, stages in (
+        ("splitting", lievi.LiePoissonSplitting(), 0.0125, 1),
+        ("kick-DMV-kick", lievi.MoserVeselov(), 0.0125, 1),
+        ("splitting ∘ 8", lievi.Composition(lievi.LiePoissonSplitting(), 8), 0.2, 17),
+        ("kick-DMV-kick ∘ 8", lievi.Composition(lievi.MoserVeselov(), 8), 0.2, 17),
+    ):
+        n = int(round(t1 / h))
+        save = lievi.Save(g=True, m=True, stats=False, every=sample_every(n))
+        run = jax.jit(
+            partial(lievi.simulate_batch, system, method, jnp.asarray(g0), h=h, n_steps=n,
+                    throw=False, save=save)
+        )  # fmt: skip
+        programs[label] = (run.lower(m0).compile(), batch * n * stages)
+    best = dict.fromkeys(programs, np.inf)
+    for _ in range(rounds):
+        for label, (compiled, count) in programs.items():
+            start = time.process_time()
+            jax.block_until_ready(compiled(m0))
+            best[label] = min(best[label], (time.process_time() - start) / count * 1e9)
+    return best
+
+
+def free_flow(args):
+    """The heavy top at T = 20: attitude error at fixed h of the splitting with today's free
+    flow (the axis splitting) and with an exact one, alone and composed; per body-step
+    costs; cost to each target against diffrax `Dopri8` (batch in the state), same run."""
+    problem, t1, B, r = "heavy top", T_SHORT, args.batch, args.repeats
+    ref = reference(problem, args.reference, t1)
+    out = dict(variants={})
+
+    def compose(method, order):
+        return method if order == 2 else lievi.Composition(method, order)
+
+    for order, (stages, multiples) in FREE_FLOW_OUTER.items():
+        today, exact = [], []
+        for k in multiples:
+            h = 0.8 / k
+            n = int(round(t1 / h))
+            method = compose(lievi.LiePoissonSplitting(), order)
+            g, m, seconds, ok, _ = lievi_run(problem, None, h, B, t1, r, integrator=method)
+            e = errors(problem, g, m, ref)["attitude"] if ok else float("nan")
+            today.append(
+                dict(h=h, cost=seconds / B * 1e6, per_step_ns=seconds / B / n * 1e9, attitude=e)
+            )
+            g, m, _, ok, _ = lievi_run(
+                problem, None, h, args.reference, t1, 1, compose(ExactFreeFlowKick(), order)
+            )
+            exact.append(
+                dict(h=h, attitude=errors(problem, g, m, ref)["attitude"] if ok else float("nan"))
+            )
+            print(f"  order {order} h={h:<7.4g} axis splitting {e:8.1e} ({today[-1]['per_step_ns']:5.0f} ns "
+                  f"a body-step)  exact free flow {exact[-1]['attitude']:8.1e}", flush=True)  # fmt: skip
+        out["variants"][order] = dict(stages=stages, axis_splitting=today, exact_free_flow=exact)
+    # What a DMV-based free flow costs at least: a kick – DMV – kick stage on the fast path,
+    # against a splitting stage, in interleaved rounds (a load-robust ratio); and the
+    # preprocessed step's modified moments, which depend on the free body's energy and
+    # Casimir — both changed by every kick, so needed anew at every stage.
+    stage = stage_costs(problem, B, t1, max(r, 4))
+    free, pmv = lievi.RigidBody(system_of(problem).inertia), lievi.PreprocessedMoserVeselov(8)
+    moments = jax.jit(jax.vmap(lambda m: (lambda p: (p.alpha, p.beta))(pmv.init(free, m, 0.1))))
+    _, seconds = best_cpu_seconds(moments, (jnp.asarray(initial_states(problem, B)[1]),), max(r, 3))
+    stage["PMV(8) modified moments, one body"] = seconds / B * 1e9
+    out["ns_per_body_stage"] = stage
+    print("  ns per body and stage: " + ", ".join(f"{k} {v:.0f}" for k, v in stage.items()))
+    dopri = []
+    for k in (2, 4, 8, 16, 32):
+        g, m, seconds, ok, _ = diffrax_run(problem, "Dopri8", 0.8 / k, False, B, t1, r)
+        dopri.append(dict(knob=0.8 / k, adaptive=False, cost=seconds / B * 1e6,
+                          attitude=errors(problem, g, m, ref)["attitude"] if ok else float("nan")))  # fmt: skip
+    for tol in tolerances_for("short", False):
+        g, m, seconds, ok, _ = diffrax_run(problem, "Dopri8", tol, True, B, t1, r)
+        dopri.append(dict(knob=tol, adaptive=True, cost=seconds / B * 1e6,
+                          attitude=errors(problem, g, m, ref)["attitude"] if ok else float("nan")))  # fmt: skip
+    out["dopri8"] = dopri
+    table = {}
+    for target in FREE_FLOW_TARGETS:
+        entry = {}
+        for adaptive in (False, True):
+            c = cost_at(
+                [(d["cost"], d["attitude"]) for d in dopri if d["adaptive"] == adaptive], target
+            )
+            if c is not None:
+                entry["Dopri8"] = min(entry.get("Dopri8", c), c)
+        for order, v in out["variants"].items():
+            today = cost_at([(d["cost"], d["attitude"]) for d in v["axis_splitting"]], target)
+            n_today = cost_at([(t1 / d["h"], d["attitude"]) for d in v["axis_splitting"]], target)
+            n_exact = cost_at([(t1 / d["h"], d["attitude"]) for d in v["exact_free_flow"]], target)
+            if None in (today, n_today, n_exact):
+                continue
+            # Steps saved by an exact free flow = the cost of a stage, relative to a splitting
+            # stage, at which it only breaks even; at a DMV stage's cost (no modified
+            # moments: a lower bound for the preprocessed step) it would cost `at_dmv`.
+            pair = (
+                ("splitting", "kick-DMV-kick")
+                if order == 2
+                else ("splitting ∘ 8", "kick-DMV-kick ∘ 8")
+            )
+            at_dmv = today * n_exact / n_today * stage[pair[1]] / stage[pair[0]]
+            entry[f"order {order}"] = dict(axis_splitting=today, steps_saved=n_today / n_exact,
+                                           exact_free_flow_at_dmv_cost=at_dmv)  # fmt: skip
+        table[f"{target:.0e}"] = entry
+        cells = "  ".join(
+            f"o{o[-1]}: {e['axis_splitting']:.3g} → {e['exact_free_flow_at_dmv_cost']:.3g} "
+            f"(steps ÷{e['steps_saved']:.2f})"
+            for o, e in entry.items() if o != "Dopri8"
+        )  # fmt: skip
+        dopri8 = entry.get("Dopri8", float("nan"))
+        print(f"  {target:.0e} (s/1e6 bodies): Dopri8 {dopri8:.3g}  {cells}")
+    out["cost_to_target"] = table
+    return out
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=256)
@@ -948,12 +1121,19 @@ def main():
         help="the articulated chains (triple pendulum, 5-link hinge chain) instead",
     )  # fmt: skip
     parser.add_argument("--chains", nargs="+", default=list(CHAINS), choices=list(CHAINS))
+    parser.add_argument(
+        "--free-flow", action="store_true",
+        help="the heavy top at T = 20: today's splitting against one with an exact free flow",
+    )  # fmt: skip
     parser.add_argument("--out", default=None, help="default work_precision[_articulated][_quick]")
     parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
     args = parser.parse_args()
     args.threads = os.cpu_count() if args.all_cores else 1
     if args.articulated:
         return main_articulated(args)
+    if args.free_flow:
+        load, start = os.getloadavg(), time.perf_counter()
+        return save(free_flow(args), args, load, start, args.out or "work_precision_free_flow")
     if args.knowledge:
         args.problems = [p for p in args.problems if p in KNOWLEDGE_PROBLEMS]
         args.methods = args.methods or list(KNOWLEDGE_METHODS)
@@ -1012,8 +1192,11 @@ def save(results, args, load, start, out):
     outdir = pathlib.Path(args.outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     (outdir / f"{out}.json").write_text(json.dumps(results, indent=1))
-    plot(results, outdir / f"{out}.png")
-    print(f"wrote {outdir / out}.json and .png (load average at start {load[0]:.1f})")
+    if "problems" in results:  # `--free-flow` has no plot
+        plot(results, outdir / f"{out}.png")
+    print(
+        f"wrote {outdir / out}.json (and a plot where it has one; load average at start {load[0]:.1f})"
+    )
 
 
 def main_articulated(args):
