@@ -389,7 +389,7 @@ def drift(n_steps: int, h: float = 0.1, n_saves: int = 1000):
             start = time.perf_counter()
             sol = lievi.simulate(
                 system, integrator, g0, m0, h=h, n_steps=n_steps,
-                save_every=n_steps // n_saves, throw=False,
+                save=lievi.Save(every=n_steps // n_saves), throw=False,
             )  # fmt: skip
             ok = bool(sol.result == lievi.RESULTS.successful)
             runs[name] = (sol.g, sol.m, time.perf_counter() - start, ok)  # with compilation
