@@ -19,9 +19,11 @@ along the left-trivialised directions and `M_i` each body's kinetic tensor:
     C(g_{k+1}) M⁻¹ m_{k+1} = 0.                                      (velocity level)
 
 The first three are one nonlinear system for the increments `ξ` `(N, 6)` and the
-reaction impulses `Λ_k` `(c,)`, solved by Newton's method (`_newton.py`: implicit
-differentiation at the root, `RESULTS.newton_not_converged` otherwise); the last two are
-a linear solve for `μ_k`. The map is symmetric (its adjoint, the same equations with
+reaction impulses `Λ_k` `(c,)`, solved by a simplified Newton iteration on the
+Jacobian's block structure, evaluated once per step (`_rattle_schur.py`), or by Newton's
+method (`full_newton=True`) — both through `_newton.py`: implicit differentiation with
+the exact Jacobian at the root, `RESULTS.newton_not_converged` otherwise; the last two
+are a linear solve for `μ_k`. The map is symmetric (its adjoint, the same equations with
 `−h` read backwards, is itself: `Λ_k ↔ −μ_k`), symplectic on the constraint manifold's
 cotangent bundle and second order, so `lievi.Composition` raises its order. The momentum
 of a symmetry of `L_d` and of the joints — the total linear and angular momentum of a
@@ -71,7 +73,7 @@ class RATTLE(AbstractIntegrator):
     **Arguments:**
 
     - `chart`: `"exp"` (default) or `"cayley"`, as for `lievi.DEP`.
-    - `rtol`, `atol`: the Newton solve stops when every body's momentum equation holds to
+    - `rtol`, `atol`: the iteration stops when every body's momentum equation holds to
       `atol + rtol·‖m‖_∞` and every joint to `(atol + rtol)·ℓ` (`ℓ` the link length).
       Default: `rtol` = 64 ulps of the dtype, `atol` = 0.
     - `max_steps`: maximum iterations per step; exceeding it is reported as
@@ -145,9 +147,10 @@ class RATTLE(AbstractIntegrator):
         if self.full_newton:
             z, info = newton_solve(residual, guess, tolerance, self.max_steps)
         else:
-            # The exact Jacobian's blocks at the guess (O(h²) from the root, so each
-            # iteration gains a factor O(h²)): each body's 6×6 momentum block, and the
-            # joints' rows by `jacfwd` of the joints alone.
+            # The exact Jacobian's blocks at the guess (O(h²) from the root, so the
+            # iteration contracts fast: 4–5 iterations at h = 0.01…0.02 against Newton's
+            # 3): each body's 6×6 momentum block, and the joints' rows by `jacfwd` of the
+            # joints alone (6N directions through the chart, no momentum equations).
             blocks = jax.vmap(jax.jacfwd(momentum_term))(xi0, tensor)
             rows = jax.jacfwd(joints_after)(xi0)
             solve = kkt_solver(blocks, rows, C0, scale, length)
