@@ -528,6 +528,8 @@ def plot(results, path):
     import matplotlib.pyplot as plt
 
     panels = [(p, h) for p in results["problems"] for h in results["problems"][p]]
+    if not panels:  # the per-step cost table alone: nothing to plot
+        return
     fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.5), squeeze=False)
     for ax, (problem, horizon) in zip(axes[0], panels):
         data = results["problems"][problem][horizon]
@@ -574,6 +576,14 @@ LIEVI_CHAIN_METHODS = {
     "RATTLE ∘ 4": (lambda: lievi.Composition(lievi.RATTLE(), order=4), 4),
     "RATTLE ∘ 6": (lambda: lievi.Composition(lievi.RATTLE(), order=6), 6),
 }
+# The per-step cost table (`chain_step_cost`): RATTLE's default iteration (the Jacobian
+# once per step, solved by its structure) against Newton's method with the whole Jacobian
+# by autodiff at every iteration, the same equations and root.
+STEP_COST_METHODS = {
+    "RATTLE, full Newton": (lambda: lievi.RATTLE(full_newton=True), 2),
+    "RATTLE": (lambda: lievi.RATTLE(), 2),
+}
+STEP_COST_H, STEP_COST_STEPS = 0.01, 100
 
 
 def chain_problem(problem):
@@ -645,7 +655,7 @@ def chain_lievi_run(problem, method, h, batch, t1, repeats):
     """Eager `simulate_batch` (its programs compiled by a first call), the best CPU time."""
     system, g0, m0 = chain_states(problem, batch)
     n = int(round(t1 / h))
-    integrator = LIEVI_CHAIN_METHODS[method][0]()
+    integrator = (LIEVI_CHAIN_METHODS | STEP_COST_METHODS)[method][0]()
     g0 = jnp.broadcast_to(jnp.asarray(g0), (batch, *g0.shape))
 
     def run():
@@ -825,6 +835,26 @@ def chain_sweep(problem, horizon, t1, args, ref):
                               r, args.threads, count)  # fmt: skip
                 record("MuJoCo", f"MuJoCo {integrator}", h, run, args.mujoco_batch)
     return rows
+
+
+def chain_step_cost(problem, args):
+    """CPU microseconds per chain and step (`STEP_COST_STEPS` steps of h = `STEP_COST_H`,
+    `--batch` chains; MuJoCo's RK4 at the same step, `--mujoco-batch` chains), each the
+    best of at least three timed calls, all in this one process: the iterations' cost
+    ratio is read at one machine load."""
+    t1, repeats = STEP_COST_H * STEP_COST_STEPS, max(args.repeats, 3)
+    cost = {}
+    for method in STEP_COST_METHODS:
+        _, _, seconds, ok = chain_lievi_run(problem, method, STEP_COST_H, args.batch, t1, repeats)
+        cost[method] = seconds / (args.batch * STEP_COST_STEPS) * 1e6 if ok else float("nan")
+    if not args.no_mujoco:
+        _, _, seconds, _ = chain_mujoco_run(problem, "RK4", STEP_COST_H, args.mujoco_batch, t1,
+                                            repeats, args.threads, 1)  # fmt: skip
+        cost["MuJoCo RK4"] = seconds / (args.mujoco_batch * STEP_COST_STEPS) * 1e6
+    print("  per chain-step: " + "  ".join(f"{k} {v:.3g} µs" for k, v in cost.items()))
+    ratios = {f"{k} / RATTLE": v / cost["RATTLE"] for k, v in cost.items() if k != "RATTLE"}
+    print("  " + "  ".join(f"{k} {v:.3g}" for k, v in ratios.items()), flush=True)
+    return dict(h=STEP_COST_H, n_steps=STEP_COST_STEPS, microseconds=cost, ratios=ratios)
 
 
 def chain_quantities(problem, horizon):
@@ -1125,6 +1155,10 @@ def main():
         "--free-flow", action="store_true",
         help="the heavy top at T = 20: today's splitting against one with an exact free flow",
     )  # fmt: skip
+    parser.add_argument(
+        "--step-cost-only", action="store_true",
+        help="with --articulated: only the per chain-step cost table (RATTLE's iterations, MuJoCo)",
+    )  # fmt: skip
     parser.add_argument("--out", default=None, help="default work_precision[_articulated][_quick]")
     parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
     args = parser.parse_args()
@@ -1208,13 +1242,18 @@ def main_articulated(args):
     elif args.long_T == 2e4:
         args.long_T = 2e3
     args.reference = min(args.reference, args.batch, args.mujoco_batch)
-    out = args.out or ("work_precision_articulated" + ("_quick" if args.quick else ""))
+    out = args.out or (
+        "work_precision_articulated"
+        + ("_step_cost" if args.step_cost_only else "_quick" if args.quick else "")
+    )
     load, start = os.getloadavg(), time.perf_counter()
     results = {"problems": {}}
     for problem in args.chains:
         results["problems"][problem] = {}
         print(f"{problem}:")
-        for horizon in args.horizons:
+        results.setdefault("step_cost", {})[problem] = chain_step_cost(problem, args)
+        save(results, args, load, start, out)
+        for horizon in [] if args.step_cost_only else args.horizons:
             t1 = CHAIN_T_SHORT if horizon == "short" else args.long_T
             quantities = chain_quantities(problem, horizon)
             targets = TARGETS_SHORT[:7] if horizon == "short" else TARGETS_LONG

@@ -91,6 +91,7 @@ def newton_solve(
     tolerance: Scalar,
     max_steps: int,
     residual_and_jacobian: Callable | None = None,
+    approximate_solve: Callable | None = None,
 ) -> tuple[Float[Array, " d"], NewtonInfo]:
     """Find `x` with `residual(x) = 0` starting from `x0`.
 
@@ -99,6 +100,13 @@ def newton_solve(
     given, is `x ↦ (r(x), ∂r/∂x)` in closed form (e.g. `AbstractLieSystem.closed_form_residual`)
     and replaces `residual` and its `jax.jacfwd` Jacobian; a 3×3 system is then solved by
     Cramer's rule, in the solve and in the implicit derivative.
+
+    `approximate_solve`, if given, is `r ↦ J̃⁻¹ r` with `J̃` an approximation of the Jacobian
+    (e.g. one factored once, by its structure): the iterations are then the simplified
+    Newton iteration `x ← x − J̃⁻¹ r(x)`, one residual evaluation each and no Jacobian.
+    It converges to the same root (linearly, as fast as `J̃` is close to `J`); the implicit
+    derivative at the root still uses the exact Jacobian, so derivatives do not depend on
+    `J̃`.
     """
     linear_solve = jnp.linalg.solve
     if residual_and_jacobian is not None:
@@ -112,7 +120,10 @@ def newton_solve(
         r, jac = residual_and_jacobian(x)
         return jac, r
 
-    def iterate(evaluate, guess):
+    def newton_step(jac, r):
+        return linear_solve(jac, r)
+
+    def iterate(evaluate, step, guess):
         def cond(carry):
             _, r, _, it = carry
             norm = jnp.max(jnp.abs(r))
@@ -120,7 +131,7 @@ def newton_solve(
 
         def body(carry):
             x, r, jac, it = carry
-            x = x - linear_solve(jac, r)
+            x = x - step(jac, r)
             jac, r = evaluate(x)
             return x, r, jac, it + 1
 
@@ -137,9 +148,22 @@ def newton_solve(
     # as its own guess (its solve returns it), which adds the implicit derivative. So a
     # `jax.checkpoint` that keeps `ROOT_NAME` (`simulate`'s step) stores the root, and
     # its backward pass evaluates the derivative there without solving again.
-    closed, consts = jax.closure_convert(jacobian_and_value, x0)
-    consts = jax.lax.stop_gradient(consts)
-    root, iterations, norm = iterate(lambda x: closed(x, *consts), jax.lax.stop_gradient(x0))
+    guess = jax.lax.stop_gradient(x0)
+    if approximate_solve is None:
+        closed, consts = jax.closure_convert(jacobian_and_value, x0)
+        consts = jax.lax.stop_gradient(consts)
+        root, iterations, norm = iterate(lambda x: closed(x, *consts), newton_step, guess)
+    else:
+        # No Jacobian in the loop (its slot carries nothing); the approximate solve's
+        # factors, like the residual's constants, carry no derivative.
+        value, value_consts = jax.closure_convert(residual, x0)
+        solve, solve_consts = jax.closure_convert(approximate_solve, x0)
+        value_consts, solve_consts = jax.lax.stop_gradient((value_consts, solve_consts))
+        root, iterations, norm = iterate(
+            lambda x: ((), value(x, *value_consts)),
+            lambda _, r: solve(r, *solve_consts),
+            guess,
+        )
     root = checkpoint_name(root, ROOT_NAME)
 
     def tangent_solve(linear, y):

@@ -24,6 +24,7 @@ from helpers import dop853_final, final_state
 
 JOINTS = 1e-12  # joints, relative to the link length, at every step
 MOMENTUM = 1e-12  # conserved momenta, relative
+HUGE_STEP = 10.0  # a step the RATTLE iteration cannot solve (the links' periods are ~1)
 
 
 @eqx.filter_jit
@@ -160,6 +161,34 @@ def test_rattle_is_symmetric(chart):
     assert float(jnp.max(jnp.abs(g2 - g0))) <= 1e-14
     assert float(jnp.max(jnp.abs(m2 - m0))) <= 1e-14 * float(jnp.max(jnp.abs(m0)))
     assert float(system.joint_defect(g1)) <= JOINTS
+
+
+@eqx.filter_jit
+def _one_step(method, system, g, m, h):
+    return method.step(system, g, m, h)
+
+
+def test_structured_iteration_reaches_newtons_root():
+    # The default iteration (the Jacobian once per step, solved by its block structure)
+    # and Newton's method with the whole autodiff Jacobian at every iteration solve the
+    # same equations: the same step, to round-off, poses and momenta.
+    system, g0, m0 = triple_pendulum()
+    h = jnp.asarray(0.02)
+    g1, m1, info = _one_step(lievi.RATTLE(), system, g0, m0, h)
+    g2, m2, info_full = _one_step(lievi.RATTLE(full_newton=True), system, g0, m0, h)
+    assert int(info.result) == int(info_full.result) == lievi.RESULTS.successful
+    assert float(jnp.max(jnp.abs(g1 - g0))) > 1e-3  # it moved
+    assert float(jnp.max(jnp.abs(g1 - g2))) <= 1e-14
+    assert float(jnp.max(jnp.abs(m1 - m2))) <= 1e-14 * float(jnp.max(jnp.abs(m0)))
+
+
+def test_impossible_step_is_reported_not_converged():
+    # A step far too long for the joints' equations to have a root near the guess: the
+    # iteration must say so, not hand back a number.
+    system, g0, m0 = triple_pendulum()
+    # The same compiled step as the test above (`h` traced).
+    g1, m1, info = _one_step(lievi.RATTLE(), system, g0, m0, jnp.asarray(HUGE_STEP))
+    assert int(info.result) == lievi.RESULTS.newton_not_converged
 
 
 def _hinge_torque(system, torque):
