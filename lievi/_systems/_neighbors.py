@@ -47,18 +47,18 @@ def minimum_image(d, box):
     return d - box * jnp.round(d / box)
 
 
-def shifted_force(energy, r, cutoff, *args):
-    """`e(r) − e(r_c) − (r − r_c) e'(r_c)`: the energy-and-force shifted pair energy, its
-    value and slope zero at `r_c` (`e'` by forward-mode autodiff). Per pair where the
-    energy has parameter tables by site type or reads charges; else one number for all
-    pairs (half the work of a pair's energy)."""
-    if energy.tables() or energy.needs_charges():
-        at_cutoff, tangent, at_args = jnp.full_like(r, cutoff), jnp.ones_like(r), args
-    else:
-        at_cutoff, tangent = jnp.asarray(cutoff, r.dtype), jnp.ones((), r.dtype)
-        at_args = (0, 0, 0.0, 0.0)
-    e_c, slope_c = jax.jvp(lambda s: energy(s, *at_args), (at_cutoff,), (tangent,))
-    return energy(r, *args) - e_c - (r - at_cutoff) * slope_c
+def shifted_force(energy, r2, cutoff, *args):
+    """`(e_s(r), e_s'(r)/r)` at the squared distances `r2` for the energy-and-force
+    shifted pair energy `e_s(r) = e(r) − e(r_c) − (r − r_c) e'(r_c)`, whose value and slope
+    are zero at `r_c` (`AbstractPairEnergy.value_and_slope`). The values at `r_c` are
+    taken at the scalar `r_c²`: they are per pair only where the energy has parameter
+    tables by site type or reads charges (broadcasting), one number for all pairs else."""
+    cutoff = jnp.asarray(cutoff, r2.dtype)
+    e, along = energy.value_and_slope(r2, *args)
+    e_c, along_c = energy.value_and_slope(cutoff * cutoff, *args)
+    slope_c = along_c * cutoff  # e'(r_c)
+    inverse = jax.lax.rsqrt(r2)  # 1/r, and r = r² / r: one reciprocal square root
+    return e - e_c - (r2 * inverse - cutoff) * slope_c, along - slope_c * inverse
 
 
 def fill_index(n_sites: int) -> int:
