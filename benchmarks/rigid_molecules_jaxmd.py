@@ -453,7 +453,10 @@ def main():
                 programs[name + " with energy"] = trajectory
         times = _interleaved(programs, steps, args.rounds)
         for name in methods:
-            (per_step, cpu), (with_energy, _) = times[name], times.get(name + " with energy", [None] * 2)
+            (per_step, cpu), (with_energy, _) = (
+                times[name],
+                times.get(name + " with energy", [None] * 2),
+            )
             error = float(np.max(np.abs(energies[name] - energies[name][0])))
             error /= abs(energies[name][0])
             rows.append(
@@ -488,8 +491,15 @@ def main():
         "molecules": n,
         "steps": steps,
         "neighbor_list": (
-            dict(box=box, cutoff=args.cutoff, skin=args.skin, rebuild_every=args.rebuild_every,
-                 save_every=args.save_every) if args.neighbors else None
+            dict(
+                box=box,
+                cutoff=args.cutoff,
+                skin=args.skin,
+                rebuild_every=args.rebuild_every,
+                save_every=args.save_every,
+            )
+            if args.neighbors
+            else None
         ),  # fmt: skip
         "dtype": "float64",
         "load_average_start": load,

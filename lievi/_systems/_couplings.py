@@ -22,7 +22,6 @@ coincide gives an infinite energy (or a non-finite force), which `simulate` repo
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int

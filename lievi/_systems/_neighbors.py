@@ -189,10 +189,17 @@ def _inputs(potential, g, skin):
             "A neighbour list needs a cut-off: build the potential with "
             "`SitePotential(..., cutoff=r_c)`."
         )
-    x = np.asarray(potential.flat_positions(jnp.asarray(g)))
+    x = np.asarray(_flat_positions(potential, jnp.asarray(g)))
     body = np.arange(x.shape[0]) // potential.sites.shape[1]
     box = None if potential.box is None else np.asarray(potential.box)
     return x, body, float(potential.cutoff) + skin, box
+
+
+@eqx.filter_jit
+def _flat_positions(potential, g):
+    """`potential.flat_positions(g)` as one compiled program (eagerly, its einsum and
+    reshapes are dispatched one by one at every build)."""
+    return potential.flat_positions(g)
 
 
 @jax.jit
