@@ -348,10 +348,20 @@ class JaxMDNeighbors(AbstractNeighborBuilder):
                 side = x.max(axis=0) - origin + 2 * radius
             else:
                 origin, side = np.zeros(3), np.broadcast_to(box, (3,))
-            allocate, update = _jax_md_list(
+            allocate, update, allocated = _jax_md_list(
                 partition, space, tuple(map(float, side)), radius, box is not None
             )
-            neighbors = allocate(jnp.asarray(_into_box(x, origin, side, box)))
+            shifted = jnp.asarray(_into_box(x, origin, side, box))
+            # jax-md's `allocate` sizes its buffers on the host (seconds for 10⁴ sites on
+            # a CPU, at every run's first build); a list allocated for as many sites in
+            # the same box is updated instead (`update` recomputes every pair from the
+            # positions: the same list), allocated anew only where it overflows.
+            neighbors = allocated.get(len(x))
+            if neighbors is not None:
+                neighbors = update(shifted, neighbors)
+            if neighbors is None or bool(neighbors.did_buffer_overflow):
+                neighbors = allocate(shifted)
+            allocated[len(x)] = neighbors
         kept = _kept_pairs(neighbors.idx, jnp.asarray(body))
         capacity = self.sized(int(jnp.sum(kept[2])))
         pairs = _compacted(kept, len(x), capacity)
@@ -360,8 +370,9 @@ class JaxMDNeighbors(AbstractNeighborBuilder):
 
 @functools.lru_cache(maxsize=8)
 def _jax_md_list(partition, space, side: tuple, radius: float, periodic: bool):
-    """jax-md's `(allocate, jitted update)` for a box and radius, kept across builds and
-    runs so that `update` compiles once."""
+    """jax-md's `(allocate, jitted update, allocated)` for a box and radius, kept across
+    builds and runs so that `update` compiles once; `allocated` holds the last list by
+    number of sites, for a later run's first build to update rather than allocate."""
     box = jnp.asarray(side)
     displacement, _ = space.periodic(box) if periodic else space.free()
     neighbor_fn = partition.neighbor_list(
@@ -372,7 +383,7 @@ def _jax_md_list(partition, space, side: tuple, radius: float, periodic: bool):
         capacity_multiplier=1.25,
         format=partition.OrderedSparse,
     )
-    return neighbor_fn.allocate, jax.jit(neighbor_fn.update)
+    return neighbor_fn.allocate, jax.jit(neighbor_fn.update), {}
 
 
 def _into_box(x, origin, side, box):
