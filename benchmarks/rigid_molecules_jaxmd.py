@@ -33,8 +33,21 @@ change of the machine's load falls on all of them; `speed_vs_jaxmd` is jax-md's 
 step over each method's, from the same rounds. The `uptime` at the start and end is
 recorded.
 
+With `--neighbors` (thousands of molecules, where all pairs would take gigabytes of
+index arrays in either library): the molecules fill a periodic box (the lattice's period,
+`1.6·⌈N^(1/3)⌉`), the site energies are cut off at `--cutoff` (2.5) and
+energy-and-force shifted in both, and both use jax-md's cell list with a skin `--skin`
+(0.5): jax-md as its users write it (`partition.neighbor_list` with
+`dr_threshold = skin`, `rigid_body.point_energy_neighbor_list`, `nbrs.update` after each
+step inside the compiled loop, the overflow flag checked after the run), lievi by
+`simulate_with_neighbor_list` with `JaxMDNeighbors(skin)`, segments of
+`--rebuild-every` steps and `rebuild_after=0.25`. Only the splitting runs on lievi's side;
+the energy error is over the saves every `--save-every` steps (in lievi's, each from a list
+built at the saved state), and only the runs without the energy are timed.
+
     python benchmarks/rigid_molecules_jaxmd.py [--molecules 8] [--steps 1000]
         [--h 0.0025 0.005 0.01 0.02] [--rounds 5] [--out rigid_molecules_jaxmd]
+        [--neighbors [--cutoff 2.5] [--skin 0.5] [--rebuild-every 20] [--save-every 50]]
 
 Needs jax-md (`pip install -e ".[jaxmd]"`). Writes `benchmarks/results/<out>.json` and
 `<out>.png`.
