@@ -5,6 +5,8 @@ Each is an `eqx.Module` whose parameters are pytree leaves (so `jax.grad` reache
 arrays of site pairs. A parameter may be a scalar (every pair of site types alike) or a
 table `(T, T)` indexed by the two sites' types (`lievi.SitePotential(types=…)`), e.g.
 the Lennard-Jones `ε` and `σ` of oxygen–oxygen, oxygen–hydrogen and hydrogen–hydrogen.
+`value_and_slope(r², …)` gives `e` and `e'(r)/r` together from the squared distance, the
+form `lievi.SitePotential`'s force pass uses.
 """
 
 from __future__ import annotations
