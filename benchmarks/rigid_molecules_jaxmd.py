@@ -33,8 +33,21 @@ change of the machine's load falls on all of them; `speed_vs_jaxmd` is jax-md's 
 step over each method's, from the same rounds. The `uptime` at the start and end is
 recorded.
 
+With `--neighbors` (thousands of molecules, where all pairs would take gigabytes of
+index arrays in either library): the molecules fill a periodic box (the lattice's period,
+`1.6·⌈N^(1/3)⌉`), the site energies are cut off at `--cutoff` (2.5) and
+energy-and-force shifted in both, and both use jax-md's cell list with a skin `--skin`
+(0.5): jax-md as its users write it (`partition.neighbor_list` with
+`dr_threshold = skin`, `rigid_body.point_energy_neighbor_list`, `nbrs.update` after each
+step inside the compiled loop, the overflow flag checked after the run), lievi by
+`simulate_with_neighbor_list` with `JaxMDNeighbors(skin)`, segments of
+`--rebuild-every` steps and `rebuild_after=0.25`. Only the splitting runs on lievi's side;
+the energy error is over the saves every `--save-every` steps (in lievi's, each from a list
+built at the saved state), and only the runs without the energy are timed.
+
     python benchmarks/rigid_molecules_jaxmd.py [--molecules 8] [--steps 1000]
         [--h 0.0025 0.005 0.01 0.02] [--rounds 5] [--out rigid_molecules_jaxmd]
+        [--neighbors [--cutoff 2.5] [--skin 0.5] [--rebuild-every 20] [--save-every 50]]
 
 Needs jax-md (`pip install -e ".[jaxmd]"`). Writes `benchmarks/results/<out>.json` and
 `<out>.png`.
@@ -49,12 +62,14 @@ import os
 import pathlib
 import platform
 import subprocess
+import sys
 import time
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
+import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -106,9 +121,10 @@ def molecule_shape():
     return np.asarray(sites @ np.asarray(axes)), np.asarray(moments), MASSES.sum()
 
 
-def lievi_molecules(n, seed=0):
+def lievi_molecules(n, seed=0, **cutoff_and_box):
     """`(system, g0, m0, raw)`: `n` molecules as `lievi.RigidBodies` and their initial
-    state; `raw = (centres, quaternions, body angular momenta, world linear momenta)`."""
+    state; `raw = (centres, quaternions, body angular momenta, world linear momenta)`;
+    `cutoff_and_box`: `lievi.SitePotential`'s `cutoff` and `box` (default none)."""
     sites, moments, mass = molecule_shape()
     centres, q, angular, linear = initial_state(n, np.random.default_rng(seed))
     pairs = lievi.SitePotential(
@@ -116,6 +132,7 @@ def lievi_molecules(n, seed=0):
         (lievi.LennardJones(epsilon=[[1.0, 0.0], [0.0, 0.0]], sigma=1.0), lievi.Coulomb()),
         types=np.tile([0, 1, 1], (n, 1)),
         charges=np.tile(CHARGES, (n, 1)),
+        **cutoff_and_box,
     )
     system = lievi.RigidBodies(np.tile(moments, (n, 1)), np.full(n, mass), potential=pairs)
     R = jax.vmap(lievi.quaternion_wxyz_to_matrix)(jnp.asarray(q))
@@ -142,6 +159,152 @@ def site_energy_fn(n):
         return jnp.sum(jnp.where(lj, 4 * (s6 * s6 - s6), 0.0)) + jnp.sum(qq / jnp.sqrt(r2))
 
     return energy
+
+
+def neighbor_energy_fn(n, box, cutoff):
+    """The site energy of `n` molecules over a jax-md neighbour list (`OrderedSparse`,
+    each pair once), in the periodic box of side `box`, cut off at `cutoff` and
+    energy-and-force shifted there as `lievi.SitePotential(cutoff=…)` shifts each pair
+    energy: `e(r) − e(r_c) − (r − r_c) e'(r_c)`. Pairs of sites of one molecule are
+    dropped (pure jnp, as a jax-md user writes a custom pair energy)."""
+    molecule = jnp.arange(3 * n) // 3
+    oxygen = jnp.arange(3 * n) % 3 == 0
+    charges = jnp.tile(jnp.asarray(CHARGES), n)
+    rc = cutoff
+
+    def lennard_jones(r):
+        s6 = 1 / r**6
+        return 4 * (s6 * s6 - s6), -24 * (2 * s6 * s6 - s6) / r  # e, e'
+
+    lj_c, lj_slope_c = lennard_jones(rc)
+
+    def energy(x, neighbor, **kwargs):
+        i, j = neighbor.idx
+        real = i < 3 * n
+        i, j = jnp.where(real, i, 0), jnp.where(real, j, 0)
+        d = x[i] - x[j]
+        d = d - box * jnp.round(d / box)
+        r2 = jnp.sum(d * d, axis=-1)
+        inside = real & (molecule[i] != molecule[j]) & (r2 < rc * rc)
+        r = jnp.sqrt(jnp.where(inside, r2, rc * rc))
+        lj = lennard_jones(r)[0] - lj_c - (r - rc) * lj_slope_c
+        coulomb = charges[i] * charges[j] * (1 / r - 1 / rc + (r - rc) / rc**2)
+        e = jnp.where(oxygen[i] & oxygen[j], lj, 0.0) + coulomb
+        return jnp.sum(jnp.where(inside, e, 0.0))
+
+    return energy
+
+
+def run_jaxmd_neighbors(n, state0, steps, h, box, cutoff, skin, save_every):
+    """As `run_jaxmd`, over jax-md's neighbour list in a periodic box, as its users write
+    it: `partition.neighbor_list` (cell list, `OrderedSparse`, `dr_threshold = skin`: the
+    list is rebuilt inside the compiled loop when a site has moved half the skin),
+    `rigid_body.point_energy_neighbor_list`, `nbrs.update` after every step, an overflow
+    check after the run. The energies are those at every `save_every`-th step."""
+    from jax_md import partition, rigid_body, simulate, space
+
+    shape, centres, q, angular, linear = state0
+    side = jnp.asarray(box, float)
+    displacement, shift = space.periodic(side)
+    neighbor_fn = partition.neighbor_list(
+        displacement, side, cutoff, dr_threshold=skin, capacity_multiplier=1.25,
+        format=partition.OrderedSparse,
+    )  # fmt: skip
+    neighbor_fns, energy_fn = rigid_body.point_energy_neighbor_list(
+        neighbor_energy_fn(n, box, cutoff), neighbor_fn, shape
+    )
+    mass = shape.mass()
+    body = rigid_body.RigidBody(
+        jnp.mod(jnp.asarray(centres), box), rigid_body.Quaternion(jnp.asarray(q))
+    )
+    conjugate = rigid_body.angular_momentum_to_conjugate_momentum(
+        body.orientation, jnp.asarray(angular)
+    )
+    momentum = rigid_body.RigidBody(jnp.asarray(linear), conjugate)
+    init_fn, apply_fn = simulate.nve(energy_fn, shift, h)
+    neighbors0 = neighbor_fns.allocate(body)
+
+    def total(state, neighbors):
+        kinetic = rigid_body.kinetic_energy(state.position, state.momentum, state.mass)
+        return kinetic + energy_fn(state.position, neighbors)
+
+    def advance(carry, n_steps):
+        def one(_, carry):
+            state, neighbors = carry
+            state = apply_fn(state, neighbor=neighbors)
+            return state, neighbors.update(state.position)
+
+        return jax.lax.fori_loop(0, n_steps, one, carry)
+
+    def start(position, momentum, neighbors):
+        state = init_fn(
+            jax.random.PRNGKey(0), position, 0.0, mass=mass, momenta=momentum, neighbor=neighbors
+        )
+        return state, neighbors
+
+    @jax.jit
+    def trajectory(position, momentum, neighbors):
+        carry = start(position, momentum, neighbors)
+
+        def saved(carry, _):
+            carry = advance(carry, save_every)
+            return carry, total(*carry)
+
+        carry, energies = jax.lax.scan(saved, carry, None, length=steps // save_every)
+        return jnp.concatenate([total(*start(position, momentum, neighbors))[None], energies]), (
+            carry[1].did_buffer_overflow
+        )
+
+    @jax.jit
+    def final(position, momentum, neighbors):
+        state, neighbors = advance(start(position, momentum, neighbors), steps)
+        return state.position, state.momentum, neighbors.did_buffer_overflow
+
+    def checked(run):
+        def call():
+            *out, overflow = run(body, momentum, neighbors0)
+            # The overflow flag is read after the run, as jax-md's users do; a run that
+            # overflowed would have to be redone with a larger list.
+            assert not bool(overflow), "jax-md's neighbour list overflowed"
+            return out[0] if len(out) == 1 else tuple(out)
+
+        return call
+
+    return checked(trajectory), checked(final)
+
+
+def run_lievi_neighbors(system, method, g0, m0, steps, h, skin, rebuild_every, save_every):
+    """As `run_lievi`, with `lievi.simulate_with_neighbor_list` and jax-md's cell list
+    (`lievi.JaxMDNeighbors(skin)`), a list kept across segments until a site has moved a
+    quarter of the skin (`rebuild_after=0.25`). The energies at every `save_every`-th step
+    are each from a list built at that state (outside the timed run)."""
+    builder = lievi.JaxMDNeighbors(skin)
+    options = dict(h=h, n_steps=steps, rebuild_every=rebuild_every, builder=builder)
+
+    def trajectory():
+        sol = lievi.simulate_with_neighbor_list(
+            system, method, g0, m0, **options, rebuild_after=0.25,
+            save=lievi.Save(g=True, m=True, every=save_every),
+        )  # fmt: skip
+        energy = eqx.filter_jit(diagnostics.energy)
+        energies = []
+        for g, m in zip(sol.g, sol.m):
+            listed = eqx.tree_at(
+                lambda s: s.potential, system, system.potential.with_neighbors(
+                    builder(system.potential, g)
+                ),
+            )  # fmt: skip
+            energies.append(energy(listed, g, m))
+        return jnp.stack(energies)
+
+    def final():
+        sol = lievi.simulate_with_neighbor_list(
+            system, method, g0, m0, **options, rebuild_after=0.25,
+            save=lievi.Save(g=True, m=True, every=steps),
+        )  # fmt: skip
+        return sol.g, sol.m
+
+    return trajectory, final
 
 
 def run_jaxmd(n, state0, steps, h):
@@ -233,13 +396,24 @@ def main():
     parser.add_argument("--out", default="rigid_molecules_jaxmd")
     parser.add_argument("--h", type=float, nargs="+", default=list(STEP_SIZES))
     parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument(
+        "--neighbors", action="store_true",
+        help="neighbour lists in a periodic box (jax-md's cell list in both)",
+    )  # fmt: skip
+    parser.add_argument("--cutoff", type=float, default=2.5)
+    parser.add_argument("--skin", type=float, default=0.5)
+    parser.add_argument("--rebuild-every", type=int, default=20)
+    parser.add_argument("--save-every", type=int, default=50)
     args = parser.parse_args()
     n, steps = args.molecules, args.steps
+    side = int(np.ceil(n ** (1 / 3)))
+    box = 1.6 * side  # the lattice's period: a full lattice is a crystal with jitter
+    neighbors = dict(cutoff=args.cutoff, box=box) if args.neighbors else {}
     load = os.getloadavg()[0]
     uptime = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     print(f"load average at start: {load:.2f}; {platform.processor() or platform.machine()}")
 
-    system, g0, m0, (centres, q, angular, linear) = lievi_molecules(n)
+    system, g0, m0, (centres, q, angular, linear) = lievi_molecules(n, **neighbors)
     # The molecule as jax-md builds it: the same principal-frame sites, masses and moments.
     sites, moments, mass = molecule_shape()
     shape = rigid_body.point_union_shape(
@@ -261,22 +435,41 @@ def main():
         "lievi DEP Cayley": lievi.DEP(chart="cayley"),
         "lievi splitting": lievi.LiePoissonSplitting(),
     }
+    if args.neighbors:
+        methods = {
+            "jax-md NVE (NO_SQUISH), neighbour list": None,
+            "lievi splitting, simulate_with_neighbor_list": lievi.LiePoissonSplitting(),
+        }
     rows = []
     for h in args.h:
         programs, energies = {}, {}
         for name, method in methods.items():
-            if method is None:
-                state0 = (shape, centres, q, angular, linear)
+            state0 = (shape, centres, q, angular, linear)
+            if args.neighbors and method is None:
+                trajectory, final = run_jaxmd_neighbors(
+                    n, state0, steps, h, box, args.cutoff, args.skin, args.save_every
+                )
+            elif args.neighbors:
+                trajectory, final = run_lievi_neighbors(
+                    system, method, g0, m0, steps, h, args.skin, args.rebuild_every,
+                    args.save_every,
+                )  # fmt: skip
+            elif method is None:
                 trajectory, final = run_jaxmd(n, state0, steps, h)
             else:
                 trajectory, final = run_lievi(system, method, g0, m0, steps, h)
             # The first calls compile.
             energies[name] = np.asarray(jax.block_until_ready(trajectory()))
             jax.block_until_ready(final())
-            programs[name], programs[name + " with energy"] = final, trajectory
+            programs[name] = final
+            if not args.neighbors:  # with a list, the energies are not timed (see the runs)
+                programs[name + " with energy"] = trajectory
         times = _interleaved(programs, steps, args.rounds)
         for name in methods:
-            (per_step, cpu), (with_energy, _) = times[name], times[name + " with energy"]
+            (per_step, cpu), (with_energy, _) = (
+                times[name],
+                times.get(name + " with energy", [None] * 2),
+            )
             error = float(np.max(np.abs(energies[name] - energies[name][0])))
             error /= abs(energies[name][0])
             rows.append(
@@ -294,8 +487,7 @@ def main():
             )
             print(
                 f"h={h:<7g} {name:24s} E0 {energies[name][0]: .12f}  max|ΔE|/|E0| "
-                f"{error:.3e}  {per_step * 1e6:8.1f} µs/step ({cpu * 1e6:8.1f} CPU; "
-                f"{with_energy * 1e6:8.1f} with the energy)",
+                f"{error:.3e}  {per_step * 1e6:8.1f} µs/step ({cpu * 1e6:8.1f} CPU)",
                 flush=True,
             )
         baseline = rows[-len(methods)]
@@ -308,8 +500,20 @@ def main():
     assert max(e0) - min(e0) <= 1e-12 * max(abs(e) for e in e0), e0
 
     document = {
+        "command": "python benchmarks/rigid_molecules_jaxmd.py " + " ".join(sys.argv[1:]),
         "molecules": n,
         "steps": steps,
+        "neighbor_list": (
+            dict(
+                box=box,
+                cutoff=args.cutoff,
+                skin=args.skin,
+                rebuild_every=args.rebuild_every,
+                save_every=args.save_every,
+            )
+            if args.neighbors
+            else None
+        ),  # fmt: skip
         "dtype": "float64",
         "load_average_start": load,
         "uptime_start": uptime,

@@ -49,6 +49,20 @@ def _listed_pairs(pairs, n_sites):
 
 
 @jax.jit
+def _last(arrays):
+    """The last save of each array: one program (eager indexing dispatches one each)."""
+    return jax.tree.map(lambda x: x[-1], arrays)
+
+
+def _with_list(potential, pairs):
+    """`potential` summing over the builder's list `pairs`. `eqx.tree_at` swaps the leaf
+    without `SitePotential.__init__`'s eager checks, which would sort the list on the host
+    at every segment: a builder's list is admissible by construction, and the run checks
+    the potential's conditions in its program anyway (`RESULTS.invalid_input`)."""
+    return eqx.tree_at(lambda p: p.neighbors, potential, pairs, is_leaf=lambda x: x is None)
+
+
+@jax.jit
 def _take(arrays, index):
     """The saves `index` of each array (one program for all, not one gather each)."""
     return jax.tree.map(lambda x: x[index], arrays)
@@ -169,7 +183,7 @@ def simulate_with_neighbor_list(
                     builder = dataclasses.replace(builder, capacity=pairs.shape[0])
                 builds += 1
                 pair_counts.append(_listed_pairs(pairs, n_sites))
-                listed = eqx.tree_at(where, system, potential.with_neighbors(pairs))
+                listed = eqx.tree_at(where, system, _with_list(potential, pairs))
                 built_at, built_step = g, start
             sol = simulate(
                 listed,
@@ -207,7 +221,7 @@ def simulate_with_neighbor_list(
             # list at its start rather than risk running it twice.
             listed = None
         pieces.append(_kept(sol, start, save_every))
-        g, m = sol.g[-1], sol.m[-1]
+        g, m = _last((sol.g, sol.m))
         opts.progress.show((start + rebuild_every) / n_steps)
     joined = _join(pieces, h, t0, n_steps, save_every, failure)
     stats = dict(

@@ -118,3 +118,33 @@ def test_all_pairs_force_gathers_whole_bodies_and_scatters_nothing():
     system, g = _cached(6, ())
     jaxpr = str(jax.make_jaxpr(system.force)(g))
     assert "scatter" not in jaxpr
+
+
+@pytest.mark.parametrize(
+    "energy",
+    [
+        lievi.LennardJones(epsilon=[[1.0, 0.3], [0.3, 0.5]], sigma=[[1.0, 0.8], [0.8, 0.6]]),
+        lievi.Coulomb(k=2.0),
+        lievi.Coulomb(softening=0.3),
+        lievi.Morse(depth=0.7, width=1.3, r0=1.1),
+    ],
+    ids=["lennard-jones", "coulomb", "coulomb-softened", "morse"],
+)
+def test_closed_form_value_and_slope_equal_autodiff(energy):
+    # The pair energies' `(e(r), e'(r)/r)` from r² in closed form against the default
+    # (√r², then e' by forward-mode autodiff of `e(r)`), per pair and with a scalar r².
+    rng = np.random.default_rng(1)
+    r2 = jnp.asarray(rng.uniform(0.4, 6.0, 50))
+    args = (
+        jnp.asarray(rng.integers(0, 2, 50)),
+        jnp.asarray(rng.integers(0, 2, 50)),
+        jnp.asarray(rng.normal(size=50)),
+        jnp.asarray(rng.normal(size=50)),
+    )
+    default = lievi.AbstractPairEnergy.value_and_slope
+    for squared in (r2, r2[3]):
+        for closed, expected in zip(
+            energy.value_and_slope(squared, *args), default(energy, squared, *args)
+        ):
+            assert closed.shape == expected.shape
+            assert np.allclose(closed, expected, rtol=1e-13, atol=1e-15)

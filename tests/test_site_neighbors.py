@@ -225,6 +225,34 @@ def test_jax_md_rebuilds_agree_with_brute_force():
             assert np.all(np.unique(np.asarray(pairs), axis=0) == expected)
 
 
+def test_jax_md_later_runs_update_the_allocated_list(monkeypatch):
+    """jax-md allocates its list on the host (seconds for 10⁴ sites): a later run's first
+    build in the same box (`state=None`, as each `simulate_with_neighbor_list` call
+    starts) updates the list allocated before, with the same pairs. (The box, cut-off and
+    skin of `test_jax_md_rebuilds_agree_with_brute_force`: one compiled `update`.)"""
+    pytest.importorskip("jax_md")
+    from lievi._systems import _neighbors
+
+    allocations = []
+
+    def counted(*key):
+        allocate, *rest = original(*key)
+        return (lambda x: allocations.append(len(x)) or allocate(x), *rest)
+
+    original = _neighbors._jax_md_list
+    monkeypatch.setattr(_neighbors, "_jax_md_list", counted)
+    rng = np.random.default_rng(5)
+    n = 40
+    sites = jnp.asarray(rng.normal(size=(n, 2, 3)) * 0.3)
+    potential = lievi.SitePotential(sites, lievi.LennardJones(), cutoff=1.2, box=5.0)
+    g = _poses(rng, rng.uniform(0, 5.0, size=(n, 3)))
+    cells = lievi.JaxMDNeighbors(0.3, capacity=CAPACITY)
+    first, _ = cells.build(potential, g)
+    again, _ = cells.build(potential, g)
+    assert len(allocations) <= 1  # none if an earlier test allocated this box's list
+    assert np.all(np.asarray(first) == np.asarray(again))
+
+
 def test_jax_md_in_a_small_box_warns_nothing(recwarn):
     """A periodic box of fewer than three list radii per side (`box_problem`: 3 against
     3 × 1.7), where jax-md has no cell list and tests every pair, in float64: no JAX

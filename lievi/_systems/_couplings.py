@@ -22,7 +22,6 @@ coincide gives an infinite energy (or a non-finite force), which `simulate` repo
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
@@ -304,12 +303,14 @@ class SitePotential(AbstractPotential):
         )
 
     def _pairs(self, g):
-        """The pairs summed over: `(d, r, counted, energy, spread)` — `d = x_i − x_j`
-        `(..., 3)` (minimum image in a box), the distances `r` (set to a safe value where a
-        pair does not count), `counted` (booleans, or `None`: every pair counts),
-        `energy(r)` each pair's energy (shifted at the cut-off, halved for a pair listed
-        twice) before `counted`, and `spread(pull)` the site forces `(N, k, 3)` of forces
-        `pull` `(..., 3)` on each pair's first site and their opposites on its second.
+        """The pairs summed over: `(d, r2, counted, terms, spread)` — `d = x_i − x_j`
+        `(..., 3)` (minimum image in a box), the squared distances `r2` (set to a safe
+        value where a pair does not count), `counted` (booleans, or `None`: every pair
+        counts), `terms(r2)` each pair's energy and the factor `e'(r)/r` of its pull
+        (`AbstractPairEnergy.value_and_slope`; shifted at the cut-off, halved for a pair
+        listed twice) before `counted`, and `spread(pull)` the site forces `(N, k, 3)` of
+        forces `pull` `(..., 3)` on each pair's first site and their opposites on its
+        second.
 
         Without a neighbour list the pairs are laid out by body offset
         (`body_offset_pairs`): each body's sites against those of the bodies 1, 2, …, N/2
@@ -332,44 +333,50 @@ class SitePotential(AbstractPotential):
             d = minimum_image(d, self.box.astype(d.dtype))
         squared = jnp.sum(d * d, axis=-1)
         args = (first(self.types), second(self.types), first(charges), second(charges))
-
-        def scaled(total):
-            return lambda r: total(r) if weight is None else weight.astype(r.dtype) * total(r)
-
         if self.cutoff is None:
-            total = scaled(lambda r: sum(e(r, *args) for e in self.pair))
-            if self.mask is None:
-                return d, jnp.sqrt(squared), None, total, spread
+            cutoff, counted = None, None if self.mask is None else listed
             # A padding site may sit anywhere, on another body's site too: its pairs take
-            # the distance 1 before the square root (both branches of `where` are
-            # differentiated), then count 0.
-            return d, jnp.sqrt(jnp.where(listed, squared, 1.0)), listed, total, spread
-        cutoff = self.cutoff.astype(squared.dtype)
-        inside = listed & (squared < cutoff * cutoff)
-        # Outside (and for padding rows, whose distance is 0) r is set to r_c before the
-        # square root: both branches of `where` are differentiated.
-        r = jnp.sqrt(jnp.where(inside, squared, cutoff * cutoff))
-        total = scaled(lambda r: sum(shifted_force(e, r, cutoff, *args) for e in self.pair))
-        return d, r, inside, total, spread
+            # the distance 1 (both branches of `where` are differentiated), then count 0.
+            if counted is not None:
+                squared = jnp.where(counted, squared, 1.0)
+        else:
+            cutoff = self.cutoff.astype(squared.dtype)
+            counted = listed & (squared < cutoff * cutoff)
+            # Outside (and for padding rows, whose distance is 0) r² is set to r_c²: both
+            # branches of `where` are differentiated.
+            squared = jnp.where(counted, squared, cutoff * cutoff)
+
+        def terms(r2):
+            each = [
+                e.value_and_slope(r2, *args)
+                if cutoff is None
+                else shifted_force(e, r2, cutoff, *args)
+                for e in self.pair
+            ]
+            value, along = sum(v for v, _ in each), sum(a for _, a in each)
+            if weight is None:
+                return value, along
+            return weight.astype(r2.dtype) * value, weight.astype(r2.dtype) * along
+
+        return d, squared, counted, terms, spread
 
     def __call__(self, g):
-        _, r, counted, energy, _ = self._pairs(g)
-        if counted is None:
-            return jnp.sum(energy(r))
-        return jnp.sum(jnp.where(counted, energy(r), 0.0))
+        _, r2, counted, terms, _ = self._pairs(g)
+        e = terms(r2)[0]  # the slopes are dropped by the compiler
+        return jnp.sum(e if counted is None else jnp.where(counted, e, 0.0))
 
     def value_and_body_wrenches(self, g):
         """`V(g)` and each body's wrench `(N, 6)` from the site forces in closed form
-        (`site_wrenches`): per pair, `e(r)` and its slope `e'(r)` in one forward-mode
-        pass, the force `−e'(r) d/r` on site `i` and its opposite on `j` — no reverse
-        pass through the pair table."""
-        d, r, counted, energy, spread = self._pairs(g)
-        e, slope = jax.jvp(energy, (r,), (jnp.ones_like(r),))
-        along = -slope / r  # the pull on the first site is `along · d`
+        (`site_wrenches`): per pair, `e(r)` and `e'(r)/r` from `r²` in one pass
+        (`AbstractPairEnergy.value_and_slope`), the force `−(e'(r)/r) d` on site `i` and
+        its opposite on `j` — no square root where the energy needs none, no reverse pass
+        through the pair table."""
+        d, r2, counted, terms, spread = self._pairs(g)
+        e, along = terms(r2)
         if counted is not None:
             e = jnp.where(counted, e, 0.0)
             along = jnp.where(counted, along, 0.0)
-        forces = spread(along[..., None] * d)  # the pull on each pair's first site
+        forces = spread(-along[..., None] * d)  # the pull on each pair's first site
         return jnp.sum(e), site_wrenches(g, jnp.asarray(self.sites, g.dtype), forces)
 
 

@@ -47,18 +47,18 @@ def minimum_image(d, box):
     return d - box * jnp.round(d / box)
 
 
-def shifted_force(energy, r, cutoff, *args):
-    """`e(r) − e(r_c) − (r − r_c) e'(r_c)`: the energy-and-force shifted pair energy, its
-    value and slope zero at `r_c` (`e'` by forward-mode autodiff). Per pair where the
-    energy has parameter tables by site type or reads charges; else one number for all
-    pairs (half the work of a pair's energy)."""
-    if energy.tables() or energy.needs_charges():
-        at_cutoff, tangent, at_args = jnp.full_like(r, cutoff), jnp.ones_like(r), args
-    else:
-        at_cutoff, tangent = jnp.asarray(cutoff, r.dtype), jnp.ones((), r.dtype)
-        at_args = (0, 0, 0.0, 0.0)
-    e_c, slope_c = jax.jvp(lambda s: energy(s, *at_args), (at_cutoff,), (tangent,))
-    return energy(r, *args) - e_c - (r - at_cutoff) * slope_c
+def shifted_force(energy, r2, cutoff, *args):
+    """`(e_s(r), e_s'(r)/r)` at the squared distances `r2` for the energy-and-force
+    shifted pair energy `e_s(r) = e(r) − e(r_c) − (r − r_c) e'(r_c)`, whose value and slope
+    are zero at `r_c` (`AbstractPairEnergy.value_and_slope`). The values at `r_c` are
+    taken at the scalar `r_c²`: they are per pair only where the energy has parameter
+    tables by site type or reads charges (broadcasting), one number for all pairs else."""
+    cutoff = jnp.asarray(cutoff, r2.dtype)
+    e, along = energy.value_and_slope(r2, *args)
+    e_c, along_c = energy.value_and_slope(cutoff * cutoff, *args)
+    slope_c = along_c * cutoff  # e'(r_c)
+    inverse = jax.lax.rsqrt(r2)  # 1/r, and r = r² / r: one reciprocal square root
+    return e - e_c - (r2 * inverse - cutoff) * slope_c, along - slope_c * inverse
 
 
 def fill_index(n_sites: int) -> int:
@@ -189,10 +189,17 @@ def _inputs(potential, g, skin):
             "A neighbour list needs a cut-off: build the potential with "
             "`SitePotential(..., cutoff=r_c)`."
         )
-    x = np.asarray(potential.flat_positions(jnp.asarray(g)))
+    x = np.asarray(_flat_positions(potential, jnp.asarray(g)))
     body = np.arange(x.shape[0]) // potential.sites.shape[1]
     box = None if potential.box is None else np.asarray(potential.box)
     return x, body, float(potential.cutoff) + skin, box
+
+
+@eqx.filter_jit
+def _flat_positions(potential, g):
+    """`potential.flat_positions(g)` as one compiled program (eagerly, its einsum and
+    reshapes are dispatched one by one at every build)."""
+    return potential.flat_positions(g)
 
 
 @jax.jit
@@ -341,10 +348,20 @@ class JaxMDNeighbors(AbstractNeighborBuilder):
                 side = x.max(axis=0) - origin + 2 * radius
             else:
                 origin, side = np.zeros(3), np.broadcast_to(box, (3,))
-            allocate, update = _jax_md_list(
+            allocate, update, allocated = _jax_md_list(
                 partition, space, tuple(map(float, side)), radius, box is not None
             )
-            neighbors = allocate(jnp.asarray(_into_box(x, origin, side, box)))
+            shifted = jnp.asarray(_into_box(x, origin, side, box))
+            # jax-md's `allocate` sizes its buffers on the host (seconds for 10⁴ sites on
+            # a CPU, at every run's first build); a list allocated for as many sites in
+            # the same box is updated instead (`update` recomputes every pair from the
+            # positions: the same list), allocated anew only where it overflows.
+            neighbors = allocated.get(len(x))
+            if neighbors is not None:
+                neighbors = update(shifted, neighbors)
+            if neighbors is None or bool(neighbors.did_buffer_overflow):
+                neighbors = allocate(shifted)
+            allocated[len(x)] = neighbors
         kept = _kept_pairs(neighbors.idx, jnp.asarray(body))
         capacity = self.sized(int(jnp.sum(kept[2])))
         pairs = _compacted(kept, len(x), capacity)
@@ -353,8 +370,9 @@ class JaxMDNeighbors(AbstractNeighborBuilder):
 
 @functools.lru_cache(maxsize=8)
 def _jax_md_list(partition, space, side: tuple, radius: float, periodic: bool):
-    """jax-md's `(allocate, jitted update)` for a box and radius, kept across builds and
-    runs so that `update` compiles once."""
+    """jax-md's `(allocate, jitted update, allocated)` for a box and radius, kept across
+    builds and runs so that `update` compiles once; `allocated` holds the last list by
+    number of sites, for a later run's first build to update rather than allocate."""
     box = jnp.asarray(side)
     displacement, _ = space.periodic(box) if periodic else space.free()
     neighbor_fn = partition.neighbor_list(
@@ -365,7 +383,7 @@ def _jax_md_list(partition, space, side: tuple, radius: float, periodic: bool):
         capacity_multiplier=1.25,
         format=partition.OrderedSparse,
     )
-    return neighbor_fn.allocate, jax.jit(neighbor_fn.update)
+    return neighbor_fn.allocate, jax.jit(neighbor_fn.update), {}
 
 
 def _into_box(x, origin, side, box):

@@ -5,6 +5,8 @@ Each is an `eqx.Module` whose parameters are pytree leaves (so `jax.grad` reache
 arrays of site pairs. A parameter may be a scalar (every pair of site types alike) or a
 table `(T, T)` indexed by the two sites' types (`lievi.SitePotential(types=…)`), e.g.
 the Lennard-Jones `ε` and `σ` of oxygen–oxygen, oxygen–hydrogen and hydrogen–hydrogen.
+`value_and_slope(r², …)` gives `e` and `e'(r)/r` together from the squared distance, the
+form `lievi.SitePotential`'s force pass uses.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import abc
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -30,6 +33,19 @@ class AbstractPairEnergy(eqx.Module):
     @abc.abstractmethod
     def __call__(self, r, type_i, type_j, charge_i, charge_j) -> Float[Array, ...]:
         """`e(r)` for arrays of pairs (their distances, types and charges)."""
+
+    def value_and_slope(self, r2, type_i, type_j, charge_i, charge_j):
+        """`(e(r), e'(r)/r)` at the squared distances `r2`: the energy and the factor of
+        the pull `−(e'(r)/r) d` on a pair's first site (`d` its separation), both from
+        `r²`, which is what a site pass computes. Broadcasts: a scalar `r2` with per-pair
+        types or charges gives per-pair values. The default takes `√r2` and `e'` by
+        forward-mode autodiff; the energies below give it in closed form, sharing `1/r²`
+        (Lennard-Jones) or one reciprocal square root (Coulomb) between the two."""
+        r = jnp.sqrt(r2)
+        e, slope = jax.jvp(
+            lambda r: self(r, type_i, type_j, charge_i, charge_j), (r,), (jnp.ones_like(r),)
+        )
+        return e, slope / r
 
     def tables(self) -> dict[str, Array]:
         """The parameters given per pair of site types (`(T, T)` tables), by name."""
@@ -92,6 +108,15 @@ class LennardJones(AbstractPairEnergy):
         s6 = (_by_type(self.sigma, type_i, type_j) / r) ** 6
         return 4 * _by_type(self.epsilon, type_i, type_j) * (s6 * s6 - s6)
 
+    def value_and_slope(self, r2, type_i, type_j, charge_i, charge_j):
+        """In `1/r²` alone: `s⁶ = (σ²/r²)³`, `e = 4ε(s¹² − s⁶)`, `e'/r = −24ε(2s¹² − s⁶)/r²`."""
+        inverse = 1 / r2
+        sigma = _by_type(self.sigma, type_i, type_j)
+        s2 = sigma * sigma * inverse
+        s6 = s2 * s2 * s2
+        four_epsilon = 4 * _by_type(self.epsilon, type_i, type_j)
+        return four_epsilon * (s6 * s6 - s6), -6 * four_epsilon * (2 * s6 * s6 - s6) * inverse
+
     def parameter_conditions(self):
         return super().parameter_conditions() + [
             (jnp.all(self.epsilon >= 0), "`epsilon` must be ≥ 0."),
@@ -123,6 +148,13 @@ class Coulomb(AbstractPairEnergy):
 
     def __call__(self, r, type_i, type_j, charge_i, charge_j):
         return self.k * charge_i * charge_j / jnp.sqrt(r * r + self.softening**2)
+
+    def value_and_slope(self, r2, type_i, type_j, charge_i, charge_j):
+        """One reciprocal square root `u = 1/√(r² + s²)`: `e = k q_i q_j u`,
+        `e'/r = −e u²`."""
+        u = jax.lax.rsqrt(r2 + self.softening**2)
+        e = self.k * charge_i * charge_j * u
+        return e, -e * u * u
 
     def parameter_conditions(self):
         return super().parameter_conditions() + [(self.softening >= 0, "`softening` must be ≥ 0.")]
