@@ -74,7 +74,9 @@ class RATTLE(AbstractIntegrator):
 
     - `chart`: `"exp"` (default) or `"cayley"`, as for `lievi.DEP`.
     - `rtol`, `atol`: the iteration stops when every body's momentum equation holds to
-      `atol + rtol·‖m‖_∞` and every joint to `(atol + rtol)·ℓ` (`ℓ` the link length).
+      `atol + rtol·‖m‖_∞` (`‖m‖_∞` floored at `ε‖M‖ℓ/h`, the momentum of a motion of one ulp of
+      the chain a step, so that a chain at rest has a scale) and every joint to
+      `(atol + rtol)·ℓ` (`ℓ` the link length).
       Default: `rtol` = 64 ulps of the dtype, `atol` = 0.
     - `max_steps`: maximum iterations per step; exceeding it is reported as
       `RESULTS.newton_not_converged`.
@@ -116,9 +118,12 @@ class RATTLE(AbstractIntegrator):
         length = system.length_scale().astype(m.dtype)
         # The momentum equations relative to the size of the momenta, the joints to `ℓ`:
         # one tolerance then means "to 64 ulps" for both. The scale does not move the
-        # root, so it carries no derivative: from rest it is `tiny`, whose derivative
-        # `1/tiny²` overflows and made the gradient NaN.
-        scale = jax.lax.stop_gradient(jnp.maximum(jnp.max(jnp.abs(start)), jnp.finfo(m.dtype).tiny))
+        # root, so it carries no derivative. From rest it is floored at the momentum of a
+        # motion of one ulp of the chain's size a step, `ε·‖M‖·ℓ/h`: floored at `tiny`
+        # instead, the momentum rows of the Jacobian, `(M/h)/tiny`, overflowed and the
+        # implicit derivative of a run started from rest was NaN.
+        floor = jnp.finfo(m.dtype).eps * jnp.max(jnp.abs(tensor)) * length / jnp.abs(h)
+        scale = jax.lax.stop_gradient(jnp.maximum(jnp.max(jnp.abs(start)), floor))
 
         def unpack(z):
             return z[: 6 * n].reshape(n, 6), z[6 * n :]
