@@ -48,12 +48,6 @@ def _listed_pairs(pairs, n_sites):
     return jnp.sum(pairs[:, 1] < n_sites)
 
 
-@jax.jit
-def _last(arrays):
-    """The last save of each array: one program (eager indexing dispatches one each)."""
-    return jax.tree.map(lambda x: x[-1], arrays)
-
-
 def _with_list(potential, pairs):
     """`potential` summing over the builder's list `pairs`. `eqx.tree_at` swaps the leaf
     without `SitePotential.__init__`'s eager checks, which would sort the list on the host
@@ -221,7 +215,7 @@ def simulate_with_neighbor_list(
             # list at its start rather than risk running it twice.
             listed = None
         pieces.append(_kept(sol, start, save_every))
-        g, m = _last((sol.g, sol.m))
+        g, m = _take((sol.g, sol.m), -1)  # one program, not one dispatch each
         opts.progress.show((start + rebuild_every) / n_steps)
     joined = _join(pieces, h, t0, n_steps, save_every, failure)
     stats = dict(
