@@ -1,25 +1,19 @@
-"""The options every run function takes, with one set of defaults, checked in one place.
-
-`lievi.simulate`, `simulate_batch`, `stream_batch` and `simulate_with_neighbor_list` take
-the same keyword options (`OPTIONS`: what to save, `t0`, `throw`, `checkpoint`,
-`progress_meter`, `forcing`, `args`, `monitor`, `tuning`) with the same defaults;
-`options(...)` reads and checks them once for all. A run function that cannot honour an
-option (a streamed run is not differentiated, so it has no `checkpoint`) names it in
-`unsupported`: any value but the default is then a `ValueError` saying so.
-"""
+"""The options every run function takes (`OPTIONS`), with one set of defaults, read and
+checked once for all by `options`."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import equinox as eqx
+import numpy as np
 
 from ._checks import check_integer, check_scalar
 from ._forcing import as_forcing
 from ._monitor import as_monitor
 from ._progress import as_progress_meter
 from ._save import Save, as_save, deprecated
-from ._scan import checkpoint_segment
 
 
 class Tuning(eqx.Module):
@@ -33,13 +27,9 @@ class Tuning(eqx.Module):
       `jax.vmap`. Both compute the same iterates to round-off.
     - `fixed_iterations`: (kernel) Newton iterations every body takes before the one
       convergence check; bodies still above tolerance then continue, alone, up to the
-      integrator's `max_steps`. Default: the kernel's own (3 for the exp chart, 4 for the
-      Cayley chart and Moser–Veselov; for one body, none: it stops at convergence). With
-      `max_steps` equal to it there is no data-dependent loop; bodies not converged then
-      are reported as failed.
-    - `unroll`: steps per iteration of the compiled loop (`lax.scan`'s `unroll`). On a
-      GPU a few steps per iteration amortise the per-iteration launch cost; it multiplies
-      the compiled code, hence the compile time, by `unroll`.
+      integrator's `max_steps`. Default: the kernel's own (none for one body).
+    - `unroll`: steps per iteration of the compiled loop (`lax.scan`'s `unroll`); it
+      multiplies the compile time by `unroll`.
     """
 
     fast: bool = eqx.field(default=True, static=True)
@@ -84,12 +74,9 @@ class Options(eqx.Module):
 
 
 def options(label: str, n_steps, given: dict, old: dict, unsupported=()) -> Options:
-    """Read and check a run function's options once.
-
-    `given`: the common options as passed (`OPTIONS`' names); `old`: the deprecated
-    keywords passed (`DEPRECATED`; anything else is a `TypeError`, as Python's own);
-    `unsupported`: options this run function cannot honour (`ValueError` unless default).
-    """
+    """Read and check a run function's options: `given`, the common options as passed;
+    `old`, the deprecated keywords passed (anything else is a `TypeError`, as Python's);
+    `unsupported`, options the run function cannot honour (`ValueError` unless default)."""
     unknown = set(old) - set(DEPRECATED)
     if unknown:
         raise TypeError(f"{label}() got unexpected keyword arguments {sorted(unknown)}.")
@@ -118,17 +105,15 @@ def options(label: str, n_steps, given: dict, old: dict, unsupported=()) -> Opti
 
 
 def _tuning(label: str, tuning, old: dict) -> Tuning:
-    """`tuning`, with the deprecated keywords `fast`, `fixed_iterations`, `unroll` (as
-    runs took them before `Tuning`) folded in."""
+    """`tuning`, with the deprecated keywords `fast`, `fixed_iterations`, `unroll` in."""
     if not isinstance(tuning, Tuning):
         raise ValueError(f"`tuning` must be a lievi.advanced.Tuning, got {tuning!r}.")
-    knobs = {name: old[name] for name in ("fast", "fixed_iterations", "unroll") if name in old}
+    knobs = {name: old[name] for name in DEPRECATED[1:] if name in old}
     if not knobs:
         return tuning
     spelled = ", ".join(f"{name}={value!r}" for name, value in knobs.items())
     deprecated(label, f"`{spelled}`", f"`tuning=lievi.advanced.Tuning({spelled})`")
-    current = {name: getattr(tuning, name) for name in ("fast", "fixed_iterations", "unroll")}
-    return Tuning(**{**current, **knobs})
+    return dataclasses.replace(tuning, **knobs)
 
 
 def _equal(a, b) -> bool:
@@ -136,3 +121,29 @@ def _equal(a, b) -> bool:
         return bool(a == b)
     except Exception:  # e.g. an array
         return False
+
+
+def checkpoint_segment(checkpoint, n_steps: int, save_every: int) -> int | None:
+    """Steps per `jax.checkpoint`-ed segment (`checkpoint=`), or `None` for none."""
+    if checkpoint is False or checkpoint is None:
+        return None
+    # A segment either lies inside one save interval or spans whole save intervals.
+    n_saves = n_steps // save_every
+    allowed = sorted(
+        {d for d in range(1, save_every + 1) if save_every % d == 0}
+        | {save_every * d for d in range(1, n_saves + 1) if n_saves % d == 0}
+    )
+    if checkpoint is True:
+        # √N segments of √N steps minimise stored states + one segment's internals.
+        return min(allowed, key=lambda c: abs(np.log(c) - 0.5 * np.log(n_steps)))
+    if (
+        isinstance(checkpoint, bool)
+        or not isinstance(checkpoint, (int, np.integer))
+        or checkpoint not in allowed
+    ):
+        raise ValueError(
+            f"`checkpoint` must be True, False, or a segment length in steps that divides "
+            f"`save_every` ({save_every}) or is a multiple of it dividing `n_steps` ({n_steps}); "
+            f"got {checkpoint!r}. Pass checkpoint=True to choose one near √n_steps."
+        )
+    return int(checkpoint)

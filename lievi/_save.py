@@ -9,11 +9,9 @@ import numpy as np
 
 
 class Save(eqx.Module):
-    """What every run function (`lievi.simulate`, `simulate_batch`, `stream_batch`,
-    `simulate_with_neighbor_list`) stores, and how often; the fields not stored are
-    `None` in the `Solution` (the summary statistics `failed_step`,
-    `total_newton_iterations` and `num_steps` are always kept). The default, `Save()`,
-    stores `g`, `m` and the statistics at every step.
+    """What every run function stores, and how often; the fields not stored are `None` in
+    the `Solution` (`failed_step`, `total_newton_iterations` and `num_steps` are always
+    kept). The default, `Save()`, stores `g`, `m` and the statistics at every step.
 
     **Arguments:**
 
@@ -25,9 +23,8 @@ class Save(eqx.Module):
     - `advected`: the advected parameter `Γ_k = g_kᵀa` (`Solution.advected`), also given
       whenever `g` is saved.
     - `every`: save every this many steps (as diffrax's `SaveAt(steps=...)`); it must
-      divide `n_steps`. The initial state is always saved, so a run keeps
-      `n_steps // every + 1` saves; `every=n_steps` keeps the initial and the final state
-      only, the cheapest output (what makes very large batches fit in memory).
+      divide `n_steps`. A run keeps `n_steps // every + 1` saves (the initial state
+      included); `every=n_steps` keeps the initial and the final state only.
     """
 
     g: bool = eqx.field(default=True, static=True)
@@ -59,11 +56,10 @@ FIELDS = ("g", "m", "stats", "advected")
 
 
 def as_save(save, save_every=None, label: str = "this run") -> Save:
-    """`save` as a `Save`. The spellings of earlier releases are read with a
-    `DeprecationWarning`: a sequence of field names (`save=("g", "m")`) and a separate
-    `save_every` (which overrides `save.every`)."""
+    """`save` as a `Save`; the spellings of earlier releases, a sequence of field names and
+    a separate `save_every` (overriding `save.every`), with a `DeprecationWarning`."""
     if not isinstance(save, Save):
-        if isinstance(save, str) or not _is_sequence(save):
+        if not isinstance(save, (tuple, list)):
             raise ValueError(
                 f"`save` must be a `lievi.Save`, e.g. lievi.Save(every=10, stats=False); "
                 f"got {save!r}."
@@ -72,25 +68,19 @@ def as_save(save, save_every=None, label: str = "this run") -> Save:
         unknown = set(names) - set(FIELDS)
         if unknown:
             raise ValueError(f"`save` may only contain {FIELDS}, got {sorted(unknown)}.")
-        deprecated(label, f"`save={names!r}`", f"`save=lievi.Save({_keywords(names)})`")
-        save = Save(**{name: name in names for name in FIELDS})
+        keywords = {name: name in names for name in FIELDS}
+        spelled = ", ".join(f"{name}={value}" for name, value in keywords.items())
+        deprecated(label, f"`save={names!r}`", f"`save=lievi.Save({spelled})`")
+        save = Save(**keywords)
     if save_every is not None:
         deprecated(label, "`save_every=`", f"`save=lievi.Save(every={save_every!r})`")
         save = Save(save.g, save.m, save.stats, save.advected, save_every)
     return save
 
 
-def _is_sequence(x) -> bool:
-    return isinstance(x, (tuple, list))
-
-
-def _keywords(names) -> str:
-    return ", ".join(f"{name}={name in names}" for name in FIELDS)
-
-
 def deprecated(label: str, old: str, new: str) -> None:
-    """A `DeprecationWarning` for a spelling of an earlier release, pointing at the call of
-    the public run function (`label`): user → run function → `options` → reader → here."""
+    """A `DeprecationWarning` pointing at the call of the run function `label` (user → run
+    function → `options` → reader → here)."""
     warnings.warn(
         f"{label}: {old} is deprecated and will be removed in the next release; pass {new}.",
         DeprecationWarning,

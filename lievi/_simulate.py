@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -61,48 +63,14 @@ def simulate(
       Legendre transform `−D₁L_d(g0, g1)`.
 
     **Options** — every run function (`simulate_batch`, `stream_batch`,
-    `simulate_with_neighbor_list`) takes these, with these defaults:
-
-    - `save`: what is stored and how often, a `lievi.Save` (default `Save()`: `g`, `m`
-      and the Newton statistics at every step; `Save(every=k)` every `k`-th step, `k`
-      dividing `n_steps`).
-    - `t0`: initial time; save `j` is at `t0 + j·every·h`.
-    - `throw`: if a step fails (see `RESULTS`), raise an error saying what to do; with
-      `throw=False` the failure is returned in `Solution.result` instead. Inside your own
-      `jax.jit` the error is raised by Equinox's runtime check and reaches you wrapped in
-      `JaxRuntimeError` (lievi's message is in its text); wrap with `eqx.filter_jit` for
-      a readable error, or pass `throw=False` and read `result`.
-    - `checkpoint`: memory of reverse-mode differentiation (`jax.grad`). `False` (default)
-      stores each step's state and the roots of its implicit solves, O(`n_steps`)
-      memory, and recomputes the rest of the step in the backward pass. `True` splits the
-      run into segments of about √`n_steps` steps, each wrapped in `jax.checkpoint`: the
-      backward pass stores only the state at segment boundaries and recomputes one
-      segment at a time, O(√`n_steps`) memory for one extra forward pass. An `int` sets
-      the segment length in steps; it must divide `save.every` or be a multiple of it
-      that divides `n_steps`. No effect on values or on forward-mode derivatives.
-    - `progress_meter`: report progress of a long run while it computes (diffrax's
-      `progress_meter` convention): `lievi.NoProgressMeter()` (the default, also `False`),
-      `lievi.TextProgressMeter()` (also `"text"`: the percentage done on one line updated
-      in place, printed once the run has taken a second), `lievi.TqdmProgressMeter()`
-      (also `"tqdm"`: a tqdm bar, needs `pip install tqdm`); `True` picks tqdm where it is
-      installed and text otherwise. Updated about every 1% of the steps from inside the
-      compiled loop (`jax.debug.callback`), so it also works under an outer `jit`; no
-      effect on values.
-    - `forcing`: an external generalised force (for the rigid body, the body torque):
-      `lievi.Control(u)` with `u` of shape `(n_steps, d)` held over each step,
-      `lievi.ForceLaw(fn)` with `fn(t, g, m, args)` (feedback, damping), or a tuple of
-      them (added). Enters the step through the discrete Lagrange–d'Alembert principle
-      (see `lievi.AbstractKickIntegrator`). Step `k` runs from `t_k = t0 + k·h`.
-    - `args`: passed unchanged to a force law (as diffrax's `args`).
-    - `monitor`: an invariant checked at every save, `lievi.EnergyMonitor(rtol)` or
-      `lievi.MomentumMonitor(rtol)`: a run whose invariant drifts past the tolerance ends
-      with `RESULTS.invariant_drift` (off by default; docs/concepts/failure.md).
-    - `tuning`: how the run is computed, never what it computes
-      (`lievi.advanced.Tuning`: the kernel, its fixed Newton iterations, loop unrolling).
-
-    The keywords of earlier releases — `save_every=k` (now `save=Save(every=k)`),
-    `save=("g", "m")` (now `Save(g=True, m=True, stats=False)`), `fast`,
-    `fixed_iterations`, `unroll` (now `tuning=lievi.advanced.Tuning(...)`) — still work
+    `simulate_with_neighbor_list`) takes them, with the same defaults; each is described
+    under *Run options* (docs/api/simulate.md): `save` (a `lievi.Save`, default `Save()`),
+    `t0` (0.0; save `j` is at `t0 + j·every·h`), `throw` (True: raise if a step fails,
+    else read `Solution.result`), `checkpoint` (False: reverse-mode memory O(`n_steps`);
+    True or a segment length: O(√`n_steps`)), `progress_meter` (False), `forcing` (None;
+    the discrete Lagrange–d'Alembert principle), `args` (None), `monitor` (None) and
+    `tuning` (`lievi.advanced.Tuning()`). The keywords of earlier releases
+    (`save_every=`, `save=("g", "m")`, `fast`, `fixed_iterations`, `unroll`) still work
     for one release, with a `DeprecationWarning`.
 
     **Returns:** a `Solution`.
@@ -110,15 +78,11 @@ def simulate(
     The run computes in the promoted dtype of `g0`, `m0`, `h` and the system's parameters
     (NumPy rules: float32 throughout needs a float32 system too).
 
-    Shapes, dtypes, `h`, `t0`, `n_steps`, the options and concrete values of `g0`,
-    `m0` and the system's parameters are checked eagerly and raise `ValueError`. The same
-    value checks run inside the computation, so under `jit`/`vmap` a bad value (an
-    inertia that is not positive definite, `g0` not a rotation, NaN, `h ≤ 0`) gives
-    `RESULTS.invalid_input` for that body, never `successful`. Every step is also checked
-    for a non-finite `g` or `m` (`RESULTS.nonfinite`) and against the integrator's step
-    bound (`RESULTS.step_too_large`, see `AbstractIntegrator.step_bound`). Under
-    `jax.vmap` (many bodies) use `throw=False` to let a batch carry on and read the
-    per-body `result`.
+    Shapes, dtypes, `h`, `t0`, `n_steps`, the options and concrete values are checked
+    eagerly (`ValueError`); the same value checks run inside the computation, so under
+    `jit`/`vmap` a bad value gives `RESULTS.invalid_input`, never `successful`. Every step
+    is checked for a non-finite state (`RESULTS.nonfinite`) and against the integrator's
+    step bound (`RESULTS.step_too_large`).
     """
     opts = options("lievi.simulate", n_steps, locals(), deprecated)
     n_steps, forcing = opts.n_steps, opts.forcing
@@ -128,7 +92,15 @@ def simulate(
             "Give exactly one of `m0` (initial momentum) and `g1` (second configuration)."
         )
     g0 = _as_array("g0", g0)
-    _check_configuration(system, "g0", g0)
+    # Shape and finiteness now (no program compiled); membership in the group inside the
+    # run (a body off the group starts as `RESULTS.invalid_input`, then `explain` says so).
+    shape, n = system.element_shape(), system.group.matrix_dim
+    what = f"a {n}×{n} group element" + (
+        f" for each of {shape[0]} bodies" if len(shape) > 2 else ""
+    )
+    check_shape("g0", g0, shape, what)
+    if is_concrete(g0) and not np.all(np.isfinite(np.asarray(g0))):
+        raise ValueError("`g0` contains NaN or inf; pass finite values.")
     if g1 is not None and forcing is not None:
         raise ValueError(
             "`g1` with `forcing`: the forced discrete Legendre transform needs the force at "
@@ -144,41 +116,17 @@ def simulate(
     plan = plan_for(system, integrator, None, forcing, args, one_body=True, tuning=opts.tuning)
     run = Run.of(plan, opts, dtype)
 
-    def explain():
-        # An eager run with a bad input: the eager checks name it (`ValueError`).
-        system.check_element("g0", g0)
-
-    solution = execute(
-        run, _lead(g0), _lead(m0), h, t0, n_steps, opts.save.every, explain=explain, one=True
-    )
+    # With a bad input, an eager run raises the eager check's `ValueError` naming it.
+    explain = functools.partial(system.check_element, "g0", g0)
+    g0, m0 = (np.asarray(x)[None] if is_concrete(x) else jnp.asarray(x)[None] for x in (g0, m0))
+    solution = execute(run, g0, m0, h, t0, n_steps, opts.save.every, explain=explain, one=True)
     if throw:
         solution = raise_if_failed(solution, "lievi.simulate", "a step")
     return solution
 
 
-def _lead(x):
-    """`x` with a leading batch axis of one: on the host for a concrete array (no program
-    compiled for it), traced otherwise."""
-    return np.asarray(x)[None] if is_concrete(x) else jnp.asarray(x)[None]
-
-
-def _check_configuration(system, name, g) -> None:
-    """Shape and finiteness now (no program compiled); membership in the group is checked
-    inside the run (a body off the group starts as `RESULTS.invalid_input`, and an eager
-    run then raises `check_element`'s `ValueError`)."""
-    shape = system.element_shape()
-    n = system.group.matrix_dim
-    what = f"a {n}×{n} group element" + (
-        f" for each of {shape[0]} bodies" if len(shape) > 2 else ""
-    )
-    check_shape(name, g, shape, what)
-    if is_concrete(g) and not np.all(np.isfinite(np.asarray(g))):
-        raise ValueError(f"`{name}` contains NaN or inf; pass finite values.")
-
-
 def _momentum_from_g1(system, integrator, g0, g1, h):
-    """`m0` of the discrete trajectory through `(g0, g1)`: the discrete Legendre transform
-    `−D₁L_d(g0, g1)` (paper §2: a variational integrator is started from `(g0, g1)`)."""
+    """`m0` of the discrete trajectory through `(g0, g1)`: `−D₁L_d(g0, g1)` (paper §2)."""
     if not isinstance(integrator, AbstractVariationalIntegrator):
         raise ValueError("`g1` needs a variational integrator (one with a discrete Lagrangian).")
     system.check_element("g0", g0)
@@ -198,8 +146,6 @@ def _momentum_from_g1(system, integrator, g0, g1, h):
 
 
 def _as_array(name: str, x):
-    """Lists and tuples are accepted like arrays; complex, bool and strings are not. A
-    JAX array (or tracer) is kept; anything else is read on the host (no program
-    compiled)."""
+    """`x` real (lists and tuples too): a JAX array kept, else read on the host."""
     check_real_dtype(name, x)
     return x if isinstance(x, jax.Array) else np.asarray(x)
