@@ -1,17 +1,6 @@
-"""`simulate_batch`: many bodies at once, with fast paths for rigid bodies.
-
-Semantics are those of `jax.vmap(simulate)` over the bodies (the generic path is exactly
-that); for `RigidBody` with principal moments and the integrators that have one (`DEP`,
-`MoserVeselov`: `_kernels/_so3.py`; `LiePoissonSplitting`, `RK4`: `_kernels/_explicit.py`), a
-structure-of-arrays fast path computes the same iterates to round-off, 10–50× faster on
-CPU (`benchmarks/throughput.py`); for the free `RigidBodySE3` with `DEP` (both charts),
-`_kernels/_se3.py` (`benchmarks/se3_step_cost.py`). The system picks the kernel
-(`AbstractLieSystem.batch_kernel`) and the kernel owns its state layout
-(`AbstractBatchKernel`); nothing here depends on the group. Everything runs inside one jit-compiled `lax.scan`: no host
-synchronisation per step. For a potential with an advected parameter (`UniformGravity`:
-`Γ = gᵀe₃`) and a run that does not save `g`, the fast path carries the reduced state
-`(Π, Γ)` of the paper's §7 instead of `(Π, g)` (`AbstractBatchKernel.reduced`).
-"""
+"""`simulate_batch`: many bodies at once — `jax.vmap(simulate)`'s semantics, on the
+integrator's structure-of-arrays kernel where it has one for the system
+(`AbstractIntegrator.batch_kernel`), else the method's own step under `jax.vmap`."""
 
 from __future__ import annotations
 
@@ -50,14 +39,9 @@ def has_fast_path(
 
 
 def _is_one_system(system) -> bool:
-    """Whether `system` describes one system: its energy of one momentum `(d,)` and its
-    potential at one element `(n, n)` are scalars, and its velocity of that momentum has
-    the momentum's shape (by shapes alone, nothing computed).
-
-    Cached by the system's structure, its non-array fields and its arrays' shapes and
-    dtypes: tracing the energy and the potential again cost about 7 ms of every eager
-    `simulate_batch` call, more than half of a 100-step run of 64 SE(3) bodies (12.1 →
-    4.7 ms, `benchmarks/compile_time.py --throughput`)."""
+    """Whether `system` is one system: its energy of one momentum and its potential at one
+    element are scalars, its velocity has the momentum's shape (by shapes alone). Cached
+    by the system's abstract structure: tracing again cost ~7 ms an eager call."""
     dtype = state_dtype(system)
     g = jax.ShapeDtypeStruct(system.element_shape(), dtype)
     m = jax.ShapeDtypeStruct(system.momentum_shape(), dtype)
@@ -85,8 +69,7 @@ def _scalar_energy_and_potential(key, g, m) -> bool:
 def infer_system_axis(system, system_axis, batch: int | None = None):
     """`system_axis`, or for `None` the axis a batch of systems carries: `None` for one
     system, `0` for a batch built with `jax.vmap` (every array leaf with the same leading
-    size — `batch`, where known — and one system per index along it). Anything else
-    raises a `ValueError` that says what to pass."""
+    size, `batch` where known); anything else is a `ValueError` saying what to pass."""
     if system_axis is not None or _is_one_system(system):
         return system_axis
     leaves = jax.tree.leaves(eqx.filter(system, eqx.is_array))
@@ -149,49 +132,30 @@ def simulate_batch(
       initial momenta, `(B, d)`.
     - `h`: one step size, or one per body, shape `(B,)`.
     - `n_steps`: number of steps.
-    - `system_axis`: `None` or `0`, as `in_axes` of `jax.vmap` for `system`. Left at
-      `None` for a batch of systems built with `jax.vmap` (every array leaf one dimension
-      larger than one system's, with leading size `B`), it is inferred as `0`; a system
-      that is neither one system nor such a batch raises a `ValueError`. (A batch of
-      three principal-moment vectors, `(3, 3)`, is also one valid inertia tensor: pass
-      `system_axis=0` for it.)
+    - `system_axis`: `None` or `0`, as `in_axes` of `jax.vmap` for `system`; `None` is
+      inferred as `0` for a batch of systems built with `jax.vmap`, and a system that is
+      neither one system nor such a batch is a `ValueError`. (A `(3, 3)` batch of three
+      principal-moment vectors is also one inertia tensor: pass `system_axis=0`.)
     - `save`, `t0`, `throw`, `checkpoint`, `progress_meter`, `forcing`, `args`,
-      `monitor`, `tuning`: the options of every run function, as `lievi.simulate` (the
-      same defaults). For a batch: `throw=True` raises if any body failed, while with
-      `throw=False` each body's `result` says whether it succeeded and a failed body does
-      not stop the others; a `lievi.Control(u)` with `u` of shape `(B, n_steps, d)` gives
-      each body its own control sequence, of shape `(n_steps, d)` one shared by all (for
-      systems of N bodies, `(B, n_steps, N, 6)` and `(n_steps, N, 6)`); a force law and
-      `args` are shared; one progress line or bar for the whole batch. For a potential
-      with an advected parameter (e.g. `UniformGravity`) `Γ_k = g_kᵀa` is
-      `Solution.advected`, `(B, T, 3)`, whenever `save.g` or `save.advected`, and
-      **`save` also picks the algorithm of its fast path:** without `g` it carries the
-      reduced state `(Π, Γ)` instead of `(Π, g)` — the reduced discrete Lie–Poisson
-      equations of the paper's §7, `Γ_{k+1} = F_kᵀΓ_k`, half the state — which gives the
-      same `Π_k`, `Γ_k` to round-off (docs/potentials.md).
+      `monitor`, `tuning`: the run options, as `lievi.simulate`. `throw=False`: each
+      body's `result` says whether it succeeded, and a failed body does not stop the
+      others. A `lievi.Control(u)` with `u` `(B, n_steps, d)` gives each body its own
+      controls, `(n_steps, d)` one shared sequence. For a potential with an advected
+      parameter (`UniformGravity`) `Solution.advected` is `Γ_k = g_kᵀa`, `(B, T, 3)`,
+      whenever `save.g` or `save.advected`; without `save.g` the fast path carries the
+      reduced state `(Π, Γ)` of the paper's §7, `Γ_{k+1} = F_kᵀΓ_k`, instead of `(Π, g)`
+      (docs/potentials.md).
 
-    The fast path (`lievi.advanced.has_fast_path`): the integrator's structure-of-arrays
-    kernel, for a system with `principal_moments` — the rigid body with `DEP` (both
-    charts), `MoserVeselov`, `LiePoissonSplitting` or `RK4`; in `UniformGravity` (the
-    heavy top) the first three; `RigidBodySE3` without a potential, any kinetic tensor,
-    and `DEP`, both charts. Forced runs take the generic path. Its iterates equal the
-    generic path's to round-off, and so do its derivatives: reverse mode goes through
-    the fast path, implicit steps by the implicit function theorem at each step's
-    converged root with the closed-form 3×3 Jacobian (the Newton iterations are not
-    differentiated). `tuning=lievi.advanced.Tuning(fast=False)` runs `jax.vmap(simulate)`.
-
-    Both paths apply the same checks as `simulate`, per body: a bad value of a body's
-    system, `g0`, `m0` or `h` gives `RESULTS.invalid_input` (also when they are traced,
-    e.g. a vmapped system), a non-finite `g` or `m` gives `RESULTS.nonfinite`, and a step
-    past `integrator.step_bound()` gives `RESULTS.step_too_large` (docs/guarantees.md).
+    The fast path (`lievi.advanced.has_fast_path`; docs/batched.md lists the pairs) gives
+    the generic path's iterates and derivatives to round-off; forced runs take the
+    generic path. Both check each body as `simulate` does (`RESULTS.invalid_input`,
+    `nonfinite`, `step_too_large`; docs/guarantees.md).
 
     **Returns:** a `Solution` whose fields have a leading batch axis: `ts` `(B, T)`, `g`
-    `(B, T, n, n)`, `m` `(B, T, d)`, `result` `(B,)`, `stats[...]` `(B, …)` — as
-    `jax.vmap(simulate)` would give. On the fast path `stats["newton_iterations"]`
-    counts the fixed iterations too (the generic path stops at convergence).
+    `(B, T, n, n)`, `m` `(B, T, d)`, `result` `(B,)`, `stats[...]` `(B, …)`. On the fast
+    path `stats["newton_iterations"]` counts the fixed iterations too.
 
-    To spread the batch over several devices, place the inputs with
-    `lievi.shard_batch`; the jit-compiled loop then runs sharded (see the README).
+    To spread the batch over several devices, place the inputs with `lievi.shard_batch`.
     """
     opts = options("lievi.simulate_batch", n_steps, locals(), deprecated)
     n_steps, save, forcing = opts.n_steps, opts.save, opts.forcing
@@ -234,9 +198,7 @@ def simulate_batch(
     check_batch_h(h, batch)
     system_axis = infer_system_axis(system, system_axis, batch)
     if system_axis == 0:
-        sizes = {
-            jnp.shape(x)[0] for x in jax.tree_util.tree_leaves(eqx.filter(system, eqx.is_array))
-        }
+        sizes = {jnp.shape(x)[0] for x in jax.tree.leaves(eqx.filter(system, eqx.is_array))}
         if sizes != {batch}:
             raise ValueError(
                 f"with `system_axis=0` every array leaf of `system` must have leading axis "
@@ -263,11 +225,8 @@ def simulate_batch(
     )
     run = Run.of(plan, opts, dtype)
 
-    def explain():
-        # An eager run with a bad input: the group's own test (`check_element`'s) names
-        # the body (on SE(3) a pose is not an orthogonal matrix).
-        system.check_elements("g0", g0)
-
+    # With a bad input, an eager run raises the group's own test naming the body.
+    explain = functools.partial(system.check_elements, "g0", g0)
     solution = execute(run, g0, m0, h, t0, n_steps, opts.save.every, explain=explain)
     if throw:
         solution = raise_if_failed(solution, "lievi.simulate_batch", "a body")
@@ -275,7 +234,7 @@ def simulate_batch(
 
 
 def check_batch_h(h, batch: int) -> None:
-    """`h`: a scalar or one per body `(batch,)`; concrete values finite, positive, normal."""
+    """`h`: a scalar or one per body; concrete values finite, positive, normal."""
     if jnp.ndim(h) not in (0, 1) or (jnp.ndim(h) == 1 and jnp.shape(h)[0] != batch):
         raise ValueError(
             f"`h` must be a scalar or have shape ({batch},) (one per body), got {jnp.shape(h)}."
@@ -292,8 +251,7 @@ def check_batch_h(h, batch: int) -> None:
 
 
 def _member(tree, axes):
-    """The first member of a batch `tree` whose batched leaves are those with axis `0` in
-    `axes` (a `jax.vmap` in-axes prefix), on the host (no program compiled)."""
+    """The first member of a batch `tree` (`axes`: its `jax.vmap` in-axes), on the host."""
     if axes is None:
         return tree
     return jax.tree.map(
