@@ -1,13 +1,5 @@
-"""Progress meters for `simulate(..., progress_meter=...)`, in the manner of diffrax's.
-
-A meter is a small `eqx.Module` (no arrays, so it is static to `jit`). The abstract base
-owns the behaviour: inside the compiled loop it sends the fraction of steps done to the
-host about every 1% of the steps (`jax.debug.callback`, so it also works under an outer
-`jit`), drops the repeats that arrive from the lanes of a `vmap`-ed run, and keeps one
-record per run (started by the fraction 0, ended by 1). The concrete meters only say how
-to show it: `NoProgressMeter` (nothing; no callback is compiled at all),
-`TextProgressMeter` (one line, rewritten in place) and `TqdmProgressMeter` (a tqdm bar).
-"""
+"""Progress meters for `progress_meter=`, in the manner of diffrax's: the base sends the
+fraction done from the compiled loop and keeps one record per run; a meter shows it."""
 
 from __future__ import annotations
 
@@ -23,22 +15,15 @@ import numpy as np
 
 
 class AbstractProgressMeter(eqx.Module):
-    """The base of the progress meters: when and what to report, from the compiled loop.
-
-    A subclass shows the progress: `_start()` returns the host-side state of a new run,
-    `_show(state, fraction)` shows one update (`fraction` in `[0, 1]`, each value once per
-    run), `_close(state)` ends the run.
-    """
+    """The base of the progress meters (no arrays: static to `jit`). A subclass shows the
+    progress: `_start()` returns the host-side state of a new run, `_show(state,
+    fraction)` shows one update (each `fraction` in `[0, 1]` once), `_close(state)`."""
 
     reports: ClassVar[bool] = True
 
     def report(self, k, n_steps):
-        """Send `k / n_steps` to the host about every 1% of the steps (`k`, traced, counts
-        the steps done; `n_steps` static or traced: an eager run's horizon is traced, see
-        `lievi._loop`). Called inside `simulate`'s loop.
-
-        Returns `k`, after the report: what is computed from the returned value is ordered
-        after it (the callbacks are otherwise unordered)."""
+        """Send `k / n_steps` to the host about every 1% of the steps, from the compiled
+        loop (`jax.debug.callback`); returns `k` ordered after the report."""
         if not self.reports:
             return k
         stride = jnp.maximum(1, n_steps // 100)
@@ -52,52 +37,39 @@ class AbstractProgressMeter(eqx.Module):
         return jax.lax.cond((k % stride == 0) | (k == n_steps), send, lambda k: k, k)
 
     def show(self, fraction: float) -> None:
-        """Show `fraction` done, from the host: for a loop run in Python (`stream_batch`'s
-        segments). The same record as `report`'s: a run starts at the first update (or at
-        0) and ends at 1."""
+        """Show `fraction` done, from the host (`stream_batch`'s segments)."""
         if self.reports:
             _on_host(self, fraction)
 
     @abc.abstractmethod
-    def _start(self) -> Any:
-        """The state of a new run (on the host)."""
+    def _start(self) -> Any: ...
 
     @abc.abstractmethod
-    def _show(self, state, fraction: float) -> None:
-        """Show `fraction` done."""
+    def _show(self, state, fraction: float) -> None: ...
 
     @abc.abstractmethod
-    def _close(self, state) -> None:
-        """End the run (after `_show(state, 1.0)`)."""
+    def _close(self, state) -> None: ...
 
 
-class _Run:
-    """The host-side record of the run in progress of one meter."""
-
-    def __init__(self, state):
-        self.state = state
-        self.last = -1.0
-
-
-# One record per meter (equal meters share it, as they share compiled code); runs of one
-# meter follow each other, so one record at a time is enough.
-_RUNS: dict[AbstractProgressMeter, _Run] = {}
+# The run in progress of each meter, `[state, last fraction]` (equal meters share it, as
+# they share compiled code; a meter's runs follow each other).
+_RUNS: dict[AbstractProgressMeter, list] = {}
 
 
 def _on_host(meter: AbstractProgressMeter, fraction) -> None:
     # Under `vmap` the fraction arrives batched, identical in every lane.
     fraction = float(np.max(np.asarray(fraction)))
     run = _RUNS.get(meter)
-    if run is not None and fraction == run.last:
+    if run is not None and fraction == run[1]:
         return  # the same update again, from another lane of a vmapped run
     if run is None or fraction == 0.0:
         if run is not None:
-            meter._close(run.state)  # a run that never reached 100% (an interrupted one)
-        run = _RUNS[meter] = _Run(meter._start())
-    run.last = fraction
-    meter._show(run.state, fraction)
+            meter._close(run[0])  # a run that never reached 100% (an interrupted one)
+        run = _RUNS[meter] = [meter._start(), -1.0]
+    run[1] = fraction
+    meter._show(run[0], fraction)
     if fraction >= 1.0:
-        meter._close(run.state)
+        meter._close(run[0])
         del _RUNS[meter]
 
 
@@ -123,13 +95,11 @@ class _TextState:
 
 
 class TextProgressMeter(AbstractProgressMeter):
-    """The percentage done on one line of standard output, rewritten in place (a carriage
-    return before each update, a newline at the end).
+    """The percentage done on one line of standard output, rewritten in place.
 
     **Arguments:**
 
-    - `delay`: seconds a run must have taken before anything is printed (default 1): a run
-      that finishes sooner prints nothing at all.
+    - `delay`: seconds a run must have taken before anything is printed (default 1).
     - `prefix`: the text before the percentage.
     """
 
@@ -162,8 +132,8 @@ def _has_tqdm() -> bool:
 
 
 class TqdmProgressMeter(AbstractProgressMeter):
-    """A tqdm progress bar (on standard error), one per run. Needs tqdm
-    (`pip install tqdm`, or `lievi[progress]`); checked when the meter is made.
+    """A tqdm progress bar (on standard error), one per run; needs tqdm
+    (`pip install tqdm`, or `lievi[progress]`).
 
     **Arguments:**
 
@@ -193,10 +163,8 @@ class TqdmProgressMeter(AbstractProgressMeter):
 
 
 def as_progress_meter(progress_meter, label: str = "lievi.simulate") -> AbstractProgressMeter:
-    """The meter of `simulate`'s `progress_meter` argument: a meter as it is, or a
-    shorthand: `False`/`None` (`NoProgressMeter`), `"text"` (`TextProgressMeter`),
-    `"tqdm"` (`TqdmProgressMeter`), `True` (tqdm where it is installed, else text); the
-    meter a shorthand makes shows `label` (the entry point's name)."""
+    """The meter of `progress_meter=`: a meter, or `False`/`None`, `"text"`, `"tqdm"`,
+    `True` (tqdm where installed, else text), its meter labelled `label`."""
     if isinstance(progress_meter, AbstractProgressMeter):
         return progress_meter
     if progress_meter is False or progress_meter is None:

@@ -1,14 +1,7 @@
-"""What defines a streamed run (`lievi.stream_batch`), as a record its storage keeps.
-
-A run resumed on existing storage must be the run that wrote it: the same physics (the
-system and the integrator), the same initial states, step sizes and horizon, the same
-dtype and options, and the same lievi. `run_record` writes these as a JSON-able dict
-of short strings: values where they are small (`h` a scalar, the options), else digests
-(SHA-256) of the bytes that define them. A pytree's digest covers its array leaves'
-dtypes, shapes and bytes and its structure with every static field (an integrator's
-chart, a system's group; a function held in a field by its name), so two systems that
-compute differently have different records.
-"""
+"""What defines a streamed run, as a record its storage keeps (`StreamLayout.run`): small
+values as they are, else SHA-256 digests of what defines them — a pytree's structure and
+static fields and its leaves' dtypes, shapes and bytes — so that a run resumed on that
+storage is checked to be the run that wrote it."""
 
 from __future__ import annotations
 
@@ -20,8 +13,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-# Memory addresses in the `repr` of a static field (a function, a jitted function): they
-# change from one process to the next, and a resumed run is another process.
+# Memory addresses in the `repr` of a static field (a function) change between processes.
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 
 
@@ -33,22 +25,22 @@ def _version() -> str:
 
 
 def tree_digest(tree) -> str:
-    """A digest of a pytree: its structure and static fields, its leaves' dtypes, shapes
-    and bytes (non-array leaves by `repr`)."""
+    """A digest of a pytree's structure, static fields and leaves (non-arrays by `repr`)."""
     digest = hashlib.sha256()
     leaves, treedef = jax.tree.flatten(tree)
     digest.update(_ADDRESS.sub("", str(treedef)).encode())
     for leaf in leaves:
         if eqx.is_array(leaf) or isinstance(leaf, np.generic):
-            _update(digest, np.asarray(leaf))
+            leaf = np.asarray(leaf)
+            digest.update(f"{leaf.dtype}{leaf.shape}".encode())
+            digest.update(np.ascontiguousarray(leaf).tobytes())
         else:
             digest.update(_ADDRESS.sub("", repr(leaf)).encode())
     return "sha256:" + digest.hexdigest()
 
 
 def rows_digest(x, block: int) -> str:
-    """A digest of an array's dtype, shape and bytes, read `block` rows at a time (`x` may
-    be a memory map larger than memory)."""
+    """A digest of an array's dtype, shape and bytes, read `block` rows at a time."""
     digest = hashlib.sha256(f"{np.result_type(x)}{np.shape(x)}".encode())
     if np.ndim(x) == 0:
         digest.update(np.asarray(x).tobytes())
@@ -57,16 +49,9 @@ def rows_digest(x, block: int) -> str:
     return "sha256:" + digest.hexdigest()
 
 
-def _update(digest, x: np.ndarray) -> None:
-    digest.update(f"{x.dtype}{x.shape}".encode())
-    digest.update(np.ascontiguousarray(x).tobytes())
-
-
 def run_record(system, integrator, g0, m0, h, options: dict, block: int) -> dict[str, str]:
-    """What defines a streamed run besides its layout (`StreamLayout`: shapes, horizon,
-    dtype, chunking): `{"system", "integrator", "g0", "m0", "h", "options", "lievi"}`,
-    each a short string. `g0`, `m0` (and a per-body `h`) are read `block` rows at a
-    time."""
+    """What defines a streamed run besides its layout, each a short string (`g0`, `m0`
+    and a per-body `h` read `block` rows at a time)."""
     return {
         "system": tree_digest(system),
         "integrator": tree_digest(integrator),

@@ -1,12 +1,5 @@
-"""Where a streamed batch (`lievi.stream_batch`) puts its output: a writer.
-
-A writer receives each chunk's saved steps segment by segment, as they finish, and keeps
-the state a run resumes from (`ChunkState`: `(g, m)` after the chunk's last finished
-segment, its step count, and the per-body result so far). `AbstractStreamWriter` is the
-interface (subclass it to hand the steps to anything: a database, a network, a reduction
-on the fly); `NpyWriter` writes NumPy `.npy` files in place, block by block, so that the
-output may be far larger than memory.
-"""
+"""Where a streamed batch (`lievi.stream_batch`) puts its output: the writer interface
+(`AbstractStreamWriter`) and `NpyWriter`, NumPy files written in place."""
 
 from __future__ import annotations
 
@@ -25,10 +18,9 @@ from ._results import RESULTS
 
 
 class ChunkState(NamedTuple):
-    """A chunk of bodies after its last finished segment, NumPy arrays with the chunk's
-    rows leading: the state `g` `(b, n, n)`, `m` `(b, d)` it resumes from (at time
-    `steps_done·h`), and the run so far per body: `result` (a `RESULTS` code, the first
-    failure), `failed_step` (−1 if none) and `total_newton_iterations`."""
+    """A chunk of bodies after its last finished segment, the chunk's rows leading: the
+    state `g` `(b, n, n)`, `m` `(b, d)` it resumes from (at `steps_done·h`), and per body
+    `result` (the first failure), `failed_step` (−1 if none), `total_newton_iterations`."""
 
     g: np.ndarray
     m: np.ndarray
@@ -38,20 +30,18 @@ class ChunkState(NamedTuple):
     steps_done: int
 
     def reported_result(self, n_steps: int) -> np.ndarray:
-        """`result` as the output reports it: a body still successful that has not reached
-        the horizon `n_steps` (its chunk's run stopped, or is still going) is
-        `RESULTS.not_run`, not a success; a failure is final."""
+        """`result` as the output reports it: `RESULTS.not_run` for a body still successful
+        short of the horizon `n_steps`; a failure is final."""
         unfinished = (self.result == RESULTS.successful) & (self.steps_done < n_steps)
         return np.where(unfinished, RESULTS.not_run, self.result).astype(np.int32)
 
 
 @dataclasses.dataclass(frozen=True)
 class StreamLayout:
-    """The shape of a streamed run's output: `fields[name] = (shape, dtype)` of each saved
-    field over the whole run (e.g. `"m": ((B, T, d), "float64")`), and the settings a
-    resumed run must share with the run it continues: the layout's own, and `run`, what
-    else defines the run (`stream_batch` records the system, the integrator, `g0`, `m0`,
-    `h`, the options and lievi's version, as values or digests)."""
+    """A streamed run's output, `fields[name] = (shape, dtype)` (e.g. `"m": ((B, T, d),
+    "float64")`), and the settings a resumed run must share with the run it continues:
+    the layout's own and `run` (the system, integrator, `g0`, `m0`, `h`, options and
+    lievi's version, as values or digests)."""
 
     fields: dict[str, tuple[tuple[int, ...], str]]
     batch: int
@@ -74,20 +64,16 @@ class StreamLayout:
         return record
 
     def check_resumes(self, stored: dict, where: str) -> None:
-        """Raise `ValueError` unless `stored` (the `settings()` of the run found at
-        `where`) is this run's: the message names each setting that differs."""
+        """`ValueError` naming each setting that differs unless `stored` (the `settings()`
+        found at `where`) is this run's."""
         settings = self.settings()
         run, stored_run = settings.pop("run"), dict(stored.get("run", {}))
         stored = {k: v for k, v in stored.items() if k != "run"}
         differ = [
-            f"`{name}` ({_short(stored.get(name))} there, {_short(settings.get(name))} now)"
-            for name in sorted(set(settings) | set(stored))
-            if settings.get(name) != stored.get(name)
-        ]
-        differ += [
-            f"`{name}` ({_short(stored_run.get(name))} there, {_short(run.get(name))} now)"
-            for name in sorted(set(run) | set(stored_run))
-            if run.get(name) != stored_run.get(name)
+            f"`{name}` ({_short(there.get(name))} there, {_short(now.get(name))} now)"
+            for now, there in ((settings, stored), (run, stored_run))
+            for name in sorted(set(now) | set(there))
+            if now.get(name) != there.get(name)
         ]
         if differ:
             raise ValueError(
@@ -106,25 +92,20 @@ def _short(value) -> str:
 
 
 class AbstractStreamWriter(abc.ABC):
-    """The interface of `lievi.stream_batch`'s `writer`.
-
-    `stream_batch` calls `open(layout)` once, then for each chunk `resume_state(chunk)`,
-    and after each finished segment `write(chunk, rows, saves, values, state)`; once
-    every chunk has reached the horizon, `finish()`; in any case (also when the run
-    stops on an error) `close()`. A writer that should resume a stopped run keeps the
-    last `state` of each chunk and returns it from `resume_state`; one that does not
-    returns `None` (the chunk starts over).
-    """
+    """The interface of `lievi.stream_batch`'s `writer`: `open(layout)` once, per chunk
+    `resume_state(chunk)`, after each finished segment `write(chunk, rows, saves, values,
+    state)`, `finish()` once every chunk has reached the horizon, and `close()` in any
+    case. A writer that resumes a stopped run returns each chunk's last `state` from
+    `resume_state`; one that does not returns `None` (the chunk starts over)."""
 
     @abc.abstractmethod
     def open(self, layout: StreamLayout) -> None:
-        """Create the storage for `layout`, or reopen the storage of a run with the same
-        layout (to resume it); a different layout is a `ValueError`."""
+        """Create the storage for `layout`, or reopen a run's with the same layout (to
+        resume it); a different layout is a `ValueError`."""
 
     @abc.abstractmethod
     def resume_state(self, chunk: int) -> ChunkState | None:
-        """The state of `chunk` after its last finished segment, or `None` if none has
-        finished."""
+        """The state of `chunk` after its last finished segment, or `None`."""
 
     @abc.abstractmethod
     def write(
@@ -135,40 +116,31 @@ class AbstractStreamWriter(abc.ABC):
         values: dict[str, np.ndarray],
         state: ChunkState,
     ) -> None:
-        """Store `values[name]`, the saves `saves` of the bodies `rows` (`(b, s, …)`), and
-        then `state`: once `write` returns, the segment counts as finished. Raise if any
-        of it could not be stored (the segment then does not count as finished)."""
+        """Store `values[name]`, the saves `saves` of the bodies `rows` (`(b, s, …)`), then
+        `state`: once `write` returns the segment is finished; raise if anything could not
+        be stored."""
 
     def finish(self) -> None:
-        """Mark the run complete: every chunk has reached the horizon (called before
-        `close`; not called when the run stops early). Does nothing by default."""
+        """Mark the run complete (before `close`; not when it stops early). Default: none."""
         return None
 
     @abc.abstractmethod
     def close(self) -> None:
-        """Flush and release the storage (after the last chunk, or when the run stops)."""
+        """Flush and release the storage."""
 
 
 class NpyWriter(AbstractStreamWriter):
-    """Write a streamed run to NumPy files in `directory`, in place: one `NAME.npy`
-    per saved field with the shape of `simulate_batch`'s output (`g.npy`: `(B, T, *element)`,
-    `m.npy`: `(B, T, *momentum)`), and per body `result.npy`, `failed_step.npy`,
-    `total_newton_iterations.npy`. Read them with `numpy.load(path, mmap_mode="r")`.
-
-    The files are created at their full size, the saves NaN and `result` the code
-    `RESULTS.not_run`, so a body that has not run (yet) reads as such, never as a success
-    with zeros; a body's `result` becomes its own once its chunk reaches the horizon (or
-    at its failure). `directory/complete.json` appears when the whole run is done.
-
-    The resume state lives in `directory/state/`, one file per chunk, replaced
-    atomically after the chunk's saves of the segment are written and flushed to the disk
-    (`fsync`), so a stop at any point — a power cut included — leaves each chunk at a
-    finished segment. A write that fails or stores fewer bytes than asked (a full disk, a
-    quota, a file-size limit) raises `OSError`, and its segment is not recorded as done.
-    `directory/layout.json` records what defines the run (`StreamLayout.settings()`):
-    calling `stream_batch` again with the same arguments and directory resumes each
-    chunk from its last finished segment, and other arguments are a `ValueError` that
-    names what differs.
+    """Write a streamed run to NumPy files in `directory`, in place: `g.npy` `(B, T,
+    *element)`, `m.npy` `(B, T, *momentum)` as `simulate_batch` returns them, and per body
+    `result.npy`, `failed_step.npy`, `total_newton_iterations.npy` (read them with
+    `numpy.load(path, mmap_mode="r")`). Created at full size, the saves NaN and `result`
+    `RESULTS.not_run` until a body's chunk reaches the horizon or fails;
+    `complete.json` appears when the run is done. The resume state, `state/` (one file a
+    chunk), is replaced atomically once the segment's saves are on the disk (`fsync`), so
+    a stop at any point leaves each chunk at a finished segment; a write that fails or
+    stores too few bytes raises `OSError`. `layout.json` records what defines the run:
+    the same arguments and directory resume it, others are a `ValueError` naming what
+    differs (docs/larger-than-memory.md).
 
     **Arguments:**
 
@@ -188,7 +160,6 @@ class NpyWriter(AbstractStreamWriter):
 
     @staticmethod
     def _contents(layout: StreamLayout) -> dict[str, tuple[tuple[int, ...], str, float]]:
-        """`name: (shape, dtype, value before anything is written)` of each file."""
         contents = {
             name: (tuple(shape), dtype, np.nan) for name, (shape, dtype) in layout.fields.items()
         }
@@ -269,8 +240,7 @@ class NpyWriter(AbstractStreamWriter):
 
 
 def _replace_durably(path: pathlib.Path, data: bytes) -> None:
-    """Replace `path` by a file holding `data`, atomically, and on the disk on return:
-    written beside it, flushed, renamed over it, and the rename flushed (the directory)."""
+    """Replace `path` by `data` atomically, on the disk on return (the rename flushed too)."""
     partial = path.with_name(path.name + ".partial")
     with open(partial, "wb") as file:
         file.write(data)
@@ -285,12 +255,9 @@ def _replace_durably(path: pathlib.Path, data: bytes) -> None:
 
 
 class _NpyFile:
-    """An `.npy` file written in place by plain file writes, one contiguous block a body.
-
-    Not a memory map: the pages written to a map stay in the writing process's resident
-    memory until the kernel reclaims them, so writing a file larger than memory through
-    one would look (and, under a memory limit, count) as that much memory. And a write
-    through a map that the disk cannot take fails as a signal, not as an error here."""
+    """An `.npy` file written in place by plain file writes, one contiguous block a body:
+    not a memory map, whose written pages count as the writer's memory and whose failed
+    writes are signals, not errors."""
 
     _BLOCK = 1 << 22  # bytes of the blocks `fill` writes
 
@@ -320,9 +287,8 @@ class _NpyFile:
             self._write(block[: size - start], self.offset + start * self.dtype.itemsize)
 
     def _write(self, value: np.ndarray, position: int) -> None:
-        """Write all of `value`'s bytes at `position`. A write may store fewer bytes than
-        asked (POSIX allows it): the rest is written again, and a write that stores none
-        or fails — a full disk, a quota, a file-size limit — raises."""
+        """All of `value`'s bytes at `position`: a short write (POSIX allows it) is
+        continued, one that stores none or fails raises."""
         data = memoryview(np.ascontiguousarray(value)).cast("B")
         while data:
             try:
@@ -344,7 +310,6 @@ class _NpyFile:
             data, position = data[written:], position + written
 
     def sync(self) -> None:
-        """The bytes written so far, on the disk (`fsync`)."""
         os.fsync(self.fd)
 
     def close(self) -> None:
