@@ -1,21 +1,10 @@
-"""What the one step loop (`lievi._loop`) steps: a batch of bodies, by a kernel or by the
-method's own step.
-
-A stepper is built inside the run's program, for the run's `h`, `t0` and initial state
-(what depends on the run, not on the step — a kernel's per-run constants, a preprocessed
-method's modified moments — is computed there, once, outside the loop). Its state is a
-pytree whose every leaf has the batch as its leading axis, so the loop masks a failed body,
-whatever the stepper, with one `where`.
-
-Two steppers, chosen by the integrator (`AbstractIntegrator.batch_kernel`):
-
-- `KernelStepper`: the integrator's structure-of-arrays kernel (`AbstractBatchKernel`),
-  one array per component of the state, the batch minor;
-- `VmapStepper`: the method's own `cached_step`, one body written, under `jax.vmap` over the
-  batch — every method on every system, forced runs included.
-
-One body is a batch of one.
-"""
+"""What the one step loop (`lievi._loop`) steps: a batch of bodies (one body is a batch of
+one), by the integrator's structure-of-arrays kernel (`KernelStepper`, one array per
+component of the state, the batch minor) or by the method's own `cached_step` under
+`jax.vmap` (`VmapStepper`: every method on every system, forced runs included). A stepper
+is built inside the run's program for its `h`, `t0` and initial state (per-run constants
+once, outside the loop); every leaf of its state has the batch leading, so the loop masks
+a failed body, whatever the stepper, with one `where`."""
 
 from __future__ import annotations
 
@@ -32,9 +21,7 @@ from ._solution import advected_of
 
 
 class AbstractStepper(eqx.Module):
-    """One step of a batch, as the loop runs it (diffrax's `solver.init`/`solver.step` in
-    spirit): `init` the state from `(g0, m0)` `(B, …)`, `step` it, and at a save `settle`
-    it and say what is `stored`; `layout` turns the stacked saves batch-major."""
+    """One step of a batch, as the loop runs it (diffrax's `init`/`step` in spirit)."""
 
     @abc.abstractmethod
     def init(self, g0, m0):
@@ -42,9 +29,9 @@ class AbstractStepper(eqx.Module):
 
     @abc.abstractmethod
     def step(self, state, data, k, alive):
-        """`(state, code, iterations, residual)` after step `k` (`data`: that step's slice of
-        the forcing's per-step data; `alive`: `(B,)`, the bodies not yet failed). `code` is
-        the step's `RESULTS` code with the checks every method gets (`RESULTS.checked`)."""
+        """`(state, code, iterations, residual)` after step `k` (`data`: the forcing's data
+        of the step; `alive` `(B,)`: the bodies not yet failed); `code` is checked as
+        every method's (`RESULTS.checked`)."""
 
     def settle(self, state):
         """The state at a save (e.g. put back on the group in low precision)."""
@@ -53,7 +40,7 @@ class AbstractStepper(eqx.Module):
     @abc.abstractmethod
     def stored(self, state, save, ok) -> dict:
         """What a save stores of `state` (`save`: a `lievi.Save`), any layout, NaN where
-        `ok` `(B,)` is false (a failed body: no silent numbers past its failure)."""
+        `ok` `(B,)` is false."""
 
     @abc.abstractmethod
     def layout(self, stacked: dict) -> dict:
@@ -62,9 +49,7 @@ class AbstractStepper(eqx.Module):
 
     def initial(self, g0, m0, save) -> dict:
         """The initial save, batch-major with one save: `(B, 1, …)`."""
-        out = {}
-        if save.g:
-            out["g"] = g0[:, None]
+        out = {"g": g0[:, None]} if save.g else {}
         if save.m:
             out["m"] = m0[:, None]
         advected = self.advected_at(g0) if save.with_advected() else None
@@ -78,8 +63,7 @@ class AbstractStepper(eqx.Module):
 
     @abc.abstractmethod
     def configuration(self, state):
-        """`(g, m)` of the state, batch-major `(B, n, n)`, `(B, d)` (for an invariant
-        monitor)."""
+        """`(g, m)` of the state, batch-major `(B, n, n)`, `(B, d)`."""
 
 
 def where_ok(ok, new, old):
@@ -158,8 +142,7 @@ class KernelStepper(AbstractStepper):
 
 
 class VmapStepper(AbstractStepper):
-    """The method's own step (`AbstractIntegrator.cached_step`) under `jax.vmap` over the
-    batch; the state is `(g, m, cache)`, `(B, …)` each."""
+    """The method's own `cached_step` under `jax.vmap`; the state is `(g, m, cache)`."""
 
     system: Any
     integrator: Any
@@ -217,7 +200,6 @@ class VmapStepper(AbstractStepper):
         return {name: where_ok(ok, x, jnp.full_like(x, jnp.nan)) for name, x in out.items()}
 
     def _advected(self, g):
-        """`Γ = gᵀa` per body, or `None` where the potential has no advected parameter."""
         potential = self.system.potential
         if potential is None or potential.advected_direction() is None:
             return None
@@ -234,9 +216,8 @@ class VmapStepper(AbstractStepper):
 
 
 class AbstractPlan(eqx.Module):
-    """How a run steps, decided before it starts (on the host): `stepper` builds the
-    stepper inside the run's program, from the run's `(g0, m0)` `(B, …)`, `h` and `t0`.
-    `valid` is the traced input check per body (`RESULTS.invalid_input` where false)."""
+    """How a run steps, decided on the host: `stepper` builds the stepper inside the run's
+    program; `valid` is the traced input check per body."""
 
     system: Any
     system_axis: int | None = eqx.field(static=True)
@@ -250,11 +231,6 @@ class AbstractPlan(eqx.Module):
     def valid(self, g0, m0, h, t0):
         in_axes = (self.system.batch_axes(self.system_axis), 0, 0, self.h_axis(h), None)
         return jax.vmap(input_valid, in_axes=in_axes)(self.system, g0, m0, h, t0)
-
-    def advected(self, g):
-        """`Solution.advected` read off saved elements `g` `(B, T, n, n)`, or `None`."""
-        axes = self.system.batch_axes(self.system_axis)
-        return jax.vmap(advected_of, in_axes=(axes, 0))(self.system, g)
 
     def per_step(self):
         """The forcing's per-step data with the step axis leading, or `None`."""
@@ -337,14 +313,9 @@ def plan_for(
     carry_g=True,
 ):
     """How a run of `integrator` on `system` steps: on the integrator's kernel for it
-    (`AbstractIntegrator.batch_kernel`; never for a forced run: the kernels integrate
-    unforced bodies), else by its own step under `jax.vmap`.
-
-    `tuning` (`lievi.advanced.Tuning`, `None` for its defaults): `fast=False` takes the method's own step;
-    `fixed_iterations`, the kernel's Newton iterations before its convergence check.
-    `one_body=True`: the kernel as it runs one body (`AbstractBatchKernel.one_body`);
-    `carry_g=False`: the kernel's reduced form where it has one (a run that does not save
-    `g`)."""
+    (`AbstractIntegrator.batch_kernel`; never forced), else by its own step under
+    `jax.vmap`. `tuning`: a `lievi.advanced.Tuning` (`None`: its defaults); `one_body`:
+    the kernel as it runs one body; `carry_g=False`: the kernel's reduced form, if any."""
     batched = system_axis is not None
     fast, fixed = (True, None) if tuning is None else (tuning.fast, tuning.fixed_iterations)
     kernel = None
