@@ -23,12 +23,9 @@ class Solution(eqx.Module):
     - `stats`: `newton_iterations` and `residual`, shape `(T − 1,)`, the maximum over the
       steps between consecutive saves; `failed_step`, the index of the first failed step
       (−1 if none); `total_newton_iterations`; `num_steps`.
-    - `advected`: the advected parameter `Γ = gᵀa` of the system's potential (the body
-      frame's view of gravity's vertical for `UniformGravity`; paper §7), shape `(T, n)`,
-      for a potential that has one (`AbstractPotential.advected_direction`) whenever `g`
-      is saved (read off it) or it was asked for (`simulate_batch(save=(..., "advected"))`),
-      else `None`. A batched run that saves `Γ` but not `g` carries `(Π, Γ)` alone on the
-      fast path (`simulate_batch`).
+    - `advected`: the advected parameter `Γ = gᵀa` of the system's potential (gravity's
+      vertical in the body frame for `UniformGravity`; paper §7), shape `(T, n)`, when the
+      potential has one and `Save.g` or `Save.advected`, else `None`.
     """
 
     ts: Float[Array, " T"]
@@ -79,15 +76,13 @@ class Solution(eqx.Module):
 
 
 def _over_leading_axes(fn, core_ndim: int, x):
-    """Apply `fn` (written for one state with `core_ndim` axes) over all leading axes."""
     for _ in range(x.ndim - core_ndim):
         fn = jax.vmap(fn)
     return fn(x)
 
 
 def advected_of(system, g):
-    """`Γ = gᵀa` of the system's potential for saved elements `g` (any leading axes), or
-    `None` where the potential has no advected direction (`Solution.advected`)."""
+    """`Γ = gᵀa` of the system's potential at `g` (any leading axes), or `None`."""
     if system.potential is None or system.potential.advected_direction() is None:
         return None
     return system.potential.advected(g)
