@@ -181,11 +181,7 @@ def simulate_batch(
         # One initial element for every body (e.g. all starting at the identity): on the
         # host where concrete (no program compiled for it).
         shape = (jnp.shape(m0)[0], *element)
-        g0 = (
-            np.broadcast_to(np.asarray(g0), shape)
-            if is_concrete(g0)
-            else (jnp.broadcast_to(g0, shape))
-        )
+        g0 = (np if is_concrete(g0) else jnp).broadcast_to(g0, shape)
     _check_batch("g0", g0, element, "one group element per body")
     _check_batch("m0", m0, momentum, "one momentum per body")
     batch = jnp.shape(g0)[0]
