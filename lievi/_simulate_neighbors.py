@@ -113,6 +113,13 @@ def simulate_with_neighbor_list(
       taken (an invariant's reference would be each segment's start): any value but
       `None` is a `ValueError`.
 
+    With `lievi.BruteForceNeighbors` or `lievi.JaxMDNeighbors` the whole run — the
+    segments, the rebuilds between them (jax-md's compiled `update`), the checks — is one
+    compiled program, as jax-md's users write a neighbour-list run: the first list is
+    built on the host (it sizes `capacity`), the others inside the program. A builder
+    that builds on the host only (`AbstractNeighborBuilder.rebuilds_on_device` false)
+    has its segments called from the host, by the same rules and with the same result.
+
     **Returns:** a `Solution` over the whole horizon, as one `simulate` call gives it,
     with `stats` adding `neighbor_builds` (the lists built), `neighbor_pairs` (the most
     pairs a list held), `neighbor_capacity`, `neighbor_max_displacement` (the largest
@@ -123,7 +130,9 @@ def simulate_with_neighbor_list(
     list built at its start (the list may have missed a pair: pass a smaller
     `rebuild_every` or a larger `skin`);
     `ValueError` (from the builder) if a rebuilt list has more pairs than its
-    `capacity`. With `throw=False` a failed step (`RESULTS`) ends the run: the result
+    `capacity` (a rebuild inside the program that overflowed, its own capacity or
+    jax-md's buffers, is done again from the host, which enlarges jax-md's buffers or
+    raises this). With `throw=False` a failed step (`RESULTS`) ends the run: the result
     and `failed_step` are reported and the later saves are NaN, as in `simulate`.
     """
     label = "lievi.simulate_with_neighbor_list"
