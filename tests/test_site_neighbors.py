@@ -276,35 +276,33 @@ def test_jax_md_in_a_small_box_warns_nothing(recwarn):
 
 
 def test_device_rebuilds_agree_with_host_builds():
-    """`rebuild` inside a compiled program, from a first `build`'s state: the pair set of
-    a build on the host at the moved poses — for the brute-force builder, and for jax-md's
-    in a periodic box (its `update`) and in free space, where a site that left the first
-    allocation's bounding box makes it test every pair. A capacity too small for the moved
-    poses is reported as an overflow. (The box, cut-off and skin of
-    `test_jax_md_rebuilds_agree_with_brute_force`.)"""
+    """`rebuild` (traceable, run inside the compiled program), from a first `build`'s
+    state: the pair set of a build on the host at the moved poses — for the brute-force
+    builder, and for jax-md's in a periodic box (its `update`) and in free space where a
+    site has left the first allocation's bounding box (every pair tested instead). A
+    capacity too small is reported as an overflow. (The box, cut-off and skin of
+    `test_jax_md_rebuilds_agree_with_brute_force`, whose jax-md lists this reuses.)"""
     rng = np.random.default_rng(4)
     n = 40
     sites = jnp.asarray(rng.normal(size=(n, 2, 3)) * 0.3)
     g = _poses(rng, rng.uniform(0, 5.0, size=(n, 3)))
     moved = g.at[:, :3, 3].add(jnp.asarray(rng.uniform(-0.5, 0.5, (n, 3))))
     far = moved.at[0, :3, 3].add(jnp.array([20.0, 0.0, 0.0]))
-    builders = [lievi.BruteForceNeighbors] + (
-        [lievi.JaxMDNeighbors] if importlib.util.find_spec("jax_md") else []
-    )
-    for box in (None, 5.0):
+    cases = [(lievi.BruteForceNeighbors, None, moved), (lievi.BruteForceNeighbors, 5.0, moved)]
+    if importlib.util.find_spec("jax_md"):
+        cases += [(lievi.JaxMDNeighbors, 5.0, moved), (lievi.JaxMDNeighbors, None, far)]
+    for kind, box, poses in cases:
         potential = lievi.SitePotential(sites, lievi.LennardJones(), cutoff=1.2, box=box)
+        builder = kind(0.3, capacity=CAPACITY)
+        _, state = builder.build(potential, g)
+        # Eagerly: the operations the program traces, without a program per case.
+        pairs, _, overflow = builder.rebuild(potential, poses, state)
         brute = lievi.BruteForceNeighbors(0.3, capacity=CAPACITY)
-        for kind in builders:
-            builder = kind(0.3, capacity=CAPACITY)
-            _, state = builder.build(potential, g)
-            rebuild = eqx.filter_jit(builder.rebuild)
-            for poses in (moved, far):
-                pairs, _, overflow = rebuild(potential, poses, state)
-                expected = np.unique(np.asarray(brute(potential, poses)), axis=0)
-                assert not bool(overflow) and len(expected) > 10
-                assert np.array_equal(np.unique(np.asarray(pairs), axis=0), expected)
+        expected = np.unique(np.asarray(brute(potential, poses)), axis=0)
+        assert not bool(overflow) and len(expected) > 10
+        assert np.array_equal(np.unique(np.asarray(pairs), axis=0), expected)
         small = lievi.BruteForceNeighbors(0.3, capacity=10)
-        assert bool(small.rebuild(potential, moved, None)[2])
+        assert bool(small.rebuild(potential, poses, None)[2])
 
 
 @pytest.fixture(scope="module")
