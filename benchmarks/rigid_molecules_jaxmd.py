@@ -273,12 +273,21 @@ def run_jaxmd_neighbors(n, state0, steps, h, box, cutoff, skin, save_every):
     return checked(trajectory), checked(final)
 
 
-def run_lievi_neighbors(system, method, g0, m0, steps, h, skin, rebuild_every, save_every):
+class HostJaxMDNeighbors(lievi.JaxMDNeighbors):
+    """`JaxMDNeighbors` that rebuilds on the host only: the run's segments called one by
+    one from Python, each rebuild a separate call (`--host-path`, for comparison)."""
+
+    rebuilds_on_device = False
+
+
+def run_lievi_neighbors(
+    system, method, g0, m0, steps, h, skin, rebuild_every, save_every, builder_type
+):
     """As `run_lievi`, with `lievi.simulate_with_neighbor_list` and jax-md's cell list
     (`lievi.JaxMDNeighbors(skin)`), a list kept across segments until a site has moved a
     quarter of the skin (`rebuild_after=0.25`). The energies at every `save_every`-th step
     are each from a list built at that state (outside the timed run)."""
-    builder = lievi.JaxMDNeighbors(skin)
+    builder = builder_type(skin)
     options = dict(h=h, n_steps=steps, rebuild_every=rebuild_every, builder=builder)
 
     def trajectory():
@@ -372,18 +381,19 @@ def run_lievi(system, method, g0, m0, steps, h):
 
 
 def _interleaved(programs, steps, rounds):
-    """`{name: (best wall time, best CPU time)}` per step of each compiled program, timed
-    in `rounds` rounds that call every program once in turn: on a shared, loaded machine
-    the load then falls on all alike, where timing one program's repeats after another's
-    compares them at different loads. The CPU time (`time.process_time`, this process's
-    threads) is the steadier figure under load."""
-    best = {name: [np.inf, np.inf] for name in programs}
+    """`{name: (best wall time, best CPU time, [wall time of each round])}` per step of
+    each compiled program, timed in `rounds` rounds that call every program once in turn:
+    on a shared, loaded machine the load then falls on all alike, where timing one
+    program's repeats after another's compares them at different loads. The CPU time
+    (`time.process_time`, this process's threads) is the steadier figure under load."""
+    best = {name: [np.inf, np.inf, []] for name in programs}
     for _ in range(rounds):
         for name, run in programs.items():
             wall, cpu = time.perf_counter(), time.process_time()
             jax.block_until_ready(run())
             wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-            best[name] = [min(best[name][0], wall / steps), min(best[name][1], cpu / steps)]
+            best[name][:2] = [min(best[name][0], wall / steps), min(best[name][1], cpu / steps)]
+            best[name][2].append(wall / steps)
     return best
 
 
@@ -404,6 +414,10 @@ def main():
     parser.add_argument("--skin", type=float, default=0.5)
     parser.add_argument("--rebuild-every", type=int, default=20)
     parser.add_argument("--save-every", type=int, default=50)
+    parser.add_argument(
+        "--host-path", action="store_true",
+        help="with --neighbors, also time lievi's run with the segments called from the host",
+    )  # fmt: skip
     args = parser.parse_args()
     n, steps = args.molecules, args.steps
     side = int(np.ceil(n ** (1 / 3)))
@@ -440,6 +454,8 @@ def main():
             "jax-md NVE (NO_SQUISH), neighbour list": None,
             "lievi splitting, simulate_with_neighbor_list": lievi.LiePoissonSplitting(),
         }
+        if args.host_path:
+            methods["lievi splitting, segments from the host"] = lievi.LiePoissonSplitting()
     rows = []
     for h in args.h:
         programs, energies = {}, {}
@@ -450,9 +466,10 @@ def main():
                     n, state0, steps, h, box, args.cutoff, args.skin, args.save_every
                 )
             elif args.neighbors:
+                host = name.endswith("from the host")
                 trajectory, final = run_lievi_neighbors(
                     system, method, g0, m0, steps, h, args.skin, args.rebuild_every,
-                    args.save_every,
+                    args.save_every, HostJaxMDNeighbors if host else lievi.JaxMDNeighbors,
                 )  # fmt: skip
             elif method is None:
                 trajectory, final = run_jaxmd(n, state0, steps, h)
@@ -466,9 +483,9 @@ def main():
                 programs[name + " with energy"] = trajectory
         times = _interleaved(programs, steps, args.rounds)
         for name in methods:
-            (per_step, cpu), (with_energy, _) = (
+            (per_step, cpu, each_round), (with_energy, *_) = (
                 times[name],
-                times.get(name + " with energy", [None] * 2),
+                times.get(name + " with energy", [None] * 3),
             )
             error = float(np.max(np.abs(energies[name] - energies[name][0])))
             error /= abs(energies[name][0])
@@ -481,6 +498,7 @@ def main():
                     "seconds_per_step": per_step,
                     "cpu_seconds_per_step": cpu,
                     "seconds_per_step_with_energy": with_energy,
+                    "seconds_per_step_each_round": each_round,
                     "molecule_steps_per_second": n / per_step,
                     "finite": bool(np.all(np.isfinite(energies[name]))),
                 }
@@ -495,6 +513,19 @@ def main():
             row["speed_vs_jaxmd"] = baseline["seconds_per_step"] / row["seconds_per_step"]
             row["cpu_speed_vs_jaxmd"] = (
                 baseline["cpu_seconds_per_step"] / row["cpu_seconds_per_step"]
+            )
+            # Per round, jax-md's time over this method's in the same round: the median
+            # of these is the figure least moved by a change of load between rounds.
+            row["median_speed_vs_jaxmd"] = float(
+                np.median(
+                    np.asarray(baseline["seconds_per_step_each_round"])
+                    / np.asarray(row["seconds_per_step_each_round"])
+                )
+            )
+            print(
+                f"h={h:<7g} {row['method']:24s} vs jax-md: median {row['median_speed_vs_jaxmd']:.3f}"
+                f"×, best {row['speed_vs_jaxmd']:.3f}× (CPU {row['cpu_speed_vs_jaxmd']:.3f}×)",
+                flush=True,
             )
     e0 = {r["energy_0"] for r in rows}
     assert max(e0) - min(e0) <= 1e-12 * max(abs(e) for e in e0), e0

@@ -183,8 +183,9 @@ class Control(AbstractForcing):
             )
 
     def steps(self, start, n):
-        # One run's rows (a batch of sequences is not cut into segments).
-        return Control(self.u[start : start + n])
+        # One run's rows (a batch of sequences is not cut into segments); `start` may be
+        # traced (the segments of a run looped over in one program).
+        return Control(jax.lax.dynamic_slice_in_dim(self.u, start, n))
 
     def check(self, system, n_steps, dtype, args):
         momentum = system.momentum_shape()

@@ -4,7 +4,10 @@ neighbour list, in segments with a rebuild of the list between them.
 A neighbour list built with a skin holds every pair within the cut-off only while no site
 has moved more than half the skin (`lievi/_systems/_neighbors.py`), so a long run is cut
 into segments of `rebuild_every` steps, each one `simulate` call from the state the last
-ended in, on the potential with a list built at that state. The list is data of the
+ended in, on the potential with a list built at that state. With a builder that rebuilds
+on the device (both of lievi's) the whole run, segments and rebuilds, is one compiled
+program (`lievi._neighbor_program`); with one that builds on the host, or where a rebuild
+overflowed, the segments are run from the host, here, by the same rules. The list is data of the
 potential (a fixed-shape int array), so every segment runs the same compiled step. After
 each segment the largest site displacement since the build is checked against `skin/2`
 at every step of the segment: a list that went stale is an error naming the fix, never
@@ -26,6 +29,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._checks import check_integer
+from ._loop import raise_if_failed
+from ._neighbor_program import (
+    STALE,
+    largest_displacement,
+    listed_pairs,
+    run_program,
+    with_list,
+)
 from ._options import OPTIONS, Tuning, options
 from ._results import RESULTS
 from ._save import Save
@@ -33,27 +44,8 @@ from ._simulate import simulate
 from ._solution import Solution
 from ._systems._neighbors import AbstractNeighborBuilder
 
-
-@eqx.filter_jit
-def _largest_displacement(potential, g, g_built):
-    """The largest distance a site moved, over the poses `g` `(T, N, 4, 4)`, from where it
-    was at `g_built` (the list's build): on the device, one number back to the host."""
-    moved = jax.vmap(potential.flat_positions)(g) - potential.flat_positions(g_built)[None]
-    return jnp.sqrt(jnp.max(jnp.sum(moved * moved, axis=-1)))
-
-
-@jax.jit
-def _listed_pairs(pairs, n_sites):
-    """How many rows of a list are pairs (the rest is padding)."""
-    return jnp.sum(pairs[:, 1] < n_sites)
-
-
-def _with_list(potential, pairs):
-    """`potential` summing over the builder's list `pairs`. `eqx.tree_at` swaps the leaf
-    without `SitePotential.__init__`'s eager checks, which would sort the list on the host
-    at every segment: a builder's list is admissible by construction, and the run checks
-    the potential's conditions in its program anyway (`RESULTS.invalid_input`)."""
-    return eqx.tree_at(lambda p: p.neighbors, potential, pairs, is_leaf=lambda x: x is None)
+_largest_displacement = eqx.filter_jit(largest_displacement)
+_listed_pairs = jax.jit(listed_pairs)
 
 
 @jax.jit
@@ -121,6 +113,13 @@ def simulate_with_neighbor_list(
       taken (an invariant's reference would be each segment's start): any value but
       `None` is a `ValueError`.
 
+    With `lievi.BruteForceNeighbors` or `lievi.JaxMDNeighbors` the whole run — the
+    segments, the rebuilds between them (jax-md's compiled `update`), the checks — is one
+    compiled program, as jax-md's users write a neighbour-list run: the first list is
+    built on the host (it sizes `capacity`), the others inside the program. A builder
+    that builds on the host only (`AbstractNeighborBuilder.rebuilds_on_device` false)
+    has its segments called from the host, by the same rules and with the same result.
+
     **Returns:** a `Solution` over the whole horizon, as one `simulate` call gives it,
     with `stats` adding `neighbor_builds` (the lists built), `neighbor_pairs` (the most
     pairs a list held), `neighbor_capacity`, `neighbor_max_displacement` (the largest
@@ -131,7 +130,9 @@ def simulate_with_neighbor_list(
     list built at its start (the list may have missed a pair: pass a smaller
     `rebuild_every` or a larger `skin`);
     `ValueError` (from the builder) if a rebuilt list has more pairs than its
-    `capacity`. With `throw=False` a failed step (`RESULTS`) ends the run: the result
+    `capacity` (a rebuild inside the program that overflowed, its own capacity or
+    jax-md's buffers, is done again from the host, which enlarges jax-md's buffers or
+    raises this). With `throw=False` a failed step (`RESULTS`) ends the run: the result
     and `failed_step` are reported and the later saves are NaN, as in `simulate`.
     """
     label = "lievi.simulate_with_neighbor_list"
@@ -156,9 +157,110 @@ def simulate_with_neighbor_list(
         )
     if forcing is not None:  # the whole run's data, once (each segment checks its own)
         forcing.check(system, n_steps, jnp.result_type(m0), args)
+    run = dict(
+        h=h,
+        t0=t0,
+        n_steps=n_steps,
+        rebuild_every=rebuild_every,
+        save=save,
+        rebuild_after=rebuild_after,
+        forcing=forcing,
+        args=args,
+        checkpoint=checkpoint,
+        tuning=opts.tuning,
+        progress=opts.progress,
+    )
+    if builder.rebuilds_on_device:
+        potential = where(system)
+        pairs, state = builder.build(potential, g0)
+        if builder.capacity is None:  # sized on the first build, then fixed
+            builder = dataclasses.replace(builder, capacity=pairs.shape[0])
+        # Traced: a new step, start time or fraction reuses the compiled program.
+        dtype = jnp.result_type(m0)
+        traced = dict(
+            h=jnp.asarray(h, dtype),
+            t0=jnp.asarray(t0, dtype),
+            rebuild_after=jnp.asarray(0.0 if rebuild_after is None else rebuild_after, dtype),
+        )
+        outcome = run_program(
+            system, integrator, g0, m0, (pairs, state), builder=builder, where=where,
+            **{**run, **traced},
+        )  # fmt: skip
+        # A rebuild that overflowed: the run again from the host, whose builds enlarge
+        # jax-md's buffers or raise naming `capacity`.
+        if not bool(outcome.overflow):
+            solution = _solution(outcome, builder, save, h, t0, n_steps, rebuild_every)
+            return raise_if_failed(solution, "lievi.simulate", "a step") if throw else solution
+    return _run_on_host(
+        system, integrator, g0, m0, builder=builder, where=where, throw=throw, **run
+    )
+
+
+def _solution(outcome, builder, save: Save, h, t0, n_steps: int, rebuild_every: int):
+    """The `Solution` of a run of the compiled program, or the stale list's error."""
+    if int(outcome.status) == STALE:
+        start = int(outcome.stale_start)
+        _stale(start, start + rebuild_every, float(outcome.stale_displacement), builder.skin)
+    n_saves = n_steps // save.every + 1
+    stats = {
+        "failed_step": outcome.failed_step,
+        "total_newton_iterations": outcome.total_newton_iterations,
+        "num_steps": jnp.asarray(n_steps),
+        "neighbor_builds": outcome.builds,
+        "neighbor_pairs": outcome.pairs,
+        "neighbor_capacity": jnp.asarray(builder.capacity),
+        "neighbor_max_displacement": outcome.largest,
+        "neighbor_reruns": outcome.reruns,
+    }
+    if save.stats:
+        stats["newton_iterations"] = outcome.newton_iterations
+        stats["residual"] = outcome.residual
+    return Solution(
+        t0 + h * save.every * jnp.arange(n_saves, dtype=outcome.m.dtype),
+        outcome.g if save.g else None,
+        outcome.m if save.m else None,
+        outcome.result,
+        stats,
+        outcome.advected if save.with_advected() else None,
+    )
+
+
+def _stale(start: int, end: int, displacement: float, skin: float):
+    raise RuntimeError(
+        f"The neighbour list went stale in steps {start}–{end}: a site moved "
+        f"{displacement:.3g} since the list was built, at least half the skin "
+        f"({skin / 2:.3g}), so a pair within the cut-off may be missing. Pass a smaller "
+        "`rebuild_every` or a larger `skin` to the builder."
+    )
+
+
+def _run_on_host(
+    system,
+    integrator,
+    g0,
+    m0,
+    *,
+    builder,
+    where,
+    h,
+    t0,
+    n_steps: int,
+    rebuild_every: int,
+    save: Save,
+    rebuild_after,
+    forcing,
+    args,
+    throw,
+    checkpoint,
+    tuning,
+    progress,
+) -> Solution:
+    """The run with its segments called from the host: for a builder that builds on the
+    host only, or after a rebuild overflowed in the compiled program."""
+    save_every = save.every
     # Every step of a segment saved (the displacement check reads them), on `g` and `m`.
     each = Save(g=True, m=True, stats=True, advected=save.advected, every=1)
-    segment_options = dict(save=each, throw=throw, checkpoint=checkpoint, tuning=opts.tuning)
+    segment_options = dict(save=each, throw=throw, checkpoint=checkpoint, tuning=tuning)
     potential = where(system)
     g, m = jnp.asarray(g0), jnp.asarray(m0)
     h_value = float(h)
@@ -177,7 +279,7 @@ def simulate_with_neighbor_list(
                     builder = dataclasses.replace(builder, capacity=pairs.shape[0])
                 builds += 1
                 pair_counts.append(_listed_pairs(pairs, n_sites))
-                listed = eqx.tree_at(where, system, _with_list(potential, pairs))
+                listed = eqx.tree_at(where, system, with_list(potential, pairs))
                 built_at, built_step = g, start
             sol = simulate(
                 listed,
@@ -197,12 +299,7 @@ def simulate_with_neighbor_list(
             if displacement < builder.skin / 2:
                 break
             if built_step == start:
-                raise RuntimeError(
-                    f"The neighbour list went stale in steps {start}–{start + rebuild_every}: "
-                    f"a site moved {displacement:.3g} since the list was built, at least half "
-                    f"the skin ({builder.skin / 2:.3g}), so a pair within the cut-off may be "
-                    "missing. Pass a smaller `rebuild_every` or a larger `skin` to the builder."
-                )
+                _stale(start, start + rebuild_every, displacement, builder.skin)
             # A list kept from an earlier segment went stale: build one here, run again.
             listed, reruns = None, reruns + 1
         if int(sol.result) != RESULTS.successful:
@@ -216,7 +313,7 @@ def simulate_with_neighbor_list(
             listed = None
         pieces.append(_kept(sol, start, save_every))
         g, m = _take((sol.g, sol.m), -1)  # one program, not one dispatch each
-        opts.progress.show((start + rebuild_every) / n_steps)
+        progress.show((start + rebuild_every) / n_steps)
     joined = _join(pieces, h, t0, n_steps, save_every, failure)
     stats = dict(
         joined.stats,

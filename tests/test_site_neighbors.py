@@ -10,6 +10,7 @@ quickest coupled program to compile) and share one pair-list capacity, so that t
 segments of every run reuse one compiled step.
 """
 
+import importlib.util
 import subprocess
 import sys
 
@@ -274,6 +275,36 @@ def test_jax_md_in_a_small_box_warns_nothing(recwarn):
         assert np.array_equal(np.unique(np.asarray(found), axis=0), expected)
 
 
+def test_device_rebuilds_agree_with_host_builds():
+    """`rebuild` (traceable, run inside the compiled program), from a first `build`'s
+    state: the pair set of a build on the host at the moved poses — for the brute-force
+    builder, and for jax-md's in a periodic box (its `update`) and in free space where a
+    site has left the first allocation's bounding box (every pair tested instead). A
+    capacity too small is reported as an overflow. (The box, cut-off and skin of
+    `test_jax_md_rebuilds_agree_with_brute_force`, whose jax-md lists this reuses.)"""
+    rng = np.random.default_rng(4)
+    n = 40
+    sites = jnp.asarray(rng.normal(size=(n, 2, 3)) * 0.3)
+    g = _poses(rng, rng.uniform(0, 5.0, size=(n, 3)))
+    moved = g.at[:, :3, 3].add(jnp.asarray(rng.uniform(-0.5, 0.5, (n, 3))))
+    far = moved.at[0, :3, 3].add(jnp.array([20.0, 0.0, 0.0]))
+    cases = [(lievi.BruteForceNeighbors, None, moved), (lievi.BruteForceNeighbors, 5.0, moved)]
+    if importlib.util.find_spec("jax_md"):
+        cases += [(lievi.JaxMDNeighbors, 5.0, moved), (lievi.JaxMDNeighbors, None, far)]
+    for kind, box, poses in cases:
+        potential = lievi.SitePotential(sites, lievi.LennardJones(), cutoff=1.2, box=box)
+        builder = kind(0.3, capacity=CAPACITY)
+        _, state = builder.build(potential, g)
+        # Eagerly: the operations the program traces, without a program per case.
+        pairs, _, overflow = builder.rebuild(potential, poses, state)
+        brute = lievi.BruteForceNeighbors(0.3, capacity=CAPACITY)
+        expected = np.unique(np.asarray(brute(potential, poses)), axis=0)
+        assert not bool(overflow) and len(expected) > 10
+        assert np.array_equal(np.unique(np.asarray(pairs), axis=0), expected)
+        small = lievi.BruteForceNeighbors(0.3, capacity=10)
+        assert bool(small.rebuild(potential, poses, None)[2])
+
+
 @pytest.fixture(scope="module")
 def segmented():
     system, g0, m0 = box_problem()
@@ -290,6 +321,39 @@ def segmented():
         builder=builder,
     )
     return system, g0, m0, sol
+
+
+def test_run_is_one_program(segmented, monkeypatch):
+    """With a builder that rebuilds on the device, the run is one compiled program: its
+    one build on the host is the first (the 19 others inside the program, as jax-md's
+    users rebuild inside their loop), no segment is called from the host, and the saves
+    are those of the fixture's run (the same program, not compiled again)."""
+    from lievi import _simulate_neighbors
+    from lievi._systems import _neighbors
+
+    system, g0, m0, sol = segmented
+    host_builds, segments = [], []
+    build, simulate = _neighbors._all_pairs_list, _simulate_neighbors.simulate
+    monkeypatch.setattr(
+        _neighbors, "_all_pairs_list", lambda *a: host_builds.append(1) or build(*a)
+    )
+    monkeypatch.setattr(
+        _simulate_neighbors, "simulate", lambda *a, **k: segments.append(1) or simulate(*a, **k)
+    )
+    again = lievi.simulate_with_neighbor_list(
+        system,
+        METHOD,
+        g0,
+        m0,
+        h=H,
+        n_steps=200,
+        rebuild_every=10,
+        save=lievi.Save(every=10),
+        builder=lievi.BruteForceNeighbors(SKIN, capacity=CAPACITY),
+    )
+    assert len(host_builds) == 1 and not segments
+    assert int(again.stats["neighbor_builds"]) == 20
+    assert jnp.array_equal(again.g, sol.g) and jnp.array_equal(again.m, sol.m)
 
 
 @pytest.mark.extended  # 10 s

@@ -24,7 +24,10 @@
   (`pair_list_conditions`): a pair within one body, or listed twice, is refused. `lievi.simulate_with_neighbor_list`
   rebuilds the list between segments of a run and checks both conditions.
 
-Builders run outside the compiled step (between segments), on concrete positions.
+A builder's first list is built on the host, on concrete positions (that sizes its
+`capacity`, and jax-md allocates its buffers there); a builder that can rebuild inside a
+compiled program (`rebuilds_on_device`: both builders here) builds the later ones there
+(`rebuild`), so that a whole run of `lievi.simulate_with_neighbor_list` is one program.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from __future__ import annotations
 import abc
 import functools
 import math
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -161,6 +165,19 @@ class AbstractNeighborBuilder(eqx.Module):
         pairs[: len(i), 0], pairs[: len(i), 1] = i[order], j[order]
         return jnp.asarray(pairs), None
 
+    # Whether `rebuild` builds a list inside a compiled program (from the state of a
+    # first `build` on the host); a builder that only has `candidates` builds on the host.
+    rebuilds_on_device: ClassVar[bool] = False
+
+    def rebuild(self, potential, g, state):
+        """`(pairs, state, overflow)`, traceable: the list at poses `g` from the `state` of
+        an earlier `build` (whose `capacity` it keeps), and whether it overflowed — more
+        pairs than `capacity`, or a buffer of the builder's own too small — in which case
+        the pairs are incomplete and the list must be built again on the host (`build`,
+        which enlarges the buffers or raises naming `capacity`). Only for builders with
+        `rebuilds_on_device`."""
+        raise NotImplementedError(f"{type(self).__name__} builds its lists on the host.")
+
     def __call__(self, potential, g):
         return self.build(potential, g)[0]
 
@@ -235,8 +252,25 @@ class BruteForceNeighbors(AbstractNeighborBuilder):
         near = np.asarray(_near_pairs(*_device_inputs(x, body, radius, box)))
         return np.nonzero(near)
 
+    rebuilds_on_device: ClassVar[bool] = True
+
     def build(self, potential, g, state=None):
         return _all_pairs_list(self, *_inputs(potential, g, self.skin)), None
+
+    def rebuild(self, potential, g, state):
+        pairs, overflow = _traced_all_pairs(self, potential, potential.flat_positions(g))
+        return pairs, state, overflow
+
+
+def _traced_all_pairs(builder, potential, x):
+    """`(pairs, overflow)`: the `(capacity, 2)` list of the flat sites `x` by testing
+    every pair, traceable (`builder.capacity` fixed by a first build)."""
+    body = jnp.arange(x.shape[0]) // potential.sites.shape[1]
+    radius = jnp.asarray(potential.cutoff, x.dtype) + builder.skin
+    box = None if potential.box is None else jnp.asarray(potential.box, x.dtype)
+    near = _near_pairs(x, body, radius, box)
+    count = jnp.sum(near, dtype=jnp.int32)
+    return _mask_to_pairs(near, builder.capacity), count > builder.capacity
 
 
 def _all_pairs_list(builder, x, body, radius, box):
@@ -311,6 +345,41 @@ class JaxMDNeighbors(AbstractNeighborBuilder):
         real = np.asarray(pairs)
         real = real[real[:, 1] < len(x)]
         return real[:, 0], real[:, 1]
+
+    rebuilds_on_device: ClassVar[bool] = True
+
+    def rebuild(self, potential, g, state):
+        """jax-md's compiled `update` from the last list, in the program. Where the first
+        build tested every pair (a small box: `state` is `None`), or in free space where a
+        site has left the bounding box of the last allocation (which only the host can
+        redo), every pair is tested instead, on the device: the same pairs. jax-md's own
+        buffers overflowing is reported as an overflow (the host reallocates them)."""
+        x = potential.flat_positions(g)
+        if state is None:
+            pairs, overflow = _traced_all_pairs(self, potential, x)
+            return pairs, state, overflow
+        update, neighbors, origin, side = state
+        body = jnp.arange(x.shape[0]) // potential.sites.shape[1]
+
+        def cells(neighbors):
+            neighbors = update(shifted, neighbors)
+            kept = _kept_pairs(neighbors.idx, body)
+            overflow = (jnp.sum(kept[2]) > self.capacity) | (neighbors.did_buffer_overflow != 0)
+            return _compacted(kept, x.shape[0], self.capacity), neighbors, overflow
+
+        if potential.box is not None:
+            shifted = jnp.mod(x, jnp.asarray(side, x.dtype))
+            pairs, neighbors, overflow = cells(neighbors)
+        else:
+            shifted = x - jnp.asarray(origin, x.dtype)
+            inside = jnp.all((shifted >= 0) & (shifted < jnp.asarray(side, x.dtype)))
+
+            def every_pair(neighbors):
+                pairs, overflow = _traced_all_pairs(self, potential, x)
+                return pairs, neighbors, overflow
+
+            pairs, neighbors, overflow = jax.lax.cond(inside, cells, every_pair, neighbors)
+        return pairs, (update, neighbors, origin, side), overflow
 
     def build(self, potential, g, state=None):
         """Allocates jax-md's list on the first build (or after jax-md reports an
