@@ -58,9 +58,11 @@ import jax.numpy as jnp
 from .._groups._se3 import SE3
 from .._newton import newton_tolerance
 from .._results import RESULTS
-from ._base import AbstractBatchKernel, compacted_tail, materialise
+from ._base import compacted_tail, materialise
 from ._flat_batch import bodies_batched
 from ._implicit import differentiable_root
+from ._se3_dense import SE3DenseKernel
+from ._se3_layout import SE3Kernel
 from ._se3_reduced import reduced_residual, velocity_part
 from ._se3_residual import (
     SINC3,
@@ -386,38 +388,6 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
 DEFAULT_FIXED_ITERATIONS = {"exp": 3, "cayley": 3}
 
 
-class SE3Kernel(AbstractBatchKernel):
-    """The layout of a kernel for `RigidBodySE3` with a 6×6 kinetic tensor `M` (left
-    side): its constants the 36 entries of `M` and those of `M⁻¹` (`constants`), its state
-    the 12 entries of `[R | p]` and the 6 of `m = (Π, P)`."""
-
-    def physics(self, system, batched: bool = False):
-        # A left-invariant system on `SE3` with a quadratic Lagrangian `½ξᵀMξ`: its 6×6 `M`.
-        tensor = system.kinetic_tensor()
-        if system.group != SE3 or system.side != "left" or tensor is None:
-            return None
-        return tensor if jnp.shape(tensor)[batched:] == (6, 6) else None
-
-    def turn_rates(self, constants, h):
-        # |h| times the rotation rows of M⁻¹ (`SE3.exp_norm`: the rotation part of M⁻¹m),
-        # one operation on the whole block (`component_major`).
-        Minv = matrix(constants[1])[..., :3, :]
-        return component_major(jnp.abs(jnp.asarray(h))[..., None, None] * Minv)
-
-    def turn_squared(self, rates, m):
-        omega = tuple(sum(rates[i][j] * m[j] for j in range(6)) for i in range(3))
-        return dot(omega, omega)
-
-    def carried(self, g0):
-        return tuple(g0[:, i, j] for i in range(3) for j in range(4))
-
-    def elements(self, entries):
-        # (…, 12, B) → (B, …, 4, 4), the last row (0, 0, 0, 1).
-        top = jnp.moveaxis(entries, -1, 0).reshape(entries.shape[-1:] + entries.shape[:-2] + (3, 4))
-        last = jnp.broadcast_to(jnp.eye(4, dtype=top.dtype)[3], top.shape[:-2] + (1, 4))
-        return jnp.concatenate([top, last], axis=-2)
-
-
 class SE3NewtonKernel(SE3Kernel):
     """`DEP`'s step (either chart) for `RigidBodySE3` without a potential (`dep_step`).
 
@@ -469,6 +439,11 @@ class SE3NewtonKernel(SE3Kernel):
 
     def with_fixed_iterations(self, fixed_iterations: int):
         return dataclasses.replace(self, fixed_iterations=fixed_iterations)
+
+    def one_body(self):
+        # One body: the same step on whole arrays (`_se3_dense.py`), a program a fraction
+        # of this one's size, so a one-body run's first call is mostly not compiling.
+        return SE3DenseKernel(self.chart, self.rtol, self.atol, self.max_steps)
 
     def _fixed(self) -> int:
         """The fixed Newton iterations of a step: as set, or the default."""

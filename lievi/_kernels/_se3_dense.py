@@ -1,0 +1,173 @@
+"""The SE(3) DEP step for one body (or a few) as whole-array operations (paper (4.8),
+(3.3), (2.9)).
+
+The same step as `_se3.dep_step` — the DEP equation `dφ⁻¹(ξ)ᵀ Mξ/h = m` (4.8) solved for
+the increment `ξ = (ω, v)`, `F = φ(ξ)`, `m_{k+1} = Ad_Fᵀ m_k` (DLP (3.3)), `g_{k+1} = g_k F`
+(2.9) — written on 6-vectors and 6×6 matrices instead of 36 scalars per body:
+
+- the residual is the generic path's (`DEP.residual`: the chart's `dφ⁻¹` as `lievi.SE3`
+  writes it), its Jacobian `jax.jacfwd`'s, each Newton step one `jnp.linalg.solve` of the
+  6×6 system;
+- one Newton loop (`lax.while_loop`) from the explicit-Euler guess `h M⁻¹m`, stopping on
+  `newton_tolerance` (the test of every implicit step) or after `max_steps`, one
+  evaluation of `(r, J)` and one LU factorisation a pass; its root is differentiated by
+  the implicit function theorem (`jax.lax.custom_root`, as `_newton.newton_solve`), not
+  through the iterations;
+- the branch rule of `DEP.on_branch` (`det ∂r/∂ξ` of the sign of `det(M/h) > 0`, and for
+  the exp chart a rotation angle below π) and the codes of `_se3.dep_step`.
+
+Why it exists: written out as scalars, the structure-of-arrays step (`_se3.py`: fixed
+reduced Newton iterations, a chord step, a gathered tail) is what a large batch needs, but
+its program is large — about ten thousand HLO instructions before optimisation — and an
+eager one-body `simulate` spent most of its first call compiling it. This step is a
+fraction of that, so `SE3NewtonKernel.one_body` hands it to one-body runs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
+
+from .._groups._se3 import SE3
+from .._newton import ROOT_NAME, newton_tolerance
+from .._results import RESULTS
+from ._se3_layout import SE3Kernel
+from ._soa import component_major
+
+
+def _residual(chart, x, m, A):
+    """The DEP residual `dφ⁻¹(ξ)ᵀ Aξ − m` (4.8), `A = M/h`: the generic path's
+    (`DEP.residual`)."""
+    return chart.dinverse(SE3, x).T @ (A @ x) - m
+
+
+def _newton(chart, m, A, guess, tolerance, max_steps: int):
+    """Newton from `guess` on the 6×6 system: `(ξ, iterations, ‖r‖_∞, sign of det J)`,
+    `J = ∂r/∂ξ` at `ξ`.
+
+    Each pass takes the step found in the previous one (none in the first, which
+    evaluates the guess), then evaluates `r` and `J` (`jax.jacfwd`) at the new iterate and
+    factors `J` once (LU): the norm for the test, the next step and the sign of `det J`
+    for the branch rule (from the factors' diagonal and pivots: `det J` itself, a product
+    of six factors of the size of `M/h`, can leave float32's range). One evaluation of
+    `(r, J)` in the program: evaluated before the loop as well, it was a second copy of
+    the largest piece of the step."""
+
+    def residual(x):
+        return _residual(chart, x, m, A)
+
+    def cond(carry):
+        _, _, _, norm, iterations, started = carry
+        going = (norm > tolerance) & jnp.isfinite(norm) & (iterations < max_steps)
+        return ~started | going
+
+    def body(carry):
+        x, delta, _, _, iterations, started = carry
+        x = jnp.where(started, x - delta, x)
+        iterations = iterations + started.astype(jnp.int32)
+        r, J = residual(x), jax.jacfwd(residual)(x)
+        factors = jax.scipy.linalg.lu_factor(J)
+        lu, pivots = factors
+        swaps = jnp.sum(pivots != jnp.arange(pivots.shape[0], dtype=pivots.dtype))
+        sign = jnp.prod(jnp.sign(jnp.diagonal(lu))) * (1 - 2 * (swaps % 2))
+        delta = jax.scipy.linalg.lu_solve(factors, r)
+        return x, delta, sign, jnp.max(jnp.abs(r)), iterations, jnp.asarray(True)
+
+    zero = jnp.zeros((), guess.dtype)
+    carry = (guess, jnp.zeros_like(guess), zero, zero, jnp.asarray(0, jnp.int32), False)
+    x, _, sign, norm, iterations, _ = jax.lax.while_loop(cond, body, carry)
+    return x, iterations, norm, sign
+
+
+def _increment(chart, m, A, Ainv, tolerance, max_steps: int):
+    """The DEP equation of one body solved: `(ξ, iterations, ‖r‖_∞, converged,
+    off_branch)`, `ξ` differentiable in `m` and `A = M/h` by the implicit function
+    theorem (`jax.lax.custom_root`, as `_newton.newton_solve`), not through the loop."""
+    stopped = jax.lax.stop_gradient((m, A, Ainv))
+    # The explicit-Euler guess `h M⁻¹ m` (`DEP.solve_increment`'s).
+    guess = stopped[2] @ stopped[0]
+    root, iterations, norm, sign = _newton(chart, *stopped[:2], guess, tolerance, max_steps)
+    # A diverged solve hands back the finite guess: the implicit derivative is then
+    # evaluated at a finite point, so a failed step whose output is masked contributes 0,
+    # not NaN, to a gradient.
+    root = jnp.where(jnp.all(jnp.isfinite(root)) & jnp.isfinite(norm), root, guess)
+    root = checkpoint_name(root, ROOT_NAME)
+    # `DEP.on_branch`'s rule: `det J` of the sign of `det A > 0` (either sign of `h`, six
+    # dimensions), and for the exp chart a rotation angle below π.
+    off = ~(sign > 0) | chart.beyond_branch(jnp.sum(root[:3] ** 2), math.pi)
+
+    def tangent_solve(linear, y):
+        return jnp.linalg.solve(jax.jacobian(linear)(y), y)
+
+    x = jax.lax.custom_root(
+        lambda x: _residual(chart, x, m, A), root, lambda f, guess: guess, tangent_solve
+    )
+    return x, iterations, norm, norm <= tolerance, off
+
+
+def dense_step(chart, g, m, A, Ainv, tolerance, max_steps: int):
+    """One DEP + DLP + reconstruction step of one body: `g` `(4, 4)`, `m` `(6,)`,
+    `A = M/h`, `Ainv = h M⁻¹` `(6, 6)`. Returns `(g_next, m_next, result, iterations,
+    residual)`; differentiable in `g`, `m`, `A`."""
+    x, iterations, norm, converged, off_branch = _increment(chart, m, A, Ainv, tolerance, max_steps)
+    F = chart.map(SE3, x)
+    # `SE3.compose` keeps the rotation block orthonormal (one Newton–Schulz step).
+    g_next = SE3.compose(g, F)
+    m_next = SE3.Ad(F).T @ m
+    result = jnp.where(converged, RESULTS.successful, RESULTS.newton_not_converged)
+    result = jnp.where(off_branch, RESULTS.step_too_large, result)
+    ok = jnp.isfinite(norm) & jnp.all(jnp.isfinite(m_next))
+    result = jnp.where(ok, result, RESULTS.nonfinite)
+    return g_next, m_next, result.astype(jnp.int32), iterations, norm
+
+
+class SE3DenseKernel(SE3Kernel):
+    """`DEP`'s step (either chart) for `RigidBodySE3` without a potential, as whole-array
+    operations (`dense_step`): the step `SE3NewtonKernel.one_body` runs for one body.
+
+    Its state is `SE3Kernel`'s (the 12 entries of `[R | p]`, the 6 of `m`), joined into a
+    pose and a momentum per body inside the step; its constants `M` and `M⁻¹` as
+    `(…, 6, 6)` arrays.
+    """
+
+    chart: str = eqx.field(static=True)
+    rtol: float | None = eqx.field(static=True)
+    atol: float | None = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+
+    def constants(self, tensor):
+        # M⁻¹ (the Newton guess and the step bound) is not differentiated.
+        return tensor, jnp.linalg.inv(jax.lax.stop_gradient(tensor))
+
+    def turn_rates(self, constants, h):
+        # |h| times the rotation rows of M⁻¹, `(3, 6, …)` as `turn_squared` reads them.
+        Minv = constants[1][..., :3, :]
+        return component_major(jnp.abs(jnp.asarray(h))[..., None, None] * Minv)
+
+    def prepare(self, constants, h):
+        M, Minv = constants
+        h = jnp.asarray(h)[..., None, None]
+        return M / h, h * Minv
+
+    def step(self, params, g, m, alive):
+        A, Ainv = params
+        shape = jnp.shape(m[0])
+        m = jnp.stack(jnp.broadcast_arrays(*m), -1)
+        rows = jnp.stack(jnp.broadcast_arrays(*g), -1).reshape(shape + (3, 4))
+        bottom = jnp.broadcast_to(jnp.eye(4, dtype=rows.dtype)[3], shape + (1, 4))
+        g = jnp.concatenate([rows, bottom], -2)
+        # A failed body (`alive` false) takes no Newton iteration: its tolerance is ∞.
+        tolerance = newton_tolerance(jnp.max(jnp.abs(m), -1), m.dtype, self.rtol, self.atol)
+        tolerance = jnp.where(alive, tolerance, jnp.inf)
+
+        def one(g, m, A, Ainv, tolerance):
+            return dense_step(self.chart, g, m, A, Ainv, tolerance, self.max_steps)
+
+        signature = "(4,4),(6),(6,6),(6,6),()->(4,4),(6),(),(),()"
+        g_next, m_next, *info = jnp.vectorize(one, signature=signature)(g, m, A, Ainv, tolerance)
+        g_next = tuple(g_next[..., i, j] for i in range(3) for j in range(4))
+        return (g_next, tuple(m_next[..., i] for i in range(6)), *info)
