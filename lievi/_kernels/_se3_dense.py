@@ -32,17 +32,73 @@ import jax
 import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
-from .._groups._se3 import SE3
 from .._newton import ROOT_NAME, newton_tolerance
 from .._results import RESULTS
 from ._se3_layout import SE3Kernel
-from ._soa import component_major
+from ._se3_residual import SINC3, _dexpinv_coefficients
+from ._soa import C_SERIES, S_SERIES, component_major, horner
+
+
+def _hat(y):
+    """`ŷ`, `ŷ z = y × z`."""
+    zero = jnp.zeros_like(y[0])
+    return jnp.stack(
+        [
+            jnp.stack([zero, -y[2], y[1]]),
+            jnp.stack([y[2], zero, -y[0]]),
+            jnp.stack([-y[1], y[0], zero]),
+        ]
+    )
+
+
+def _operator_and_e(chart, x, mu):
+    """`(D, E)`: `D = dφ⁻¹(ξ)ᵀ = [[K, L], [0, K′]]` and `E = ∂(dφ⁻¹(ξ)ᵀμ)/∂ξ` at fixed
+    `μ = (a, b)`, 6×6 each, built from 3-vector outer products (`_se3_residual`'s
+    `operator` and `e_blocks`, there entry by entry; the derivation in its module doc).
+    The residual is `Dμ − m` with `μ = Aξ`, its Jacobian `DA + E`."""
+    w, v = x[:3], x[3:]
+    a, b = mu[:3], mu[3:]
+    t, s = jnp.dot(w, w), jnp.dot(w, v)
+    oa, ob, vb = jnp.dot(w, a), jnp.dot(w, b), jnp.dot(v, b)
+    eye, W, outer = jnp.eye(3, dtype=x.dtype), _hat(w), jnp.outer
+    if chart == "cayley":
+        Kp = eye + W / 2
+        K = Kp + outer(w, w) / 4
+        L = _hat(v) / 2 + (outer(w, v) - s * eye) / 4
+        E_ww = (oa + vb) / 4 * eye + (outer(w, a) - outer(b, v)) / 4 - _hat(a) / 2
+        E_wv, E_vw = -_hat(Kp @ b) / 2, -_hat(b) / 2
+    else:
+        c, c1, c2 = _dexpinv_coefficients(t)
+        k = 2 * c1 * s
+        K = Kp = (1 - c * t) * eye + W / 2 + c * outer(w, w)
+        L = _hat(v) / 2 - (k * t + 2 * c * s) * eye + k * outer(w, w)
+        L = L + c * (outer(w, v) + outer(v, w))
+        za, zb = w * oa - t * a, w * ob - t * b
+        lw = w * vb + v * ob - 2 * s * b
+        y = 2 * c1 * zb - 2 * c * b
+        u = -2 * c * a + 2 * c1 * (za + lw) + 4 * s * (c2 * zb - c1 * b)
+        E_ww = (c * (oa + vb) + k * ob) * eye + outer(w, c * a + k * b) + outer(v, c * b)
+        E_ww = E_ww + outer(u, w) + outer(y, v) - _hat(a) / 2
+        E_wv = E_vw = c * ob * eye + outer(w, c * b) + outer(y, w) - _hat(b) / 2
+    zero = jnp.zeros_like(eye)
+    D = jnp.block([[K, L], [zero, Kp]])
+    E = jnp.block([[E_ww, E_wv], [E_vw, zero]])
+    return D, E
 
 
 def _residual(chart, x, m, A):
     """The DEP residual `dφ⁻¹(ξ)ᵀ Aξ − m` (4.8), `A = M/h`: the generic path's
-    (`DEP.residual`)."""
-    return chart.dinverse(SE3, x).T @ (A @ x) - m
+    (`DEP.residual`) to round-off."""
+    mu = A @ x
+    return _operator_and_e(chart, x, mu)[0] @ mu - m
+
+
+def _residual_and_jacobian(chart, x, m, A):
+    """`(r, ∂r/∂ξ)` in closed form, `∂r/∂ξ = dφ⁻¹(ξ)ᵀA + E` (`_operator_and_e`): about a
+    quarter of the compile time of `jax.jacfwd` of `_residual`."""
+    mu = A @ x
+    D, E = _operator_and_e(chart, x, mu)
+    return D @ mu - m, D @ A + E
 
 
 def _newton(chart, m, A, guess, tolerance, max_steps: int):
@@ -57,9 +113,6 @@ def _newton(chart, m, A, guess, tolerance, max_steps: int):
     `(r, J)` in the program: evaluated before the loop as well, it was a second copy of
     the largest piece of the step."""
 
-    def residual(x):
-        return _residual(chart, x, m, A)
-
     def cond(carry):
         _, _, _, norm, iterations, started = carry
         going = (norm > tolerance) & jnp.isfinite(norm) & (iterations < max_steps)
@@ -69,7 +122,7 @@ def _newton(chart, m, A, guess, tolerance, max_steps: int):
         x, delta, _, _, iterations, started = carry
         x = jnp.where(started, x - delta, x)
         iterations = iterations + started.astype(jnp.int32)
-        r, J = residual(x), jax.jacfwd(residual)(x)
+        r, J = _residual_and_jacobian(chart, x, m, A)
         factors = jax.scipy.linalg.lu_factor(J)
         lu, pivots = factors
         swaps = jnp.sum(pivots != jnp.arange(pivots.shape[0], dtype=pivots.dtype))
@@ -109,15 +162,44 @@ def _increment(chart, m, A, Ainv, tolerance, max_steps: int):
     return x, iterations, norm, norm <= tolerance, off
 
 
+def _increment_map(chart, x):
+    """`F = φ(ξ)` as `(R_F, t_F)`, by the power series of `_se3.increment` (no library
+    trigonometry): `R_F = 1 + α ω̂ + β(ωωᵀ − t)`, with exp `α = sin θ/θ`,
+    `β = (1 − cos θ)/θ²`, `t_F = v + β ω×v + γ(ω(ω·v) − t v)`, `γ = (θ − sin θ)/θ³`;
+    Cayley `α = 4/(4 + t)`, `β = α/2`, `t_F = (v + R_F v)/2` (`lievi.SE3.exp`, `cay`)."""
+    w, v = x[:3], x[3:]
+    t = jnp.dot(w, w)
+    if chart == "exp":
+        S, C = horner(S_SERIES, t / 4), horner(C_SERIES, t / 4)
+        alpha, beta = S * C, S * S / 2
+        gamma = horner(SINC3, t)
+    else:
+        alpha = 4 / (4 + t)
+        beta = alpha / 2
+    eye = jnp.eye(3, dtype=x.dtype)
+    RF = (1 - beta * t) * eye + alpha * _hat(w) + beta * jnp.outer(w, w)
+    if chart == "exp":
+        tF = v + beta * jnp.cross(w, v) + gamma * (w * jnp.dot(w, v) - t * v)
+    else:
+        tF = (v + RF @ v) / 2
+    return RF, tF
+
+
 def dense_step(chart, g, m, A, Ainv, tolerance, max_steps: int):
-    """One DEP + DLP + reconstruction step of one body: `g` `(4, 4)`, `m` `(6,)`,
-    `A = M/h`, `Ainv = h M⁻¹` `(6, 6)`. Returns `(g_next, m_next, result, iterations,
-    residual)`; differentiable in `g`, `m`, `A`."""
+    """One DEP + DLP + reconstruction step of one body: `g` the top rows `[R | p]` of the
+    pose `(3, 4)`, `m` `(6,)`, `A = M/h`, `Ainv = h M⁻¹` `(6, 6)`. Returns `(g_next,
+    m_next, result, iterations, residual)`; differentiable in `g`, `m`, `A`."""
     x, iterations, norm, converged, off_branch = _increment(chart, m, A, Ainv, tolerance, max_steps)
-    F = chart.map(SE3, x)
-    # `SE3.compose` keeps the rotation block orthonormal (one Newton–Schulz step).
-    g_next = SE3.compose(g, F)
-    m_next = SE3.Ad(F).T @ m
+    RF, tF = _increment_map(chart, x)
+    # g F (2.9): `R R_F` re-orthonormalised by one Newton–Schulz step, `R ← R − R(RᵀR − 1)/2`
+    # (as `lievi.SE3.compose`), and `p + R t_F`.
+    R, p = g[:, :3], g[:, 3]
+    Rn = R @ RF
+    Rn = Rn - Rn @ (Rn.T @ Rn - jnp.eye(3, dtype=Rn.dtype)) / 2
+    g_next = jnp.concatenate([Rn, (p + R @ tF)[:, None]], axis=1)
+    # Ad_Fᵀ m = (R_Fᵀ(Π + P × t_F), R_Fᵀ P) (3.3).
+    Pi, P = m[:3], m[3:]
+    m_next = (jnp.stack([Pi + jnp.cross(P, tF), P], axis=1).T @ RF).reshape(6)
     result = jnp.where(converged, RESULTS.successful, RESULTS.newton_not_converged)
     result = jnp.where(off_branch, RESULTS.step_too_large, result)
     ok = jnp.isfinite(norm) & jnp.all(jnp.isfinite(m_next))
@@ -157,9 +239,7 @@ class SE3DenseKernel(SE3Kernel):
         A, Ainv = params
         shape = jnp.shape(m[0])
         m = jnp.stack(jnp.broadcast_arrays(*m), -1)
-        rows = jnp.stack(jnp.broadcast_arrays(*g), -1).reshape(shape + (3, 4))
-        bottom = jnp.broadcast_to(jnp.eye(4, dtype=rows.dtype)[3], shape + (1, 4))
-        g = jnp.concatenate([rows, bottom], -2)
+        g = jnp.stack(jnp.broadcast_arrays(*g), -1).reshape(shape + (3, 4))
         # A failed body (`alive` false) takes no Newton iteration: its tolerance is ∞.
         tolerance = newton_tolerance(jnp.max(jnp.abs(m), -1), m.dtype, self.rtol, self.atol)
         tolerance = jnp.where(alive, tolerance, jnp.inf)
@@ -167,7 +247,19 @@ class SE3DenseKernel(SE3Kernel):
         def one(g, m, A, Ainv, tolerance):
             return dense_step(self.chart, g, m, A, Ainv, tolerance, self.max_steps)
 
-        signature = "(4,4),(6),(6,6),(6,6),()->(4,4),(6),(),(),()"
-        g_next, m_next, *info = jnp.vectorize(one, signature=signature)(g, m, A, Ainv, tolerance)
+        args = (g, m, A, Ainv, tolerance)
+        cores = ((3, 4), (6,), (6, 6), (6, 6), ())
+        batch = jnp.broadcast_shapes(
+            *(jnp.shape(y)[: jnp.ndim(y) - len(c)] for y, c in zip(args, cores))
+        )
+        if math.prod(batch) == 1:
+            # One body: called as is, not under `jax.vmap`, whose batched loop predicate
+            # and batched LU made the program compile 10–20 % longer.
+            outputs = one(*(jnp.reshape(y, c) for y, c in zip(args, cores)))
+            outputs = jax.tree.map(lambda y: jnp.reshape(y, batch + jnp.shape(y)), outputs)
+        else:
+            signature = "(3,4),(6),(6,6),(6,6),()->(3,4),(6),(),(),()"
+            outputs = jnp.vectorize(one, signature=signature)(*args)
+        g_next, m_next, *info = outputs
         g_next = tuple(g_next[..., i, j] for i in range(3) for j in range(4))
         return (g_next, tuple(m_next[..., i] for i in range(6)), *info)
