@@ -58,8 +58,9 @@ def _operator_and_e(chart, x, mu):
     The residual is `Dμ − m` with `μ = Aξ`, its Jacobian `DA + E`."""
     w, v = x[:3], x[3:]
     a, b = mu[:3], mu[3:]
-    t, s = jnp.dot(w, w), jnp.dot(w, v)
-    oa, ob, vb = jnp.dot(w, a), jnp.dot(w, b), jnp.dot(v, b)
+    # The five dot products in one matrix product (each alone was a kernel of its own).
+    dots = jnp.stack([w, v]) @ jnp.stack([w, v, a, b]).T
+    t, s, oa, ob, vb = dots[0, 0], dots[0, 1], dots[0, 2], dots[0, 3], dots[1, 3]
     eye, W, outer = jnp.eye(3, dtype=x.dtype), _hat(w), jnp.outer
     if chart == "cayley":
         Kp = eye + W / 2
@@ -123,11 +124,14 @@ def _newton(chart, m, A, guess, tolerance, max_steps: int):
         x = jnp.where(started, x - delta, x)
         iterations = iterations + started.astype(jnp.int32)
         r, J = _residual_and_jacobian(chart, x, m, A)
-        factors = jax.scipy.linalg.lu_factor(J)
-        lu, pivots = factors
-        swaps = jnp.sum(pivots != jnp.arange(pivots.shape[0], dtype=pivots.dtype))
-        sign = jnp.prod(jnp.sign(jnp.diagonal(lu))) * (1 - 2 * (swaps % 2))
-        delta = jax.scipy.linalg.lu_solve(factors, r)
+        # LU with partial pivoting of `[J | r]`: `P[J | r] = L[U | c]` with `c = L⁻¹Pr`, so
+        # `J⁻¹r = U⁻¹c`, one triangular solve and no permutation to apply (a loop in
+        # XLA's program: `lu_solve` compiled into twice the kernels).
+        lu, pivots, _ = jax.lax.linalg.lu(jnp.concatenate([J, r[:, None]], axis=1))
+        U = lu[:, :6]
+        delta = jax.lax.linalg.triangular_solve(U, lu[:, 6:], left_side=True, lower=False)[:, 0]
+        swaps = jnp.sum(pivots != jnp.arange(6, dtype=pivots.dtype))
+        sign = jnp.prod(jnp.sign(U.reshape(-1)[::7])) * (1 - 2 * (swaps % 2))
         return x, delta, sign, jnp.max(jnp.abs(r)), iterations, jnp.asarray(True)
 
     zero = jnp.zeros((), guess.dtype)
@@ -168,7 +172,7 @@ def _increment_map(chart, x):
     `β = (1 − cos θ)/θ²`, `t_F = v + β ω×v + γ(ω(ω·v) − t v)`, `γ = (θ − sin θ)/θ³`;
     Cayley `α = 4/(4 + t)`, `β = α/2`, `t_F = (v + R_F v)/2` (`lievi.SE3.exp`, `cay`)."""
     w, v = x[:3], x[3:]
-    t = jnp.dot(w, w)
+    t, wv = w @ jnp.stack([w, v]).T
     if chart == "exp":
         S, C = horner(S_SERIES, t / 4), horner(C_SERIES, t / 4)
         alpha, beta = S * C, S * S / 2
@@ -179,7 +183,7 @@ def _increment_map(chart, x):
     eye = jnp.eye(3, dtype=x.dtype)
     RF = (1 - beta * t) * eye + alpha * _hat(w) + beta * jnp.outer(w, w)
     if chart == "exp":
-        tF = v + beta * jnp.cross(w, v) + gamma * (w * jnp.dot(w, v) - t * v)
+        tF = v + beta * jnp.cross(w, v) + gamma * (w * wv - t * v)
     else:
         tF = (v + RF @ v) / 2
     return RF, tF
