@@ -11,8 +11,8 @@ the increment `ξ = (ω, v)`, `F = φ(ξ)`, `m_{k+1} = Ad_Fᵀ m_k` (DLP (3.3)),
 - one Newton loop (`lax.while_loop`) from the explicit-Euler guess `h M⁻¹m`, stopping on
   `newton_tolerance` (the test of every implicit step) or after `max_steps`, one
   evaluation of `(r, J)` and one LU factorisation a pass; its root is differentiated by
-  the implicit function theorem (`jax.lax.custom_root`, as `_newton.newton_solve`), not
-  through the iterations;
+  the implicit function theorem (`_at_root`, as the other kernels' roots), not through
+  the iterations;
 - the branch rule of `DEP.on_branch` (`det ∂r/∂ξ` of the sign of `det(M/h) > 0`, and for
   the exp chart a rotation angle below π) and the codes of `_se3.dep_step`.
 
@@ -25,11 +25,13 @@ fraction of that, so `SE3NewtonKernel.one_body` hands it to one-body runs.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from .._newton import ROOT_NAME, newton_tolerance
@@ -61,7 +63,8 @@ def _operator_and_e(chart, x, mu):
     # The five dot products in one matrix product (each alone was a kernel of its own).
     dots = jnp.stack([w, v]) @ jnp.stack([w, v, a, b]).T
     t, s, oa, ob, vb = dots[0, 0], dots[0, 1], dots[0, 2], dots[0, 3], dots[1, 3]
-    eye, W, outer = jnp.eye(3, dtype=x.dtype), _hat(w), jnp.outer
+    # NumPy constants: `jnp.eye` inside a trace costs a compiled program of its own.
+    eye, W, outer = np.eye(3, dtype=x.dtype), _hat(w), jnp.outer
     if chart == "cayley":
         Kp = eye + W / 2
         K = Kp + outer(w, w) / 4
@@ -140,10 +143,31 @@ def _newton(chart, m, A, guess, tolerance, max_steps: int):
     return x, iterations, norm, sign
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _at_root(chart, x, m, A):
+    """`x`, a root of the DEP residual for `(m, A)`, with the derivative of the root as a
+    function of `(m, A)` (as `_implicit._at_root`): the implicit function theorem,
+    `dξ = −J⁻¹(∂r/∂m dm + ∂r/∂A dA)`, `J` in closed form (`_residual_and_jacobian`).
+    A `custom_jvp`, traced only when differentiated (`jax.lax.custom_root` linearises the
+    residual whenever it is traced: it was a third of the step's tracing time)."""
+    return x
+
+
+@_at_root.defjvp
+def _at_root_jvp(chart, primals, tangents):
+    # Linear in the tangents with coefficients from the primal point, so JAX transposes
+    # it for reverse mode (`jnp.linalg.solve` is transposable).
+    x, m, A = primals
+    _, dm, dA = tangents
+    _, dr = jax.jvp(lambda mm, AA: _residual(chart, x, mm, AA), (m, A), (dm, dA))
+    _, J = _residual_and_jacobian(chart, x, m, A)
+    return x, -jnp.linalg.solve(J, dr)
+
+
 def _increment(chart, m, A, Ainv, tolerance, max_steps: int):
     """The DEP equation of one body solved: `(ξ, iterations, ‖r‖_∞, converged,
     off_branch)`, `ξ` differentiable in `m` and `A = M/h` by the implicit function
-    theorem (`jax.lax.custom_root`, as `_newton.newton_solve`), not through the loop."""
+    theorem (`_at_root`), not through the loop."""
     stopped = jax.lax.stop_gradient((m, A, Ainv))
     # The explicit-Euler guess `h M⁻¹ m` (`DEP.solve_increment`'s).
     guess = stopped[2] @ stopped[0]
@@ -152,18 +176,13 @@ def _increment(chart, m, A, Ainv, tolerance, max_steps: int):
     # evaluated at a finite point, so a failed step whose output is masked contributes 0,
     # not NaN, to a gradient.
     root = jnp.where(jnp.all(jnp.isfinite(root)) & jnp.isfinite(norm), root, guess)
+    # Tagged before `_at_root`, whose derivative rule reads it: the backward pass of a
+    # `jax.checkpoint`-ed step finds the root stored (`_implicit.differentiable_root`).
     root = checkpoint_name(root, ROOT_NAME)
     # `DEP.on_branch`'s rule: `det J` of the sign of `det A > 0` (either sign of `h`, six
     # dimensions), and for the exp chart a rotation angle below π.
     off = ~(sign > 0) | chart.beyond_branch(jnp.sum(root[:3] ** 2), math.pi)
-
-    def tangent_solve(linear, y):
-        return jnp.linalg.solve(jax.jacobian(linear)(y), y)
-
-    x = jax.lax.custom_root(
-        lambda x: _residual(chart, x, m, A), root, lambda f, guess: guess, tangent_solve
-    )
-    return x, iterations, norm, norm <= tolerance, off
+    return _at_root(chart, root, m, A), iterations, norm, norm <= tolerance, off
 
 
 def _increment_map(chart, x):
@@ -180,7 +199,7 @@ def _increment_map(chart, x):
     else:
         alpha = 4 / (4 + t)
         beta = alpha / 2
-    eye = jnp.eye(3, dtype=x.dtype)
+    eye = np.eye(3, dtype=x.dtype)
     RF = (1 - beta * t) * eye + alpha * _hat(w) + beta * jnp.outer(w, w)
     if chart == "exp":
         tF = v + beta * jnp.cross(w, v) + gamma * (w * wv - t * v)
@@ -199,7 +218,7 @@ def dense_step(chart, g, m, A, Ainv, tolerance, max_steps: int):
     # (as `lievi.SE3.compose`), and `p + R t_F`.
     R, p = g[:, :3], g[:, 3]
     Rn = R @ RF
-    Rn = Rn - Rn @ (Rn.T @ Rn - jnp.eye(3, dtype=Rn.dtype)) / 2
+    Rn = Rn - Rn @ (Rn.T @ Rn - np.eye(3, dtype=Rn.dtype)) / 2
     g_next = jnp.concatenate([Rn, (p + R @ tF)[:, None]], axis=1)
     # Ad_Fᵀ m = (R_Fᵀ(Π + P × t_F), R_Fᵀ P) (3.3).
     Pi, P = m[:3], m[3:]
