@@ -245,8 +245,11 @@ class SE3DenseKernel(SE3Kernel):
     max_steps: int = eqx.field(static=True)
 
     def constants(self, tensor):
-        # M⁻¹ (the Newton guess and the step bound) is not differentiated.
-        return tensor, jnp.linalg.inv(jax.lax.stop_gradient(tensor))
+        # M⁻¹ (the Newton guess and the step bound) is not differentiated. By Cholesky
+        # (`M` is positive definite, `RigidBodySE3.parameter_conditions`): no pivots, whose
+        # permutation `jnp.linalg.inv` applies in a loop of its own.
+        factor = jax.scipy.linalg.cho_factor(jax.lax.stop_gradient(tensor))
+        return tensor, jax.scipy.linalg.cho_solve(factor, np.eye(6, dtype=factor[0].dtype))
 
     def turn_rates(self, constants, h):
         # |h| times the rotation rows of M⁻¹, `(3, 6, …)` as `turn_squared` reads them.
