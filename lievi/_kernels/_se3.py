@@ -32,9 +32,8 @@ and no potential, written for throughput over many bodies:
 The derivation of the residual and its Jacobian is in `_se3_residual.py`; the reduced
 residual (`v` eliminated) is `_se3_reduced.py`.
 
-The same kernel runs `simulate`'s step for one body (`AbstractBatchKernel.one_body_step`), every
-component a scalar; there the values stored once (`materialise`) are stacked into one
-array per group, each group one kernel launch.
+One body takes the same step written on whole arrays (`_se3_dense.py`, this kernel's
+`one_body`): its program is a fraction of this one's, which a batch of thousands needs.
 
 Then `F = φ(ξ)`, `m_{k+1} = Ad_Fᵀ m_k` (DLP (3.3)) and `g_{k+1} = g_k F` (2.9), the
 rotation block re-orthonormalised by one Newton–Schulz step as `lievi.SE3.compose` does.
