@@ -39,17 +39,20 @@ def _one_step(kernel, M, g, m, h):
 # one-body step against the generic path (`tests/test_se3_body.py`) and its Jacobian here
 @pytest.mark.parametrize("chart", ["exp", "cayley"])
 def test_dense_step_equals_structure_of_arrays_step(chart):
-    """Eight bodies, both signs of `h` (a composition's negative stages): the dense step
-    (under `jnp.vectorize` here) and the batch kernel agree to round-off in `g`, `m`, the
-    result codes, and converge to the same tolerance."""
+    """Eight bodies, both signs of `h` (a composition's negative stages): the dense step,
+    one body at a time (its own Newton loop), and the batch kernel agree to round-off in
+    `g`, `m`, the result codes, and converge to the same tolerance."""
     soa = lievi.DEP(chart=chart).kernels()[1]
     dense = soa.one_body()
     assert isinstance(dense, _se3_dense.SE3DenseKernel)
     M = _tensor()
     g, m = _states(8)
-    steps = [jax.jit(lambda g, m, h, k=k: _one_step(k, M, g, m, h)) for k in (soa, dense)]
+    soa_step = jax.jit(lambda g, m, h: _one_step(soa, M, g, m, h))
+    dense_step = jax.jit(lambda g, m, h: _one_step(dense, M, g, m, h))
     for h in (0.1, -0.1):
-        a, b = (step(g, m, h) for step in steps)
+        a = soa_step(g, m, h)
+        ones = [dense_step(g[i : i + 1], m[i : i + 1], h) for i in range(len(m))]
+        b = [jnp.concatenate(parts) for parts in zip(*ones)]
         np.testing.assert_array_equal(a[2], lievi.RESULTS.successful)
         np.testing.assert_array_equal(b[2], lievi.RESULTS.successful)
         np.testing.assert_allclose(b[0], a[0], rtol=0, atol=ROUNDOFF)
@@ -163,3 +166,31 @@ def test_one_body_program_is_small():
     text = lowered.as_text(dialect="hlo")
     instructions = sum(1 for line in text.splitlines() if " = " in line)
     assert instructions <= 3000, instructions
+
+
+@pytest.mark.slow  # two reverse passes of a vmapped run compiled
+def test_vmapped_simulate_equals_reference():
+    """`jax.vmap(simulate)`: the one-body step batched takes the batch kernel's solve
+    (`SE3DenseKernel._solve`); iterates and gradients with respect to the tensor and the
+    initial momenta equal the generic path's to round-off."""
+    from lievi._kernels._base import reference_path
+
+    M, (_, m0) = _tensor(), _states(3, seed=8)
+
+    def loss(M, m0):
+        def one(m):
+            body = lievi.RigidBodySE3(tensor=M)
+            return lievi.simulate(body, lievi.DEP(), jnp.eye(4), m, h=0.1, n_steps=5)
+
+        sol = jax.vmap(one)(m0)
+        return jnp.sum(sol.m[:, -1] ** 2) + jnp.sum(sol.g[:, -1] * jnp.arange(4.0)), sol
+
+    run = jax.value_and_grad(loss, (0, 1), has_aux=True)
+    (_, fast), fast_grads = jax.jit(run)(M, m0)
+    with reference_path():
+        (_, reference), reference_grads = jax.jit(run)(M, m0)
+    np.testing.assert_array_equal(fast.result, lievi.RESULTS.successful)
+    np.testing.assert_allclose(fast.m, reference.m, rtol=0, atol=ROUNDOFF)
+    np.testing.assert_allclose(fast.g, reference.g, rtol=0, atol=ROUNDOFF)
+    for a, b in zip(fast_grads, reference_grads):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9 * float(jnp.abs(b).max()))

@@ -442,7 +442,33 @@ class SE3NewtonKernel(SE3Kernel):
     def one_body(self):
         # One body: the same step on whole arrays (`_se3_dense.py`), a program a fraction
         # of this one's size, so a one-body run's first call is mostly not compiling.
-        return SE3DenseKernel(self.chart, self.rtol, self.atol, self.max_steps)
+        return SE3DenseKernel(self.chart, self.rtol, self.atol, self.max_steps, self)
+
+    def solve_bodies(self, m, A, Ainv, tolerance):
+        """`_se3_dense.dense_solve`'s results for bodies given as structure of arrays (`m`:
+        6 arrays `(B,)`, `A = M/h`, `Ainv = h M⁻¹`: 6×6 nested, arrays `(B,)` or scalars):
+        this kernel's Newton (`solve_increment`) from the explicit-Euler guess, for the
+        one-body step batched by `jax.vmap`. Not differentiated."""
+        shape = jnp.broadcast_shapes(*(jnp.shape(x) for x in jax.tree.leaves((m, A, tolerance))))
+        blocks = matrix(jax.tree.map(lambda x: jnp.broadcast_to(x, shape), A))
+        A11, A12, A21, A22 = (
+            blocks[..., :3, :3],
+            blocks[..., :3, 3:],
+            blocks[..., 3:, :3],
+            blocks[..., 3:, 3:],
+        )
+        A22inv = cramer_inverse(A22)
+        Z, T = A12 @ A22inv, A22inv @ A21
+        C = tuple(entries(X) for X in (A11 - Z @ A21, Z, A22inv, T))
+        guess = tuple(sum(Ainv[i][j] * m[j] for j in range(6)) for i in range(6))
+        x, iterations, norm, _, off = solve_increment(
+            self.chart, m, A, C, guess, tolerance, self._fixed(), self.max_steps, jnp.asarray(True)
+        )
+        finite = jnp.isfinite(norm)
+        for y in x:
+            finite = finite & jnp.isfinite(y)
+        root = jnp.stack([jnp.where(finite, y, y0) for y, y0 in zip(x, guess)], -1)
+        return root, iterations, norm, off
 
     def _fixed(self) -> int:
         """The fixed Newton iterations of a step: as set, or the default."""

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -36,9 +37,10 @@ from jax.ad_checkpoint import checkpoint_name
 
 from .._newton import ROOT_NAME, newton_tolerance
 from .._results import RESULTS
+from ._flat_batch import bodies_batched
 from ._se3_layout import SE3Kernel
 from ._se3_residual import SINC3, _dexpinv_coefficients
-from ._soa import C_SERIES, S_SERIES, component_major, horner
+from ._soa import C_SERIES, S_SERIES, component_major, entries, horner, matrix
 
 
 def _hat(y):
@@ -164,24 +166,29 @@ def _at_root_jvp(chart, primals, tangents):
     return x, -jnp.linalg.solve(J, dr)
 
 
-def _increment(chart, m, A, Ainv, tolerance, max_steps: int):
-    """The DEP equation of one body solved: `(ξ, iterations, ‖r‖_∞, converged,
-    off_branch)`, `ξ` differentiable in `m` and `A = M/h` by the implicit function
-    theorem (`_at_root`), not through the loop."""
-    stopped = jax.lax.stop_gradient((m, A, Ainv))
-    # The explicit-Euler guess `h M⁻¹ m` (`DEP.solve_increment`'s).
-    guess = stopped[2] @ stopped[0]
-    root, iterations, norm, sign = _newton(chart, *stopped[:2], guess, tolerance, max_steps)
-    # A diverged solve hands back the finite guess: the implicit derivative is then
-    # evaluated at a finite point, so a failed step whose output is masked contributes 0,
-    # not NaN, to a gradient.
+def dense_solve(chart, max_steps: int, m, A, Ainv, tolerance):
+    """The DEP equation of one body solved from the explicit-Euler guess `h M⁻¹ m`
+    (`DEP.solve_increment`'s), not differentiated: `(ξ, iterations, ‖r‖_∞,
+    off_branch)`. A diverged solve hands back the finite guess: the implicit derivative is
+    then evaluated at a finite point, so a failed step whose output is masked contributes
+    0, not NaN, to a gradient."""
+    guess = Ainv @ m
+    root, iterations, norm, sign = _newton(chart, m, A, guess, tolerance, max_steps)
     root = jnp.where(jnp.all(jnp.isfinite(root)) & jnp.isfinite(norm), root, guess)
-    # Tagged before `_at_root`, whose derivative rule reads it: the backward pass of a
-    # `jax.checkpoint`-ed step finds the root stored (`_implicit.differentiable_root`).
-    root = checkpoint_name(root, ROOT_NAME)
     # `DEP.on_branch`'s rule: `det J` of the sign of `det A > 0` (either sign of `h`, six
     # dimensions), and for the exp chart a rotation angle below π.
     off = ~(sign > 0) | chart.beyond_branch(jnp.sum(root[:3] ** 2), math.pi)
+    return root, iterations, norm, off
+
+
+def _increment(chart, m, A, Ainv, tolerance, solve):
+    """The DEP equation of one body solved by `solve` (`dense_solve`'s signature):
+    `(ξ, iterations, ‖r‖_∞, converged, off_branch)`, `ξ` differentiable in `m` and
+    `A = M/h` by the implicit function theorem (`_at_root`), not through the loop."""
+    root, iterations, norm, off = solve(*jax.lax.stop_gradient((m, A, Ainv, tolerance)))
+    # Tagged before `_at_root`, whose derivative rule reads it: the backward pass of a
+    # `jax.checkpoint`-ed step finds the root stored (`_implicit.differentiable_root`).
+    root = checkpoint_name(root, ROOT_NAME)
     return _at_root(chart, root, m, A), iterations, norm, norm <= tolerance, off
 
 
@@ -208,11 +215,11 @@ def _increment_map(chart, x):
     return RF, tF
 
 
-def dense_step(chart, g, m, A, Ainv, tolerance, max_steps: int):
+def dense_step(chart, g, m, A, Ainv, tolerance, solve):
     """One DEP + DLP + reconstruction step of one body: `g` the top rows `[R | p]` of the
     pose `(3, 4)`, `m` `(6,)`, `A = M/h`, `Ainv = h M⁻¹` `(6, 6)`. Returns `(g_next,
     m_next, result, iterations, residual)`; differentiable in `g`, `m`, `A`."""
-    x, iterations, norm, converged, off_branch = _increment(chart, m, A, Ainv, tolerance, max_steps)
+    x, iterations, norm, converged, off_branch = _increment(chart, m, A, Ainv, tolerance, solve)
     RF, tF = _increment_map(chart, x)
     # g F (2.9): `R R_F` re-orthonormalised by one Newton–Schulz step, `R ← R − R(RᵀR − 1)/2`
     # (as `lievi.SE3.compose`), and `p + R t_F`.
@@ -243,6 +250,9 @@ class SE3DenseKernel(SE3Kernel):
     rtol: float | None = eqx.field(static=True)
     atol: float | None = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
+    # The batch kernel (`_se3.SE3NewtonKernel`): under `jax.vmap` (e.g. of `simulate`) its
+    # solve runs the bodies (`solve_bodies`), as `simulate_batch` would.
+    batch: Any = None
 
     def constants(self, tensor):
         # M⁻¹ (the Newton guess and the step bound) is not differentiated. By Cholesky
@@ -271,7 +281,7 @@ class SE3DenseKernel(SE3Kernel):
         tolerance = jnp.where(alive, tolerance, jnp.inf)
 
         def one(g, m, A, Ainv, tolerance):
-            return dense_step(self.chart, g, m, A, Ainv, tolerance, self.max_steps)
+            return dense_step(self.chart, g, m, A, Ainv, tolerance, self._solve)
 
         args = (g, m, A, Ainv, tolerance)
         cores = ((3, 4), (6,), (6, 6), (6, 6), ())
@@ -289,3 +299,18 @@ class SE3DenseKernel(SE3Kernel):
         g_next, m_next, *info = outputs
         g_next = tuple(g_next[..., i, j] for i in range(3) for j in range(4))
         return (g_next, tuple(m_next[..., i] for i in range(6)), *info)
+
+    def _solve(self, m, A, Ainv, tolerance):
+        """`dense_solve` for one body; under `jax.vmap` the batch kernel's solve on the
+        vmapped bodies (`bodies_batched`): batched, the whole-array Newton loop ran at a
+        fifth of the body-steps/s of the structure-of-arrays one (`jax.vmap(simulate)`,
+        64 bodies)."""
+        args = (tuple(m[i] for i in range(6)), entries(A), entries(Ainv), tolerance)
+        return bodies_batched(self._solve_bodies)(*args)
+
+    def _solve_bodies(self, m, A, Ainv, tolerance):
+        if self.batch is None or all(jnp.ndim(x) == 0 for x in jax.tree.leaves((m, A, tolerance))):
+            return dense_solve(
+                self.chart, self.max_steps, jnp.stack(m), matrix(A), matrix(Ainv), tolerance
+            )
+        return self.batch.solve_bodies(m, A, Ainv, tolerance)
