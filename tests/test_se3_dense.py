@@ -122,10 +122,10 @@ def test_gradients_equal_generic_path():
 
 
 def test_float32_step():
-    """Twenty float32 steps (tensor, `g`, `m` float32) stay on the group and within
+    """Twenty float32 steps of one body (tensor, `g`, `m` float32) stay on the group and within
     float32's round-off of the float64 steps."""
     kernel = lievi.DEP().kernels()[1].one_body()
-    M, (g, m) = _tensor(), _states(2, seed=7)
+    M, (g, m) = _tensor(), _states(1, seed=7)
     m = m / jnp.abs(m).max()
     step = jax.jit(lambda M, g, m: _one_step(kernel, M, g, m, 0.1))
     states = {}
