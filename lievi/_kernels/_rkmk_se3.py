@@ -39,7 +39,8 @@ from ._explicit import explicit_info, finite_result
 from ._kick import coupling_torque
 from ._rkmk import advected_at, left_dexpinv, scaled_coupling, stored_stages
 from ._runge_kutta import CLASSICAL_RK4, ButcherTableau, rk_in_the_chart
-from ._se3 import SE3Kernel, compose_increment, increment
+from ._se3 import compose_increment, increment
+from ._se3_layout import SE3Kernel
 from ._se3_residual import exp_series
 from ._soa import cross, dot, entries
 

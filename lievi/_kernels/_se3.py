@@ -32,9 +32,8 @@ and no potential, written for throughput over many bodies:
 The derivation of the residual and its Jacobian is in `_se3_residual.py`; the reduced
 residual (`v` eliminated) is `_se3_reduced.py`.
 
-The same kernel runs `simulate`'s step for one body (`AbstractBatchKernel.one_body_step`), every
-component a scalar; there the values stored once (`materialise`) are stacked into one
-array per group, each group one kernel launch.
+One body takes the same step written on whole arrays (`_se3_dense.py`, this kernel's
+`one_body`): its program is a fraction of this one's, which a batch of thousands needs.
 
 Then `F = φ(ξ)`, `m_{k+1} = Ad_Fᵀ m_k` (DLP (3.3)) and `g_{k+1} = g_k F` (2.9), the
 rotation block re-orthonormalised by one Newton–Schulz step as `lievi.SE3.compose` does.
@@ -58,9 +57,11 @@ import jax.numpy as jnp
 from .._groups._se3 import SE3
 from .._newton import newton_tolerance
 from .._results import RESULTS
-from ._base import AbstractBatchKernel, compacted_tail, materialise
+from ._base import compacted_tail, materialise
 from ._flat_batch import bodies_batched
 from ._implicit import differentiable_root
+from ._se3_dense import SE3DenseKernel
+from ._se3_layout import SE3Kernel
 from ._se3_reduced import reduced_residual, velocity_part
 from ._se3_residual import (
     SINC3,
@@ -386,38 +387,6 @@ def dep_step(chart, g, m, A, Ainv, C, tolerance, fixed: int, max_steps: int, ali
 DEFAULT_FIXED_ITERATIONS = {"exp": 3, "cayley": 3}
 
 
-class SE3Kernel(AbstractBatchKernel):
-    """The layout of a kernel for `RigidBodySE3` with a 6×6 kinetic tensor `M` (left
-    side): its constants the 36 entries of `M` and those of `M⁻¹` (`constants`), its state
-    the 12 entries of `[R | p]` and the 6 of `m = (Π, P)`."""
-
-    def physics(self, system, batched: bool = False):
-        # A left-invariant system on `SE3` with a quadratic Lagrangian `½ξᵀMξ`: its 6×6 `M`.
-        tensor = system.kinetic_tensor()
-        if system.group != SE3 or system.side != "left" or tensor is None:
-            return None
-        return tensor if jnp.shape(tensor)[batched:] == (6, 6) else None
-
-    def turn_rates(self, constants, h):
-        # |h| times the rotation rows of M⁻¹ (`SE3.exp_norm`: the rotation part of M⁻¹m),
-        # one operation on the whole block (`component_major`).
-        Minv = matrix(constants[1])[..., :3, :]
-        return component_major(jnp.abs(jnp.asarray(h))[..., None, None] * Minv)
-
-    def turn_squared(self, rates, m):
-        omega = tuple(sum(rates[i][j] * m[j] for j in range(6)) for i in range(3))
-        return dot(omega, omega)
-
-    def carried(self, g0):
-        return tuple(g0[:, i, j] for i in range(3) for j in range(4))
-
-    def elements(self, entries):
-        # (…, 12, B) → (B, …, 4, 4), the last row (0, 0, 0, 1).
-        top = jnp.moveaxis(entries, -1, 0).reshape(entries.shape[-1:] + entries.shape[:-2] + (3, 4))
-        last = jnp.broadcast_to(jnp.eye(4, dtype=top.dtype)[3], top.shape[:-2] + (1, 4))
-        return jnp.concatenate([top, last], axis=-2)
-
-
 class SE3NewtonKernel(SE3Kernel):
     """`DEP`'s step (either chart) for `RigidBodySE3` without a potential (`dep_step`).
 
@@ -469,6 +438,37 @@ class SE3NewtonKernel(SE3Kernel):
 
     def with_fixed_iterations(self, fixed_iterations: int):
         return dataclasses.replace(self, fixed_iterations=fixed_iterations)
+
+    def one_body(self):
+        # One body: the same step on whole arrays (`_se3_dense.py`), a program a fraction
+        # of this one's size, so a one-body run's first call is mostly not compiling.
+        return SE3DenseKernel(self.chart, self.rtol, self.atol, self.max_steps, self)
+
+    def solve_bodies(self, m, A, Ainv, tolerance):
+        """`_se3_dense.dense_solve`'s results for bodies given as structure of arrays (`m`:
+        6 arrays `(B,)`, `A = M/h`, `Ainv = h M⁻¹`: 6×6 nested, arrays `(B,)` or scalars):
+        this kernel's Newton (`solve_increment`) from the explicit-Euler guess, for the
+        one-body step batched by `jax.vmap`. Not differentiated."""
+        shape = jnp.broadcast_shapes(*(jnp.shape(x) for x in jax.tree.leaves((m, A, tolerance))))
+        blocks = matrix(jax.tree.map(lambda x: jnp.broadcast_to(x, shape), A))
+        A11, A12, A21, A22 = (
+            blocks[..., :3, :3],
+            blocks[..., :3, 3:],
+            blocks[..., 3:, :3],
+            blocks[..., 3:, 3:],
+        )
+        A22inv = cramer_inverse(A22)
+        Z, T = A12 @ A22inv, A22inv @ A21
+        C = tuple(entries(X) for X in (A11 - Z @ A21, Z, A22inv, T))
+        guess = tuple(sum(Ainv[i][j] * m[j] for j in range(6)) for i in range(6))
+        x, iterations, norm, _, off = solve_increment(
+            self.chart, m, A, C, guess, tolerance, self._fixed(), self.max_steps, jnp.asarray(True)
+        )
+        finite = jnp.isfinite(norm)
+        for y in x:
+            finite = finite & jnp.isfinite(y)
+        root = jnp.stack([jnp.where(finite, y, y0) for y, y0 in zip(x, guess)], -1)
+        return root, iterations, norm, off
 
     def _fixed(self) -> int:
         """The fixed Newton iterations of a step: as set, or the default."""
