@@ -22,7 +22,6 @@ LAYERS = (
     (
         "step loop",
         (
-            "_scan",
             "_progress",
             "_save",
             "_solution",
@@ -41,6 +40,7 @@ LAYERS = (
             "_stream",
             "_stream_writer",
             "_stream_record",
+            "_neighbor_program",
             "_simulate_neighbors",
         ),
     ),

@@ -175,7 +175,11 @@ def test_order(integrator, problem, expected):
     ids=("DEP-exp", "DEP-cayley", "RKMK4"),
 )
 def test_one_body_equals_rigid_body_se3(integrator):
-    """N = 1 is `RigidBodySE3` with the same potential, to 1e-14 (measured: bit for bit)."""
+    """N = 1 is `RigidBodySE3` with the same potential. The free flow is one Newton solve
+    of (4.8) a step in both, but not the same code for `DEP`: one body takes the
+    whole-array step, N bodies the structure-of-arrays kernel; each stops within lievi's
+    Newton tolerance (a few ulps of the momentum), so 100 steps agree to 1e-13 (measured
+    1.6e-14 for `DEP`, bit for bit for `RKMK4`, where both run the same code)."""
     rng = np.random.default_rng(5)
     inertia, mass = jnp.array([1.0, 2.0, 3.0]), jnp.asarray(2.0)
     gravity = lievi.CentralGravity(
@@ -189,8 +193,8 @@ def test_one_body_equals_rigid_body_se3(integrator):
     m0 = jnp.asarray(rng.normal(size=6))
     a = lievi.simulate(many, integrator, g0[None], m0[None], h=0.02, n_steps=100)
     b = lievi.simulate(one, integrator, g0, m0, h=0.02, n_steps=100)
-    assert float(jnp.max(jnp.abs(a.g[:, 0] - b.g))) <= 1e-14
-    assert float(jnp.max(jnp.abs(a.m[:, 0] - b.m))) <= 1e-14 * float(jnp.max(jnp.abs(b.m)))
+    assert float(jnp.max(jnp.abs(a.g[:, 0] - b.g))) <= 1e-13
+    assert float(jnp.max(jnp.abs(a.m[:, 0] - b.m))) <= 1e-13 * float(jnp.max(jnp.abs(b.m)))
 
 
 @pytest.mark.parametrize(

@@ -39,7 +39,7 @@ from .._newton import ROOT_NAME, newton_tolerance
 from .._results import RESULTS
 from ._flat_batch import bodies_batched
 from ._se3_layout import SE3Kernel
-from ._se3_residual import SINC3, _dexpinv_coefficients
+from ._se3_residual import SINC3, dexpinv_coefficients
 from ._soa import C_SERIES, S_SERIES, component_major, entries, horner, matrix
 
 
@@ -74,7 +74,7 @@ def _operator_and_e(chart, x, mu):
         E_ww = (oa + vb) / 4 * eye + (outer(w, a) - outer(b, v)) / 4 - _hat(a) / 2
         E_wv, E_vw = -_hat(Kp @ b) / 2, -_hat(b) / 2
     else:
-        c, c1, c2 = _dexpinv_coefficients(t)
+        c, c1, c2 = dexpinv_coefficients(t)
         k = 2 * c1 * s
         K = Kp = (1 - c * t) * eye + W / 2 + c * outer(w, w)
         L = _hat(v) / 2 - (k * t + 2 * c * s) * eye + k * outer(w, w)

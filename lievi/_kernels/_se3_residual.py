@@ -54,7 +54,7 @@ def _horner2(coefficients, u):
     return value, first, second
 
 
-def _dexpinv_coefficients(t):
+def dexpinv_coefficients(t):
     """`(c, c′, c″)` in `t = θ²`, `c = (1 − (θ/2)cot(θ/2))/θ² = P/(4S)` (`_so3`'s
     series in `u = t/4`)."""
     S, S1, S2 = _horner2(S_SERIES, t / 4)
@@ -71,8 +71,8 @@ def mv(X, y):
 
 def exp_series(t):
     """The exp chart's coefficients in `t = θ²`: `(c, c′, c″)` of `dexpinv`
-    (`_dexpinv_coefficients`) and `β = (1 − cos θ)/θ²`, `γ = (θ − sin θ)/θ³` of its inverse."""
-    c, c1, c2 = _dexpinv_coefficients(t)
+    (`dexpinv_coefficients`) and `β = (1 − cos θ)/θ²`, `γ = (θ − sin θ)/θ³` of its inverse."""
+    c, c1, c2 = dexpinv_coefficients(t)
     S = horner(S_SERIES, t / 4)
     return c, c1, c2, S * S / 2, horner(SINC3, t)
 
@@ -91,7 +91,7 @@ def operator(chart, w, v, coefficients=None):
         diag_k, coef_ww, coefficients = 1.0, 0.25, None
         diag_l, coef_l = -s / 4, 0.25
     else:
-        coefficients = _dexpinv_coefficients(t) if coefficients is None else coefficients
+        coefficients = dexpinv_coefficients(t) if coefficients is None else coefficients
         c, c1, _ = coefficients
         k = 2 * c1 * s
         diag_k, coef_ww = 1 - c * t, c
