@@ -60,11 +60,12 @@ def largest_displacement(potential, g, g_built):
 
 
 def with_list(potential, pairs):
-    """`potential` summing over the builder's list `pairs`. `eqx.tree_at` swaps the leaf
-    without `SitePotential.__init__`'s eager checks, which would sort the list on the host
-    at every segment: a builder's list is admissible by construction, and the run checks
-    the potential's conditions in its program anyway (`RESULTS.invalid_input`)."""
-    return eqx.tree_at(lambda p: p.neighbors, potential, pairs, is_leaf=lambda x: x is None)
+    """`potential` summing over the builder's list `pairs` (`SitePotential.from_builder`:
+    without `SitePotential.__init__`'s eager checks, which would sort the list on the
+    host at every segment, nor the traced check for repeated pairs, another sort of the
+    list in every segment's program — a builder's list has none by construction; the run
+    checks the potential's other conditions in its program, `RESULTS.invalid_input`)."""
+    return potential.from_builder(pairs)
 
 
 def listed_pairs(pairs, n_sites):

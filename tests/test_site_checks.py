@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import lievi
+from lievi._checks import all_hold
 from lievi._systems._se3_potentials import point_mass_body
 
 SUCCESS, INVALID = int(lievi.RESULTS.successful), int(lievi.RESULTS.invalid_input)
@@ -91,6 +92,20 @@ def test_duplicate_pairs(pairs):
     np.testing.assert_allclose(
         listed([[1, 0], [FILL, FILL]])(G0), listed([[0, 1], [FILL, FILL]])(G0), rtol=1e-15
     )
+
+
+def test_a_builders_list_skips_only_the_repeat_check():
+    """A builder's list inside a run's program (`SitePotential.from_builder`) is not
+    sorted to look for repeated pairs (a builder lists each pair once): that condition
+    alone is left out; an index outside the sites still fails, traced. A list given by
+    hand keeps every check."""
+    potential = lievi.SitePotential(SITES, LJ, cutoff=2.0)
+    repeated, outside = jnp.array([[0, 1], [0, 1]]), jnp.array([[0, 1], [0, 3]])
+    assert bool(all_hold(potential.from_builder(repeated).parameter_conditions()))
+    assert not bool(all_hold(potential.from_builder(outside).parameter_conditions()))
+    with pytest.raises(ValueError, match="lists a pair twice"):
+        potential.with_neighbors(repeated)
+    assert not potential.with_neighbors(jnp.array([[0, 1], [FILL, FILL]])).built
 
 
 @pytest.mark.parametrize("name", ["epsilon", "sigma"])

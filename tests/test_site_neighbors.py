@@ -229,16 +229,21 @@ def test_jax_md_rebuilds_agree_with_brute_force():
 def test_jax_md_later_runs_update_the_allocated_list(monkeypatch):
     """jax-md allocates its list on the host (seconds for 10⁴ sites): a later run's first
     build in the same box (`state=None`, as each `simulate_with_neighbor_list` call
-    starts) updates the list allocated before, with the same pairs. (The box, cut-off and
-    skin of `test_jax_md_rebuilds_agree_with_brute_force`: one compiled `update`.)"""
+    starts) updates the list allocated before, with the same pairs, and at the very
+    positions of the last build keeps it (no update). (The box, cut-off and skin of
+    `test_jax_md_rebuilds_agree_with_brute_force`: one compiled `update`.)"""
     pytest.importorskip("jax_md")
     from lievi._systems import _neighbors
 
-    allocations = []
+    allocations, updates = [], []
 
     def counted(*key):
-        allocate, *rest = original(*key)
-        return (lambda x: allocations.append(len(x)) or allocate(x), *rest)
+        allocate, update, allocated = original(*key)
+        return (
+            lambda x: allocations.append(len(x)) or allocate(x),
+            lambda x, neighbors: updates.append(len(x)) or update(x, neighbors),
+            allocated,
+        )
 
     original = _neighbors._jax_md_list
     monkeypatch.setattr(_neighbors, "_jax_md_list", counted)
@@ -249,9 +254,20 @@ def test_jax_md_later_runs_update_the_allocated_list(monkeypatch):
     g = _poses(rng, rng.uniform(0, 5.0, size=(n, 3)))
     cells = lievi.JaxMDNeighbors(0.3, capacity=CAPACITY)
     first, _ = cells.build(potential, g)
+    before = len(updates)
     again, _ = cells.build(potential, g)
     assert len(allocations) <= 1  # none if an earlier test allocated this box's list
     assert np.all(np.asarray(first) == np.asarray(again))
+    # The second build, at the first's positions, kept its list; elsewhere each first
+    # build updates it: the brute-force pairs at the moved poses, the first list back at g.
+    assert len(updates) == before
+    moved = g.at[:, :3, 3].add(jnp.asarray(rng.uniform(-0.5, 0.5, (n, 3))))
+    there, _ = cells.build(potential, moved)
+    back, _ = cells.build(potential, g)
+    assert len(updates) == before + 2 and len(allocations) <= 1
+    brute = lievi.BruteForceNeighbors(0.3, capacity=CAPACITY)(potential, moved)
+    assert np.array_equal(np.unique(np.asarray(there), axis=0), np.unique(brute, axis=0))
+    assert np.all(np.asarray(back) == np.asarray(first))
 
 
 def test_jax_md_in_a_small_box_warns_nothing(recwarn):

@@ -22,6 +22,9 @@ coincide gives an infinite energy (or a non-finite force), which `simulate` repo
 
 from __future__ import annotations
 
+import copy
+
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
@@ -168,6 +171,9 @@ class SitePotential(AbstractPotential):
     box: Float[Array, " 3"] | None
     neighbors: Int[Array, "P 2"] | None
     mask: Bool[Array, "N k"] | None
+    # `neighbors` is a builder's list (`from_builder`), with no pair twice by
+    # construction: its check for repeated pairs, a sort of the list, is left out.
+    built: bool = eqx.field(static=True, default=False)
 
     def __init__(
         self,
@@ -261,7 +267,7 @@ class SitePotential(AbstractPotential):
             ]
         if self.neighbors is not None:
             n, k = jnp.shape(self.sites)[:2]
-            conditions += pair_list_conditions(self.neighbors, n * k, k)
+            conditions += pair_list_conditions(self.neighbors, n * k, k, repeats=not self.built)
         return conditions
 
     def _type_conditions(self):
@@ -301,6 +307,20 @@ class SitePotential(AbstractPotential):
             neighbors=neighbors,
             mask=self.mask,
         )
+
+    def from_builder(self, neighbors):
+        """This potential summing over `neighbors`, a list a builder made
+        (`AbstractNeighborBuilder.build` or `rebuild`) inside a run's program: the
+        pairs are swapped in without `__init__`'s eager checks, and the list's check for
+        repeated pairs — a sort of the list, at every segment of a run — is left out (a
+        builder lists each pair once); the other conditions of the list still hold
+        traced (`pair_list_conditions`)."""
+        listed = eqx.tree_at(lambda p: p.neighbors, self, neighbors, is_leaf=lambda x: x is None)
+        # `built` is static (a different program, not a traced value): set on a copy, as
+        # equinox's own unflattening sets fields (`eqx.tree_at` reaches leaves only).
+        listed = copy.copy(listed)
+        object.__setattr__(listed, "built", True)
+        return listed
 
     def _pairs(self, g):
         """The pairs summed over: `(d, r2, counted, terms, spread)` — `d = x_i − x_j`
