@@ -671,3 +671,44 @@ def test_coupling_evaluated_once_per_step(integrator):
         g, m = step(g, m)
     assert float(jnp.max(jnp.abs(sol.m[-1] - m))) <= 10 * ROUNDOFF
     assert float(jnp.max(jnp.abs(sol.g[-1] - g))) <= 10 * ROUNDOFF
+
+
+def test_an_eager_batch_of_bodies_compiles_two_programs_and_a_new_horizon_none():
+    """An eager `simulate_batch` of a `RigidBodies` system (full point-mass tensors, the
+    splitting in their principal frames) compiles its set-up and its block of saves, no
+    other program of lievi's; a new `n_steps`, `h` or `m0` compiles nothing (counts of
+    compilations, not timings). The integrator's eager parameter check once evaluated
+    index arithmetic on a traced tensor, two small programs of its own."""
+    masses = jnp.array([[1.0, 0.6, 0.8], [0.5, 0.4, 0.3]])
+    points = jnp.array(
+        [
+            [[0.12, 0.0, 0.0], [-0.1, 0.08, 0.0], [0.0, -0.06, 0.09]],
+            [[0.1, 0.0, 0.02], [-0.08, 0.07, 0.0], [0.0, -0.05, -0.08]],
+        ]
+    )
+    system = lievi.gravitating_bodies(1.0, masses, points)
+    # NumPy inputs: the test's own arithmetic compiles nothing.
+    g0 = np.tile(np.eye(4), (2, 2, 1, 1))
+    g0[:, :, 0, 3] = [-0.5, 1.0]
+    m0 = np.array([[0.003, 0.005, 0.01, 0.0, -1.0, 0.0], [0.004, -0.002, 0.001, 0.0, 1.0, 0.0]])
+    m0 = np.stack([m0, 1.01 * m0])
+    jax.block_until_ready(system)
+    jax.clear_caches()
+
+    def programs(n_steps, h, m0):
+        _COMPILED.clear()
+        sol = lievi.simulate_batch(
+            system,
+            lievi.LiePoissonSplitting(),
+            g0,
+            m0,
+            h=h,
+            n_steps=n_steps,
+            save=lievi.Save(stats=False, every=n_steps),
+        )
+        jax.block_until_ready(sol)
+        assert np.all(np.asarray(sol.result) == int(lievi.RESULTS.successful))
+        return list(_COMPILED)
+
+    assert len(programs(4, 0.05, m0)) <= 2, _COMPILED
+    assert programs(6, 0.04, 1.01 * m0) == [], _COMPILED
