@@ -674,19 +674,16 @@ def test_coupling_evaluated_once_per_step(integrator):
 
 
 def test_an_eager_batch_of_bodies_compiles_two_programs_and_a_new_horizon_none():
-    """An eager `simulate_batch` of a `RigidBodies` system (full point-mass tensors, the
-    splitting in their principal frames) compiles its set-up and its block of saves, no
-    other program of lievi's; a new `n_steps`, `h` or `m0` compiles nothing (counts of
-    compilations, not timings). The integrator's eager parameter check once evaluated
-    index arithmetic on a traced tensor, two small programs of its own."""
-    masses = jnp.array([[1.0, 0.6, 0.8], [0.5, 0.4, 0.3]])
-    points = jnp.array(
-        [
-            [[0.12, 0.0, 0.0], [-0.1, 0.08, 0.0], [0.0, -0.06, 0.09]],
-            [[0.1, 0.0, 0.02], [-0.08, 0.07, 0.0], [0.0, -0.05, -0.08]],
-        ]
-    )
-    system = lievi.gravitating_bodies(1.0, masses, points)
+    """An eager `simulate_batch` of a `RigidBodies` system (full inertia tensors: the
+    splitting steps each body in its principal frame) compiles its set-up and its block
+    of saves, no other program of lievi's; a new `n_steps`, `h` or `m0` compiles nothing
+    (counts of compilations, not timings). The integrator's eager parameter check once
+    evaluated the index arithmetic of a traced tensor's frame, two small programs more.
+    Free bodies: the coupling's kicks change nothing here, and compile for seconds."""
+    rng = np.random.default_rng(5)
+    Q = np.linalg.qr(rng.normal(size=(2, 3, 3)))[0]
+    inertia = np.einsum("nij,nj,nkj->nik", Q, np.array([[1.0, 2.0, 3.0], [0.5, 0.7, 0.4]]), Q)
+    system = lievi.RigidBodies(inertia, np.array([1.5, 0.3]))
     # NumPy inputs: the test's own arithmetic compiles nothing.
     g0 = np.tile(np.eye(4), (2, 2, 1, 1))
     g0[:, :, 0, 3] = [-0.5, 1.0]
@@ -712,3 +709,18 @@ def test_an_eager_batch_of_bodies_compiles_two_programs_and_a_new_horizon_none()
 
     assert len(programs(4, 0.05, m0)) <= 2, _COMPILED
     assert programs(6, 0.04, 1.01 * m0) == [], _COMPILED
+
+
+@pytest.mark.parametrize("full", [False, True], ids=["principal", "tensors"])
+def test_velocity_size_is_each_bodys_rotation_rate(full):
+    """`velocity_size` (what the step's bound limits) from the 3×3 inertias equals
+    `SE3.exp_norm` of the 6×6 `velocity`, per body, to round-off."""
+    rng = np.random.default_rng(3)
+    inertia = np.array([[1.0, 2.0, 3.0], [0.5, 0.7, 0.4]])
+    if full:
+        Q = np.linalg.qr(rng.normal(size=(2, 3, 3)))[0]
+        inertia = np.einsum("nij,nj,nkj->nik", Q, inertia, Q)
+    system = lievi.RigidBodies(inertia, np.array([1.5, 0.3]))
+    m = rng.normal(size=(2, 6))
+    expected = SE3.exp_norm(system.velocity(m))
+    np.testing.assert_allclose(system.velocity_size(m), expected, rtol=1e-14, atol=0)
