@@ -335,7 +335,15 @@ def _child(case: str, engine: str) -> dict:
         capture_output=True,
         text=True,
         check=True,
-        env=dict(os.environ, JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", "cpu")),
+        env=dict(
+            os.environ,
+            JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", "cpu"),
+            # The lievi of this checkout (a script's own folder, not the working directory,
+            # is on its path: an installed lievi would be measured instead).
+            PYTHONPATH=os.pathsep.join(
+                [str(pathlib.Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]
+            ),
+        ),
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
