@@ -7,6 +7,8 @@ reaches both). Per call it records:
 
 - `programs`: the XLA programs compiled (JAX's `backend_compile_duration` events);
 - `first_s`: the wall time of the first call, result ready (tracing, compiling, running);
+  `first_cpu_s` its CPU time (the process's, all threads: less sensitive to the load of
+  a shared machine than the wall time);
 - `again_programs`: the programs compiled by a second call with another `n_steps`, `h`
   and initial momentum (lievi: none; diffrax compiles per horizon);
 - `run_s`: the best of 3 repeats of the first call (the run alone).
@@ -75,14 +77,20 @@ def _measure(case: str, engine: str) -> dict:
 
     def timed(call):
         compiled[0] = 0
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         jax.block_until_ready(call())
-        return time.perf_counter() - start, compiled[0]
+        return time.perf_counter() - start, compiled[0], time.process_time() - cpu
 
-    first_s, programs = timed(first)
-    _, again_programs = timed(again)
+    first_s, programs, first_cpu_s = timed(first)
+    _, again_programs, _ = timed(again)
     run_s = min(timed(first)[0] for _ in range(3))
-    return dict(first_s=first_s, programs=programs, again_programs=again_programs, run_s=run_s)
+    return dict(
+        first_s=first_s,
+        first_cpu_s=first_cpu_s,
+        programs=programs,
+        again_programs=again_programs,
+        run_s=run_s,
+    )
 
 
 def _calls(case: str, engine: str):
@@ -371,17 +379,20 @@ def main() -> None:
                 "programs": measured[0]["programs"],
                 "again_programs": measured[0]["again_programs"],
                 "first_s": [m["first_s"] for m in measured],
+                "first_cpu_s": [m["first_cpu_s"] for m in measured],
                 "run_s": min(m["run_s"] for m in measured),
             }
         ratio = [a["first_s"] / b["first_s"] for a, b in zip(runs["lievi"], runs["diffrax"])]
         row["first_call_ratio"] = ratio
+        cpu = [a["first_cpu_s"] / b["first_cpu_s"] for a, b in zip(runs["lievi"], runs["diffrax"])]
+        row["first_call_cpu_ratio"] = cpu
         rows.append(row)
         lv, dx = row["lievi"], row["diffrax"]
         print(
             f"{case:18s} lievi {lv['programs']:2d} programs (+{lv['again_programs']}), first "
             f"{min(lv['first_s']):6.2f} s | diffrax {dx['programs']:2d} (+{dx['again_programs']}),"
             f" first {min(dx['first_s']):6.2f} s | first-call ratio "
-            f"{', '.join(f'{r:.2f}' for r in ratio)}",
+            f"{', '.join(f'{r:.2f}' for r in ratio)} (CPU time {', '.join(f'{r:.2f}' for r in cpu)})",
             flush=True,
         )
     meta = {
