@@ -7,6 +7,8 @@ reaches both). Per call it records:
 
 - `programs`: the XLA programs compiled (JAX's `backend_compile_duration` events);
 - `first_s`: the wall time of the first call, result ready (tracing, compiling, running);
+  `first_cpu_s` its CPU time (the process's, all threads: less sensitive to the load of
+  a shared machine than the wall time);
 - `again_programs`: the programs compiled by a second call with another `n_steps`, `h`
   and initial momentum (lievi: none; diffrax compiles per horizon);
 - `run_s`: the best of 3 repeats of the first call (the run alone).
@@ -75,14 +77,20 @@ def _measure(case: str, engine: str) -> dict:
 
     def timed(call):
         compiled[0] = 0
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         jax.block_until_ready(call())
-        return time.perf_counter() - start, compiled[0]
+        return time.perf_counter() - start, compiled[0], time.process_time() - cpu
 
-    first_s, programs = timed(first)
-    _, again_programs = timed(again)
+    first_s, programs, first_cpu_s = timed(first)
+    _, again_programs, _ = timed(again)
     run_s = min(timed(first)[0] for _ in range(3))
-    return dict(first_s=first_s, programs=programs, again_programs=again_programs, run_s=run_s)
+    return dict(
+        first_s=first_s,
+        first_cpu_s=first_cpu_s,
+        programs=programs,
+        again_programs=again_programs,
+        run_s=run_s,
+    )
 
 
 def _calls(case: str, engine: str):
@@ -127,6 +135,8 @@ def _calls(case: str, engine: str):
             run = lambda n, h, m: _diffrax_se3(inertia=inertia, mass=1.0, m=m, h=h, n=n)  # noqa: E731
         return lambda: run(100, 0.1, m), lambda: run(70, 0.05, 1.1 * m)
     if case.startswith("binaries256"):
+        import jax
+
         system, g0, m0 = _binary()
         g0 = np.broadcast_to(g0, (256,) + g0.shape)
         m0 = m0 * (1 + 0.001 * np.arange(256.0))[:, None, None]
@@ -134,21 +144,29 @@ def _calls(case: str, engine: str):
             method = lievi.LiePoissonSplitting()
 
             def final(n, h, m):
+                """`(g, m)` at the start and the end, `(256, 2, 2, …)`: the call's own
+                outputs, not indexed here (eager indexing is programs of the script's)."""
                 sol = lievi.simulate_batch(
                     system, method, g0, m, h=h, n_steps=n, save=lievi.Save(stats=False, every=n)
                 )
-                return sol.g[:, -1], sol.m[:, -1]
+                return sol.g, sol.m
+
+            momenta = (256, 2, *m0.shape[1:])  # the momenta `final` returns
         else:
 
             def final(n, h, m):
                 return _diffrax_binary(system=system, g0=g0, m0=m, h=h, n=n)
 
+            momenta = m0.shape
         if case.endswith("_grad"):
-            import jax
+            # The loss of the final momenta, `Σ m_end²`, one jitted function (the last save
+            # of lievi's `(B, 2, …)`, diffrax's final state), compiled here with its
+            # derivative, before the measured calls: these count the engine's programs.
+            energy = jax.jit(lambda m: jnp.sum((m[:, -1] if m.ndim == 4 else m) ** 2))
+            jax.block_until_ready(jax.grad(energy)(np.zeros(momenta)))
 
             def loss(m, n, h):
-                g, m_end = final(n, h, m)
-                return jnp.sum(m_end**2)
+                return energy(final(n, h, m)[1])
 
             run = lambda n, h, m: jax.grad(loss)(m, n, h)  # noqa: E731
         else:
@@ -325,7 +343,15 @@ def _child(case: str, engine: str) -> dict:
         capture_output=True,
         text=True,
         check=True,
-        env=dict(os.environ, JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", "cpu")),
+        env=dict(
+            os.environ,
+            JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", "cpu"),
+            # The lievi of this checkout (a script's own folder, not the working directory,
+            # is on its path: an installed lievi would be measured instead).
+            PYTHONPATH=os.pathsep.join(
+                [str(pathlib.Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH", "")]
+            ),
+        ),
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -353,17 +379,20 @@ def main() -> None:
                 "programs": measured[0]["programs"],
                 "again_programs": measured[0]["again_programs"],
                 "first_s": [m["first_s"] for m in measured],
+                "first_cpu_s": [m["first_cpu_s"] for m in measured],
                 "run_s": min(m["run_s"] for m in measured),
             }
         ratio = [a["first_s"] / b["first_s"] for a, b in zip(runs["lievi"], runs["diffrax"])]
         row["first_call_ratio"] = ratio
+        cpu = [a["first_cpu_s"] / b["first_cpu_s"] for a, b in zip(runs["lievi"], runs["diffrax"])]
+        row["first_call_cpu_ratio"] = cpu
         rows.append(row)
         lv, dx = row["lievi"], row["diffrax"]
         print(
             f"{case:18s} lievi {lv['programs']:2d} programs (+{lv['again_programs']}), first "
             f"{min(lv['first_s']):6.2f} s | diffrax {dx['programs']:2d} (+{dx['again_programs']}),"
             f" first {min(dx['first_s']):6.2f} s | first-call ratio "
-            f"{', '.join(f'{r:.2f}' for r in ratio)}",
+            f"{', '.join(f'{r:.2f}' for r in ratio)} (CPU time {', '.join(f'{r:.2f}' for r in cpu)})",
             flush=True,
         )
     meta = {

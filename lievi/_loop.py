@@ -282,11 +282,25 @@ def finish(carry, initial, saves, n_steps: int, save: eqx.Module, xp=jnp) -> Sol
 
 
 def execute(
-    run: Run, g0, m0, h, t0, n_steps: int, save_every: int, *, explain, one: bool = False
+    run: Run,
+    g0,
+    m0,
+    h,
+    t0,
+    n_steps: int,
+    save_every: int,
+    *,
+    explain,
+    one: bool = False,
+    throw: tuple[str, str] | None = None,
 ) -> Solution:
     """The run of a batch, eagerly (`run_eager`) or traced (`run_static`), and its
     `Solution` (`one`: of the batch's one body, without the batch axis). `explain()`
-    raises the `ValueError` that names a bad input, for an eager run with one."""
+    raises the `ValueError` that names a bad input, for an eager run with one. `throw`:
+    `raise_if_failed`'s `(label, what)`, or `None` to return failures in `result`. The
+    traced check is part of the run's program: applied to its outputs after the program,
+    under a transformation without an outer `jit` (e.g. `jax.grad` of an eager call), each
+    of its operations was a program of its own (14 for a gradient)."""
     eager = (
         not tracing()
         and is_concrete(*jax.tree.leaves((run, g0, m0, h, t0)))
@@ -297,21 +311,26 @@ def execute(
         and not any(isinstance(x, jax.Array) and len(x.sharding.device_set) > 1 for x in (g0, m0))
     )
     if not eager:
-        return _static_program(run, g0, m0, h, t0, n_steps, save_every, one)
+        return _static_program(run, g0, m0, h, t0, n_steps, save_every, one, throw)
     carry, initial, saves = run_eager(run, g0, m0, h, t0, n_steps, save_every)
     if np.any(np.asarray(carry[1]) == int(RESULTS.invalid_input)):
         explain()
     carry, initial = jax.tree.map(np.asarray, (carry, initial))
     solution = finish(carry, initial, saves, n_steps, run.save, xp=np)
+    if throw is not None:  # on the host: the results are concrete
+        raise_if_failed(solution, *throw)
     # On the device by a transfer, no program (`jnp.asarray` would compile one per shape).
     return jax.device_put(_first(solution) if one else solution)
 
 
 @eqx.filter_jit
-def _static_program(run, g0, m0, h, t0, n_steps: int, save_every: int, one: bool) -> Solution:
+def _static_program(
+    run, g0, m0, h, t0, n_steps: int, save_every: int, one: bool, throw
+) -> Solution:
     carry, initial, saves = run_static(run, g0, m0, h, t0, n_steps, save_every)
     solution = finish(carry, initial, saves, n_steps, run.save)
-    return _first(solution) if one else solution
+    solution = _first(solution) if one else solution
+    return solution if throw is None else raise_if_failed(solution, *throw)
 
 
 def _first(solution: Solution) -> Solution:

@@ -17,7 +17,7 @@ from ._checks import (
     state_dtype,
 )
 from ._integrators._base import AbstractIntegrator, AbstractVariationalIntegrator
-from ._loop import Run, execute, raise_if_failed
+from ._loop import Run, execute
 from ._monitor import AbstractInvariantMonitor
 from ._options import OPTIONS, Tuning, options
 from ._progress import AbstractProgressMeter
@@ -119,10 +119,10 @@ def simulate(
     # With a bad input, an eager run raises the eager check's `ValueError` naming it.
     explain = functools.partial(system.check_element, "g0", g0)
     g0, m0 = (np.asarray(x)[None] if is_concrete(x) else jnp.asarray(x)[None] for x in (g0, m0))
-    solution = execute(run, g0, m0, h, t0, n_steps, opts.save.every, explain=explain, one=True)
-    if throw:
-        solution = raise_if_failed(solution, "lievi.simulate", "a step")
-    return solution
+    check = ("lievi.simulate", "a step") if throw else None
+    return execute(
+        run, g0, m0, h, t0, n_steps, opts.save.every, explain=explain, one=True, throw=check
+    )
 
 
 def _momentum_from_g1(system, integrator, g0, g1, h):

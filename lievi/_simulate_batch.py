@@ -20,7 +20,7 @@ from ._checks import (
     state_dtype,
 )
 from ._integrators._base import AbstractIntegrator
-from ._loop import Run, execute, raise_if_failed
+from ._loop import Run, execute
 from ._options import OPTIONS, Tuning, options
 from ._progress import AbstractProgressMeter
 from ._save import Save
@@ -223,10 +223,8 @@ def simulate_batch(
 
     # With a bad input, an eager run raises the group's own test naming the body.
     explain = functools.partial(system.check_elements, "g0", g0)
-    solution = execute(run, g0, m0, h, t0, n_steps, opts.save.every, explain=explain)
-    if throw:
-        solution = raise_if_failed(solution, "lievi.simulate_batch", "a body")
-    return solution
+    check = ("lievi.simulate_batch", "a body") if throw else None
+    return execute(run, g0, m0, h, t0, n_steps, opts.save.every, explain=explain, throw=check)
 
 
 def check_batch_h(h, batch: int) -> None:

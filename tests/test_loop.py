@@ -157,6 +157,26 @@ def test_an_eager_call_compiles_two_programs_and_a_new_horizon_none(fast, integr
             assert _programs(lambda: run(*args, m2, other)) == 0, (args, COMPILED)
 
 
+def test_a_gradient_of_an_eager_call_compiles_its_two_programs_only():
+    """Under `jax.vjp` without an outer `jit` the run is traced: its forward and backward
+    programs, and nothing else, also with `throw=True` (the failure check is part of the
+    run's program; applied after it, each of its operations was a program of its own)."""
+    jax.clear_caches()
+    body = lievi.RigidBody(np.array([1.0, 2.0, 3.2]))  # values no other test compiled
+    m0 = np.asarray(MOMENTA[:2])
+
+    def final_momenta(m):
+        save = lievi.Save(g=False, stats=False, every=2)
+        return lievi.simulate_batch(body, lievi.RK4(), G0, m, h=0.1, n_steps=2, save=save).m
+
+    COMPILED.clear()
+    momenta, pullback = jax.vjp(final_momenta, m0)  # no arithmetic of the test's own
+    (cotangent,) = pullback(np.ones(momenta.shape))
+    jax.block_until_ready(cotangent)
+    assert COMPILED == {"jit(_static_program)": 2}, COMPILED
+    assert cotangent.shape == m0.shape and np.all(np.isfinite(cotangent))
+
+
 def test_progress_meter_of_an_eager_run(small_blocks, capsys):
     """0 % first and 100 % last, on one line, over several blocks."""
     meter = lievi.TextProgressMeter(delay=0.0)

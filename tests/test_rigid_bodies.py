@@ -671,3 +671,56 @@ def test_coupling_evaluated_once_per_step(integrator):
         g, m = step(g, m)
     assert float(jnp.max(jnp.abs(sol.m[-1] - m))) <= 10 * ROUNDOFF
     assert float(jnp.max(jnp.abs(sol.g[-1] - g))) <= 10 * ROUNDOFF
+
+
+def test_an_eager_batch_of_bodies_compiles_two_programs_and_a_new_horizon_none():
+    """An eager `simulate_batch` of a `RigidBodies` system (full inertia tensors: the
+    splitting steps each body in its principal frame) compiles its set-up and its block
+    of saves, no other program of lievi's; a new `n_steps`, `h` or `m0` compiles nothing
+    (counts of compilations, not timings). The integrator's eager parameter check once
+    evaluated the index arithmetic of a traced tensor's frame, two small programs more.
+    Free bodies: the coupling's kicks change nothing here, and compile for seconds."""
+    rng = np.random.default_rng(5)
+    Q = np.linalg.qr(rng.normal(size=(2, 3, 3)))[0]
+    inertia = np.einsum("nij,nj,nkj->nik", Q, np.array([[1.0, 2.0, 3.0], [0.5, 0.7, 0.4]]), Q)
+    system = lievi.RigidBodies(inertia, np.array([1.5, 0.3]))
+    # NumPy inputs: the test's own arithmetic compiles nothing.
+    g0 = np.tile(np.eye(4), (2, 2, 1, 1))
+    g0[:, :, 0, 3] = [-0.5, 1.0]
+    m0 = np.array([[0.003, 0.005, 0.01, 0.0, -1.0, 0.0], [0.004, -0.002, 0.001, 0.0, 1.0, 0.0]])
+    m0 = np.stack([m0, 1.01 * m0])
+    jax.block_until_ready(system)
+    jax.clear_caches()
+
+    def programs(n_steps, h, m0):
+        _COMPILED.clear()
+        sol = lievi.simulate_batch(
+            system,
+            lievi.LiePoissonSplitting(),
+            g0,
+            m0,
+            h=h,
+            n_steps=n_steps,
+            save=lievi.Save(stats=False, every=n_steps),
+        )
+        jax.block_until_ready(sol)
+        assert np.all(np.asarray(sol.result) == int(lievi.RESULTS.successful))
+        return list(_COMPILED)
+
+    assert len(programs(4, 0.05, m0)) <= 2, _COMPILED
+    assert programs(6, 0.04, 1.01 * m0) == [], _COMPILED
+
+
+@pytest.mark.parametrize("full", [False, True], ids=["principal", "tensors"])
+def test_velocity_size_is_each_bodys_rotation_rate(full):
+    """`velocity_size` (what the step's bound limits) from the 3×3 inertias equals
+    `SE3.exp_norm` of the 6×6 `velocity`, per body, to round-off."""
+    rng = np.random.default_rng(3)
+    inertia = np.array([[1.0, 2.0, 3.0], [0.5, 0.7, 0.4]])
+    if full:
+        Q = np.linalg.qr(rng.normal(size=(2, 3, 3)))[0]
+        inertia = np.einsum("nij,nj,nkj->nik", Q, inertia, Q)
+    system = lievi.RigidBodies(inertia, np.array([1.5, 0.3]))
+    m = rng.normal(size=(2, 6))
+    expected = SE3.exp_norm(system.velocity(m))
+    np.testing.assert_allclose(system.velocity_size(m), expected, rtol=1e-14, atol=0)

@@ -117,8 +117,7 @@ class AbstractIntegrator(eqx.Module):
         # The angle the group's exponential turns (`exp_norm`: on SE(3) the rotation part
         # only; a translation per step has no such bound).
         # `any`: a system of several bodies steps too far if one of them does.
-        xi = system.velocity(m)
-        return jnp.any(jnp.abs(h) * system.group.exp_norm(xi) > self.step_bound())
+        return jnp.any(jnp.abs(h) * system.velocity_size(m) > self.step_bound())
 
     def kernels(self) -> tuple[AbstractBatchKernel, ...]:
         """This method's structure-of-arrays steps of the free system, one per kind of

@@ -70,7 +70,12 @@ def check_rigid_body(method: str, system: AbstractLieSystem) -> None:
 
 def check_pair_sums(method: str, system: AbstractLieSystem) -> None:
     """Eagerly reject `Λᵢ + Λⱼ ≤ 0` for some plane (`principal_planes`), where the system's
-    parameters are concrete: a system built around its own checks (e.g. by `tree_at`)."""
+    parameters are concrete: a system built around its own checks (e.g. by `tree_at`).
+    A traced system is left to its `parameter_conditions` in the run, and returns before
+    any arithmetic: under `ensure_compile_time_eval` the index arithmetic of a traced
+    tensor's principal frame still ran eagerly, two small programs per eager run."""
+    if not is_concrete(*jax.tree.leaves(eqx.filter(system, eqx.is_array))):
+        return
     with jax.ensure_compile_time_eval():
         # Evaluated now even inside a trace that closed over a concrete system.
         moments = system.principal_planes()[0]

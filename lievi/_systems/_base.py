@@ -132,6 +132,12 @@ class AbstractLieSystem(eqx.Module):
 
         return jax.lax.fori_loop(0, iterations, body, jnp.zeros_like(m))
 
+    def velocity_size(self, m: Float[Array, " d"]) -> Float[Array, "*batch"]:
+        """`group.exp_norm(velocity(m))`: the size of the velocity that a step's bound
+        limits (`AbstractIntegrator.step_too_large`). A system may give it from less than
+        the whole velocity (on SE(3) only the rotation rate counts)."""
+        return self.group.exp_norm(self.velocity(m))
+
     def energy(self, m: Float[Array, " d"]) -> Scalar:
         """Hamiltonian `H(m) = ⟨m, ξ⟩ − l(ξ)` with `ξ` the velocity of `m`."""
         xi = self.velocity(m)
