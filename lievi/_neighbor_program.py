@@ -59,15 +59,6 @@ def largest_displacement(potential, g, g_built):
     return jnp.sqrt(jnp.max(jnp.sum(moved * moved, axis=-1)))
 
 
-def with_list(potential, pairs):
-    """`potential` summing over the builder's list `pairs` (`SitePotential.from_builder`:
-    without `SitePotential.__init__`'s eager checks, which would sort the list on the
-    host at every segment, nor the traced check for repeated pairs, another sort of the
-    list in every segment's program — a builder's list has none by construction; the run
-    checks the potential's other conditions in its program, `RESULTS.invalid_input`)."""
-    return potential.from_builder(pairs)
-
-
 def listed_pairs(pairs, n_sites):
     """How many rows of a list are pairs (the rest is padding)."""
     return jnp.sum(pairs[:, 1] < n_sites)
@@ -108,7 +99,7 @@ def run_program(
     each = Save(g=True, m=True, stats=True, advected=save.advected, every=1)
 
     def segment(g, m, pairs, start):
-        listed = eqx.tree_at(where, system, with_list(potential, pairs))
+        listed = eqx.tree_at(where, system, potential.from_builder(pairs))
         return simulate(
             listed,
             integrator,

@@ -35,7 +35,6 @@ from ._neighbor_program import (
     largest_displacement,
     listed_pairs,
     run_program,
-    with_list,
 )
 from ._options import OPTIONS, Tuning, options
 from ._results import RESULTS
@@ -279,7 +278,7 @@ def _run_on_host(
                     builder = dataclasses.replace(builder, capacity=pairs.shape[0])
                 builds += 1
                 pair_counts.append(_listed_pairs(pairs, n_sites))
-                listed = eqx.tree_at(where, system, with_list(potential, pairs))
+                listed = eqx.tree_at(where, system, potential.from_builder(pairs))
                 built_at, built_step = g, start
             sol = simulate(
                 listed,
