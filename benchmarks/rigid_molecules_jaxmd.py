@@ -277,13 +277,6 @@ def run_jaxmd_neighbors(n, state0, steps, h, box, cutoff, skin, save_every):
     return checked(trajectory), checked(final)
 
 
-class HostJaxMDNeighbors(lievi.JaxMDNeighbors):
-    """`JaxMDNeighbors` that rebuilds on the host only: the run's segments called one by
-    one from Python, each rebuild a separate call (`--host-path`, for comparison)."""
-
-    rebuilds_on_device = False
-
-
 def run_lievi_neighbors(
     system, method, g0, m0, steps, h, skin, rebuild_every, save_every, builder_type
 ):
@@ -418,10 +411,6 @@ def main():
     parser.add_argument("--skin", type=float, default=0.5)
     parser.add_argument("--rebuild-every", type=int, default=20)
     parser.add_argument("--save-every", type=int, default=50)
-    parser.add_argument(
-        "--host-path", action="store_true",
-        help="with --neighbors, also time lievi's run with the segments called from the host",
-    )  # fmt: skip
     args = parser.parse_args()
     n, steps = args.molecules, args.steps
     side = int(np.ceil(n ** (1 / 3)))
@@ -458,8 +447,6 @@ def main():
             "jax-md NVE (NO_SQUISH), neighbour list": None,
             "lievi splitting, simulate_with_neighbor_list": lievi.LiePoissonSplitting(),
         }
-        if args.host_path:
-            methods["lievi splitting, segments from the host"] = lievi.LiePoissonSplitting()
     rows = []
     for h in args.h:
         programs, energies = {}, {}
@@ -470,10 +457,9 @@ def main():
                     n, state0, steps, h, box, args.cutoff, args.skin, args.save_every
                 )
             elif args.neighbors:
-                host = name.endswith("from the host")
                 trajectory, final = run_lievi_neighbors(
                     system, method, g0, m0, steps, h, args.skin, args.rebuild_every,
-                    args.save_every, HostJaxMDNeighbors if host else lievi.JaxMDNeighbors,
+                    args.save_every, lievi.JaxMDNeighbors,
                 )  # fmt: skip
             elif method is None:
                 trajectory, final = run_jaxmd(n, state0, steps, h)

@@ -1,21 +1,17 @@
 """`simulate_with_neighbor_list`: one run of a system whose site potential sums over a
-neighbour list, in segments with a rebuild of the list between them.
+neighbour list, in segments with a rebuild of the list between them, as one compiled
+program (as jax-md's users write a neighbour-list run).
 
-A neighbour list built with a skin holds every pair within the cut-off only while no site
-has moved more than half the skin (`lievi/_systems/_neighbors.py`), so a long run is cut
-into segments of `rebuild_every` steps, each one `simulate` call from the state the last
-ended in, on the potential with a list built at that state. With a builder that rebuilds
-on the device (both of lievi's) the whole run, segments and rebuilds, is one compiled
-program (`lievi._neighbor_program`); with one that builds on the host, or where a rebuild
-overflowed, the segments are run from the host, here, by the same rules. The list is data of the
-potential (a fixed-shape int array), so every segment runs the same compiled step. After
-each segment the largest site displacement since the build is checked against `skin/2`
-at every step of the segment: a list that went stale is an error naming the fix, never
-a silently wrong force. With `rebuild_after` a list is kept across segments until a site
-has moved that fraction of the skin, and a segment in which it went stale is run again
-with a list built at its start. A segment boundary is a save, where `simulate` changes
-nothing in float64 (as for `lievi.stream_batch`), so the run equals one `simulate` call
-on the all-pairs cut-off potential to round-off.
+A list built with a skin holds every pair within the cut-off only while no site has moved
+more than half the skin (`lievi/_systems/_neighbors.py`), so the run is cut into segments
+of `rebuild_every` steps inside one `lax.while_loop`: each segment a traced `simulate`
+call on the potential with the current list, every step saved for the stale-list check,
+the list rebuilt on the device between segments (`AbstractNeighborBuilder.rebuild`). A
+segment boundary is a save, where `simulate` changes nothing in float64, so the run
+equals one `simulate` call on the all-pairs cut-off potential to round-off. A rebuild
+that overflowed stops the loop at that segment's start; the list is built there on the
+host (which enlarges jax-md's buffers or raises naming `capacity`) and the program
+resumes from the loop's state.
 """
 
 from __future__ import annotations
@@ -26,16 +22,9 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ._checks import check_integer
 from ._loop import raise_if_failed
-from ._neighbor_program import (
-    STALE,
-    largest_displacement,
-    listed_pairs,
-    run_program,
-)
 from ._options import OPTIONS, Tuning, options
 from ._results import RESULTS
 from ._save import Save
@@ -43,14 +32,7 @@ from ._simulate import simulate
 from ._solution import Solution
 from ._systems._neighbors import AbstractNeighborBuilder
 
-_largest_displacement = eqx.filter_jit(largest_displacement)
-_listed_pairs = jax.jit(listed_pairs)
-
-
-@jax.jit
-def _take(arrays, index):
-    """The saves `index` of each array (one program for all, not one gather each)."""
-    return jax.tree.map(lambda x: x[index], arrays)
+RUNNING, FAILED, STALE = 0, 1, 2
 
 
 def _default_where(system):
@@ -81,7 +63,7 @@ def simulate_with_neighbor_list(
     **deprecated,
 ) -> Solution:
     """`simulate` with the neighbour list of a `lievi.SitePotential` rebuilt every
-    `rebuild_every` steps and checked.
+    `rebuild_every` steps and checked (docs/rigid-bodies.md).
 
     **Arguments:**
 
@@ -98,9 +80,7 @@ def simulate_with_neighbor_list(
       is built at the start of the segment after a site has moved `f·skin` since the
       last build, and a segment in which the list went stale anyway (a site moved
       `skin/2`) is run again from its start with a list built there
-      (`neighbor_reruns` counts them). Fewer builds where they are the cost (jax-md's
-      cell list on a CPU: about a second each for 10⁴ bodies), the same result; a
-      smaller `f` trades builds for fewer reruns.
+      (`neighbor_reruns` counts them).
     - `where`: where the `SitePotential` sits in `system` (default
       `lambda system: system.potential`), for `eqx.tree_at`; the potential needs a
       `cutoff` (and may have a `box`); its own `neighbors` are replaced.
@@ -112,13 +92,6 @@ def simulate_with_neighbor_list(
       taken (an invariant's reference would be each segment's start): any value but
       `None` is a `ValueError`.
 
-    With `lievi.BruteForceNeighbors` or `lievi.JaxMDNeighbors` the whole run — the
-    segments, the rebuilds between them (jax-md's compiled `update`), the checks — is one
-    compiled program, as jax-md's users write a neighbour-list run: the first list is
-    built on the host (it sizes `capacity`), the others inside the program. A builder
-    that builds on the host only (`AbstractNeighborBuilder.rebuilds_on_device` false)
-    has its segments called from the host, by the same rules and with the same result.
-
     **Returns:** a `Solution` over the whole horizon, as one `simulate` call gives it,
     with `stats` adding `neighbor_builds` (the lists built), `neighbor_pairs` (the most
     pairs a list held), `neighbor_capacity`, `neighbor_max_displacement` (the largest
@@ -127,17 +100,14 @@ def simulate_with_neighbor_list(
 
     **Raises:** `RuntimeError` if a site moved `skin/2` or more within a segment from a
     list built at its start (the list may have missed a pair: pass a smaller
-    `rebuild_every` or a larger `skin`);
-    `ValueError` (from the builder) if a rebuilt list has more pairs than its
-    `capacity` (a rebuild inside the program that overflowed, its own capacity or
-    jax-md's buffers, is done again from the host, which enlarges jax-md's buffers or
-    raises this). With `throw=False` a failed step (`RESULTS`) ends the run: the result
-    and `failed_step` are reported and the later saves are NaN, as in `simulate`.
+    `rebuild_every` or a larger `skin`); `ValueError` (from the builder) if a list has
+    more pairs than its `capacity`. With `throw=False` a failed step (`RESULTS`) ends the
+    run: the result and `failed_step` are reported and the later saves are NaN, as in
+    `simulate`.
     """
     label = "lievi.simulate_with_neighbor_list"
     opts = options(label, n_steps, locals(), deprecated, unsupported=("monitor",))
     n_steps, save, forcing = opts.n_steps, opts.save, opts.forcing
-    save_every = save.every
     rebuild_every = check_integer("rebuild_every", rebuild_every, 1)
     if n_steps % rebuild_every:
         raise ValueError(
@@ -156,88 +126,97 @@ def simulate_with_neighbor_list(
         )
     if forcing is not None:  # the whole run's data, once (each segment checks its own)
         forcing.check(system, n_steps, jnp.result_type(m0), args)
+    potential = where(system)
+    # The first list on the host: it sizes `capacity` (then fixed) and jax-md's buffers.
+    pairs, state = builder.build(potential, g0)
+    if builder.capacity is None:
+        builder = dataclasses.replace(builder, capacity=pairs.shape[0])
+    static = eqx.partition(state, eqx.is_array)[1]
+    # Traced: a new step, start time or fraction reuses the compiled program.
+    dtype = jnp.result_type(m0)
+    fraction = 0.0 if rebuild_after is None else rebuild_after
     run = dict(
-        h=h,
-        t0=t0,
+        builder=builder,
+        where=where,
+        h=jnp.asarray(h, dtype),
+        t0=jnp.asarray(t0, dtype),
         n_steps=n_steps,
         rebuild_every=rebuild_every,
         save=save,
-        rebuild_after=rebuild_after,
+        rebuild_after=jnp.asarray(fraction, dtype),
         forcing=forcing,
         args=args,
         checkpoint=checkpoint,
         tuning=opts.tuning,
         progress=opts.progress,
     )
-    if builder.rebuilds_on_device:
-        potential = where(system)
-        pairs, state = builder.build(potential, g0)
-        if builder.capacity is None:  # sized on the first build, then fixed
-            builder = dataclasses.replace(builder, capacity=pairs.shape[0])
-        # Traced: a new step, start time or fraction reuses the compiled program.
-        dtype = jnp.result_type(m0)
-        traced = dict(
-            h=jnp.asarray(h, dtype),
-            t0=jnp.asarray(t0, dtype),
-            rebuild_after=jnp.asarray(0.0 if rebuild_after is None else rebuild_after, dtype),
+    carry = None
+    while True:
+        carry, ts, most = _program(system, integrator, g0, m0, (pairs, state), carry, **run)
+        if not bool(carry["overflow"]):
+            break
+        # A rebuild overflowed: the list again on the host, where the loop stopped.
+        state = eqx.combine(carry["dynamic"], static)
+        pairs, state = builder.build(potential, carry["g"], state)
+    if int(carry["status"]) == STALE:
+        start = int(carry["stale_start"])
+        raise RuntimeError(
+            f"The neighbour list went stale in steps {start}–{start + rebuild_every}: a "
+            f"site moved {float(carry['stale_displacement']):.3g} since the list was "
+            f"built, at least half the skin ({builder.skin / 2:.3g}), so a pair within "
+            "the cut-off may be missing. Pass a smaller `rebuild_every` or a larger "
+            "`skin` to the builder."
         )
-        outcome = run_program(
-            system, integrator, g0, m0, (pairs, state), builder=builder, where=where,
-            **{**run, **traced},
-        )  # fmt: skip
-        # A rebuild that overflowed: the run again from the host, whose builds enlarge
-        # jax-md's buffers or raise naming `capacity`.
-        if not bool(outcome.overflow):
-            solution = _solution(outcome, builder, save, h, t0, n_steps, rebuild_every)
-            return raise_if_failed(solution, "lievi.simulate", "a step") if throw else solution
-    return _run_on_host(
-        system, integrator, g0, m0, builder=builder, where=where, throw=throw, **run
-    )
+    solution = _solution(carry, ts, most, builder, save, n_steps)
+    return raise_if_failed(solution, "lievi.simulate", "a step") if throw else solution
 
 
-def _solution(outcome, builder, save: Save, h, t0, n_steps: int, rebuild_every: int):
-    """The `Solution` of a run of the compiled program, or the stale list's error."""
-    if int(outcome.status) == STALE:
-        start = int(outcome.stale_start)
-        _stale(start, start + rebuild_every, float(outcome.stale_displacement), builder.skin)
-    n_saves = n_steps // save.every + 1
+def _solution(c, ts, most, builder, save: Save, n_steps: int) -> Solution:
+    """The `Solution` of the program's final loop state `c`, save times `ts` and
+    statistics per save `most`."""
+    g, m, advected = c["saves"]
     stats = {
-        "failed_step": outcome.failed_step,
-        "total_newton_iterations": outcome.total_newton_iterations,
+        "failed_step": c["failed_step"],
+        "total_newton_iterations": c["total"],
         "num_steps": jnp.asarray(n_steps),
-        "neighbor_builds": outcome.builds,
-        "neighbor_pairs": outcome.pairs,
+        "neighbor_builds": c["builds"],
+        "neighbor_pairs": c["most_pairs"],
         "neighbor_capacity": jnp.asarray(builder.capacity),
-        "neighbor_max_displacement": outcome.largest,
-        "neighbor_reruns": outcome.reruns,
+        "neighbor_max_displacement": c["largest"],
+        "neighbor_reruns": c["reruns"],
     }
     if save.stats:
-        stats["newton_iterations"] = outcome.newton_iterations
-        stats["residual"] = outcome.residual
+        stats["newton_iterations"], stats["residual"] = most["iterations"], most["residual"]
     return Solution(
-        t0 + h * save.every * jnp.arange(n_saves, dtype=outcome.m.dtype),
-        outcome.g if save.g else None,
-        outcome.m if save.m else None,
-        outcome.result,
+        ts,
+        g if save.g else None,
+        m if save.m else None,
+        c["result"],
         stats,
-        outcome.advected if save.with_advected() else None,
+        advected if save.with_advected() else None,
     )
 
 
-def _stale(start: int, end: int, displacement: float, skin: float):
-    raise RuntimeError(
-        f"The neighbour list went stale in steps {start}–{end}: a site moved "
-        f"{displacement:.3g} since the list was built, at least half the skin "
-        f"({skin / 2:.3g}), so a pair within the cut-off may be missing. Pass a smaller "
-        "`rebuild_every` or a larger `skin` to the builder."
-    )
+def largest_displacement(potential, g, g_built):
+    """The largest distance a site moved, over the poses `g` `(T, N, 4, 4)`, from where it
+    was at `g_built` (the list's build)."""
+    moved = jax.vmap(potential.flat_positions)(g) - potential.flat_positions(g_built)[None]
+    return jnp.sqrt(jnp.max(jnp.sum(moved * moved, axis=-1)))
 
 
-def _run_on_host(
+def listed_pairs(pairs, n_sites):
+    """How many rows of a list are pairs (the rest is padding)."""
+    return jnp.sum(pairs[:, 1] < n_sites)
+
+
+@eqx.filter_jit
+def _program(
     system,
     integrator,
     g0,
     m0,
+    listed,
+    carry,
     *,
     builder,
     where,
@@ -249,137 +228,155 @@ def _run_on_host(
     rebuild_after,
     forcing,
     args,
-    throw,
     checkpoint,
     tuning,
     progress,
-) -> Solution:
-    """The run with its segments called from the host: for a builder that builds on the
-    host only, or after a rebuild overflowed in the compiled program."""
-    save_every = save.every
-    # Every step of a segment saved (the displacement check reads them), on `g` and `m`.
-    each = Save(g=True, m=True, stats=True, advected=save.advected, every=1)
-    segment_options = dict(save=each, throw=throw, checkpoint=checkpoint, tuning=tuning)
+):
+    """The run's loop state at its end, or where a rebuild overflowed (`overflow`): from
+    `(g0, m0)` (`carry` `None`) or from `carry`, the state where an earlier call stopped,
+    with the list and builder state `listed = (pairs, state)` built on the host at the
+    state's poses. A list built at a segment's start that went stale ends the run
+    (`STALE`), a kept list that went stale is built again and the segment run again, a
+    failed step ends the run with the later saves NaN (`FAILED`)."""
     potential = where(system)
-    g, m = jnp.asarray(g0), jnp.asarray(m0)
-    h_value = float(h)
+    pairs0, state0 = listed
     n_sites = potential.sites.shape[0] * potential.sites.shape[1]
-    # Counts and displacements stay on the device until the end: a segment's only
-    # transfers to the host are its result code and its largest displacement.
-    pieces, builds, reruns, pair_counts, largest = [], 0, 0, [], 0.0
-    failure, state, listed, built_at, built_step = None, None, None, None, None
-    for segment in range(n_steps // rebuild_every):
-        start = segment * rebuild_every
-        while True:
-            # A new list: the first, after a stale or used-up one, or every segment.
-            if listed is None or (rebuild_after is None and built_step != start):
-                pairs, state = builder.build(potential, g, state)
-                if builder.capacity is None:  # sized on the first build, then fixed
-                    builder = dataclasses.replace(builder, capacity=pairs.shape[0])
-                builds += 1
-                pair_counts.append(_listed_pairs(pairs, n_sites))
-                listed = eqx.tree_at(where, system, potential.from_builder(pairs))
-                built_at, built_step = g, start
-            sol = simulate(
-                listed,
-                integrator,
-                g,
-                m,
-                h=h,
-                n_steps=rebuild_every,
-                t0=t0 + start * h_value,
-                forcing=None if forcing is None else forcing.steps(start, rebuild_every),
-                args=args,
-                **segment_options,
-            )
-            if int(sol.result) != RESULTS.successful:
-                break
-            displacement = float(_largest_displacement(potential, sol.g, built_at))
-            if displacement < builder.skin / 2:
-                break
-            if built_step == start:
-                _stale(start, start + rebuild_every, displacement, builder.skin)
-            # A list kept from an earlier segment went stale: build one here, run again.
-            listed, reruns = None, reruns + 1
-        if int(sol.result) != RESULTS.successful:
-            failure = (int(sol.result), start + int(sol.stats["failed_step"]))
-            pieces.append(_kept(sol, start, save_every))
-            break
-        largest = max(largest, displacement)
-        if rebuild_after is not None and displacement >= rebuild_after * builder.skin:
-            # Enough of the margin used that the next segment may go stale: build a new
-            # list at its start rather than risk running it twice.
-            listed = None
-        pieces.append(_kept(sol, start, save_every))
-        g, m = _take((sol.g, sol.m), -1)  # one program, not one dispatch each
-        progress.show((start + rebuild_every) / n_steps)
-    joined = _join(pieces, h, t0, n_steps, save_every, failure)
-    stats = dict(
-        joined.stats,
-        neighbor_builds=jnp.asarray(builds),
-        neighbor_pairs=jnp.max(jnp.stack(pair_counts)),
-        neighbor_capacity=jnp.asarray(builder.capacity),
-        neighbor_max_displacement=jnp.asarray(largest),
-        neighbor_reruns=jnp.asarray(reruns),
-    )
-    if not save.stats:
-        del stats["newton_iterations"], stats["residual"]
-    return Solution(
-        joined.ts,
-        joined.g if save.g else None,
-        joined.m if save.m else None,
-        joined.result,
-        stats,
-        joined.advected if save.with_advected() else None,
+    every, R = save.every, rebuild_every
+    n_saves = n_steps // every + 1
+    each = Save(g=True, m=True, stats=True, advected=save.advected, every=1)
+    dynamic0, static = eqx.partition(state0, eqx.is_array)
+
+    def segment(g, m, pairs, start):
+        listed = eqx.tree_at(where, system, potential.from_builder(pairs))
+        return simulate(
+            listed,
+            integrator,
+            g,
+            m,
+            h=h,
+            n_steps=R,
+            t0=t0 + start * h,
+            forcing=None if forcing is None else forcing.steps(start, R),
+            args=args,
+            save=each,
+            throw=False,
+            checkpoint=checkpoint,
+            tuning=tuning,
+        )
+
+    def rebuild(g, dynamic):
+        pairs, state, overflow = builder.rebuild(potential, g, eqx.combine(dynamic, static))
+        return pairs, eqx.partition(state, eqx.is_array)[0], overflow
+
+    if carry is None:
+        g0, m0 = jnp.asarray(g0), jnp.asarray(m0)
+        shapes = jax.eval_shape(segment, g0, m0, pairs0, jnp.asarray(0))
+        dtype = shapes.m.dtype
+
+        def buffer(shape):
+            return None if shape is None else jnp.full((n_saves, *shape.shape[1:]), jnp.nan, dtype)
+
+        zero = jnp.asarray(0)
+        carry = dict(
+            segment=zero,
+            g=g0,
+            m=m0,
+            builds=zero,
+            reruns=zero,
+            most_pairs=zero,
+            largest=jnp.asarray(0.0, dtype),
+            status=jnp.asarray(RUNNING),
+            result=jnp.asarray(RESULTS.successful, jnp.int32),
+            failed_step=jnp.asarray(-1, jnp.int32),
+            stale_start=zero,
+            stale_displacement=jnp.asarray(0.0, dtype),
+            total=jnp.zeros((), shapes.stats["total_newton_iterations"].dtype),
+            saves=(buffer(shapes.g), buffer(shapes.m), buffer(shapes.advected)),
+            iterations=jnp.zeros((n_steps,), shapes.stats["newton_iterations"].dtype),
+            residual=jnp.zeros((n_steps,), shapes.stats["residual"].dtype),
+        )
+    # The list built on the host, at the poses of the segment the loop starts with.
+    carry = dict(
+        carry,
+        pairs=pairs0,
+        dynamic=dynamic0,
+        built_at=carry["g"],
+        built_step=carry["segment"] * R,
+        fresh=jnp.asarray(False),  # a list is to be built at the segment's start
+        builds=carry["builds"] + 1,
+        most_pairs=jnp.maximum(carry["most_pairs"], listed_pairs(pairs0, n_sites)),
+        overflow=jnp.asarray(False),
     )
 
+    def going(c):
+        return (c["segment"] < n_steps // R) & (c["status"] == RUNNING) & ~c["overflow"]
 
-def _kept(sol: Solution, start: int, save_every: int) -> Solution:
-    """A segment from step `start`, saved at every step: its saves at the run's save
-    times (steps that are multiples of `save_every`; the segment's first state is the
-    previous segment's last, kept only for the first segment), and its per-step
-    statistics whole (`_join` reduces them over each `save_every` steps)."""
-    steps = start + np.arange(sol.ts.shape[0])
-    keep = np.flatnonzero((steps % save_every == 0) & ((steps > start) | (start == 0)))
-    ts, g, m, advected = _take((sol.ts, sol.g, sol.m, sol.advected), jnp.asarray(keep))
-    return Solution(ts, g, m, sol.result, sol.stats, advected)
+    def one_segment(c):
+        start = c["segment"] * R
+        fresh = c["fresh"]
+        pairs, dynamic, overflow = jax.lax.cond(
+            fresh,
+            lambda: rebuild(c["g"], c["dynamic"]),
+            lambda: (c["pairs"], c["dynamic"], jnp.asarray(False)),
+        )
+        built_at = jnp.where(fresh, c["g"], c["built_at"])
+        built_step = jnp.where(fresh, start, c["built_step"])
+        sol = segment(c["g"], c["m"], pairs, start)
+        failed = sol.result != RESULTS.successful
+        displacement = largest_displacement(potential, sol.g, built_at)
+        stale = ~failed & (displacement >= builder.skin / 2)
+        stale_fresh = stale & (built_step == start)
+        accepted = ~stale  # a kept list gone stale: the segment again, fresh
+        # The segment's saves at the run's save times (its first state is the previous
+        # segment's last, written only for the first segment); index `n_saves` is dropped.
+        steps = start + jnp.arange(R + 1)
+        kept = accepted & (steps % every == 0) & ((steps > start) | (start == 0))
+        index = jnp.where(kept, steps // every, n_saves)
+        saves = tuple(
+            None if b is None else b.at[index].set(x, mode="drop")
+            for b, x in zip(c["saves"], (sol.g, sol.m, sol.advected))
+        )
+        rows = jnp.where(accepted, start + jnp.arange(R), n_steps)
+        ok = accepted & ~failed
+        # Enough of the margin used that the next segment may go stale (always, for a
+        # fraction 0: a list for every segment).
+        fresh_next = displacement >= rebuild_after * builder.skin
+        status = jnp.where(stale_fresh, STALE, jnp.where(accepted & failed, FAILED, RUNNING))
+        progress.report((c["segment"] + accepted) * R, n_steps)  # repeats are dropped
+        new = dict(
+            segment=c["segment"] + accepted,
+            g=jnp.where(ok, sol.g[-1], c["g"]),
+            m=jnp.where(ok, sol.m[-1], c["m"]),
+            pairs=pairs,
+            dynamic=dynamic,
+            built_at=built_at,
+            built_step=built_step,
+            fresh=jnp.where(ok, fresh_next, stale),
+            builds=c["builds"] + fresh,
+            reruns=c["reruns"] + (stale & ~stale_fresh),
+            most_pairs=jnp.maximum(c["most_pairs"], listed_pairs(pairs, n_sites)),
+            largest=jnp.where(ok, jnp.maximum(c["largest"], displacement), c["largest"]),
+            status=status,
+            result=jnp.where(accepted, sol.result, c["result"]).astype(jnp.int32),
+            failed_step=jnp.where(
+                accepted & failed, start + sol.stats["failed_step"], c["failed_step"]
+            ).astype(jnp.int32),
+            stale_start=jnp.where(stale_fresh, start, c["stale_start"]),
+            stale_displacement=jnp.where(stale_fresh, displacement, c["stale_displacement"]),
+            overflow=overflow,
+            total=c["total"] + jnp.where(accepted, sol.stats["total_newton_iterations"], 0),
+            saves=saves,
+            iterations=c["iterations"].at[rows].set(sol.stats["newton_iterations"], mode="drop"),
+            residual=c["residual"].at[rows].set(sol.stats["residual"], mode="drop"),
+        )
+        # An overflowed rebuild: the state as the segment began, for the host's list.
+        stopped = dict(c, overflow=overflow)
+        return jax.tree.map(lambda a, b: jnp.where(overflow, a, b), stopped, new)
 
-
-def _join(pieces, h, t0, n_steps: int, save_every: int, failure) -> Solution:
-    """One `Solution` over the horizon from the segments' (NaN-padded after a failure
-    that ended the run early)."""
-    n_saves = n_steps // save_every + 1
-
-    def joined(field):
-        parts = [getattr(p, field) for p in pieces]
-        if parts[0] is None:
-            return None
-        whole = jnp.concatenate(parts)
-        missing = n_saves - whole.shape[0]
-        pad = jnp.full((missing, *whole.shape[1:]), jnp.nan, whole.dtype)
-        return jnp.concatenate([whole, pad])
-
-    def stat(name):
-        """Per step, over the steps run (zero-padded), then the most over each interval
-        between saves, as `simulate` reports it."""
-        whole = jnp.concatenate([p.stats[name] for p in pieces])
-        whole = jnp.concatenate([whole, jnp.zeros((n_steps - whole.shape[0],), whole.dtype)])
-        return jnp.max(whole.reshape(n_saves - 1, save_every), axis=1)
-
-    m = joined("m")
-    result, failed_step = (RESULTS.successful, -1) if failure is None else failure
-    stats = {
-        "newton_iterations": stat("newton_iterations"),
-        "residual": stat("residual"),
-        "failed_step": jnp.asarray(failed_step, jnp.int32),
-        "total_newton_iterations": sum(p.stats["total_newton_iterations"] for p in pieces),
-        "num_steps": jnp.asarray(n_steps),
+    c = jax.lax.while_loop(going, one_segment, carry)
+    # The statistics as `simulate` reports them: the most over each interval between saves.
+    ts = t0 + h * every * jnp.arange(n_saves, dtype=c["largest"].dtype)
+    most = {
+        k: jnp.max(c[k].reshape(n_saves - 1, every), axis=1) for k in ("iterations", "residual")
     }
-    return Solution(
-        ts=t0 + h * save_every * jnp.arange(n_saves, dtype=m.dtype),
-        g=joined("g"),
-        m=m,
-        result=jnp.asarray(result, jnp.int32),
-        stats=stats,
-        advected=joined("advected"),
-    )
+    return c, ts, most

@@ -40,7 +40,6 @@ LAYERS = (
             "_stream",
             "_stream_writer",
             "_stream_record",
-            "_neighbor_program",
             "_simulate_neighbors",
         ),
     ),

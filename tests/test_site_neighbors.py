@@ -641,3 +641,59 @@ def test_energy_error_bounded_with_cutoff():
     half = len(error) // 2
     assert jnp.max(error) < 2e-2
     assert jnp.mean(error[half:]) < 1.5 * jnp.mean(error[:half])
+
+
+class _HostCandidates(lievi.AbstractNeighborBuilder):
+    """A builder with `candidates` only (NumPy, every pair): its rebuilds are called back
+    on the host from the run's program."""
+
+    def candidates(self, x, body, radius, box):
+        d = x[:, None] - x[None]
+        if box is not None:
+            d = d - box * np.round(d / box)
+        near = (np.sum(d * d, -1) < radius**2) & (body[:, None] != body[None])
+        return np.nonzero(np.triu(near, 1))
+
+
+class _Overflowing(lievi.BruteForceNeighbors):
+    """Every rebuild inside the program reports an overflow: each list is built on the
+    host and the program resumed from where it stopped."""
+
+    def rebuild(self, potential, g, state):
+        pairs, state, _ = super().rebuild(potential, g, state)
+        return pairs, state, jnp.asarray(True)
+
+
+@pytest.mark.parametrize("builder", [_HostCandidates, _Overflowing])
+def test_host_builds_equal_device_builds(segmented, builder):
+    """A builder with `candidates` only, and rebuilds that overflow (the list then built on
+    the host where the loop stopped, the run resumed from there): the saves and the counts
+    of the fixture's run with device rebuilds, to 1e-12, over its first 40 steps."""
+    system, g0, m0, sol = segmented
+    run = lievi.simulate_with_neighbor_list(
+        system,
+        METHOD,
+        g0,
+        m0,
+        h=H,
+        n_steps=40,
+        rebuild_every=10,
+        save=lievi.Save(every=10),
+        builder=builder(SKIN, capacity=CAPACITY),
+    )
+    assert int(run.result) == 0 and int(run.stats["neighbor_builds"]) == 4
+    assert jnp.max(jnp.abs(run.g - sol.g[:5])) < 1e-12
+    assert jnp.max(jnp.abs(run.m - sol.m[:5])) < 1e-12
+
+
+def test_overflow_in_the_run_names_capacity(segmented):
+    """A list that outgrows its capacity inside the run is built again on the host, which
+    raises naming `capacity`."""
+    system, g0, m0, _ = segmented
+    first = lievi.BruteForceNeighbors(SKIN)(system.potential, g0)
+    n_pairs = int(jnp.sum(first[:, 1] < 16))
+    builder = lievi.BruteForceNeighbors(SKIN, capacity=n_pairs)
+    with pytest.raises(ValueError, match="`capacity`"):
+        lievi.simulate_with_neighbor_list(
+            system, METHOD, g0, m0, h=H, n_steps=200, rebuild_every=10, builder=builder
+        )

@@ -25,9 +25,9 @@
   rebuilds the list between segments of a run and checks both conditions.
 
 A builder's first list is built on the host, on concrete positions (that sizes its
-`capacity`, and jax-md allocates its buffers there); a builder that can rebuild inside a
-compiled program (`rebuilds_on_device`: both builders here) builds the later ones there
-(`rebuild`), so that a whole run of `lievi.simulate_with_neighbor_list` is one program.
+`capacity`, and jax-md allocates its buffers there); the later ones are built inside the
+run's compiled program (`rebuild`; a builder with `candidates` only calls them back on the
+host), so that a whole run of `lievi.simulate_with_neighbor_list` is one program.
 """
 
 from __future__ import annotations
@@ -35,7 +35,6 @@ from __future__ import annotations
 import abc
 import functools
 import math
-from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -160,24 +159,32 @@ class AbstractNeighborBuilder(eqx.Module):
         first time). The default builds from scratch by `candidates`."""
         x, body, radius, box = _inputs(potential, g, self.skin)
         i, j = self.candidates(x, body, radius, box)
-        capacity = self.sized(len(i))
-        order = np.lexsort((j, i))
-        pairs = np.full((capacity, 2), fill_index(len(x)), dtype=np.int32)
-        pairs[: len(i), 0], pairs[: len(i), 1] = i[order], j[order]
-        return jnp.asarray(pairs), None
-
-    # Whether `rebuild` builds a list inside a compiled program (from the state of a
-    # first `build` on the host); a builder that only has `candidates` builds on the host.
-    rebuilds_on_device: ClassVar[bool] = False
+        return jnp.asarray(_listed(i, j, len(x), self.sized(len(i)))), None
 
     def rebuild(self, potential, g, state):
         """`(pairs, state, overflow)`, traceable: the list at poses `g` from the `state` of
         an earlier `build` (whose `capacity` it keeps), and whether it overflowed — more
         pairs than `capacity`, or a buffer of the builder's own too small — in which case
-        the pairs are incomplete and the list must be built again on the host (`build`,
-        which enlarges the buffers or raises naming `capacity`). Only for builders with
-        `rebuilds_on_device`."""
-        raise NotImplementedError(f"{type(self).__name__} builds its lists on the host.")
+        the pairs are incomplete and the list is built again on the host (`build`, which
+        enlarges the buffers or raises naming `capacity`). The default calls `candidates`
+        back on the host (`jax.pure_callback`)."""
+        x = potential.flat_positions(g)
+        n, k = x.shape[0], potential.sites.shape[1]
+        radius = jnp.asarray(potential.cutoff, x.dtype) + self.skin
+        box = None if potential.box is None else jnp.asarray(potential.box, x.dtype)
+
+        def on_host(x, radius, box):
+            box = None if box is None else np.asarray(box)
+            i, j = self.candidates(np.asarray(x), np.arange(n) // k, float(radius), box)
+            overflow = np.asarray(len(i) > self.capacity)  # the pairs then incomplete
+            return _listed(i[: self.capacity], j[: self.capacity], n, self.capacity), overflow
+
+        shapes = (
+            jax.ShapeDtypeStruct((self.capacity, 2), jnp.int32),
+            jax.ShapeDtypeStruct((), jnp.bool_),
+        )
+        pairs, overflow = jax.pure_callback(on_host, shapes, x, radius, box)
+        return pairs, state, overflow
 
     def __call__(self, potential, g):
         return self.build(potential, g)[0]
@@ -197,6 +204,15 @@ class AbstractNeighborBuilder(eqx.Module):
                 "pairs)."
             )
         return capacity
+
+
+def _listed(i, j, n_sites: int, capacity: int):
+    """The pairs `(i, j)` sorted by first site, then second, in a `(capacity, 2)` int32
+    list padded with `fill_index(n_sites)`."""
+    order = np.lexsort((j, i))
+    pairs = np.full((capacity, 2), fill_index(n_sites), dtype=np.int32)
+    pairs[: len(i), 0], pairs[: len(i), 1] = np.asarray(i)[order], np.asarray(j)[order]
+    return pairs
 
 
 def _inputs(potential, g, skin):
@@ -252,8 +268,6 @@ class BruteForceNeighbors(AbstractNeighborBuilder):
     def candidates(self, x, body, radius, box):
         near = np.asarray(_near_pairs(*_device_inputs(x, body, radius, box)))
         return np.nonzero(near)
-
-    rebuilds_on_device: ClassVar[bool] = True
 
     def build(self, potential, g, state=None):
         return _all_pairs_list(self, *_inputs(potential, g, self.skin)), None
@@ -346,8 +360,6 @@ class JaxMDNeighbors(AbstractNeighborBuilder):
         real = np.asarray(pairs)
         real = real[real[:, 1] < len(x)]
         return real[:, 0], real[:, 1]
-
-    rebuilds_on_device: ClassVar[bool] = True
 
     def rebuild(self, potential, g, state):
         """jax-md's compiled `update` from the last list, in the program. Where the first
