@@ -311,7 +311,7 @@ def execute(
         and not any(isinstance(x, jax.Array) and len(x.sharding.device_set) > 1 for x in (g0, m0))
     )
     if not eager:
-        return _static_program(run, g0, m0, h, t0, n_steps, save_every, one, throw)
+        return _static_program(run, g0, m0, h, t0, n_steps, save_every, one=one, throw=throw)
     carry, initial, saves = run_eager(run, g0, m0, h, t0, n_steps, save_every)
     if np.any(np.asarray(carry[1]) == int(RESULTS.invalid_input)):
         explain()
@@ -324,9 +324,7 @@ def execute(
 
 
 @eqx.filter_jit
-def _static_program(
-    run, g0, m0, h, t0, n_steps: int, save_every: int, one: bool, throw
-) -> Solution:
+def _static_program(run, g0, m0, h, t0, n_steps: int, save_every: int, *, one, throw):
     carry, initial, saves = run_static(run, g0, m0, h, t0, n_steps, save_every)
     solution = finish(carry, initial, saves, n_steps, run.save)
     solution = _first(solution) if one else solution

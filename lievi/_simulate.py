@@ -62,16 +62,11 @@ def simulate(
       §2: a variational integrator is started from `(g0, g1)`); `m0` is then the discrete
       Legendre transform `−D₁L_d(g0, g1)`.
 
-    **Options** — every run function (`simulate_batch`, `stream_batch`,
-    `simulate_with_neighbor_list`) takes them, with the same defaults; each is described
-    under *Run options* (docs/api/simulate.md): `save` (a `lievi.Save`, default `Save()`),
-    `t0` (0.0; save `j` is at `t0 + j·every·h`), `throw` (True: raise if a step fails,
-    else read `Solution.result`), `checkpoint` (False: reverse-mode memory O(`n_steps`);
-    True or a segment length: O(√`n_steps`)), `progress_meter` (False), `forcing` (None;
-    the discrete Lagrange–d'Alembert principle), `args` (None), `monitor` (None) and
-    `tuning` (`lievi.advanced.Tuning()`). The keywords of earlier releases
-    (`save_every=`, `save=("g", "m")`, `fast`, `fixed_iterations`, `unroll`) still work
-    for one release, with a `DeprecationWarning`.
+    **Options** — every run function takes them, with the same defaults (each described
+    under *Run options*, docs/api/simulate.md): `save=lievi.Save()`, `t0=0.0` (save `j`
+    at `t0 + j·every·h`), `throw=True`, `checkpoint=False`, `progress_meter=False`,
+    `forcing=None`, `args=None`, `monitor=None`, `tuning=lievi.advanced.Tuning()`. The
+    keywords of earlier releases still work for one release, with a `DeprecationWarning`.
 
     **Returns:** a `Solution`.
 

@@ -1,17 +1,10 @@
-"""`simulate_with_neighbor_list`: one run of a system whose site potential sums over a
-neighbour list, in segments with a rebuild of the list between them, as one compiled
-program (as jax-md's users write a neighbour-list run).
+"""`simulate_with_neighbor_list`: a run in segments with a rebuild of the neighbour list
+between them, as one compiled program (as jax-md's users write one; docs/rigid-bodies.md).
 
-A list built with a skin holds every pair within the cut-off only while no site has moved
-more than half the skin (`lievi/_systems/_neighbors.py`), so the run is cut into segments
-of `rebuild_every` steps inside one `lax.while_loop`: each segment a traced `simulate`
-call on the potential with the current list, every step saved for the stale-list check,
-the list rebuilt on the device between segments (`AbstractNeighborBuilder.rebuild`). A
-segment boundary is a save, where `simulate` changes nothing in float64, so the run
-equals one `simulate` call on the all-pairs cut-off potential to round-off. A rebuild
-that overflowed stops the loop at that segment's start; the list is built there on the
-host (which enlarges jax-md's buffers or raises naming `capacity`) and the program
-resumes from the loop's state.
+Each segment is a traced `simulate` call on the potential with the current list, every step
+saved for the stale-list check; a segment boundary is a save, where `simulate` changes
+nothing in float64, so the run equals one `simulate` call on the all-pairs cut-off
+potential to round-off.
 """
 
 from __future__ import annotations
@@ -197,18 +190,6 @@ def _solution(c, ts, most, builder, save: Save, n_steps: int) -> Solution:
     )
 
 
-def largest_displacement(potential, g, g_built):
-    """The largest distance a site moved, over the poses `g` `(T, N, 4, 4)`, from where it
-    was at `g_built` (the list's build)."""
-    moved = jax.vmap(potential.flat_positions)(g) - potential.flat_positions(g_built)[None]
-    return jnp.sqrt(jnp.max(jnp.sum(moved * moved, axis=-1)))
-
-
-def listed_pairs(pairs, n_sites):
-    """How many rows of a list are pairs (the rest is padding)."""
-    return jnp.sum(pairs[:, 1] < n_sites)
-
-
 @eqx.filter_jit
 def _program(
     system,
@@ -242,6 +223,10 @@ def _program(
     pairs0, state0 = listed
     n_sites = potential.sites.shape[0] * potential.sites.shape[1]
     every, R = save.every, rebuild_every
+
+    def listed_pairs(pairs):  # the rows of a list that are pairs (the rest is padding)
+        return jnp.sum(pairs[:, 1] < n_sites)
+
     n_saves = n_steps // every + 1
     each = Save(g=True, m=True, stats=True, advected=save.advected, every=1)
     dynamic0, static = eqx.partition(state0, eqx.is_array)
@@ -304,7 +289,7 @@ def _program(
         built_step=carry["segment"] * R,
         fresh=jnp.asarray(False),  # a list is to be built at the segment's start
         builds=carry["builds"] + 1,
-        most_pairs=jnp.maximum(carry["most_pairs"], listed_pairs(pairs0, n_sites)),
+        most_pairs=jnp.maximum(carry["most_pairs"], listed_pairs(pairs0)),
         overflow=jnp.asarray(False),
     )
 
@@ -323,7 +308,9 @@ def _program(
         built_step = jnp.where(fresh, start, c["built_step"])
         sol = segment(c["g"], c["m"], pairs, start)
         failed = sol.result != RESULTS.successful
-        displacement = largest_displacement(potential, sol.g, built_at)
+        # The largest distance a site moved in the segment from the list's build.
+        moved = jax.vmap(potential.flat_positions)(sol.g) - potential.flat_positions(built_at)
+        displacement = jnp.sqrt(jnp.max(jnp.sum(moved * moved, axis=-1)))
         stale = ~failed & (displacement >= builder.skin / 2)
         stale_fresh = stale & (built_step == start)
         accepted = ~stale  # a kept list gone stale: the segment again, fresh
@@ -354,7 +341,7 @@ def _program(
             fresh=jnp.where(ok, fresh_next, stale),
             builds=c["builds"] + fresh,
             reruns=c["reruns"] + (stale & ~stale_fresh),
-            most_pairs=jnp.maximum(c["most_pairs"], listed_pairs(pairs, n_sites)),
+            most_pairs=jnp.maximum(c["most_pairs"], listed_pairs(pairs)),
             largest=jnp.where(ok, jnp.maximum(c["largest"], displacement), c["largest"]),
             status=status,
             result=jnp.where(accepted, sol.result, c["result"]).astype(jnp.int32),

@@ -29,12 +29,6 @@ class ChunkState(NamedTuple):
     total_newton_iterations: np.ndarray
     steps_done: int
 
-    def reported_result(self, n_steps: int) -> np.ndarray:
-        """`result` as the output reports it: `RESULTS.not_run` for a body still successful
-        short of the horizon `n_steps`; a failure is final."""
-        unfinished = (self.result == RESULTS.successful) & (self.steps_done < n_steps)
-        return np.where(unfinished, RESULTS.not_run, self.result).astype(np.int32)
-
 
 @dataclasses.dataclass(frozen=True)
 class StreamLayout:
@@ -69,8 +63,13 @@ class StreamLayout:
         settings = self.settings()
         run, stored_run = settings.pop("run"), dict(stored.get("run", {}))
         stored = {k: v for k, v in stored.items() if k != "run"}
+
+        def short(value):  # a digest shown by its first hex digits
+            text = str(value) if value is not None else "none"
+            return text[:19] + "…" if text.startswith("sha256:") else text
+
         differ = [
-            f"`{name}` ({_short(there.get(name))} there, {_short(now.get(name))} now)"
+            f"`{name}` ({short(there.get(name))} there, {short(now.get(name))} now)"
             for now, there in ((settings, stored), (run, stored_run))
             for name in sorted(set(now) | set(there))
             if now.get(name) != there.get(name)
@@ -80,15 +79,6 @@ class StreamLayout:
                 f"`writer`: {where} holds another run; it differs in {', '.join(differ)}. "
                 "Pass a new directory, or the arguments of that run to resume it."
             )
-
-
-def _short(value) -> str:
-    """A setting as a message shows it: a digest by its first hex digits."""
-    if value is None:
-        return "none"
-    if isinstance(value, str) and value.startswith("sha256:"):
-        return value[:19] + "…"
-    return str(value)
 
 
 class AbstractStreamWriter(abc.ABC):
@@ -211,7 +201,10 @@ class NpyWriter(AbstractStreamWriter):
     def write(self, chunk, rows, saves, values, state) -> None:
         for name, value in values.items():
             self._files[name].write(rows, saves, value)
-        summary = dict(state._asdict(), result=state.reported_result(self._n_steps))
+        # A body still successful short of the horizon is reported `RESULTS.not_run`.
+        unfinished = (state.result == RESULTS.successful) & (state.steps_done < self._n_steps)
+        result = np.where(unfinished, RESULTS.not_run, state.result).astype(np.int32)
+        summary = dict(state._asdict(), result=result)
         for name in self.SUMMARY:
             self._files[name].write(rows, None, summary[name])
         for file in self._files.values():
@@ -293,6 +286,8 @@ class _NpyFile:
         while data:
             try:
                 written = os.pwrite(self.fd, data, position)
+                if written <= 0:
+                    raise OSError(errno.EIO, "nothing was stored")
             except OSError as error:
                 raise OSError(
                     error.errno,
@@ -300,13 +295,6 @@ class _NpyFile:
                     "the segment is not recorded as done. Free disk space (or raise the "
                     "quota or file-size limit) and call stream_batch again to resume.",
                 ) from error
-            if written <= 0:
-                raise OSError(
-                    errno.EIO,
-                    f"writing {self.path} stored nothing at byte {position}; the segment "
-                    "is not recorded as done. Check the disk and call stream_batch again "
-                    "to resume.",
-                )
             data, position = data[written:], position + written
 
     def sync(self) -> None:
