@@ -684,16 +684,3 @@ def test_host_builds_equal_device_builds(segmented, builder):
     assert int(run.result) == 0 and int(run.stats["neighbor_builds"]) == 4
     assert jnp.max(jnp.abs(run.g - sol.g[:5])) < 1e-12
     assert jnp.max(jnp.abs(run.m - sol.m[:5])) < 1e-12
-
-
-def test_overflow_in_the_run_names_capacity(segmented):
-    """A list that outgrows its capacity inside the run is built again on the host, which
-    raises naming `capacity`."""
-    system, g0, m0, _ = segmented
-    first = lievi.BruteForceNeighbors(SKIN)(system.potential, g0)
-    n_pairs = int(jnp.sum(first[:, 1] < 16))
-    builder = lievi.BruteForceNeighbors(SKIN, capacity=n_pairs)
-    with pytest.raises(ValueError, match="`capacity`"):
-        lievi.simulate_with_neighbor_list(
-            system, METHOD, g0, m0, h=H, n_steps=200, rebuild_every=10, builder=builder
-        )
