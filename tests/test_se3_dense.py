@@ -30,8 +30,8 @@ def _states(count, seed=4):
 
 def _one_step(kernel, M, g, m, h):
     params = kernel.prepare(kernel.constants(M), h)
-    momentum = tuple(m[:, i] for i in range(6))
-    g1, m1, *info = kernel.step(params, kernel.carried(g), momentum, jnp.ones(len(m), bool))
+    state = kernel.carried(g), kernel.carried_momentum(m)  # the kernel's own layout
+    g1, m1, *info = kernel.step(params, *state, jnp.ones(len(m), bool))
     return kernel.elements(jnp.stack(g1)[None])[:, 0], jnp.stack(m1, -1), *info
 
 
