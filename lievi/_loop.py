@@ -227,7 +227,9 @@ def _block_program(run, stepper, times, carry, n_steps, save_every, count, size:
 
     def body(index, both):
         carry, out = one_save(both[0], save_every, steps)
-        return carry, jax.tree.map(lambda b, x: b.at[index].set(x), both[1], out)
+        # `index < count ≤ size`: no bounds check (`.at[index].set` compiled one a buffer).
+        put = functools.partial(jax.lax.dynamic_update_index_in_dim, index=index, axis=0)
+        return carry, jax.tree.map(lambda b, x: put(b, x), both[1], out)
 
     carry, buffers = jax.lax.fori_loop(0, count, body, (carry, buffers))
     return carry, _layout(stepper, buffers)  # batch-major here: the host only concatenates

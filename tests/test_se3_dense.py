@@ -194,3 +194,41 @@ def test_vmapped_simulate_equals_reference():
     np.testing.assert_allclose(fast.g, reference.g, rtol=0, atol=ROUNDOFF)
     for a, b in zip(fast_grads, reference_grads):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-9 * float(jnp.abs(b).max()))
+
+
+def test_eager_one_body_run_across_blocks(monkeypatch):
+    """An eager one-body run carries the whole-array state from block to block: two
+    programs, none on a new horizon, step or momentum, and a run of 9 steps (3 blocks of
+    at most 4 saves) gives the first saves of a run of 13 bit for bit."""
+    from lievi import _loop
+
+    compiled = []
+
+    def record(name, duration, **kwargs):
+        if name == "/jax/core/compile/backend_compile_duration":
+            compiled.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(record)
+    monkeypatch.setattr(_loop, "MAX_BLOCK_SAVES", 4)
+    jax.clear_caches()
+    body = lievi.RigidBodySE3(tensor=_tensor(seed=5))  # values no other test compiled
+    m = np.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])
+
+    def run(n, h, m):
+        return lievi.simulate(body, lievi.DEP(), np.eye(4), m, h=h, n_steps=n)
+
+    try:
+        compiled.clear()  # the system's construction aside
+        short = run(9, 0.1, m)
+        assert len(compiled) <= 2, compiled
+        compiled.clear()
+        longer = run(13, 0.1, m)
+        other = run(30, 0.05, 1.1 * m)
+        assert compiled == []
+    finally:
+        jax.monitoring.unregister_event_duration_listener(record)
+        jax.clear_caches()
+    for sol in (short, longer, other):
+        np.testing.assert_array_equal(sol.result, lievi.RESULTS.successful)
+    np.testing.assert_array_equal(longer.g[:10], short.g)
+    np.testing.assert_array_equal(longer.m[:10], short.m)
