@@ -1,7 +1,8 @@
 """The one-body SE(3) DEP step on whole arrays (`lievi/_kernels/_se3_dense.py`): the same
 iterates as the structure-of-arrays step (`_se3.py`) to round-off, its closed-form
 Jacobian equal to `jax.jacfwd` of the generic residual, gradients equal to the generic
-path's, float32, the failure codes, and a program a fraction of the batch step's."""
+path's, float32, the failure codes, a program a fraction of the batch step's, and an
+eager run's whole-array state carried across its blocks."""
 
 import jax
 import jax.numpy as jnp
