@@ -27,7 +27,6 @@ from ._checks import is_concrete, tracing
 from ._newton import ROOT_NAME
 from ._results import RESULTS
 from ._solution import Solution
-from ._steppers import where_ok
 
 # Saves per eager block: long enough that the host loop over blocks (~0.1 ms a dispatch)
 # is negligible, short enough to be cheap when few saves are used; a block's buffers
@@ -81,7 +80,7 @@ def _one_step(stepper, progress, n_steps):
         ok = checkpoint_name(ok, ROOT_NAME)  # all the backward pass needs of the checks
         # A failed body carries its last good (finite) state on, so a masked failure cannot
         # make a gradient NaN; what is saved of it is NaN.
-        new = where_ok(ok, new, state)
+        new = stepper.kept(ok, new, state)
         iterations = jnp.where(alive, iterations, 0).astype(jnp.int32)
         residual = jnp.where(alive, residual, -jnp.inf).astype(worst.dtype)
         counters = (total + iterations, jnp.maximum(most, iterations), jnp.fmax(worst, residual))
@@ -143,17 +142,22 @@ def start(run: Run, g0, m0, h, t0):
     return stepper, carry, initial
 
 
-def _stepping(run, g0, m0, h, t0, n_steps):
-    """`(stepper, carry, initial, one_save)`, `one_save(carry, save_every, step_loop)` a
-    save after `step_loop(one_step, carry)` has run its steps: what both drivers share."""
-    stepper, carry, initial = start(run, g0, m0, h, t0)
+def _saving(run, stepper, h, t0, n_steps):
+    """`one_save(carry, save_every, step_loop)`: a save after `step_loop(one_step, carry)`
+    has run its steps, what both drivers share."""
     h, t0 = jnp.asarray(h, run.dtype), jnp.asarray(t0, run.dtype)
     one_step = _one_step(stepper, run.progress, n_steps)
 
     def one_save(carry, save_every, step_loop):
         return _save(run, stepper, step_loop(one_step, carry), h, t0, save_every)
 
-    return stepper, carry, initial, one_save
+    return one_save
+
+
+def _stepping(run, g0, m0, h, t0, n_steps):
+    """`(stepper, carry, initial, one_save)`: `start` and `_saving`."""
+    stepper, carry, initial = start(run, g0, m0, h, t0)
+    return stepper, carry, initial, _saving(run, stepper, h, t0, n_steps)
 
 
 def run_static(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
@@ -201,16 +205,16 @@ def scan_in_segments(body, carry, length: int, segment: int | None, xs=None, unr
     return carry, jax.tree.map(lambda y: y.reshape((length,) + y.shape[2:]), ys)
 
 
-@eqx.filter_jit
-def _start_program(run, g0, m0, h, t0):
-    return start(run, g0, m0, h, t0)[1:]
+_start_program = eqx.filter_jit(start)
 
 
 @eqx.filter_jit
-def _block_program(run, inputs, carry, n_steps, save_every, count, size: int):
+def _block_program(run, stepper, times, carry, n_steps, save_every, count, size: int):
     """`count ≤ size` saves of `save_every` steps each (all traced), into buffers of
-    `size` saves: one program for every horizon. `inputs`: the run's `(g0, m0, h, t0)`."""
-    stepper, _, _, one_save = _stepping(run, *inputs, n_steps)
+    `size` saves: one program for every horizon. `stepper`: `start`'s, its per-run
+    constants computed there (the input checks and set-up are not traced and compiled
+    again in this program); `times`: the run's `(h, t0)`."""
+    one_save = _saving(run, stepper, *times, n_steps)
     # The meter's 0 at the start of a run (not again at a later block), before the loop.
     carry = (*carry[:3], run.progress.report(carry[3], n_steps), *carry[4:])
 
@@ -223,7 +227,9 @@ def _block_program(run, inputs, carry, n_steps, save_every, count, size: int):
 
     def body(index, both):
         carry, out = one_save(both[0], save_every, steps)
-        return carry, jax.tree.map(lambda b, x: b.at[index].set(x), both[1], out)
+        # `index < count ≤ size`: no bounds check (`.at[index].set` compiled one a buffer).
+        put = functools.partial(jax.lax.dynamic_update_index_in_dim, index=index, axis=0)
+        return carry, jax.tree.map(lambda b, x: put(b, x), both[1], out)
 
     carry, buffers = jax.lax.fori_loop(0, count, body, (carry, buffers))
     return carry, _layout(stepper, buffers)  # batch-major here: the host only concatenates
@@ -235,7 +241,7 @@ def run_eager(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     # NumPy scalars: a Python float would be compiled in as a constant, and `jnp.asarray`
     # is a program of its own.
     h, t0 = (x if eqx.is_array(x) else np.asarray(x) for x in (h, t0))
-    carry, initial = _start_program(run, g0, m0, h, t0)
+    stepper, carry, initial = _start_program(run, g0, m0, h, t0)
     # A block's saves from one save's bytes (its outputs and the 3 statistics per body):
     # a function of the shapes only, so that a new horizon reuses the compiled block.
     per_body = sum(np.prod(x.shape[1:]) * x.dtype.itemsize for x in jax.tree.leaves(initial))
@@ -246,7 +252,7 @@ def run_eager(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     outputs = []
     for begin in range(0, n_saves, size):
         count = np.asarray(min(size, n_saves - begin), np.int32)
-        carry, out = _block_program(run, (g0, m0, h, t0), carry, steps, every, count, size)
+        carry, out = _block_program(run, stepper, (h, t0), carry, steps, every, count, size)
         outputs.append(out)
     saves = {
         name: sum(np.asarray(x[name]) for x in outputs)

@@ -3,8 +3,8 @@ one), by the integrator's structure-of-arrays kernel (`KernelStepper`, one array
 component of the state, the batch minor) or by the method's own `cached_step` under
 `jax.vmap` (`VmapStepper`: every method on every system, forced runs included). A stepper
 is built inside the run's program for its `h`, `t0` and initial state (per-run constants
-once, outside the loop); every leaf of its state has the batch leading, so the loop masks
-a failed body, whatever the stepper, with one `where`."""
+once, outside the loop); the stepper masks a failed body in its own state's layout
+(`kept`: one `where` a leaf)."""
 
 from __future__ import annotations
 
@@ -36,6 +36,11 @@ class AbstractStepper(eqx.Module):
     def settle(self, state):
         """The state at a save (e.g. put back on the group in low precision)."""
         return state
+
+    def kept(self, ok, new, old):
+        """`new` for the bodies where `ok` `(B,)`, else `old`: by default every leaf with
+        the batch leading."""
+        return where_ok(ok, new, old)
 
     @abc.abstractmethod
     def stored(self, state, save, ok) -> dict:
@@ -75,15 +80,19 @@ def where_ok(ok, new, old):
     return jax.tree.map(pick, new, old)
 
 
-def _finite(leaves):
+def _finite(state):
+    """Whether every component is finite, per body: the leaves of a kernel's state `(B,)`
+    or `(k, B)` (one array of components, reduced in one operation)."""
     finite = jnp.asarray(True)
-    for x in leaves:
-        finite = finite & jnp.isfinite(x)
+    for x in jax.tree.leaves(state):
+        finite = finite & jnp.all(jnp.isfinite(x), axis=tuple(range(jnp.ndim(x) - 1)))
     return finite
 
 
 class KernelStepper(AbstractStepper):
-    """The integrator's kernel: the state is `(entries of g, components of m)`, `(B,)` each."""
+    """The integrator's kernel: the state is `(entries of g, components of m)` in the
+    kernel's layout (`carried`, `carried_momentum`): a tuple of arrays `(B,)` or one array
+    `(k, B)`, the batch last either way."""
 
     kernel: Any
     params: Any
@@ -92,7 +101,7 @@ class KernelStepper(AbstractStepper):
     group: Any = eqx.field(static=True)
 
     def init(self, g0, m0):
-        return self.kernel.carried(g0), tuple(m0[:, i] for i in range(m0.shape[1]))
+        return self.kernel.carried(g0), self.kernel.carried_momentum(m0)
 
     def step(self, state, data, k, alive):
         g, m = state
@@ -100,8 +109,12 @@ class KernelStepper(AbstractStepper):
         # (h|ω|)² > bound², as h|ω| > bound but for rounding at the bound: no division or
         # square root per body-step.
         too_large = self.kernel.turn_squared(self.rates, m) > self.bound * self.bound
-        code = RESULTS.checked(code, _finite((*g_next, *m_next)), too_large)
+        code = RESULTS.checked(code, _finite((g_next, m_next)), too_large)
         return (g_next, m_next), code, iterations, residual
+
+    def kept(self, ok, new, old):
+        # The batch last: `ok` `(B,)` broadcasts against `(B,)` and `(k, B)`.
+        return jax.tree.map(lambda x, y: jnp.where(ok, x, y), new, old)
 
     def settle(self, state):
         if self.group is None:

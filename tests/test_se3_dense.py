@@ -1,7 +1,8 @@
 """The one-body SE(3) DEP step on whole arrays (`lievi/_kernels/_se3_dense.py`): the same
 iterates as the structure-of-arrays step (`_se3.py`) to round-off, its closed-form
 Jacobian equal to `jax.jacfwd` of the generic residual, gradients equal to the generic
-path's, float32, the failure codes, and a program a fraction of the batch step's."""
+path's, float32, the failure codes, a program a fraction of the batch step's, and an
+eager run's whole-array state carried across its blocks."""
 
 import jax
 import jax.numpy as jnp
@@ -30,8 +31,8 @@ def _states(count, seed=4):
 
 def _one_step(kernel, M, g, m, h):
     params = kernel.prepare(kernel.constants(M), h)
-    momentum = tuple(m[:, i] for i in range(6))
-    g1, m1, *info = kernel.step(params, kernel.carried(g), momentum, jnp.ones(len(m), bool))
+    state = kernel.carried(g), kernel.carried_momentum(m)  # the kernel's own layout
+    g1, m1, *info = kernel.step(params, *state, jnp.ones(len(m), bool))
     return kernel.elements(jnp.stack(g1)[None])[:, 0], jnp.stack(m1, -1), *info
 
 
@@ -194,3 +195,41 @@ def test_vmapped_simulate_equals_reference():
     np.testing.assert_allclose(fast.g, reference.g, rtol=0, atol=ROUNDOFF)
     for a, b in zip(fast_grads, reference_grads):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-9 * float(jnp.abs(b).max()))
+
+
+def test_eager_one_body_run_across_blocks(monkeypatch):
+    """An eager one-body run carries the whole-array state from block to block: two
+    programs, none on a new horizon, step or momentum, and a run of 9 steps (3 blocks of
+    at most 4 saves) gives the first saves of a run of 13 bit for bit."""
+    from lievi import _loop
+
+    compiled = []
+
+    def record(name, duration, **kwargs):
+        if name == "/jax/core/compile/backend_compile_duration":
+            compiled.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(record)
+    monkeypatch.setattr(_loop, "MAX_BLOCK_SAVES", 4)
+    jax.clear_caches()
+    body = lievi.RigidBodySE3(tensor=_tensor(seed=5))  # values no other test compiled
+    m = np.array([0.3, -0.2, 0.5, 0.1, 0.2, -0.4])
+
+    def run(n, h, m):
+        return lievi.simulate(body, lievi.DEP(), np.eye(4), m, h=h, n_steps=n)
+
+    try:
+        compiled.clear()  # the system's construction aside
+        short = run(9, 0.1, m)
+        assert len(compiled) <= 2, compiled
+        compiled.clear()
+        longer = run(13, 0.1, m)
+        other = run(30, 0.05, 1.1 * m)
+        assert compiled == []
+    finally:
+        jax.monitoring.unregister_event_duration_listener(record)
+        jax.clear_caches()
+    for sol in (short, longer, other):
+        np.testing.assert_array_equal(sol.result, lievi.RESULTS.successful)
+    np.testing.assert_array_equal(longer.g[:10], short.g)
+    np.testing.assert_array_equal(longer.m[:10], short.m)

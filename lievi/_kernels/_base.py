@@ -230,8 +230,9 @@ class AbstractBatchKernel(eqx.Module):
         kernel = self.one_body()
         params = kernel.prepare(kernel.constants(self.physics(system)), h)
         # The kernel's own state layout, on a batch of one, as scalars.
-        carried = tuple(e[0] for e in kernel.carried(g[None]))
-        momentum = tuple(m[i] for i in range(m.shape[0]))
+        carried, momentum = jax.tree.map(
+            lambda e: e[..., 0], (kernel.carried(g[None]), kernel.carried_momentum(m[None]))
+        )
         g_next, m_next, *info = kernel.step(params, carried, momentum, True)
         g_next = kernel.elements(jnp.stack(g_next)[None, :, None])[0, 0]
         return (g_next, jnp.stack(m_next), *info)
@@ -245,7 +246,7 @@ class AbstractBatchKernel(eqx.Module):
         step's few hundred scalar operations took most of the tracing and made a larger
         program (an SE(3) binary's first `DEP` call: `benchmarks/compile_time.py`)."""
         params = self.prepare(self.constants(physics), h)
-        momentum = tuple(m[:, i] for i in range(m.shape[-1]))
+        momentum = self.carried_momentum(m)
         g_next, m_next, *info = self.step(params, self.carried(g), momentum, True)
         # The saved layout `(T, k, B)` with one save.
         g_next = self.elements(jnp.stack(g_next)[None])[:, 0]
@@ -285,6 +286,13 @@ class AbstractBatchKernel(eqx.Module):
         """The configuration state this kernel carries, from the initial elements `g0`
         `(B, 3, 3)`: by default all of `g`, 9 arrays (row-major)."""
         return tuple(g0[:, i, j] for i in range(3) for j in range(3))
+
+    def carried_momentum(self, m0):
+        """The momentum state this kernel carries, from the initial momenta `m0` `(B, d)`:
+        by default one array `(B,)` per component. A kernel whose step works on whole
+        arrays carries one array `(d, B)` instead (as `carried` may `(k, B)`): either
+        layout is read as components (`m[i]`, `(B,)`), and `jnp.stack` of it is `(d, B)`."""
+        return tuple(m0[:, i] for i in range(m0.shape[1]))
 
     def reduced(self):
         """This kernel on the reduced state `(Π, Γ)` of a potential with an advected

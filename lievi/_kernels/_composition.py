@@ -62,6 +62,9 @@ class CompositionKernel(AbstractBatchKernel):
     def carried(self, g0):
         return self.inner.carried(g0)
 
+    def carried_momentum(self, m0):
+        return self.inner.carried_momentum(m0)
+
     def elements(self, entries):
         return self.inner.elements(entries)
 

@@ -241,9 +241,12 @@ class SE3DenseKernel(SE3Kernel):
     """`DEP`'s step (either chart) for `RigidBodySE3` without a potential, as whole-array
     operations (`dense_step`): the step `SE3NewtonKernel.one_body` runs for one body.
 
-    Its state is `SE3Kernel`'s (the 12 entries of `[R | p]`, the 6 of `m`), joined into a
-    pose and a momentum per body inside the step; its constants `M` and `M⁻¹` as
-    `(…, 6, 6)` arrays.
+    Its state is `SE3Kernel`'s components (the 12 entries of `[R | p]`, the 6 of `m`), each
+    kept as one array, `(12, B)` and `(6, B)` (`carried`, `carried_momentum`), which the
+    step reshapes to a pose and a momentum per body: as 18 arrays `(B,)`, the step's
+    results were split into 18 arrays and joined again at the next step, each split and
+    join a compiled kernel of its own (the eager block's program had 101 of them, and 4×
+    the SO(3) step's compile time). Its constants are `M` and `M⁻¹` as `(…, 6, 6)` arrays.
     """
 
     chart: str = eqx.field(static=True)
@@ -253,6 +256,13 @@ class SE3DenseKernel(SE3Kernel):
     # The batch kernel (`_se3.SE3NewtonKernel`): under `jax.vmap` (e.g. of `simulate`) its
     # solve runs the bodies (`solve_bodies`), as `simulate_batch` would.
     batch: Any = None
+
+    def carried(self, g0):
+        # (B, 4, 4) → the 12 entries of `[R | p]`, row-major, `(12, B)`.
+        return jnp.moveaxis(g0[:, :3].reshape(g0.shape[0], 12), 0, -1)
+
+    def carried_momentum(self, m0):
+        return jnp.moveaxis(m0, 0, -1)
 
     def constants(self, tensor):
         # M⁻¹ (the Newton guess and the step bound) is not differentiated. By Cholesky
@@ -272,10 +282,11 @@ class SE3DenseKernel(SE3Kernel):
         return M / h, h * Minv
 
     def step(self, params, g, m, alive):
+        # `g` `(12, …)`, `m` `(6, …)` (`carried`, `carried_momentum`) → `(…, 3, 4)`, `(…, 6)`.
         A, Ainv = params
-        shape = jnp.shape(m[0])
-        m = jnp.stack(jnp.broadcast_arrays(*m), -1)
-        g = jnp.stack(jnp.broadcast_arrays(*g), -1).reshape(shape + (3, 4))
+        shape = jnp.shape(m)[1:]
+        m = jnp.moveaxis(m, 0, -1)
+        g = jnp.moveaxis(g, 0, -1).reshape(shape + (3, 4))
         # A failed body (`alive` false) takes no Newton iteration: its tolerance is ∞.
         tolerance = newton_tolerance(jnp.max(jnp.abs(m), -1), m.dtype, self.rtol, self.atol)
         tolerance = jnp.where(alive, tolerance, jnp.inf)
@@ -297,8 +308,8 @@ class SE3DenseKernel(SE3Kernel):
             signature = "(3,4),(6),(6,6),(6,6),()->(3,4),(6),(),(),()"
             outputs = jnp.vectorize(one, signature=signature)(*args)
         g_next, m_next, *info = outputs
-        g_next = tuple(g_next[..., i, j] for i in range(3) for j in range(4))
-        return (g_next, tuple(m_next[..., i] for i in range(6)), *info)
+        g_next = jnp.moveaxis(g_next.reshape(batch + (12,)), -1, 0)
+        return (g_next, jnp.moveaxis(m_next, -1, 0), *info)
 
     def _solve(self, m, A, Ainv, tolerance):
         """`dense_solve` for one body; under `jax.vmap` the batch kernel's solve on the
