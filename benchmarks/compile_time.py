@@ -11,7 +11,10 @@ reaches both). Per call it records:
   a shared machine than the wall time);
 - `again_programs`: the programs compiled by a second call with another `n_steps`, `h`
   and initial momentum (lievi: none; diffrax compiles per horizon);
-- `run_s`: the best of 3 repeats of the first call (the run alone).
+- `run_s`: the best of 3 repeats of the first call (the run alone);
+- `trace_s`, `lower_s`, `compile_s`: the first call's seconds in tracing to jaxprs, lowering
+  to MLIR and XLA's compile, the sums of JAX's duration events (a trace nested in another
+  counts in both; the rest of `first_s` is Python outside them, dispatch and the run).
 
 Cases: one rigid body on SO(3) with `DEP()` (1000 steps, every step saved) against
 `Tsit5`; a batch of 64 rigid bodies with `RKMK8()` (100 steps, final state) against
@@ -67,10 +70,19 @@ def _measure(case: str, engine: str) -> dict:
     import jax.monitoring
 
     compiled = [0]
+    # Seconds of the first call in each compile stage, JAX's own duration events.
+    stages = dict.fromkeys(("trace_s", "lower_s", "compile_s"), 0.0)
+    events = {
+        "/jax/core/compile/jaxpr_trace_duration": "trace_s",
+        "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
+        "/jax/core/compile/backend_compile_duration": "compile_s",
+    }
 
     def listen(name, duration, **kwargs):
         if name == "/jax/core/compile/backend_compile_duration":
             compiled[0] += 1
+        if name in events:
+            stages[events[name]] += duration
 
     jax.monitoring.register_event_duration_secs_listener(listen)
     first, again = _calls(case, engine)
@@ -82,6 +94,7 @@ def _measure(case: str, engine: str) -> dict:
         return time.perf_counter() - start, compiled[0], time.process_time() - cpu
 
     first_s, programs, first_cpu_s = timed(first)
+    split = dict(stages)
     _, again_programs, _ = timed(again)
     run_s = min(timed(first)[0] for _ in range(3))
     return dict(
@@ -90,6 +103,7 @@ def _measure(case: str, engine: str) -> dict:
         programs=programs,
         again_programs=again_programs,
         run_s=run_s,
+        **split,
     )
 
 
@@ -381,6 +395,7 @@ def main() -> None:
                 "first_s": [m["first_s"] for m in measured],
                 "first_cpu_s": [m["first_cpu_s"] for m in measured],
                 "run_s": min(m["run_s"] for m in measured),
+                **{k: [m[k] for m in measured] for k in ("trace_s", "lower_s", "compile_s")},
             }
         ratio = [a["first_s"] / b["first_s"] for a, b in zip(runs["lievi"], runs["diffrax"])]
         row["first_call_ratio"] = ratio
@@ -395,6 +410,13 @@ def main() -> None:
             f"{', '.join(f'{r:.2f}' for r in ratio)} (CPU time {', '.join(f'{r:.2f}' for r in cpu)})",
             flush=True,
         )
+        for engine in ("lievi", "diffrax"):
+            e = row[engine]
+            print(
+                f"{'':18s} {engine:7s} first call: trace {min(e['trace_s']):5.2f} s, lowering "
+                f"{min(e['lower_s']):5.2f} s, XLA {min(e['compile_s']):5.2f} s",
+                flush=True,
+            )
     meta = {
         "machine": platform.processor() or platform.machine(),
         "cpus": os.cpu_count(),

@@ -724,3 +724,57 @@ def test_velocity_size_is_each_bodys_rotation_rate(full):
     m = rng.normal(size=(2, 6))
     expected = SE3.exp_norm(system.velocity(m))
     np.testing.assert_allclose(system.velocity_size(m), expected, rtol=1e-14, atol=0)
+
+
+# ---- what a step's program holds -------------------------------------------------------------
+
+
+def _primitives_in_loops(jaxpr, inside=False):
+    """`(inside, outside)`: the primitive names of `jaxpr`'s equations within a loop body
+    (`scan`, `while`) and outside any, recursively."""
+    found = ([], [])
+    for eqn in jaxpr.eqns:
+        found[0 if inside else 1].append(eqn.primitive.name)
+        loop = inside or eqn.primitive.name in ("scan", "while")
+        for sub in jax.core.jaxprs_in_params(eqn.params):
+            a, b = _primitives_in_loops(sub, loop)
+            found[0].extend(a)
+            found[1].extend(b)
+    return found
+
+
+def test_splitting_diagonalises_the_bodies_once_per_run():
+    """`LiePoissonSplitting` steps a full inertia tensor in its principal frame; a run
+    computes each body's frame (an eigendecomposition and a determinant) once, in its
+    set-up, not at every step: the loop holds none (each step's program held two per body,
+    and the gradient's their derivatives). The run equals the steps taken one by one,
+    which diagonalise at every call."""
+    system, g0, m0 = binary_problem()
+    method = lievi.LiePoissonSplitting()
+
+    def run(m0):
+        return lievi.simulate(system, method, g0, m0, h=0.01, n_steps=3).m
+
+    inside, outside = _primitives_in_loops(jax.make_jaxpr(run)(m0).jaxpr)
+    assert "eigh" not in inside and "eigh" in outside, (inside.count("eigh"), outside)
+    g, m = g0, m0
+    for _ in range(3):
+        g, m, info = method.step(system, g, m, 0.01)
+    np.testing.assert_allclose(run(m0)[-1], m, rtol=0, atol=64 * ROUNDOFF)
+
+
+def test_worst_body_report_is_the_first_failure():
+    """The report of a step of several bodies: the first failing body's code, the most
+    iterations, the largest residual; successful where every body is."""
+    from lievi._systems._bodies import worst_body_report
+
+    def report(codes):
+        info = lievi.StepInfo(
+            jnp.asarray(codes, jnp.int32), jnp.array([1, 4, 2]), jnp.array([0.1, 0.3, 0.2])
+        )
+        return jax.jit(worst_body_report)(info)
+
+    assert int(report([0, 3, 1]).result) == 3
+    assert int(report([2, 0, 1]).result) == 2
+    ok = report([0, 0, 0])
+    assert (int(ok.result), int(ok.iterations), float(ok.residual)) == (0, 4, 0.3)

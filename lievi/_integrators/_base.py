@@ -180,6 +180,12 @@ class AbstractKickIntegrator(AbstractIntegrator):
     ) -> tuple[Float[Array, "n n"], Float[Array, " d"], StepInfo]:
         """The step of the system without its potential."""
 
+    def body(self, index):
+        """This integrator as it steps body `index` of a system of several bodies (their
+        `free_flow`): itself, unless its `init` computed data per body (then that body's).
+        """
+        return self
+
     def free_body_step(self, inertia, mass, g, m, h: Scalar):
         """The free step of a rigid body in vacuum (mass `mass`, `inertia` about its centre
         of mass, the body origin there) where this method has its own, or `None` (the

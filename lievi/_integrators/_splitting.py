@@ -28,12 +28,16 @@ in ascending order of the moments (`jnp.linalg.eigh`). The order changes the O(h
 error, not the order or the conserved quantities.
 
 A full inertia tensor is diagonalised first (`I = Q D Qᵀ`, `Q ∈ SO(3)`), the state is
-rotated into the principal frame (`g Q`, `Qᵀ Π`), stepped, and rotated back. The
-derivative of the eigendecomposition is undefined for repeated moments: to differentiate
-with respect to the inertia of a symmetric body, pass principal moments.
+rotated into the principal frame (`g Q`, `Qᵀ Π`), stepped, and rotated back. A run
+diagonalises once, in its set-up (`LiePoissonSplitting.init`: the frames are carried into
+the loop as data); a step taken alone does it at every call. The derivative of the
+eigendecomposition is undefined for repeated moments: to differentiate with respect to the inertia of a symmetric body, pass principal moments.
 """
 
 from __future__ import annotations
+
+import dataclasses
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -85,6 +89,12 @@ class LiePoissonSplitting(AbstractKickIntegrator):
     `GeneralizedRigidBody` on SO(n) (one coordinate plane at a time).
     """
 
+    # The system's principal moments, frames and principal bodies
+    # (`AbstractLieSystem.principal_frames`), set by `init` for a run, per body for a
+    # system of several bodies (`body`); `None`: each step computes them (two
+    # eigendecompositions and determinants per body, in every step and its derivative).
+    frames: Any = None
+
     def order(self) -> int:
         return 2
 
@@ -100,6 +110,19 @@ class LiePoissonSplitting(AbstractKickIntegrator):
         # The kernels and the step cache compute this class's own step (not a subclass's).
         return type(self) is LiePoissonSplitting
 
+    def init(self, system: AbstractLieSystem, m0, h: Scalar):
+        # The principal frames once per run, for a system with a full inertia tensor: the
+        # step's derivative then runs through one eigendecomposition, not one per step.
+        frames = system.principal_frames()
+        if frames is None or frames[2] is None:
+            return self
+        return dataclasses.replace(self, frames=frames)
+
+    def body(self, index):
+        if self.frames is None:
+            return self
+        return dataclasses.replace(self, frames=jax.tree.map(lambda x: x[index], self.frames))
+
     def kernels(self):
         return (SplittingKernel(),)
 
@@ -113,15 +136,19 @@ class LiePoissonSplitting(AbstractKickIntegrator):
         fast = self.kernel_step(system, g, m, h)
         if fast is not None:  # closed forms on components (the rigid body, principal moments)
             return fast
-        moments, Q = system.principal_planes()
-        principal = None if Q is None else system.principal_body()
+        if self.frames is None:
+            moments, Q = system.principal_planes()
+            principal = None if Q is None else system.principal_body()
+        else:
+            moments, Q, principal = self.frames
         if principal is not None:
             # A full tensor: the same step in its principal frame, `(g Q, Qᵀ Π)`, and back.
             # There the principal moments make it the closed-form kernel's (five sub-flows
             # as one quaternion product, a hand-written tangent) rather than five 3×3
             # rotations in a loop: for `RigidBodies`, whose point-mass tensors are full,
             # the forward run of 256 binaries took 0.75× the time (same run).
-            g_next, m_next, info = self.free_step(principal, g @ Q, Q.T @ m, h)
+            principal_step = dataclasses.replace(self, frames=None).free_step
+            g_next, m_next, info = principal_step(principal, g @ Q, Q.T @ m, h)
             return g_next @ Q.T, Q @ m_next, info
         if Q is not None:  # a system with a principal frame but no `principal_body`
             g, m = g @ Q, Q.T @ m

@@ -200,6 +200,19 @@ class AbstractLieSystem(eqx.Module):
         default."""
         return None
 
+    def principal_frames(self):
+        """`(moments, Q, principal_body())` of each body the system's `free_flow` steps
+        (`principal_planes`; `principal_body` only where `Q` is not `None`), or `None`
+        where `principal_planes` is: of the system itself by default; a system of several
+        bodies gives them with a leading body axis. What a method that steps in the
+        principal frame computes once per run (`AbstractIntegrator.init`), not at every
+        step."""
+        planes = self.principal_planes()
+        if planes is None:
+            return None
+        moments, Q = planes
+        return moments, Q, None if Q is None else self.principal_body()
+
     def kinetic_tensor(self):
         """The tensor `M` of a quadratic reduced Lagrangian `l(ξ) = ½ ξᵀMξ` in the algebra
         basis — a vector where `M` is diagonal (a rigid body's principal moments) — or

@@ -41,6 +41,7 @@ from .._results import StepInfo
 from ._base import AbstractLieSystem
 from ._bodies import check_per_body_inertia, each_body, inertia_conditions, worst_body_report
 from ._potential import AbstractPotential, as_potential
+from ._rigid_body import RigidBody
 from ._se3_body import RigidBodySE3, rigid_body_tensor, spd_solve
 from ._side import Side
 
@@ -144,13 +145,18 @@ class RigidBodies(AbstractLieSystem):
             g_next, m_next, result, iterations, residual = kernel.bodies_step(tensors, g, m, h)
             return g_next, m_next, worst_body_report(StepInfo(result, iterations, residual))
 
-        def one(inertia, mass, g, m):
-            own = integrator.free_body_step(inertia, mass, g, m, h)
-            return (
-                integrator.free_step(RigidBodySE3(inertia, mass), g, m, h) if own is None else own
-            )
+        def one(index, inertia, mass, g, m):
+            body = integrator.body(index)  # with its per-run data of this body, if any
+            own = body.free_body_step(inertia, mass, g, m, h)
+            return body.free_step(RigidBodySE3(inertia, mass), g, m, h) if own is None else own
 
-        return each_body(one, self.inertia, self.mass, g, m)
+        return each_body(one, jnp.arange(self.n_bodies), self.inertia, self.mass, g, m)
+
+    def principal_frames(self):
+        """Each body's `RigidBody.principal_frames`, the body axis leading: computed once
+        per run by a method that steps in the principal frame
+        (`lievi.LiePoissonSplitting`)."""
+        return jax.vmap(lambda J: RigidBody(J).principal_frames())(jnp.asarray(self.inertia))
 
     def free_discrete_lagrangian(self, integrator, g0, g1, h: Scalar) -> Scalar:
         """`Σ_i L_d^i(g0_i, g1_i)`: each body's discrete Lagrangian in vacuum, the discrete

@@ -118,12 +118,19 @@ class RigidRotors(AbstractLieSystem):
         `lievi.RigidBodies`). The step's report is that of the worst body
         (`_bodies.worst_body_report`)."""
 
-        def one(J, g, m):
-            R, Pi, info = integrator.free_step(RigidBody(J), g, m, h)
+        def one(index, J, g, m):
+            # The integrator with its per-run data of this body, if any.
+            R, Pi, info = integrator.body(index).free_step(RigidBody(J), g, m, h)
             R, Pi = orthonormal_frame(R, R @ Pi)
             return R, Pi, info
 
-        return each_body(one, self.inertia, g, m)
+        return each_body(one, jnp.arange(self.n_bodies), self.inertia, g, m)
+
+    def principal_frames(self):
+        """Each body's `RigidBody.principal_frames`, the body axis leading: computed once
+        per run by a method that steps in the principal frame
+        (`lievi.LiePoissonSplitting`)."""
+        return jax.vmap(lambda J: RigidBody(J).principal_frames())(jnp.asarray(self.inertia))
 
     def free_discrete_lagrangian(self, integrator, g0, g1, h: Scalar) -> Scalar:
         """`Σ_i L_d^i(R0_i, R1_i)`: each body's discrete Lagrangian as the free rigid body
