@@ -838,23 +838,32 @@ def chain_sweep(problem, horizon, t1, args, ref):
 
 
 def chain_step_cost(problem, args):
-    """CPU microseconds per chain and step (`STEP_COST_STEPS` steps of h = `STEP_COST_H`,
-    `--batch` chains; MuJoCo's RK4 at the same step, `--mujoco-batch` chains), each the
-    best of at least three timed calls, all in this one process: the iterations' cost
-    ratio is read at one machine load."""
-    t1, repeats = STEP_COST_H * STEP_COST_STEPS, max(args.repeats, 3)
-    cost = {}
-    for method in STEP_COST_METHODS:
-        _, _, seconds, ok = chain_lievi_run(problem, method, STEP_COST_H, args.batch, t1, repeats)
-        cost[method] = seconds / (args.batch * STEP_COST_STEPS) * 1e6 if ok else float("nan")
-    if not args.no_mujoco:
-        _, _, seconds, _ = chain_mujoco_run(problem, "RK4", STEP_COST_H, args.mujoco_batch, t1,
-                                            repeats, args.threads, 1)  # fmt: skip
-        cost["MuJoCo RK4"] = seconds / (args.mujoco_batch * STEP_COST_STEPS) * 1e6
-    print("  per chain-step: " + "  ".join(f"{k} {v:.3g} µs" for k, v in cost.items()))
-    ratios = {f"{k} / RATTLE": v / cost["RATTLE"] for k, v in cost.items() if k != "RATTLE"}
-    print("  " + "  ".join(f"{k} {v:.3g}" for k, v in ratios.items()), flush=True)
-    return dict(h=STEP_COST_H, n_steps=STEP_COST_STEPS, microseconds=cost, ratios=ratios)
+    """CPU microseconds per chain and step (`STEP_COST_STEPS` steps of h = `STEP_COST_H`;
+    `SAMPLES` steps at a batch above 16) at each `--step-cost-batches` (default `--batch`),
+    lievi and MuJoCo's RK4 at the same step and batch (Newton's method at the smallest
+    batch only), each the best of at least three timed calls, all in this one process:
+    the ratios are read at one machine load."""
+    repeats, table = max(args.repeats, 3), {}
+    batches = args.step_cost_batches or [args.batch]
+    for batch in batches:
+        steps = STEP_COST_STEPS if batch <= 16 else SAMPLES
+        t1, cost = STEP_COST_H * steps, {}
+        for method in STEP_COST_METHODS:
+            if method != "RATTLE" and batch != min(batches):
+                continue
+            _, _, seconds, ok = chain_lievi_run(problem, method, STEP_COST_H, batch, t1, repeats)
+            cost[method] = seconds / (batch * steps) * 1e6 if ok else float("nan")
+        if not args.no_mujoco:
+            _, _, seconds, _ = chain_mujoco_run(problem, "RK4", STEP_COST_H, batch, t1,
+                                                repeats, args.threads, 1)  # fmt: skip
+            cost["MuJoCo RK4"] = seconds / (batch * steps) * 1e6
+        print(f"  batch {batch}, per chain-step: "
+              + "  ".join(f"{k} {v:.3g} µs" for k, v in cost.items()))  # fmt: skip
+        ratios = {f"{k} / RATTLE": v / cost["RATTLE"] for k, v in cost.items() if k != "RATTLE"}
+        print("  " + "  ".join(f"{k} {v:.3g}" for k, v in ratios.items()), flush=True)
+        table[str(batch)] = dict(h=STEP_COST_H, n_steps=steps, microseconds=cost, ratios=ratios,
+                                 load_average=os.getloadavg())  # fmt: skip
+    return table
 
 
 def chain_quantities(problem, horizon):
@@ -1158,6 +1167,10 @@ def main():
     parser.add_argument(
         "--step-cost-only", action="store_true",
         help="with --articulated: only the per chain-step cost table (RATTLE's iterations, MuJoCo)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--step-cost-batches", nargs="+", type=int, default=None,
+        help="with --articulated: the batches of the per chain-step cost table (default --batch)",
     )  # fmt: skip
     parser.add_argument("--out", default=None, help="default work_precision[_articulated][_quick]")
     parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))

@@ -459,3 +459,18 @@ def test_reference_solution_refuses_the_joints(two_hinges):
     system, g0, m0 = two_hinges
     with pytest.raises(ValueError, match="lievi.reference_solution would step"):
         lievi.reference_solution(system, g0, m0, [0.0, 0.1])
+
+
+def test_constraint_jacobian_closed_form_matches_autodiff():
+    """`C(g)` from the joints' closed-form rows (`AbstractJoint.jacobian`) equals autodiff
+    of the joints' equations along `g_i (1 + ε η̂_i)`, off the constraint manifold too:
+    ball and hinge joints, to the world and between bodies, a floating root."""
+    for system, g, _ in (triple_pendulum(), hinge_chain(2), hinge_chain(2, fixed=False)):
+        n = system.n_bodies
+        turn = 0.3 * jax.random.normal(jax.random.key(n), (n, 6))
+        g = lievi.SE3.compose(g, lievi.SE3.exp(turn))
+        along = jax.jit(lambda eta, g: system.constraints(g + g @ lievi.SE3.hat(eta)))
+        autodiff = jax.jacfwd(along)(jnp.zeros((n, 6)), g)
+        C = jax.jit(lambda g: system.constraint_jacobian(g))(g)
+        assert C.shape == autodiff.shape
+        assert float(jnp.max(jnp.abs(C - autodiff))) <= 1e-14

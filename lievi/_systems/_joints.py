@@ -12,8 +12,10 @@ relative to the link length" reads the same for every joint (docs/articulated.md
   perpendicular to `n_p`, `ℓ (R_p u_α)·(R_c n_c) = 0`, `α = 1, 2`, the length `ℓ` the
   system's length scale (so these equations are in length units too).
 
-The constraints are functions of the matrix entries; their derivatives along the group
-(the constraint Jacobian of `lievi.ArticulatedBodies`) are taken by autodiff.
+Each joint also gives its constraint's derivative along the group in closed form
+(`jacobian`: the rows of the constraint Jacobian of `lievi.ArticulatedBodies`, for the
+perturbations `g ↦ g exp(ε η̂)`, `η = (ω, v)`, of the parent and of the child), which
+`tests/test_articulated.py` checks against autodiff of `residual`.
 """
 
 from __future__ import annotations
@@ -83,8 +85,37 @@ class AbstractJoint(eqx.Module):
         """`Φ(g_p, g_c)` in length units (`length`: the system's length scale)."""
 
     @abc.abstractmethod
+    def jacobian(self, parent, child, length):
+        """`(∂Φ/∂η_p, ∂Φ/∂η_c)`, each `(size, 6)`: the derivatives of `residual` along
+        `g_p exp(ε η̂_p)` and `g_c exp(ε η̂_c)` at `ε = 0`, `η = (ω, v)`."""
+
+    @abc.abstractmethod
     def describe(self) -> str:
         """A name for messages."""
+
+
+def _ball_jacobian(parent, child, parent_point, child_point):
+    """The ball joint's rows: `δ(x + R a) = R v + R (ω × a) = R v − R â ω` for each side,
+    the parent's with `+`, the child's with `−`."""
+    Rp, Rc = _rotation(parent), _rotation(child)
+    # `R â` as `ω ↦ R (a × ω)`: the columns of `R â` are `R (a × e_j)`.
+    Rp_a = Rp @ _hat(parent_point)
+    Rc_a = Rc @ _hat(child_point)
+    return (
+        jnp.concatenate([-Rp_a, Rp], axis=1),
+        jnp.concatenate([Rc_a, -Rc], axis=1),
+    )
+
+
+def _hat(v):
+    zero = jnp.zeros((), v.dtype)
+    return jnp.stack(
+        [
+            jnp.stack([zero, -v[2], v[1]]),
+            jnp.stack([v[2], zero, -v[0]]),
+            jnp.stack([-v[1], v[0], zero]),
+        ]
+    )
 
 
 class BallJoint(AbstractJoint):
@@ -114,6 +145,10 @@ class BallJoint(AbstractJoint):
         a = _position(parent) + _rotation(parent) @ self.parent_point
         b = _position(child) + _rotation(child) @ self.child_point
         return a - b
+
+    def jacobian(self, parent, child, length):
+        del length
+        return _ball_jacobian(parent, child, self.parent_point, self.child_point)
 
     def describe(self) -> str:
         return "ball joint"
@@ -157,6 +192,24 @@ class HingeJoint(AbstractJoint):
         R = _rotation(parent)
         tilt = jnp.stack([jnp.dot(R @ u1, n_child), jnp.dot(R @ u2, n_child)])
         return jnp.concatenate([ball, length * tilt])
+
+    def jacobian(self, parent, child, length):
+        """The ball joint's rows, then the tilt's: with `w = R_pᵀ R_c n_c` and
+        `q_α = R_cᵀ R_p u_α`, `δ[ℓ (R_p u_α)·(R_c n_c)] = ℓ ω_p·(u_α × w) + ℓ ω_c·(n_c × q_α)`
+        (no translation)."""
+        ball_p, ball_c = _ball_jacobian(parent, child, self.parent_point, self.child_point)
+        n = _unit(self.axis)
+        u = jnp.stack(_perpendicular_pair(_unit(self.parent_axis)))
+        Rp, Rc = _rotation(parent), _rotation(child)
+        w = Rp.T @ (Rc @ n)
+        q = (Rc.T @ Rp @ u.T).T
+        zeros = jnp.zeros((2, 3), Rp.dtype)
+        tilt_p = jnp.concatenate([length * jnp.cross(u, w), zeros], axis=1)
+        tilt_c = jnp.concatenate([length * jnp.cross(n, q), zeros], axis=1)
+        return (
+            jnp.concatenate([ball_p, tilt_p]),
+            jnp.concatenate([ball_c, tilt_c]),
+        )
 
     def describe(self) -> str:
         return "hinge joint"
