@@ -31,7 +31,8 @@ A full inertia tensor is diagonalised first (`I = Q D Qᵀ`, `Q ∈ SO(3)`), the
 rotated into the principal frame (`g Q`, `Qᵀ Π`), stepped, and rotated back. A run
 diagonalises once, in its set-up (`LiePoissonSplitting.init`: the frames are carried into
 the loop as data); a step taken alone does it at every call. The derivative of the
-eigendecomposition is undefined for repeated moments: to differentiate with respect to the inertia of a symmetric body, pass principal moments.
+eigendecomposition is undefined for repeated moments: to differentiate with respect to
+the inertia of a symmetric body, pass principal moments.
 """
 
 from __future__ import annotations
