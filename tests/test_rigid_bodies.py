@@ -736,7 +736,7 @@ def _primitives_in_loops(jaxpr, inside=False):
     for eqn in jaxpr.eqns:
         found[0 if inside else 1].append(eqn.primitive.name)
         loop = inside or eqn.primitive.name in ("scan", "while")
-        for sub in jax.core.jaxprs_in_params(eqn.params):
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
             a, b = _primitives_in_loops(sub, loop)
             found[0].extend(a)
             found[1].extend(b)
