@@ -81,8 +81,8 @@ class RATTLE(AbstractIntegrator):
     - `max_steps`: maximum iterations per step; exceeding it is reported as
       `RESULTS.newton_not_converged`.
     - `full_newton`: `False` (default) iterates with the Jacobian built once per step,
-      approximated to first order at the guess (each body's block `M_i/h`, the joints'
-      rows in closed form) and factored by its structure (the joints' Schur
+      at the guess (each body's 6×6 block, the joints' rows in closed form to first
+      order) and factored by its structure (the joints' Schur
       complement): a simplified Newton iteration, cheap per step and per iteration.
       `True` runs Newton's method with the whole Jacobian rebuilt by `jax.jacfwd` at
       every iteration (the same root, several times the cost). The derivatives are the
@@ -153,16 +153,14 @@ class RATTLE(AbstractIntegrator):
         if self.full_newton:
             z, info = newton_solve(residual, guess, tolerance, self.max_steps)
         else:
-            # An approximate Jacobian, cheap to build and exact to first order at the guess
-            # (O(h²) from the root): each body's momentum block is `M_i/h` (the exact
-            # block `∂f_i/∂ξ_i` to O(|ξ|); constant, so its inverse is one per step for a
-            # batch that shares the bodies), and the joints' rows are
-            # `C(g φ(ξ₀)) (1 − ½ ad_ξ₀)` per body, `∂Φ(g φ(ξ))/∂ξ` to O(|ξ₀|²), with `C`
-            # in closed form. Batched, `jax.jacfwd` of the blocks and of the joints (6N
-            # directions through the chart) took most of the step; the iterations these
-            # factors take are as many as with those exact blocks (4 at h = 0.01 on the
-            # triple pendulum, docs/articulated.md).
-            blocks = tensor / h
+            # The Jacobian at the guess (O(h²) from the root): each body's exact 6×6
+            # momentum block (`jacfwd` of that body's equation alone), and the joints' rows
+            # `C(g φ(ξ₀)) (1 − ½ ad_ξ₀)` per body, `∂Φ(g φ(ξ))/∂ξ` to O(|ξ₀|²), with `C` in
+            # closed form: `jacfwd` of the joints (6N directions through the chart) was the
+            # largest part of a batched step. The constant block `M_i/h` (exact to O(|ξ|))
+            # was tried too: it stalled a floating chain under joint torques at h = 0.01
+            # (`test_joint_torque_keeps_total_momentum_of_floating_chain`).
+            blocks = jax.vmap(jax.jacfwd(momentum_term))(xi0, tensor)
             C1 = system.constraint_jacobian(advanced(xi0)[0]).astype(m.dtype)
             rows = C1 - 0.5 * jnp.einsum("cnk,nkj->cnj", C1, jax.vmap(SE3.ad)(xi0))
             solve = kkt_solver(blocks, rows, C0, scale, length)
