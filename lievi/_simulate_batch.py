@@ -24,6 +24,7 @@ from ._loop import Run, execute
 from ._options import OPTIONS, Tuning, options
 from ._progress import AbstractProgressMeter
 from ._save import Save
+from ._simulate import as_array
 from ._solution import Solution
 from ._steppers import plan_for
 from ._systems._base import AbstractLieSystem
@@ -171,12 +172,9 @@ def simulate_batch(
         raise ValueError(f"`system_axis` must be None (shared system) or 0, got {system_axis!r}.")
     # One state's shapes, `(n, n)` and `(d,)` (per body for a system of several bodies).
     element, momentum = system.element_shape(), system.momentum_shape()
-    for name, x in (("g0", g0), ("m0", m0), ("h", h)):
-        if isinstance(x, (bool, np.bool_)):
-            raise ValueError(f"`{name}` must hold real numbers, got {x!r}.")
-        check_real_dtype(name, x)
+    check_real_dtype("h", h)
     # JAX arrays (or tracers) kept, anything else read on the host: no program compiled.
-    g0, m0 = (x if isinstance(x, jax.Array) else np.asarray(x) for x in (g0, m0))
+    g0, m0 = as_array("g0", g0), as_array("m0", m0)
     if jnp.shape(g0) == element and jnp.ndim(m0) == 1 + len(momentum):
         # One initial element for every body (e.g. all starting at the identity): on the
         # host where concrete (no program compiled for it).
