@@ -10,6 +10,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._checks import (
+    check_finite,
     check_real_dtype,
     check_scalar,
     check_shape,
@@ -94,8 +95,7 @@ def simulate(
         f" for each of {shape[0]} bodies" if len(shape) > 2 else ""
     )
     check_shape("g0", g0, shape, what)
-    if is_concrete(g0) and not np.all(np.isfinite(np.asarray(g0))):
-        raise ValueError("`g0` contains NaN or inf; pass finite values.")
+    check_finite("g0", g0)
     if g1 is not None and forcing is not None:
         raise ValueError(
             "`g1` with `forcing`: the forced discrete Legendre transform needs the force at "

@@ -13,7 +13,7 @@ from ._options import DEPRECATED, OPTIONS, Tuning, options
 from ._progress import AbstractProgressMeter
 from ._results import RESULTS
 from ._save import Save
-from ._simulate_batch import infer_system_axis, simulate_batch
+from ._simulate_batch import batch_size, infer_system_axis, simulate_batch
 from ._stream_record import run_record
 from ._stream_writer import AbstractStreamWriter, ChunkState, StreamLayout
 
@@ -86,20 +86,8 @@ def stream_batch(
             f"`writer` must be a lievi.AbstractStreamWriter (e.g. lievi.NpyWriter(directory)), "
             f"got {type(writer).__name__}."
         )
-    # Shapes only: `g0`, `m0` may be memory maps, read a chunk at a time.
+    batch = batch_size(system, g0, m0, h)
     element, momentum = system.element_shape(), system.momentum_shape()
-    batch = np.shape(m0)[0] if np.ndim(m0) == 1 + len(momentum) else 0
-    if batch == 0 or np.shape(m0)[1:] != momentum:
-        raise ValueError(
-            f"`m0` must have shape (batch, {', '.join(map(str, momentum))}) (one momentum "
-            f"per body) with batch ≥ 1, got {np.shape(m0)}."
-        )
-    if np.shape(g0) not in ((batch, *element), element):
-        raise ValueError(
-            f"`g0` must have shape {(batch, *element)} or {element}, got {np.shape(g0)}."
-        )
-    if np.ndim(h) not in (0, 1) or (np.ndim(h) == 1 and np.shape(h)[0] != batch):
-        raise ValueError(f"`h` must be a scalar or have shape ({batch},), got {np.shape(h)}.")
     if np.ndim(h) == 0:
         check_scalar("h", h, positive=True)  # shared by every body: an argument error
     chunk_size = min(check_integer("chunk_size", chunk_size, 1), batch)
