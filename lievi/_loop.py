@@ -154,16 +154,11 @@ def _saving(run, stepper, h, t0, n_steps):
     return one_save
 
 
-def _stepping(run, g0, m0, h, t0, n_steps):
-    """`(stepper, carry, initial, one_save)`: `start` and `_saving`."""
-    stepper, carry, initial = start(run, g0, m0, h, t0)
-    return stepper, carry, initial, _saving(run, stepper, h, t0, n_steps)
-
-
 def run_static(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     """The run as one static scan over the saves (under a transformation, or with per-step
     forcing data): `(carry, initial, saves)`, the saves batch-major."""
-    stepper, carry, initial, one_save = _stepping(run, g0, m0, h, t0, n_steps)
+    stepper, carry, initial = start(run, g0, m0, h, t0)
+    one_save = _saving(run, stepper, h, t0, n_steps)
     segment = run.segment
     # Checkpointed segments inside one save interval, or spanning whole save intervals.
     inner = segment if segment is not None and segment < save_every else None
@@ -272,19 +267,12 @@ def finish(carry, initial, saves, n_steps: int, save: eqx.Module, xp=jnp) -> Sol
         "num_steps": xp.full(result.shape, n_steps),
     }
     if save.stats:
-        stats["newton_iterations"], stats["residual"] = (
-            saves["newton_iterations"],
-            saves["residual"],
-        )
-    fields = {
-        name: xp.concatenate([xp.asarray(initial[name]), saves[name]], axis=1)
-        if name in saves
-        else None
-        for name in ("g", "m", "advected", "t")
-    }
-    return Solution(
-        fields["t"], fields["g"], fields["m"], result, stats, advected=fields["advected"]
+        stats.update(newton_iterations=saves["newton_iterations"], residual=saves["residual"])
+    t, g, m, advected = (
+        xp.concatenate([xp.asarray(initial[name]), saves[name]], axis=1) if name in saves else None
+        for name in ("t", "g", "m", "advected")
     )
+    return Solution(t, g, m, result, stats, advected=advected)
 
 
 def execute(

@@ -10,6 +10,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._checks import (
+    check_finite,
     check_real_dtype,
     check_scalar,
     check_shape,
@@ -86,7 +87,7 @@ def simulate(
         raise ValueError(
             "Give exactly one of `m0` (initial momentum) and `g1` (second configuration)."
         )
-    g0 = _as_array("g0", g0)
+    g0 = as_array("g0", g0)
     # Shape and finiteness now (no program compiled); membership in the group inside the
     # run (a body off the group starts as `RESULTS.invalid_input`, then `explain` says so).
     shape, n = system.element_shape(), system.group.matrix_dim
@@ -94,8 +95,7 @@ def simulate(
         f" for each of {shape[0]} bodies" if len(shape) > 2 else ""
     )
     check_shape("g0", g0, shape, what)
-    if is_concrete(g0) and not np.all(np.isfinite(np.asarray(g0))):
-        raise ValueError("`g0` contains NaN or inf; pass finite values.")
+    check_finite("g0", g0)
     if g1 is not None and forcing is not None:
         raise ValueError(
             "`g1` with `forcing`: the forced discrete Legendre transform needs the force at "
@@ -103,7 +103,7 @@ def simulate(
         )
     if g1 is not None:
         m0 = _momentum_from_g1(system, integrator, g0, g1, h)
-    m0 = _as_array("m0", m0)
+    m0 = as_array("m0", m0)
     system.check_momentum("m0", m0)
     dtype = state_dtype(system, g0, m0, h)
     if forcing is not None:
@@ -125,7 +125,7 @@ def _momentum_from_g1(system, integrator, g0, g1, h):
     if not isinstance(integrator, AbstractVariationalIntegrator):
         raise ValueError("`g1` needs a variational integrator (one with a discrete Lagrangian).")
     system.check_element("g0", g0)
-    g1 = _as_array("g1", g1)
+    g1 = as_array("g1", g1)
     system.check_element("g1", g1)
     dtype = state_dtype(system, g0, g1, h)
     g0, g1 = jnp.asarray(g0, dtype), jnp.asarray(g1, dtype)
@@ -140,7 +140,7 @@ def _momentum_from_g1(system, integrator, g0, g1, h):
     return m0
 
 
-def _as_array(name: str, x):
+def as_array(name: str, x):
     """`x` real (lists and tuples too): a JAX array kept, else read on the host."""
     check_real_dtype(name, x)
     return x if isinstance(x, jax.Array) else np.asarray(x)

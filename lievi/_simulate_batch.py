@@ -24,6 +24,7 @@ from ._loop import Run, execute
 from ._options import OPTIONS, Tuning, options
 from ._progress import AbstractProgressMeter
 from ._save import Save
+from ._simulate import as_array
 from ._solution import Solution
 from ._steppers import plan_for
 from ._systems._base import AbstractLieSystem
@@ -90,14 +91,35 @@ def infer_system_axis(system, system_axis, batch: int | None = None):
     )
 
 
-def _check_batch(name, x, shape_tail, what):
+def batch_size(system, g0, m0, h) -> int:
+    """The batch size `B` of `g0` `(B, n, n)` (or one `(n, n)` for every body), `m0`
+    `(B, d)` and `h` (a scalar or `(B,)`), from their shapes alone (`g0`, `m0` may be
+    memory maps): a `ValueError` naming the argument otherwise."""
+    element, momentum = system.element_shape(), system.momentum_shape()
+    _check_shape("m0", m0, momentum, "one momentum per body")
+    batch = jnp.shape(m0)[0]
+    if batch == 0:
+        raise ValueError("the batch is empty (`m0` has 0 bodies); pass at least one body.")
+    if jnp.shape(g0) != element:
+        _check_shape("g0", g0, element, "one group element per body")
+        if jnp.shape(g0)[0] != batch:
+            raise ValueError(
+                f"`g0` and `m0` must have the same batch size, got {jnp.shape(g0)[0]} and {batch}."
+            )
+    if jnp.ndim(h) not in (0, 1) or (jnp.ndim(h) == 1 and jnp.shape(h)[0] != batch):
+        raise ValueError(
+            f"`h` must be a scalar or have shape ({batch},) (one per body), got {jnp.shape(h)}."
+        )
+    return batch
+
+
+def _check_shape(name, x, shape_tail, what):
     shape = tuple(jnp.shape(x))
     if len(shape) != 1 + len(shape_tail) or shape[1:] != tuple(shape_tail):
         raise ValueError(
             f"`{name}` must have shape (batch, {', '.join(map(str, shape_tail))}) ({what}), "
             f"got {shape}. For one body use `lievi.simulate`."
         )
-    check_finite(name, x)
 
 
 def simulate_batch(
@@ -169,29 +191,18 @@ def simulate_batch(
         )
     if system_axis not in (None, 0):
         raise ValueError(f"`system_axis` must be None (shared system) or 0, got {system_axis!r}.")
-    # One state's shapes, `(n, n)` and `(d,)` (per body for a system of several bodies).
-    element, momentum = system.element_shape(), system.momentum_shape()
-    for name, x in (("g0", g0), ("m0", m0), ("h", h)):
-        if isinstance(x, (bool, np.bool_)):
-            raise ValueError(f"`{name}` must hold real numbers, got {x!r}.")
-        check_real_dtype(name, x)
+    element = system.element_shape()  # one body's (of a system of several: `(N, n, n)`)
+    check_real_dtype("h", h)
     # JAX arrays (or tracers) kept, anything else read on the host: no program compiled.
-    g0, m0 = (x if isinstance(x, jax.Array) else np.asarray(x) for x in (g0, m0))
-    if jnp.shape(g0) == element and jnp.ndim(m0) == 1 + len(momentum):
+    g0, m0 = as_array("g0", g0), as_array("m0", m0)
+    batch = batch_size(system, g0, m0, h)
+    if jnp.shape(g0) == element:
         # One initial element for every body (e.g. all starting at the identity): on the
         # host where concrete (no program compiled for it).
-        shape = (jnp.shape(m0)[0], *element)
-        g0 = (np if is_concrete(g0) else jnp).broadcast_to(g0, shape)
-    _check_batch("g0", g0, element, "one group element per body")
-    _check_batch("m0", m0, momentum, "one momentum per body")
-    batch = jnp.shape(g0)[0]
-    if batch == 0:
-        raise ValueError("the batch is empty (`g0` has 0 bodies); pass at least one body.")
-    if jnp.shape(m0)[0] != batch:
-        raise ValueError(
-            f"`g0` and `m0` must have the same batch size, got {batch} and {jnp.shape(m0)[0]}."
-        )
-    check_batch_h(h, batch)
+        g0 = (np if is_concrete(g0) else jnp).broadcast_to(g0, (batch, *element))
+    check_finite("g0", g0)
+    check_finite("m0", m0)
+    _check_h(h)
     system_axis = infer_system_axis(system, system_axis, batch)
     if system_axis == 0:
         sizes = {jnp.shape(x)[0] for x in jax.tree.leaves(eqx.filter(system, eqx.is_array))}
@@ -227,12 +238,8 @@ def simulate_batch(
     return execute(run, g0, m0, h, t0, n_steps, opts.save.every, explain=explain, throw=check)
 
 
-def check_batch_h(h, batch: int) -> None:
-    """`h`: a scalar or one per body; concrete values finite, positive, normal."""
-    if jnp.ndim(h) not in (0, 1) or (jnp.ndim(h) == 1 and jnp.shape(h)[0] != batch):
-        raise ValueError(
-            f"`h` must be a scalar or have shape ({batch},) (one per body), got {jnp.shape(h)}."
-        )
+def _check_h(h) -> None:
+    """Concrete step sizes finite, positive and normal (its shape: `batch_size`)."""
     if is_concrete(h):
         check_finite("h", h)
         if not np.all(np.asarray(h) > 0):

@@ -125,7 +125,6 @@ def simulate_with_neighbor_list(
     if builder.capacity is None:
         builder = dataclasses.replace(builder, capacity=pairs.shape[0])
     static = eqx.partition(state, eqx.is_array)[1]
-    # Traced: a new step, start time or fraction reuses the compiled program.
     dtype = jnp.result_type(m0)
     fraction = 0.0 if rebuild_after is None else rebuild_after
     run = dict(
@@ -145,7 +144,7 @@ def simulate_with_neighbor_list(
     )
     carry = None
     while True:
-        carry, ts, most = _program(system, integrator, g0, m0, (pairs, state), carry, **run)
+        carry, ts, most = _program(system, integrator, g0, m0, (pairs, state), carry, run)
         if not bool(carry["overflow"]):
             break
         # A rebuild overflowed: the list again on the host, where the loop stopped.
@@ -191,38 +190,20 @@ def _solution(c, ts, most, builder, save: Save, n_steps: int) -> Solution:
 
 
 @eqx.filter_jit
-def _program(
-    system,
-    integrator,
-    g0,
-    m0,
-    listed,
-    carry,
-    *,
-    builder,
-    where,
-    h,
-    t0,
-    n_steps: int,
-    rebuild_every: int,
-    save: Save,
-    rebuild_after,
-    forcing,
-    args,
-    checkpoint,
-    tuning,
-    progress,
-):
+def _program(system, integrator, g0, m0, listed, carry, run):
     """The run's loop state at its end, or where a rebuild overflowed (`overflow`): from
     `(g0, m0)` (`carry` `None`) or from `carry`, the state where an earlier call stopped,
     with the list and builder state `listed = (pairs, state)` built on the host at the
     state's poses. A list built at a segment's start that went stale ends the run
     (`STALE`), a kept list that went stale is built again and the segment run again, a
-    failed step ends the run with the later saves NaN (`FAILED`)."""
+    failed step ends the run with the later saves NaN (`FAILED`). `run`: the options
+    (traced where arrays: a new `h`, `t0` or fraction reuses the program)."""
+    builder, where, h, t0, n_steps = (run[k] for k in ("builder", "where", "h", "t0", "n_steps"))
     potential = where(system)
     pairs0, state0 = listed
     n_sites = potential.sites.shape[0] * potential.sites.shape[1]
-    every, R = save.every, rebuild_every
+    save, R, progress = run["save"], run["rebuild_every"], run["progress"]
+    every = save.every
 
     def listed_pairs(pairs):  # the rows of a list that are pairs (the rest is padding)
         return jnp.sum(pairs[:, 1] < n_sites)
@@ -241,12 +222,12 @@ def _program(
             h=h,
             n_steps=R,
             t0=t0 + start * h,
-            forcing=None if forcing is None else forcing.steps(start, R),
-            args=args,
+            forcing=None if run["forcing"] is None else run["forcing"].steps(start, R),
+            args=run["args"],
             save=each,
             throw=False,
-            checkpoint=checkpoint,
-            tuning=tuning,
+            checkpoint=run["checkpoint"],
+            tuning=run["tuning"],
         )
 
     def rebuild(g, dynamic):
@@ -327,7 +308,7 @@ def _program(
         ok = accepted & ~failed
         # Enough of the margin used that the next segment may go stale (always, for a
         # fraction 0: a list for every segment).
-        fresh_next = displacement >= rebuild_after * builder.skin
+        fresh_next = displacement >= run["rebuild_after"] * builder.skin
         status = jnp.where(stale_fresh, STALE, jnp.where(accepted & failed, FAILED, RUNNING))
         progress.report((c["segment"] + accepted) * R, n_steps)  # repeats are dropped
         new = dict(

@@ -13,7 +13,7 @@ from ._options import DEPRECATED, OPTIONS, Tuning, options
 from ._progress import AbstractProgressMeter
 from ._results import RESULTS
 from ._save import Save
-from ._simulate_batch import infer_system_axis, simulate_batch
+from ._simulate_batch import batch_size, infer_system_axis, simulate_batch
 from ._stream_record import run_record
 from ._stream_writer import AbstractStreamWriter, ChunkState, StreamLayout
 
@@ -74,8 +74,7 @@ def stream_batch(
     own inputs are not admissible gets `RESULTS.invalid_input` at step 0 and NaN saves,
     and the others run. Arguments shared by all bodies are checked at once (`ValueError`).
     """
-    unsupported = ("checkpoint", "forcing", "args", "monitor")
-    opts = options("lievi.stream_batch", n_steps, locals(), deprecated, unsupported)
+    opts = options("lievi.stream_batch", n_steps, locals(), deprecated, _UNSUPPORTED)
     n_steps, save, every = opts.n_steps, opts.save, opts.save.every
     if save.advected or not (save.g or save.m):
         raise ValueError(
@@ -87,19 +86,8 @@ def stream_batch(
             f"`writer` must be a lievi.AbstractStreamWriter (e.g. lievi.NpyWriter(directory)), "
             f"got {type(writer).__name__}."
         )
+    batch = batch_size(system, g0, m0, h)
     element, momentum = system.element_shape(), system.momentum_shape()
-    batch = np.shape(m0)[0] if np.ndim(m0) == 1 + len(momentum) else 0
-    if batch == 0 or np.shape(m0)[1:] != momentum:
-        raise ValueError(
-            f"`m0` must have shape (batch, {', '.join(map(str, momentum))}) (one momentum "
-            f"per body) with batch ≥ 1, got {np.shape(m0)}."
-        )
-    if np.shape(g0) not in ((batch, *element), element):
-        raise ValueError(
-            f"`g0` must have shape {(batch, *element)} or {element}, got {np.shape(g0)}."
-        )
-    if np.ndim(h) not in (0, 1) or (np.ndim(h) == 1 and np.shape(h)[0] != batch):
-        raise ValueError(f"`h` must be a scalar or have shape ({batch},), got {np.shape(h)}.")
     if np.ndim(h) == 0:
         check_scalar("h", h, positive=True)  # shared by every body: an argument error
     chunk_size = min(check_integer("chunk_size", chunk_size, 1), batch)
@@ -111,51 +99,42 @@ def stream_batch(
             f"({every}) that divides `n_steps` ({n_steps}): a segment ends on a save."
         )
     system_axis = infer_system_axis(system, system_axis, batch)
-    dtype = np.dtype(state_dtype(system, np.asarray(g0[:1]), np.asarray(m0[:1]), h))
-    n_saves = n_steps // every + 1
+    dtype = np.dtype(state_dtype(system, np.asarray(g0[:1]), np.asarray(m0[:1]), h)).name
     shapes = {"g": element, "m": momentum}
-    fields = {k: ((batch, n_saves, *shapes[k]), dtype.name) for k in shapes if getattr(save, k)}
-    tuning, default = opts.tuning, Tuning()
-    record = {
-        k: getattr(tuning, k) for k in DEPRECATED[1:] if getattr(tuning, k) != getattr(default, k)
+    fields = {
+        k: ((batch, n_steps // every + 1, *v), dtype) for k, v in shapes.items() if getattr(save, k)
     }
+    tuned = {k: getattr(opts.tuning, k) for k in DEPRECATED[1:]}
+    tuned = {k: v for k, v in tuned.items() if v != getattr(Tuning(), k)}
+    record = run_record(system, integrator, g0, m0, h, tuned, chunk_size)
     layout = StreamLayout(
-        fields,
-        batch,
-        n_steps,
-        every,
-        chunk_size,
-        segment_steps,
-        (element, momentum),
-        dtype.name,
-        run_record(system, integrator, g0, m0, h, record, chunk_size),
+        fields, batch, n_steps, every, chunk_size, segment_steps, (element, momentum), dtype, record
     )
-    progress = opts.progress
-    worst = int(RESULTS.successful)
+    # Each segment saves both halves of the state (the next segment starts from them).
+    run = dict(
+        save=Save(stats=False, every=every), t0=t0, system_axis=system_axis, tuning=opts.tuning
+    )
+    worst, done = int(RESULTS.successful), 0
     writer.open(layout)
     try:
-        total = float(batch) * n_steps
-        done = 0.0
         for chunk in range(layout.n_chunks()):
             rows = slice(chunk * chunk_size, min(batch, (chunk + 1) * chunk_size))
+            b, h_rows = rows.stop - rows.start, h if np.ndim(h) == 0 else np.asarray(h)[rows]
             system_rows = system if system_axis is None else _rows_of(system, rows)
-            state = writer.resume_state(chunk) or _initial_state(
-                system_rows, system_axis, g0, m0, h, rows, element
-            )
-            done += (rows.stop - rows.start) * state.steps_done
-            progress.show(done / total)
-            while state.steps_done < n_steps:
-                piece = Save(g=True, m=True, stats=False, every=every)
-                run = dict(save=piece, t0=t0, system_axis=system_axis, tuning=opts.tuning)
-                values, state = _segment(
-                    system_rows, integrator, h, rows, state, segment_steps, run
+            state = writer.resume_state(chunk)
+            if state is None:
+                g = g0[rows] if np.shape(g0) != element else np.broadcast_to(g0, (b, *element))
+                state = _initial_state(system_rows, system_axis, np.asarray(g), m0[rows], h_rows)
+            while True:  # the meter: the fraction of all body-steps done
+                opts.progress.show((done + b * state.steps_done) / (batch * n_steps))
+                if state.steps_done == n_steps:
+                    break
+                saves, values, state = _segment(
+                    system_rows, integrator, h_rows, state, segment_steps, run
                 )
-                first = state.steps_done // every - segment_steps // every
-                saves = slice(first if first == 0 else first + 1, state.steps_done // every + 1)
                 values = {name: values[name] for name in fields}
                 writer.write(chunk, rows, saves, values, state)
-                done += (rows.stop - rows.start) * segment_steps
-                progress.show(done / total)
+            done += b * n_steps
             worst = max(worst, int(np.max(state.result)))
         writer.finish()
     finally:
@@ -169,12 +148,11 @@ def stream_batch(
         )
 
 
+_UNSUPPORTED = ("checkpoint", "forcing", "args", "monitor")
+
+
 def _rows_of(tree, rows):
     return jax.tree.map(lambda x: x[rows] if eqx.is_array(x) else x, tree)
-
-
-def _h_rows(h, rows):
-    return h if np.ndim(h) == 0 else np.asarray(h)[rows]
 
 
 def _mask(flags, x):
@@ -188,54 +166,41 @@ def _valid_rows(system, system_axis, g, m, h):
     return jax.vmap(input_valid, in_axes=in_axes)(system, g, m, h)
 
 
-def _initial_state(system_rows, system_axis, g0, m0, h, rows, element) -> ChunkState:
-    """The chunk's state at step 0: a body whose inputs are not admissible (`input_valid`)
-    gets `RESULTS.invalid_input` and NaN, masked out from then on (`_segment`)."""
-    b = rows.stop - rows.start
-    g = np.asarray(
-        g0[rows] if np.ndim(g0) == 1 + len(element) else np.broadcast_to(g0, (b, *element))
-    )
-    m = np.asarray(m0[rows])
-    h_rows = _h_rows(h, rows)
-    valid = np.asarray(_valid_rows(system_rows, system_axis, g, m, h_rows))
-    return ChunkState(
-        g=np.where(_mask(valid, g), g, np.nan),
-        m=np.where(_mask(valid, m), m, np.nan),
-        result=np.where(valid, RESULTS.successful, RESULTS.invalid_input).astype(np.int32),
-        failed_step=np.where(valid, -1, 0).astype(np.int32),
-        total_newton_iterations=np.zeros((b,), np.int64),
-        steps_done=0,
-    )
+def _initial_state(system, system_axis, g, m, h) -> ChunkState:
+    """A chunk at step 0: a body whose inputs are not admissible (`input_valid`) starts
+    failed, `RESULTS.invalid_input` at step 0 (its saves NaN, as a failed body's)."""
+    m = np.asarray(m)
+    valid = np.asarray(_valid_rows(system, system_axis, g, m, h))
+    result = np.where(valid, RESULTS.successful, RESULTS.invalid_input).astype(np.int32)
+    failed_step = np.where(valid, -1, 0).astype(np.int32)
+    return ChunkState(g, m, result, failed_step, np.zeros(len(m), np.int64), 0)
 
 
-def _segment(system, integrator, h, rows, state, steps, run):
-    """One chunk's segment from `state`: the values to write and the new state. A body
-    failed before restarts from a harmless state (the identity, zero momentum, a unit
+def _segment(system, integrator, h, state, steps, run):
+    """`(saves, values, state)`: one chunk's segment from `state`, the indices and values
+    of its saves (the initial state's only in the first segment) and the state after it.
+    A body failed before runs from a harmless state (the identity, zero momentum, a unit
     step), masked out: NaN saves, its result, failed step and iterations kept."""
     failed = state.result != int(RESULTS.successful)
-    identity = np.broadcast_to(np.eye(state.g.shape[-1], dtype=state.g.dtype), state.g.shape)
-    g = np.where(_mask(failed, state.g), identity, state.g)
+    g = np.where(_mask(failed, state.g), np.eye(state.g.shape[-1], dtype=state.g.dtype), state.g)
     m = np.where(_mask(failed, state.m), 0.0, state.m)
-    h_rows = _h_rows(h, rows)
-    if np.ndim(h_rows):
-        h_rows = np.where(failed, 1.0, h_rows)
-    solution = simulate_batch(system, integrator, g, m, h=h_rows, n_steps=steps, throw=False, **run)
-    out_g = np.where(_mask(failed, solution.g), np.nan, solution.g)
-    out_m = np.where(_mask(failed, solution.m), np.nan, solution.m)
-    result = np.asarray(solution.result)
-    failed_step = np.asarray(solution.stats["failed_step"])
-    iterations = np.asarray(solution.stats["total_newton_iterations"])
+    h = np.where(failed, 1.0, h) if np.ndim(h) else h
+    solution = simulate_batch(system, integrator, g, m, h=h, n_steps=steps, throw=False, **run)
+    out = {
+        k: np.where(_mask(failed, x), np.nan, x) for k, x in (("g", solution.g), ("m", solution.m))
+    }
+    result, stats = np.asarray(solution.result), jax.tree.map(np.asarray, solution.stats)
     new_failure = ~failed & (result != int(RESULTS.successful))
+    every, done = run["save"].every, state.steps_done
     state = ChunkState(
-        g=out_g[:, -1],
-        m=out_m[:, -1],
-        result=np.where(failed, state.result, result).astype(np.int32),
-        failed_step=np.where(new_failure, failed_step + state.steps_done, state.failed_step).astype(
-            np.int32
-        ),
-        total_newton_iterations=state.total_newton_iterations + np.where(failed, 0, iterations),
-        steps_done=state.steps_done + steps,
+        out["g"][:, -1],
+        out["m"][:, -1],
+        np.where(failed, state.result, result).astype(np.int32),
+        np.where(new_failure, stats["failed_step"] + done, state.failed_step).astype(np.int32),
+        state.total_newton_iterations + np.where(failed, 0, stats["total_newton_iterations"]),
+        done + steps,
     )
     # The first segment writes the initial state too; later ones start at their first save.
-    skip = 0 if state.steps_done == steps else 1
-    return {"g": out_g[:, skip:], "m": out_m[:, skip:]}, state
+    skip = 0 if done == 0 else 1
+    saves = slice(done // every + skip, state.steps_done // every + 1)
+    return saves, {k: x[:, skip:] for k, x in out.items()}, state
