@@ -148,3 +148,21 @@ def test_closed_form_value_and_slope_equal_autodiff(energy):
         ):
             assert closed.shape == expected.shape
             assert np.allclose(closed, expected, rtol=1e-13, atol=1e-15)
+
+
+def test_mutual_gravity_closed_form_wrenches_equal_autodiff():
+    # Three bodies, one of them padded with a point of mass 0 (in no pair), random poses.
+    rng = np.random.default_rng(4)
+    masses = [np.array([1.0, 0.6, 0.8]), np.array([0.5, 0.4]), np.array([0.7, 0.2, 0.3])]
+    points = [rng.uniform(-0.2, 0.2, (len(m), 3)) for m in masses]
+    system = lievi.gravitating_bodies(1.3, masses, points, extra_inertia=0.01 * np.eye(3)[None])
+    q = rng.normal(size=(3, 4))
+    R = jax.vmap(lievi.quaternion_wxyz_to_matrix)(
+        jnp.asarray(q / np.linalg.norm(q, axis=1)[:, None])
+    )
+    centres = np.array([[0.0, 0.0, 0.0], [1.1, 0.4, -0.2], [-0.3, 1.2, 0.5]])
+    g = jnp.broadcast_to(jnp.eye(4), (3, 4, 4)).at[:, :3, :3].set(R).at[:, :3, 3].set(centres)
+    energy, value, wrench, reverse, force = _all_forms(system, g)
+    assert np.isclose(value, energy, rtol=1e-14)
+    np.testing.assert_allclose(wrench, reverse, rtol=0, atol=1e-13 * np.abs(reverse).max())
+    np.testing.assert_array_equal(force, wrench)
