@@ -44,6 +44,15 @@ class ButcherTableau:
         """The nodes, `c[i] = Σ_j a[i][j]` (the stage times `t_k + c_i h`)."""
         return tuple(float(sum(row)) for row in self.a)
 
+    @property
+    def dexpinv_degree(self) -> int:
+        """The last power of `ad_u` kept of `dexp⁻¹_u`'s commutator series when this
+        tableau runs in the exponential chart: `order − 1`. The dropped terms are
+        `O(h^order)` in `u̇` (`u = O(h)`), so the method keeps its order (Munthe-Kaas's
+        truncation; Hairer–Lubich–Wanner, *Geometric Numerical Integration*, §IV.8.2) —
+        and a step is a polynomial in `u`, cheaper than the exact `dexp⁻¹`."""
+        return self.order - 1
+
 
 def _combine(y, coefficients, increments):
     """`y + Σ c_j k_j` (`y = None`: without it) over the pytrees `increments`, skipping the
