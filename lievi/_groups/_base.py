@@ -132,7 +132,7 @@ class MatrixLieGroup(eqx.Module):
     ) -> Float[Array, "*batch d d"]:
         """`Σ_{k ≤ degree} B_k/k! ad_xᵏ`: `dexpinv(x)`'s commutator series truncated after
         `ad_x^degree` (`B_k` the Bernoulli numbers, `B_1 = −1/2`). A Lie-group Runge–Kutta
-        method of order `p` keeps its order with `degree = p − 1` (`lievi.RKMK8`), since
+        method of order `p` keeps its order with `degree ≥ p − 1` (`lievi.RKMK8`: 8), since
         `ad_uᵏ = O(hᵏ)` in the chart (Munthe-Kaas; Hairer–Lubich–Wanner, §IV.8.2)."""
         terms = bernoulli_terms(degree)
         A = self.ad(x)

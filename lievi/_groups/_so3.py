@@ -136,8 +136,8 @@ class SO3Group(AbstractSpecialOrthogonal):
         self, x: Float[Array, "*batch 3"], degree: int
     ) -> Float[Array, "*batch 3 3"]:
         """`I − x̂/2 + c(θ²) x̂²`, `c` the polynomial of the series truncated after
-        `x̂^degree` (`x̂³ = −θ² x̂`; `_series.truncated_dexpinv_terms`): for `degree = 7`,
-        `1/12 + θ²/720 + θ⁴/30240`."""
+        `x̂^degree` (`x̂³ = −θ² x̂`; `_series.truncated_dexpinv_terms`): for `degree = 8`
+        (`lievi.RKMK8`'s), `1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600`."""
         t2 = dot(x, x)[..., None, None]
         X = self.hat(x)
         c = polynomial(truncated_dexpinv_terms(degree), t2)

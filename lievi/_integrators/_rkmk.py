@@ -16,11 +16,11 @@ with `dexp⁻¹` the inverse of the right-trivialised derivative of `exp`
 (`MatrixLieGroup.dexpinv`). An explicit Runge–Kutta method on `(u, m)` from `u = 0`, and
 `g_{k+1} = g_k exp(u_{k+1})`: the method of Munthe-Kaas (Hairer–Lubich–Wanner, *Geometric
 Numerical Integration*, §IV.8.2). `dexp⁻¹_u = Σ B_k/k! ad_uᵏ` is used truncated after
-`ad_u^{p−1}` for a tableau of order `p` (`MatrixLieGroup.dexpinv_series`,
-`ButcherTableau.dexpinv_degree`): `u = O(h)`, so the dropped terms are `O(h^p)` in `u̇`
+`ad_u^p` for a tableau of order `p` (`MatrixLieGroup.dexpinv_series`,
+`ButcherTableau.dexpinv_degree`): `u = O(h)`, so the dropped terms are `O(h^{p+1})` in `u̇`
 and the method has the order of the underlying tableau in `g` and `m`, while a stage is
-a polynomial in `ad_u` (on SO(3) `1 − û/2 + c û²` with `c = 1/12 + θ²/720 + θ⁴/30240`
-for order 8) instead of the exact closed form's series and division:
+a polynomial in `ad_u` (on SO(3) `1 − û/2 + c û²` with
+`c = 1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600` for order 8) instead of the exact closed form's series and division:
 
 - `RKMK4`: classical RK4 (4 stages);
 - `RKMK5`: the order-5 solution of Dormand–Prince 5(4) (6 stages);

@@ -12,9 +12,9 @@ With `w = (h/I)·Π` (the angle turned per step at momentum `Π`) the stage incr
     h u̇ = dexp⁻¹_{−u}(w) = w + u×w/2 + c(θ) u×(u×w),     h Π̇ = Π × w,
 
 `c(θ²)` (`θ = |u|`) the polynomial of `dexp⁻¹`'s commutator series truncated after
-`ad_u^{p−1}` for a tableau of order `p` (`ButcherTableau.dexpinv_degree`,
-`lievi.SO3.dexpinv_series`): `1/12` for `RKMK4`, `1/12 + θ²/720` for `RKMK5`,
-`1/12 + θ²/720 + θ⁴/30240` for `RKMK8` — the first terms of the exact
+`ad_u^p` for a tableau of order `p` (`ButcherTableau.dexpinv_degree`,
+`lievi.SO3.dexpinv_series`): `1/12 + θ²/720` for `RKMK4` and `RKMK5`,
+`1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600` for `RKMK8` — the first terms of the exact
 `(1 − (θ/2)cot(θ/2))/θ²`; the method keeps its order, and a stage costs a few
 multiply-adds instead of two series and a division. The increment `F = exp(u)` is
 Rodrigues' `1 + a û + b û²`, `a = sin θ/θ`, `b = (1 − cos θ)/θ²`, from power series in

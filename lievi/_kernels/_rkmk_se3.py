@@ -18,7 +18,7 @@ With `w = (w_ω, w_v) = h M⁻¹ m` (`h ξ`), a stage's increments are (Kirchhof
     h u̇_v = J⁻¹ w_v + u_v × w_ω/2 + 2c′(t)s u_ω×(u_ω×w_ω) + c (u_ω×(u_v×w_ω) + u_v×(u_ω×w_ω)),
 
 with `J⁻¹ y = y + u_ω×y/2 + c u_ω×(u_ω×y)` (the SO(3) `dexp⁻¹_{−u_ω}`), `c(t)` the
-polynomial of `dexp⁻¹`'s series truncated after `ad_u^{p−1}` (`_rkmk.dexpinv_coefficient`,
+polynomial of `dexp⁻¹`'s series truncated after `ad_u^p` (`_rkmk.dexpinv_coefficient`,
 `lievi.SE3.dexpinv_series`: the order-`p` method keeps its order), `t = θ² = |u_ω|²`,
 `s = u_ω·u_v` (the lower-left block `∂_v J⁻¹` of `dexpinv`, its coefficient's derivative
 along `v` being `2c′(t)s`). The

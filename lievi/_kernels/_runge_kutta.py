@@ -47,11 +47,15 @@ class ButcherTableau:
     @property
     def dexpinv_degree(self) -> int:
         """The last power of `ad_u` kept of `dexp⁻¹_u`'s commutator series when this
-        tableau runs in the exponential chart: `order − 1`. The dropped terms are
-        `O(h^order)` in `u̇` (`u = O(h)`), so the method keeps its order (Munthe-Kaas's
-        truncation; Hairer–Lubich–Wanner, *Geometric Numerical Integration*, §IV.8.2) —
-        and a step is a polynomial in `u`, cheaper than the exact `dexp⁻¹`."""
-        return self.order - 1
+        tableau runs in the exponential chart: `order`. Munthe-Kaas's bound is
+        `order − 1` (the dropped terms are then `O(h^order)` in `u̇`, `u = O(h)`: the
+        order is kept; Hairer–Lubich–Wanner, *Geometric Numerical Integration*, §IV.8.2);
+        the `ad_u^order` term too keeps the error at the methods' largest steps that of the
+        exact `dexp⁻¹` (`RKMK8`, HLW's free body, T = 2, h = 1, 0.5, 0.25: final errors
+        1.15e-7, 4.7e-10, 1.9e-12 against the exact 1.11e-7, 4.7e-10, 1.9e-12; truncated
+        after `ad_u⁷`, 2.25e-7, 4.0e-10, 1.3e-12). A stage is a polynomial in `u`, not
+        two series and a division."""
+        return self.order
 
 
 def _combine(y, coefficients, increments):
