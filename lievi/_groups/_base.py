@@ -8,7 +8,8 @@ derives the operators the discrete Euler–Poincaré equations need (paper §4.1
 - `Ad(g)`: the matrix of `y ↦ g y g⁻¹`;
 - `dexp(x) = Σ ad_xⁿ/(n+1)!`, the right-trivialised derivative of `exp`
   (`d exp(x + εy)/dε · exp(−x) = dexp(x) y`), which is the paper's `iex(ad_x)` (4.3);
-- `dexpinv(x) = dexp(x)⁻¹`, the paper's `χ(−ad_x)`;
+- `dexpinv(x) = dexp(x)⁻¹`, the paper's `χ(−ad_x)`, and `dexpinv_series(x, degree)`, its
+  commutator series `Σ B_k/k! ad_xᵏ` truncated after `ad_x^degree`;
 - the Cayley map `cay(x) = (I − x/2)⁻¹(I + x/2)` (paper §5) with its
   right-trivialised derivative `dcay` and inverse `dcayinv`.
 
@@ -26,6 +27,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._expm import expm, phi1
+from ._series import bernoulli_terms
 
 
 class MatrixLieGroup(eqx.Module):
@@ -124,6 +126,21 @@ class MatrixLieGroup(eqx.Module):
         D = self.dexp(x)
         eye = jnp.broadcast_to(jnp.eye(self.algebra_dim, dtype=D.dtype), D.shape)
         return jnp.linalg.solve(D, eye)
+
+    def dexpinv_series(
+        self, x: Float[Array, "*batch d"], degree: int
+    ) -> Float[Array, "*batch d d"]:
+        """`Σ_{k ≤ degree} B_k/k! ad_xᵏ`: `dexpinv(x)`'s commutator series truncated after
+        `ad_x^degree` (`B_k` the Bernoulli numbers, `B_1 = −1/2`). A Lie-group Runge–Kutta
+        method of order `p` keeps its order with `degree ≥ p − 1` (`lievi.RKMK8`: 8), since
+        `ad_uᵏ = O(hᵏ)` in the chart (Munthe-Kaas; Hairer–Lubich–Wanner, §IV.8.2)."""
+        terms = bernoulli_terms(degree)
+        A = self.ad(x)
+        eye = jnp.broadcast_to(jnp.eye(self.algebra_dim, dtype=A.dtype), A.shape)
+        value = terms[degree] * eye
+        for c in reversed(terms[:degree]):
+            value = A @ value + c * eye
+        return value
 
     # ---- Cayley chart (paper §5) -------------------------------------------------------------
 

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._base import MatrixLieGroup
-from ._series import cosc, dexpinv_coefficient, dot, sinc3
+from ._series import cosc, dexpinv_coefficient, dot, polynomial, sinc3, truncated_dexpinv_terms
 from ._so3 import SO3
 
 
@@ -226,6 +226,21 @@ class SE3Group(MatrixLieGroup):
         c, dc = _coefficient_and_derivative(dexpinv_coefficient, omega, v)
         Jinv = jnp.eye(3, dtype=x.dtype) - W / 2 + c * (W @ W)
         Qinv = -V / 2 + dc * (W @ W) + c * (W @ V + V @ W)
+        return _blocks(Jinv, jnp.zeros_like(Jinv), Qinv, Jinv)
+
+    def dexpinv_series(
+        self, x: Float[Array, "*batch 6"], degree: int
+    ) -> Float[Array, "*batch 6 6"]:
+        """`dexpinv`'s series truncated after `ad_x^degree`: `dexpinv`'s blocks with `c` the
+        SO(3) polynomial (`SO3.dexpinv_series`). Exact, since `ad_ξᵏ = [[Ωᵏ, 0], [∂_v Ωᵏ, Ωᵏ]]`:
+        the lower-left block of the sum is `∂_v` of the upper-left one."""
+        omega, v = _split(x)
+        W, V = SO3.hat(omega), SO3.hat(v)
+        terms = truncated_dexpinv_terms(degree)
+        c, dc = _coefficient_and_derivative(lambda t: polynomial(terms, t), omega, v)
+        half = min(degree, 1) / 2
+        Jinv = jnp.eye(3, dtype=x.dtype) - half * W + c * (W @ W)
+        Qinv = -half * V + dc * (W @ W) + c * (W @ V + V @ W)
         return _blocks(Jinv, jnp.zeros_like(Jinv), Qinv, Jinv)
 
     # ---- Cayley chart (paper §5) ------------------------------------------------------------

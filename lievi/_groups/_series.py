@@ -7,6 +7,9 @@ and reverse-mode derivatives are finite at the identity (docs/theory/closed-form
 
 from __future__ import annotations
 
+import math
+from fractions import Fraction
+
 import jax.numpy as jnp
 
 
@@ -61,6 +64,33 @@ def dexpinv_coefficient(t2):  # (1 − (θ/2) cot(θ/2)) / θ²
         return jnp.where(singular, jnp.inf, value)
 
     return series_or_exact(t2, exact, (1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160))
+
+
+def bernoulli_terms(degree: int) -> tuple[float, ...]:
+    """`B_k/k!` for `k = 0 … degree`: the coefficients of `dexp⁻¹_x = Σ B_k/k! ad_xᵏ`
+    (Bernoulli numbers with `B_1 = −1/2`; Hairer–Lubich–Wanner, *Geometric Numerical
+    Integration*, §III.4, Lemma 4.2), from `Σ_{j≤k} C(k+1, j) B_j = 0`, exact in rationals."""
+    numbers = [Fraction(1)]
+    for k in range(1, degree + 1):
+        numbers.append(-sum(math.comb(k + 1, j) * numbers[j] for j in range(k)) / (k + 1))
+    return tuple(float(b / math.factorial(k)) for k, b in enumerate(numbers))
+
+
+def truncated_dexpinv_terms(degree: int) -> tuple[float, ...]:
+    """The coefficients in `θ²` of the SO(3) `dexpinv` coefficient of the series truncated
+    after `ad_x^degree`: on so(3) `x̂³ = −θ² x̂`, so `Σ_{k≤degree} B_k/k! x̂ᵏ =
+    1 − x̂/2 + c(θ²) x̂²` with `c = Σ_j B_{2j}/(2j)! (−θ²)^{j−1}` (`j = 1 … ⌊degree/2⌋`), the
+    first terms of the exact `(1 − (θ/2)cot(θ/2))/θ²`: `1/12 + θ²/720 + θ⁴/30240 + …`."""
+    terms = bernoulli_terms(degree)
+    return tuple(terms[2 * j] * (-1) ** (j - 1) for j in range(1, degree // 2 + 1))
+
+
+def polynomial(coefficients, t):
+    """`Σ c_k tᵏ` (Horner), `0` for no coefficients."""
+    value = jnp.zeros_like(t)
+    for c in reversed(coefficients):
+        value = value * t + c
+    return value
 
 
 def dot(x, y):

@@ -13,7 +13,17 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._series import cosc, dexpinv_coefficient, dot, outer, sinc, sinc3, small_threshold
+from ._series import (
+    cosc,
+    dexpinv_coefficient,
+    dot,
+    outer,
+    polynomial,
+    sinc,
+    sinc3,
+    small_threshold,
+    truncated_dexpinv_terms,
+)
 from ._son import AbstractSpecialOrthogonal
 
 
@@ -121,6 +131,17 @@ class SO3Group(AbstractSpecialOrthogonal):
         t2 = dot(x, x)[..., None, None]
         X = self.hat(x)
         return jnp.eye(3, dtype=x.dtype) - X / 2 + dexpinv_coefficient(t2) * (X @ X)
+
+    def dexpinv_series(
+        self, x: Float[Array, "*batch 3"], degree: int
+    ) -> Float[Array, "*batch 3 3"]:
+        """`I − x̂/2 + c(θ²) x̂²`, `c` the polynomial of the series truncated after
+        `x̂^degree` (`x̂³ = −θ² x̂`; `_series.truncated_dexpinv_terms`): for `degree = 8`
+        (`lievi.RKMK8`'s), `1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600`."""
+        t2 = dot(x, x)[..., None, None]
+        X = self.hat(x)
+        c = polynomial(truncated_dexpinv_terms(degree), t2)
+        return jnp.eye(3, dtype=x.dtype) - min(degree, 1) * X / 2 + c * (X @ X)
 
     def cay(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
         """`(I − x̂/2)⁻¹(I + x̂/2) = I + 4/(4 + θ²) (x̂ + x̂²/2)`."""

@@ -15,8 +15,12 @@ vector space, and satisfies
 with `dexp⁻¹` the inverse of the right-trivialised derivative of `exp`
 (`MatrixLieGroup.dexpinv`). An explicit Runge–Kutta method on `(u, m)` from `u = 0`, and
 `g_{k+1} = g_k exp(u_{k+1})`: the method of Munthe-Kaas (Hairer–Lubich–Wanner, *Geometric
-Numerical Integration*, §IV.8.2). With `dexp⁻¹` used exactly (closed forms, not a
-truncated commutator series) it has the order of the underlying tableau in `g` and `m`:
+Numerical Integration*, §IV.8.2). `dexp⁻¹_u = Σ B_k/k! ad_uᵏ` is used truncated after
+`ad_u^p` for a tableau of order `p` (`MatrixLieGroup.dexpinv_series`,
+`ButcherTableau.dexpinv_degree`): `u = O(h)`, so the dropped terms are `O(h^{p+1})` in `u̇`
+and the method has the order of the underlying tableau in `g` and `m`, while a stage is
+a polynomial in `ad_u` (on SO(3) `1 − û/2 + c û²` with
+`c = 1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600` for order 8) instead of the exact closed form's series and division:
 
 - `RKMK4`: classical RK4 (4 stages);
 - `RKMK5`: the order-5 solution of Dormand–Prince 5(4) (6 stages);
@@ -28,7 +32,7 @@ because it only ever moves by exponentials — unlike classical RK4 in the matri
 Lie–Poisson: the Casimirs and the energy drift at O(h^p) per unit time.
 
 Chosen over Crouch–Grossman and commutator-free methods because it needs only the group's
-`exp` and `dexpinv` (closed forms on SO(3) and SE(3), generic ones on any matrix group),
+`exp` and `ad` (closed forms on SO(3) and SE(3), generic ones on any matrix group),
 any explicit tableau carries over with its order, and it works unchanged on both sides
 and with any force.
 
@@ -122,12 +126,15 @@ class AbstractRKMK(AbstractIntegrator):
             g_next, m_next, result, iterations, residual = kernel.one_body_step(system, g, m, h)
             return g_next, m_next, StepInfo(result, iterations, residual)
 
+        degree = self.tableau().dexpinv_degree
+
         def stage(u, mm, c):
             # `(h u̇, h ṁ)` in the chart about g_k: g = g_k exp(u) (left) or exp(u) g_k
             # (right).
             gg = side.compose(group, g, group.exp(u))
             xi = system.velocity(mm)
-            u_dot = jnp.einsum("...ij,...j->...i", group.dexpinv(-side.sign * u), xi)
+            dexpinv = group.dexpinv_series(-side.sign * u, degree)
+            u_dot = jnp.einsum("...ij,...j->...i", dexpinv, xi)
             return h * u_dot, h * momentum_rate(system, gg, mm, xi, force, t + c * h)
 
         # The stages in a loop: traced and compiled once (on SO(4), RKMK8's first compile

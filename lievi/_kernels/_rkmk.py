@@ -11,10 +11,14 @@ With `w = (h/I)·Π` (the angle turned per step at momentum `Π`) the stage incr
 
     h u̇ = dexp⁻¹_{−u}(w) = w + u×w/2 + c(θ) u×(u×w),     h Π̇ = Π × w,
 
-`c = (1 − (θ/2)cot(θ/2))/θ²` (`θ = |u|`, the SO(3) `dexpinv` coefficient, a power series
-in `θ²/4` accurate to round-off on the method's whole step range), and the increment
-`F = exp(u)` is Rodrigues' `1 + a û + b û²`, `a = sin θ/θ`, `b = (1 − cos θ)/θ²`, from the
-same series. With a potential `V = aᵀ g b` the torque `Γ × b` at a stage is that of
+`c(θ²)` (`θ = |u|`) the polynomial of `dexp⁻¹`'s commutator series truncated after
+`ad_u^p` for a tableau of order `p` (`ButcherTableau.dexpinv_degree`,
+`lievi.SO3.dexpinv_series`): `1/12 + θ²/720` for `RKMK4` and `RKMK5`,
+`1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600` for `RKMK8` — the first terms of the exact
+`(1 − (θ/2)cot(θ/2))/θ²`; the method keeps its order, and a stage costs a few
+multiply-adds instead of two series and a division. The increment `F = exp(u)` is
+Rodrigues' `1 + a û + b û²`, `a = sin θ/θ`, `b = (1 − cos θ)/θ²`, from power series in
+`θ²/4` accurate to round-off on the method's whole step range. With a potential `V = aᵀ g b` the torque `Γ × b` at a stage is that of
 `Γ = (g_k exp(u))ᵀa = exp(u)ᵀ Γ_k = Γ_k − α u×Γ_k + β u×(u×Γ_k)` (`α`, `β` as `a`, `b`).
 """
 
@@ -23,11 +27,12 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
+from .._groups._series import truncated_dexpinv_terms
 from ._base import AbstractBatchKernel, materialise, ones
 from ._explicit import explicit_info, finite_result
 from ._kick import advected_rows, coupling_torque, rigid_body_coupling
 from ._runge_kutta import CLASSICAL_RK4, ButcherTableau, rk_in_the_chart
-from ._soa import C_SERIES, P_SERIES, S_SERIES, cross, dot, horner, rotate_rows
+from ._soa import C_SERIES, S_SERIES, cross, dot, horner, rotate_rows
 
 
 def _rotation_coefficients(t):
@@ -44,22 +49,24 @@ def advected_at(u, Gamma):
     return tuple(Gamma[i] - alpha * uG[i] + beta * uuG[i] for i in range(3))
 
 
-def dexpinv_coefficient(u):
-    """`c = (1 − (θ/2)cot(θ/2))/θ²` at `θ = |u|`."""
-    q = dot(u, u) / 4
-    return horner(P_SERIES, q) / (4 * horner(S_SERIES, q))
+def dexpinv_coefficient(u, degree):
+    """`c(θ²)` at `θ = |u|` of `dexp⁻¹`'s series truncated after `ad_u^degree`
+    (`lievi.SO3.dexpinv_series`)."""
+    return horner(truncated_dexpinv_terms(degree), dot(u, u))
 
 
 def left_dexpinv(u, w, c):
-    """`dexp⁻¹_{−u}(w) = w + u×w/2 + c u×(u×w)` on SO(3) (`c = dexpinv_coefficient(u)`)."""
+    """`dexp⁻¹_{−u}(w) = w + u×w/2 + c u×(u×w)` on SO(3) (`c = dexpinv_coefficient(u, …)`;
+    the `ad_u` term present for any degree ≥ 1, as the methods' orders ≥ 4 have)."""
     uw = cross(u, w)
     uuw = cross(u, uw)
     return tuple(w[i] + uw[i] / 2 + c * uuw[i] for i in range(3))
 
 
-def _stage(u, m, rate, coupling):
+def _stage(u, m, rate, coupling, degree):
     """`(h u̇, h Π̇)` at the stage `(u, Π)` (`u = None`: the stage at `u = 0`).
-    `coupling`: `None`, or `(Γ_k, h b)` of a potential `V = aᵀ g b`."""
+    `coupling`: `None`, or `(Γ_k, h b)` of a potential `V = aᵀ g b`; `degree`: of the
+    truncated `dexp⁻¹`."""
     w = tuple(rate[i] * m[i] for i in range(3))
     dm = cross(m, w)
     if coupling is not None:
@@ -70,7 +77,7 @@ def _stage(u, m, rate, coupling):
         dm = tuple(dm[i] + torque[i] for i in range(3))
     if u is None:
         return w, dm
-    return left_dexpinv(u, w, dexpinv_coefficient(u)), dm
+    return left_dexpinv(u, w, dexpinv_coefficient(u, degree)), dm
 
 
 def scaled_coupling(potential, h):
@@ -105,7 +112,10 @@ def rkmk_step(tableau, g, m, rate, coupling=None):
         coupling = (advected_rows(coupling[0], g), coupling[1])
     one = ones(m[0])
     u, m_next = rk_in_the_chart(
-        tableau, lambda u, m, c: _stage(u, m, rate, coupling), m, stored_stages(one)
+        tableau,
+        lambda u, m, c: _stage(u, m, rate, coupling, tableau.dexpinv_degree),
+        m,
+        stored_stages(one),
     )
     # g exp(u), Rodrigues' coefficients. `u = Σ b_j k_j` and the coefficients are stored
     # once: each of the 9 entries of `g_{k+1}` reads them, and would otherwise recompute

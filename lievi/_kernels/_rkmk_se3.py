@@ -17,9 +17,11 @@ With `w = (w_ω, w_v) = h M⁻¹ m` (`h ξ`), a stage's increments are (Kirchhof
     h u̇_ω = J⁻¹ w_ω,
     h u̇_v = J⁻¹ w_v + u_v × w_ω/2 + 2c′(t)s u_ω×(u_ω×w_ω) + c (u_ω×(u_v×w_ω) + u_v×(u_ω×w_ω)),
 
-with `J⁻¹ y = y + u_ω×y/2 + c u_ω×(u_ω×y)` (the SO(3) `dexp⁻¹_{−u_ω}`), `c(t) =
-(1 − (θ/2)cot(θ/2))/θ²`, `t = θ² = |u_ω|²`, `s = u_ω·u_v` (the lower-left block
-`∂_v J⁻¹` of `dexpinv`, its coefficient's derivative along `v` being `2c′(t)s`). The
+with `J⁻¹ y = y + u_ω×y/2 + c u_ω×(u_ω×y)` (the SO(3) `dexp⁻¹_{−u_ω}`), `c(t)` the
+polynomial of `dexp⁻¹`'s series truncated after `ad_u^p` (`_rkmk.dexpinv_coefficient`,
+`lievi.SE3.dexpinv_series`: the order-`p` method keeps its order), `t = θ² = |u_ω|²`,
+`s = u_ω·u_v` (the lower-left block `∂_v J⁻¹` of `dexpinv`, its coefficient's derivative
+along `v` being `2c′(t)s`). The
 step's increment `F = exp(u)` is `(exp û_ω, J(u_ω)u_v)` and `g_{k+1} = g_k F`
 (`_se3.increment`, `_se3.compose_increment`, the rotation re-orthonormalised as
 `lievi.SE3.compose` does).
@@ -34,6 +36,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
+from .._groups._series import truncated_dexpinv_terms
 from ._base import ones
 from ._explicit import explicit_info, finite_result
 from ._kick import coupling_torque
@@ -41,8 +44,7 @@ from ._rkmk import advected_at, left_dexpinv, scaled_coupling, stored_stages
 from ._runge_kutta import CLASSICAL_RK4, ButcherTableau, rk_in_the_chart
 from ._se3 import compose_increment, increment
 from ._se3_layout import SE3Kernel
-from ._se3_residual import exp_series
-from ._soa import cross, dot, entries
+from ._soa import cross, dot, entries, horner_with_derivative
 
 
 def pose_coupling(potential) -> bool:
@@ -52,9 +54,10 @@ def pose_coupling(potential) -> bool:
     return coupling is not None and all(jnp.shape(v)[-1:] == (4,) for v in coupling)
 
 
-def _stage(u, m, rate, coupling):
+def _stage(u, m, rate, coupling, degree):
     """`(h u̇, h ṁ)` at the stage `(u, m)` (`u = None`: the stage at `u = 0`); `rate`:
-    `h M⁻¹`, 6×6; `coupling`: `None`, or `(Γ_k, h b₃, h b₄)` of `V = aᵀ g b`."""
+    `h M⁻¹`, 6×6; `coupling`: `None`, or `(Γ_k, h b₃, h b₄)` of `V = aᵀ g b`; `degree`:
+    of the truncated `dexp⁻¹`."""
     w = tuple(sum(rate[i][j] * m[j] for j in range(6)) for i in range(6))
     wo, wv = w[:3], w[3:]
     Pi, P = m[:3], m[3:]
@@ -71,7 +74,7 @@ def _stage(u, m, rate, coupling):
     if u is None:
         return w, dPi + dP
     uo, uv = u[:3], u[3:]
-    c, c1, *_ = exp_series(dot(uo, uo))  # c and c′ (the rest unused, not computed)
+    c, c1 = horner_with_derivative(truncated_dexpinv_terms(degree), dot(uo, uo))
     du_o, Jwv = left_dexpinv(uo, wo, c), left_dexpinv(uo, wv, c)
     uw = cross(uo, wo)
     uuw, vw = cross(uo, uw), cross(uv, wo)
@@ -92,7 +95,10 @@ def rkmk_se3_step(tableau, g, m, rate, coupling=None):
         coupling = (Gamma, hb[..., :3], hb[..., 3])
     one = ones(m[0])
     u, m_next = rk_in_the_chart(
-        tableau, lambda u, m, c: _stage(u, m, rate, coupling), m, stored_stages(one)
+        tableau,
+        lambda u, m, c: _stage(u, m, rate, coupling, tableau.dexpinv_degree),
+        m,
+        stored_stages(one),
     )
     g_next = compose_increment(g, *increment("exp", u[:3], u[3:], one), one)
     return g_next, m_next, finite_result(m_next, g_next)

