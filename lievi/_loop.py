@@ -174,7 +174,10 @@ def run_static(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
         lambda x: jnp.asarray(x, run.dtype).reshape((n_saves, save_every) + x.shape[1:]),
         run.plan.per_step(),
     )
-    run.progress.report(jnp.asarray(0, jnp.int32), n_steps)
+    # The meter's 0 before the loop: the loop's step counter is the report's result, so
+    # the callback is ordered before the loop's (discarded, nothing orders it, and a loaded
+    # machine showed the 0 after later updates).
+    carry = (*carry[:3], run.progress.report(carry[3], n_steps), *carry[4:])
 
     def body(carry, data):
         return one_save(carry, save_every, lambda one_step, c: steps(one_step, c, data))
