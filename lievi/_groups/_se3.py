@@ -39,7 +39,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._base import MatrixLieGroup
-from ._series import cosc, dexpinv_coefficient, dot, polynomial, sinc3, truncated_dexpinv_terms
+from ._series import cosc, dexpinv_coefficient, dot, horner, sinc3, truncated_dexpinv_terms
 from ._so3 import SO3
 
 
@@ -237,7 +237,7 @@ class SE3Group(MatrixLieGroup):
         omega, v = _split(x)
         W, V = SO3.hat(omega), SO3.hat(v)
         terms = truncated_dexpinv_terms(degree)
-        c, dc = _coefficient_and_derivative(lambda t: polynomial(terms, t), omega, v)
+        c, dc = _coefficient_and_derivative(lambda t: horner(terms, t), omega, v)
         half = min(degree, 1) / 2
         Jinv = jnp.eye(3, dtype=x.dtype) - half * W + c * (W @ W)
         Qinv = -half * V + dc * (W @ W) + c * (W @ V + V @ W)

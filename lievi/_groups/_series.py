@@ -85,8 +85,8 @@ def truncated_dexpinv_terms(degree: int) -> tuple[float, ...]:
     return tuple(terms[2 * j] * (-1) ** (j - 1) for j in range(1, degree // 2 + 1))
 
 
-def polynomial(coefficients, t):
-    """`Σ c_k tᵏ` (Horner), `0` for no coefficients."""
+def horner(coefficients, t):
+    """`Σ c_k tᵏ` by Horner's rule (`0` for no coefficients)."""
     value = jnp.zeros_like(t)
     for c in reversed(coefficients):
         value = value * t + c

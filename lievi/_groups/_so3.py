@@ -17,8 +17,8 @@ from ._series import (
     cosc,
     dexpinv_coefficient,
     dot,
+    horner,
     outer,
-    polynomial,
     sinc,
     sinc3,
     small_threshold,
@@ -140,7 +140,7 @@ class SO3Group(AbstractSpecialOrthogonal):
         (`lievi.RKMK8`'s), `1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600`."""
         t2 = dot(x, x)[..., None, None]
         X = self.hat(x)
-        c = polynomial(truncated_dexpinv_terms(degree), t2)
+        c = horner(truncated_dexpinv_terms(degree), t2)
         return jnp.eye(3, dtype=x.dtype) - min(degree, 1) * X / 2 + c * (X @ X)
 
     def cay(self, x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:

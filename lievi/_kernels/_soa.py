@@ -14,19 +14,14 @@ import math
 
 import jax.numpy as jnp
 
+from .._groups._series import horner  # noqa: F401  (the kernels' Horner, written once)
+
 # Power-series coefficients in u = φ², φ = θ/2. Eleven terms: the first omitted term is
 # below 1e-18 at φ = π/2 (θ = π).
 N_TERMS = 11
 S_SERIES = tuple((-1) ** k / math.factorial(2 * k + 1) for k in range(N_TERMS))  # sin φ / φ
 C_SERIES = tuple((-1) ** k / math.factorial(2 * k) for k in range(N_TERMS))  # cos φ
 P_SERIES = tuple((-1) ** (k + 1) * 2 * k / math.factorial(2 * k + 1) for k in range(1, N_TERMS + 1))
-
-
-def horner(coefficients, u):
-    value = jnp.zeros_like(u)
-    for c in reversed(coefficients):
-        value = value * u + c
-    return value
 
 
 def horner_with_derivative(coefficients, u):
