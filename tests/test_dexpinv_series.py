@@ -38,3 +38,9 @@ def test_truncation_error_has_the_next_order(name):
         np.abs(group.dexpinv_series(s * x, 7) - group.dexpinv(s * x)).max() for s in (0.4, 0.2)
     ]
     assert 2**8 * 0.9 < errors[0] / errors[1] < 2**8 * 1.1
+
+
+@pytest.mark.parametrize("degree", [-1, 2.0, True])
+def test_bad_degree_is_named(degree):
+    with pytest.raises(ValueError, match="`degree` must be an integer"):
+        lievi.SO3.dexpinv_series(np.zeros(3), degree)

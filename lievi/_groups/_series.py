@@ -70,6 +70,10 @@ def bernoulli_terms(degree: int) -> tuple[float, ...]:
     """`B_k/k!` for `k = 0 … degree`: the coefficients of `dexp⁻¹_x = Σ B_k/k! ad_xᵏ`
     (Bernoulli numbers with `B_1 = −1/2`; Hairer–Lubich–Wanner, *Geometric Numerical
     Integration*, §III.4, Lemma 4.2), from `Σ_{j≤k} C(k+1, j) B_j = 0`, exact in rationals."""
+    if not isinstance(degree, int) or isinstance(degree, bool) or degree < 0:
+        raise ValueError(
+            f"`degree` must be an integer ≥ 0 (the last power of ad kept), got {degree!r}."
+        )
     numbers = [Fraction(1)]
     for k in range(1, degree + 1):
         numbers.append(-sum(math.comb(k + 1, j) * numbers[j] for j in range(k)) / (k + 1))
