@@ -22,9 +22,11 @@ class Tuning(eqx.Module):
 
     **Arguments:**
 
-    - `fast`: use the integrator's structure-of-arrays kernel where it has one
-      (`lievi.advanced.has_fast_path`); `False` runs the method's own step under
-      `jax.vmap`. Both compute the same iterates to round-off.
+    - `fast`: run a batch on the integrator's structure-of-arrays kernel as a batch
+      (`lievi.advanced.has_fast_path`): fixed Newton iterations for every body, then the
+      stragglers alone. `False` steps every body as a one-body `simulate` steps it, under
+      `jax.vmap` (Newton to each body's convergence). Both compute the same iterates to
+      round-off.
     - `fixed_iterations`: (kernel) Newton iterations every body takes before the one
       convergence check; bodies still above tolerance then continue, alone, up to the
       integrator's `max_steps`. Default: the kernel's own (none for one body).

@@ -328,20 +328,28 @@ def plan_for(
     """How a run of `integrator` on `system` steps: on the integrator's kernel for it
     (`AbstractIntegrator.batch_kernel`; never forced), else by its own step under
     `jax.vmap`. `tuning`: a `lievi.advanced.Tuning` (`None`: its defaults); `one_body`:
-    the kernel as it runs one body; `carry_g=False`: the kernel's reduced form, if any."""
+    the kernel as it runs one body; `carry_g=False`: the kernel's reduced form, if any.
+
+    `Tuning(fast=False)` steps every body as a one-body `simulate` steps it, as under
+    `jax.vmap` of `simulate`: the kernel as it runs one body (Newton to each body's own
+    convergence), its per-run constants once, its state in its own layout. Not the
+    method's `step` under `jax.vmap`: there the kernel split `g` into components and
+    prepared its constants at every step, and reverse mode assembled each component's
+    cotangent in a fusion of its own that recomputed the step (`RK4`'s batched gradient,
+    409 bodies: 11× its kernel's)."""
     batched = system_axis is not None
     fast, fixed = (True, None) if tuning is None else (tuning.fast, tuning.fixed_iterations)
     kernel = None
-    if fast and forcing is None:
+    if forcing is None:
         kernel = integrator.batch_kernel(system, batched)
     if kernel is None:
         return VmapPlan(system, system_axis, integrator, forcing, args)
     constants = kernel.physics(system, batched)
     if not carry_g:
         kernel = kernel.reduced() or kernel
-    if fixed is not None:
+    if fast and fixed is not None:
         kernel = kernel.with_fixed_iterations(fixed)
-    elif one_body:
+    elif one_body or not fast:
         # One body stops at convergence: no fixed iterations unrolled before the check
         # (`AbstractBatchKernel.one_body`), a smaller program that runs as fast.
         kernel = kernel.one_body()
