@@ -70,7 +70,17 @@ def _scalar_energy_and_potential(key, g, m) -> bool:
 def infer_system_axis(system, system_axis, batch: int | None = None):
     """`system_axis`, or for `None` the axis a batch of systems carries: `None` for one
     system, `0` for a batch built with `jax.vmap` (every array leaf with the same leading
-    size, `batch` where known); anything else is a `ValueError` saying what to pass."""
+    size, `batch` where known); anything else is a `ValueError` saying what to pass. An
+    explicit `system_axis=0` is checked against `batch` here, before any work (a stream
+    would otherwise have created its files)."""
+    if system_axis == 0 and batch is not None:
+        sizes = {jnp.shape(x)[0] for x in jax.tree.leaves(eqx.filter(system, eqx.is_array))}
+        if sizes != {batch}:
+            raise ValueError(
+                f"with `system_axis=0` every array leaf of `system` must have leading axis "
+                f"{batch}, got leading sizes {sorted(sizes)}; build it with "
+                "`jax.vmap(lievi.RigidBody)(inertias)`."
+            )
     if system_axis is not None or _is_one_system(system):
         return system_axis
     leaves = jax.tree.leaves(eqx.filter(system, eqx.is_array))
@@ -204,14 +214,6 @@ def simulate_batch(
     check_finite("m0", m0)
     _check_h(h)
     system_axis = infer_system_axis(system, system_axis, batch)
-    if system_axis == 0:
-        sizes = {jnp.shape(x)[0] for x in jax.tree.leaves(eqx.filter(system, eqx.is_array))}
-        if sizes != {batch}:
-            raise ValueError(
-                f"with `system_axis=0` every array leaf of `system` must have leading axis "
-                f"{batch}, got leading sizes {sorted(sizes)}; build it with "
-                "`jax.vmap(lievi.RigidBody)(inertias)`."
-            )
     dtype = state_dtype(system, g0, m0, h)
     if forcing is not None:
         forcing.check_batch(system, batch)

@@ -160,7 +160,7 @@ def simulate_with_neighbor_list(
             "`skin` to the builder."
         )
     solution = _solution(carry, ts, most, builder, save, n_steps)
-    return raise_if_failed(solution, "lievi.simulate", "a step") if throw else solution
+    return raise_if_failed(solution, label, "a step") if throw else solution
 
 
 def _solution(c, ts, most, builder, save: Save, n_steps: int) -> Solution:

@@ -220,6 +220,15 @@ def test_other_physics_on_an_existing_directory_is_refused(tmp_path):
         np.testing.assert_array_equal(values, finished[name])
 
 
+def test_a_batch_of_systems_of_the_wrong_size_is_refused_before_any_file(tmp_path):
+    """An explicit `system_axis=0` whose systems do not match the bodies: a `ValueError`
+    naming `system_axis` before the writer creates anything."""
+    systems = jax.vmap(lievi.RigidBody)(jnp.array([[1.0, 2.0, 3.0]] * 3))  # 3, not 4
+    with pytest.raises(ValueError, match="`system_axis=0`.*leading axis 4"):
+        _small(tmp_path / "run", system=systems, system_axis=0)
+    assert not (tmp_path / "run").exists()
+
+
 def test_run_record_sees_static_fields_not_addresses():
     """A pytree's digest covers its static fields (a chart, a function held by the system,
     by its name) but not the memory addresses in their `repr`, which another process (a
