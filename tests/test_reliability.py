@@ -91,7 +91,11 @@ def _hlw_batch(inertias):
 
 
 @pytest.mark.parametrize(
-    "integrator, fast", [(lievi.RK4(), True), (lievi.DEP(), False)], ids=["rk4-fast", "dep-generic"]
+    "integrator, fast",
+    [(lievi.RK4(), True), (lievi.DEP(), False), (lievi.PreprocessedMoserVeselov(), True)],
+    # The batch kernel; the one-body kernel under `jax.vmap`; a method without a kernel,
+    # its own step under `jax.vmap`.
+    ids=["rk4-fast", "dep-one-body", "preprocessed-generic"],
 )
 def test_vmapped_bodies_with_bad_inertia_fail_alone(integrator, fast):
     """The README idiom `jax.vmap(lievi.RigidBody)(inertias)` skips the eager check; the
