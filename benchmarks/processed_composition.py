@@ -235,6 +235,9 @@ def main():
             name, (0.4, 0.2, 0.1) if ORDERS[name] == 6 else (0.5, 0.4, 0.25, 0.2)
         )
         print(name, results["orders"][name], flush=True)
+        # Wrong or misread coefficients show as order 4 (the kernel's own): stop there.
+        if abs(results["orders"][name]["fitted_order"] - ORDERS[name]) > 0.1:
+            raise RuntimeError(f"{name}: observed order {results['orders'][name]}")
     plain = PLAIN
     hs = [0.8, 0.4, 0.2, 0.1, 0.05]
     for name in [*KERNELS, *plain]:
