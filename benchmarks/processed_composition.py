@@ -21,7 +21,8 @@ Measured (one core, float64, the heavy top of `work_precision.py`, T = 20, error
 largest over the saved times and the reference bodies): the observed order (log–log fit of
 the final error at T = 2 against h); the CPU cost of each method at each h, the processors
 included (`P⁻¹` once, `P` at each of the 25 saves); the kernel alone; interpolated cost at
-equal attitude and energy errors against `Composition(LiePoissonSplitting(), 6 | 8)`.
+equal attitude and energy errors against `Composition(LiePoissonSplitting(), 6 | 8)` and
+diffrax `Dopri8` (constant steps, the batch in the state, as in `work_precision.py`).
 
     python benchmarks/processed_composition.py              # ~10 min on one core
     python benchmarks/processed_composition.py --long       # energy to T = 2000
@@ -215,6 +216,22 @@ def summarise(results, batch):
         }
 
 
+def timed(name, h, batch, t1, repeats):
+    """`(g, m, seconds, kernel seconds, ok, stages)` of one method at one `h`: a processed
+    method (its kernel alone timed too), a plain composition, or diffrax `Dopri8` with
+    constant steps and the batch in the state (`work_precision.diffrax_run`)."""
+    if name in PLAIN:
+        integrator = lievi.Composition(lievi.LiePoissonSplitting(), *PLAIN[name])
+        g, m, sec, ok, _ = wp.lievi_run(PROBLEM, None, h, batch, t1, repeats, integrator)
+        return g, m, sec, sec, ok, len(integrator.coefficients)
+    if name == "Dopri8":
+        g, m, sec, ok, _ = wp.diffrax_run(PROBLEM, name, h, False, batch, t1, repeats)
+        return g, m, sec, sec, ok, None
+    g, m, sec, ok = processed_run(name, h, batch, t1, repeats)
+    kernel_sec = processed_run(name, h, batch, t1, repeats, kernel_only=True)[2]
+    return g, m, sec, kernel_sec, ok, len(KERNELS[name])
+
+
 def main():
     if "--summarise" in sys.argv:
         out = pathlib.Path(__file__).parent / "results" / "processed_composition.json"
@@ -238,34 +255,22 @@ def main():
         # Wrong or misread coefficients show as order 4 (the kernel's own): stop there.
         if abs(results["orders"][name]["fitted_order"] - ORDERS[name]) > 0.1:
             raise RuntimeError(f"{name}: observed order {results['orders'][name]}")
-    plain = PLAIN
     hs = [0.8, 0.4, 0.2, 0.1, 0.05]
-    for name in [*KERNELS, *plain]:
+    methods = [*KERNELS, *PLAIN, "Dopri8"]
+    for name in methods:
         for h in hs:
             n = int(round(t1 / h))
-            if name in plain:
-                integrator = lievi.Composition(lievi.LiePoissonSplitting(), *plain[name])
-                g, m, sec, ok, _ = wp.lievi_run(PROBLEM, None, h, batch, t1, repeats, integrator)
-                stages, kernel_sec = len(integrator.coefficients), sec
-            else:
-                g, m, sec, ok = processed_run(name, h, batch, t1, repeats)
-                kernel_sec = processed_run(name, h, batch, t1, repeats, kernel_only=True)[2]
-                stages = len(KERNELS[name])
+            g, m, sec, kernel_sec, ok, stages = timed(name, h, batch, t1, repeats)
             row = dict(method=name, h=h, stages=stages, ok=ok, seconds=sec,
                        kernel_seconds=kernel_sec, ns_per_body_step=1e9 * sec / (batch * n),
                        **wp.errors(PROBLEM, g, m, ref))  # fmt: skip
             results["rows"].append(row)
             print(row, flush=True)
     for B in (256, 4096):
-        for name in [*KERNELS, *plain]:
+        for name in methods:
             h = 0.2
-            n = int(round(t1 / h))
-            if name in plain:
-                integrator = lievi.Composition(lievi.LiePoissonSplitting(), *plain[name])
-                sec = wp.lievi_run(PROBLEM, None, h, B, t1, repeats, integrator)[2]
-            else:
-                sec = processed_run(name, h, B, t1, repeats, kernel_only=True)[2]
-            results["per_step_ns"][f"{name} B={B}"] = 1e9 * sec / (B * n)
+            kernel_sec = timed(name, h, B, t1, repeats)[3]
+            results["per_step_ns"][f"{name} B={B}"] = 1e9 * kernel_sec / (B * int(round(t1 / h)))
             print(name, B, results["per_step_ns"][f"{name} B={B}"], flush=True)
     summarise(results, batch)
     out.write_text(json.dumps(results, indent=1))
