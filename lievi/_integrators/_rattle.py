@@ -164,7 +164,7 @@ class RATTLE(AbstractIntegrator):
             blocks = momentum_blocks(xi0, tensor, h)
             C1 = system.constraint_jacobian(advanced(xi0)[0]).astype(m.dtype)
             rows = C1 - 0.5 * jnp.einsum("cnk,nkj->cnj", C1, jax.vmap(SE3.ad)(xi0))
-            solve = kkt_solver(blocks, rows, C0, scale, length)
+            solve = kkt_solver(blocks, rows, C0, scale, length, system.joint_structure())
             z, info = newton_solve(
                 residual, guess, tolerance, self.max_steps, approximate_solve=solve
             )
