@@ -154,8 +154,8 @@ class RATTLE(AbstractIntegrator):
         if self.full_newton:
             z, info = newton_solve(residual, guess, tolerance, self.max_steps)
         else:
-            # The Jacobian at the guess (O(h²) from the root): each body's exact 6×6
-            # momentum block (`jacfwd` of that body's equation alone), and the joints' rows
+            # The Jacobian at the guess (O(h²) from the root): each body's 6×6 momentum
+            # block in closed form to O(|ξ₀|²) (`_rattle_blocks.py`), and the joints' rows
             # `C(g φ(ξ₀)) (1 − ½ ad_ξ₀)` per body, `∂Φ(g φ(ξ))/∂ξ` to O(|ξ₀|²), with `C` in
             # closed form: `jacfwd` of the joints (6N directions through the chart) was the
             # largest part of a batched step. The constant block `M_i/h` (exact to O(|ξ|))
