@@ -161,7 +161,7 @@ class RATTLE(AbstractIntegrator):
             # largest part of a batched step. The constant block `M_i/h` (exact to O(|ξ|))
             # was tried too: it stalled a floating chain under joint torques at h = 0.01
             # (`test_joint_torque_keeps_total_momentum_of_floating_chain`).
-            blocks = momentum_blocks(xi0, tensor, h)
+            blocks = momentum_blocks(xi0, tensor, h, self.chart.ad_squared)
             C1 = system.constraint_jacobian(advanced(xi0)[0]).astype(m.dtype)
             rows = C1 - 0.5 * jnp.einsum("cnk,nkj->cnj", C1, jax.vmap(SE3.ad)(xi0))
             solve = kkt_solver(blocks, rows, C0, scale, length, system.joint_structure())
