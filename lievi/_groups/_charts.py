@@ -21,6 +21,10 @@ class AbstractChart(eqx.Module):
     """A chart `φ` of a matrix Lie group, near the identity."""
 
     name: ClassVar[str]
+    # `c₂` with `dφ⁻¹(ξ) = 1 − ½ ad_ξ + c₂ ad_ξ² + O(|ξ|³)` where the chart's second-order
+    # term is a multiple of `ad_ξ²`, else 0 (its first-order part only): RATTLE's momentum
+    # blocks in closed form (`_integrators/_rattle_blocks.py`) read it.
+    ad_squared: ClassVar[float] = 0.0
 
     @abc.abstractmethod
     def map(self, group, xi):
@@ -59,6 +63,7 @@ class ExpChart(AbstractChart):
     """The exponential map (the paper's (4.7)–(4.8))."""
 
     name: ClassVar[str] = "exp"
+    ad_squared: ClassVar[float] = 1 / 12  # dexp⁻¹ = Σ B_k ad^k / k!, B₂ = 1/6
 
     def map(self, group, xi):
         return group.exp(xi)
@@ -79,6 +84,8 @@ class CayleyChart(AbstractChart):
     """The Cayley map `cay(ξ) = (1 − ξ̂/2)⁻¹(1 + ξ̂/2)` (the variant after (5.7))."""
 
     name: ClassVar[str] = "cayley"
+    # `dcay⁻¹(ξ) y = y − ½[ξ, y] − ¼ ξ̂ ŷ ξ̂`: the last term is not a multiple of `ad_ξ² y`.
+    ad_squared: ClassVar[float] = 0.0
 
     def map(self, group, xi):
         return group.cay(xi)

@@ -51,6 +51,7 @@ from .._newton import check_newton_options, newton_solve, newton_tolerance
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from ._base import AbstractIntegrator, StepInfo, checked_force, forced_end_kick
+from ._rattle_blocks import momentum_blocks
 from ._rattle_schur import kkt_solver
 
 
@@ -153,17 +154,17 @@ class RATTLE(AbstractIntegrator):
         if self.full_newton:
             z, info = newton_solve(residual, guess, tolerance, self.max_steps)
         else:
-            # The Jacobian at the guess (O(h²) from the root): each body's exact 6×6
-            # momentum block (`jacfwd` of that body's equation alone), and the joints' rows
+            # The Jacobian at the guess (O(h²) from the root): each body's 6×6 momentum
+            # block in closed form to O(|ξ₀|²) (`_rattle_blocks.py`), and the joints' rows
             # `C(g φ(ξ₀)) (1 − ½ ad_ξ₀)` per body, `∂Φ(g φ(ξ))/∂ξ` to O(|ξ₀|²), with `C` in
             # closed form: `jacfwd` of the joints (6N directions through the chart) was the
             # largest part of a batched step. The constant block `M_i/h` (exact to O(|ξ|))
             # was tried too: it stalled a floating chain under joint torques at h = 0.01
             # (`test_joint_torque_keeps_total_momentum_of_floating_chain`).
-            blocks = jax.vmap(jax.jacfwd(momentum_term))(xi0, tensor)
+            blocks = momentum_blocks(xi0, tensor, h, self.chart.ad_squared)
             C1 = system.constraint_jacobian(advanced(xi0)[0]).astype(m.dtype)
             rows = C1 - 0.5 * jnp.einsum("cnk,nkj->cnj", C1, jax.vmap(SE3.ad)(xi0))
-            solve = kkt_solver(blocks, rows, C0, scale, length)
+            solve = kkt_solver(blocks, rows, C0, scale, length, system.joint_structure())
             z, info = newton_solve(
                 residual, guess, tolerance, self.max_steps, approximate_solve=solve
             )

@@ -15,13 +15,15 @@ problem (a KKT matrix):
 
 with `A` `N` blocks of 6×6 (≈ `M_i / h`) and `B` `c × 6N` (≈ `C` at `ξ = 0`). Eliminating
 `dξ` leaves the `c × c` Schur complement `S = B A⁻¹ Cᵀ` (at `ξ = 0`: `h C M⁻¹ Cᵀ`, the
-kinetic-metric Gram matrix of the joints). Factored once — `N` LU factorisations of 6×6
-blocks and one of `c × c` — a solve costs block triangular solves and two products with
-`B` and `Cᵀ`: no dense `(6N + c)`-square factorisation and no `jax.jacfwd` per iteration.
+kinetic-metric Gram matrix of the joints), which has a block only where two joints share
+a body (`lievi/_systems/_tree_solve.py`). Factored once — `N` inverses of 6×6 blocks and
+the Schur complement by the joints' tree, without fill — a solve costs block products
+and two products with `B` and `Cᵀ`: no dense `(6N + c)`-square factorisation and no
+`jax.jacfwd` per iteration.
 
-The blocks and the Schur complement are inverted explicitly, once: an iteration is then
-matrix products only, which XLA fuses, where a LAPACK triangular solve per iteration
-costs more on CPU than the rest of the iteration. The inverses' rounding changes how fast
+The blocks and the Schur complement's pivot blocks are inverted explicitly, once: an
+iteration is then matrix products only, which XLA fuses, where a LAPACK triangular solve
+per iteration costs more on CPU than the rest of the iteration. The inverses' rounding changes how fast
 the iteration converges, not where: every iteration evaluates the exact residual.
 """
 
@@ -29,12 +31,15 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from .._systems._tree_solve import tree_solver
 
-def kkt_solver(blocks, B, C, scale, length):
+
+def kkt_solver(blocks, B, C, scale, length, structure):
     """`r ↦ J⁻¹ r` for the RATTLE Jacobian `J` with momentum blocks `blocks` `(N, 6, 6)`
     (`∂f_i/∂ξ_i`, unscaled), constraint rows `B` `(c, N, 6)` and reaction directions `C`
     `(c, N, 6)`; `r` is `(6N + c,)`, the momentum residuals first (as the iteration
-    stacks them)."""
+    stacks them). `structure`: the joints' tree (`ArticulatedBodies.joint_structure`),
+    whose block pattern the Schur complement has."""
     n, c = blocks.shape[0], C.shape[0]
     inverse = jnp.linalg.inv(blocks)
 
@@ -45,15 +50,15 @@ def kkt_solver(blocks, B, C, scale, length):
     if c == 0:
         return lambda r: block_solve(scale * r.reshape(n, 6)).reshape(-1)
 
-    # `A⁻¹ Cᵀ`, one `(N, 6)` column per joint equation, and the Schur complement's inverse.
+    # `A⁻¹ Cᵀ`, one `(N, 6)` column per joint equation, and the Schur complement factored.
     AinvCt = jnp.einsum("nij,anj->ani", inverse, C)
-    schur_inverse = jnp.linalg.inv(jnp.einsum("anj,bnj->ab", B, AinvCt))
+    schur_solve = tree_solver(jnp.einsum("anj,bnj->ab", B, AinvCt), structure)
 
     def solve(r):
         # A dξ − Cᵀ dΛ = s r_ξ and B dξ = ℓ r_Λ: with y = A⁻¹ s r_ξ,
         # S dΛ = ℓ r_Λ − B y and dξ = y + A⁻¹ Cᵀ dΛ.
         y = block_solve(scale * r[: 6 * n].reshape(n, 6))
-        impulse = schur_inverse @ (length * r[6 * n :] - jnp.einsum("anj,nj->a", B, y))
+        impulse = schur_solve(length * r[6 * n :] - jnp.einsum("anj,nj->a", B, y))
         xi = y + jnp.einsum("anj,a->nj", AinvCt, impulse)
         return jnp.concatenate([xi.reshape(-1), impulse])
 

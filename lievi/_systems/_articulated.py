@@ -30,6 +30,7 @@ from ._joints import AbstractJoint
 from ._potential import AbstractPotential, as_potential
 from ._rigid_bodies import RigidBodies
 from ._side import Side
+from ._tree_solve import tree_solver, tree_structure
 
 
 class BodiesGravity(AbstractPotential):
@@ -305,6 +306,11 @@ class ArticulatedBodies(AbstractLieSystem):
             rows.append(jnp.stack(columns, axis=1))
         return jnp.concatenate(rows)
 
+    def joint_structure(self):
+        """The joints' tree as `tree_solver` reads it (`tree_structure`): each joint's rows
+        of `constraints`, the order to eliminate them and the joints sharing a body."""
+        return tree_structure(self.parents, [0 if j is None else j.size for j in self.joints])
+
     def velocity_constraints(self, g, m) -> Float[Array, " c"]:
         """`Φ̇ = C(g) ξ` with `ξ` the velocity of `m` (length per time)."""
         xi = self.velocity(m)
@@ -415,10 +421,11 @@ def _project(system: ArticulatedBodies, C, m):
     Cf = C.reshape(C.shape[0], -1)
     # `M⁻¹ Cᵀ`, one column per constraint.
     MinvCt = jax.vmap(lambda row: system.velocity(row.reshape(n, 6)).reshape(-1))(Cf)
-    # Inverted once for the two solves: one LAPACK call instead of two (on CPU each costs
-    # more than the rest of the projection); the refinement absorbs its rounding.
-    A_inverse = jnp.linalg.inv(Cf @ MinvCt.T)
+    # Factored once for the two solves, by the joints' tree (block tridiagonal for a
+    # chain): small blocks instead of a dense LAPACK inverse; the refinement absorbs its
+    # rounding.
+    solve = tree_solver(Cf @ MinvCt.T, system.joint_structure())
     for _ in range(2):
         rhs = Cf @ system.velocity(m).reshape(-1)
-        m = m - ((A_inverse @ rhs) @ Cf).reshape(n, 6)
+        m = m - (solve(rhs) @ Cf).reshape(n, 6)
     return m
