@@ -28,8 +28,9 @@ class Tuning(eqx.Module):
       `jax.vmap` (Newton to each body's convergence). Both compute the same iterates to
       round-off.
     - `fixed_iterations`: (kernel, `fast=True`) Newton iterations every body takes
-      before the one convergence check; bodies still above tolerance then continue, alone, up to the
-      integrator's `max_steps`. Default: the kernel's own (none for one body).
+      before the one convergence check; bodies still above tolerance then continue,
+      alone, up to the integrator's `max_steps`. Default: the kernel's own (none for one
+      body).
     - `unroll`: steps per iteration of the compiled loop (`lax.scan`'s `unroll`); it
       multiplies the compile time by `unroll`.
     """
