@@ -269,7 +269,9 @@ class SE3DenseKernel(SE3Kernel):
         # (`M` is positive definite, `RigidBodySE3.parameter_conditions`): no pivots, whose
         # permutation `jnp.linalg.inv` applies in a loop of its own.
         factor = jax.scipy.linalg.cho_factor(jax.lax.stop_gradient(tensor))
-        return tensor, jax.scipy.linalg.cho_solve(factor, np.eye(6, dtype=factor[0].dtype))
+        # A batch of systems (`(B, 6, 6)`, e.g. `Tuning(fast=False)`'s bodies) solves each.
+        eye = jnp.broadcast_to(np.eye(6, dtype=factor[0].dtype), jnp.shape(tensor))
+        return tensor, jax.scipy.linalg.cho_solve(factor, eye)
 
     def turn_rates(self, constants, h):
         # |h| times the rotation rows of M⁻¹, `(3, 6, …)` as `turn_squared` reads them.
