@@ -319,10 +319,14 @@ class ArticulatedBodies(AbstractLieSystem):
     def project_momentum(self, g, m) -> Float[Array, "N 6"]:
         """`m + C(g)ᵀμ` with `μ` such that `C(g) ξ = 0`: the momentum with the joints'
         velocity constraints satisfied, nearest to `m` in the kinetic metric."""
+        return self.project_with_impulse(g, m)[0]
+
+    def project_with_impulse(self, g, m):
+        """`(m + C(g)ᵀμ, μ)`: `project_momentum` and the impulse `μ` `(c,)` it applied
+        (`lievi.RATTLE` starts its next step's reaction from it)."""
         if self.n_constraints == 0:
-            return m
-        C = self.constraint_jacobian(g)
-        return _project(self, C, m)
+            return m, jnp.zeros((0,), m.dtype)
+        return _project(self, self.constraint_jacobian(g), m)
 
     # ---- building states ---------------------------------------------------------------------
 
@@ -415,8 +419,8 @@ class ArticulatedBodies(AbstractLieSystem):
 
 
 def _project(system: ArticulatedBodies, C, m):
-    """`m + Cᵀμ` with `C M⁻¹ (m + Cᵀμ) = 0` (the kinetic-metric projection), with one step
-    of iterative refinement so that the velocity constraints hold to round-off."""
+    """`(m + Cᵀμ, μ)` with `C M⁻¹ (m + Cᵀμ) = 0` (the kinetic-metric projection), with one
+    step of iterative refinement so that the velocity constraints hold to round-off."""
     n = system.n_bodies
     Cf = C.reshape(C.shape[0], -1)
     # `M⁻¹ Cᵀ`, one column per constraint.
@@ -425,7 +429,9 @@ def _project(system: ArticulatedBodies, C, m):
     # chain): small blocks instead of a dense LAPACK inverse; the refinement absorbs its
     # rounding.
     solve = tree_solver(Cf @ MinvCt.T, system.joint_structure())
+    impulse = jnp.zeros((Cf.shape[0],), m.dtype)
     for _ in range(2):
-        rhs = Cf @ system.velocity(m).reshape(-1)
-        m = m - (solve(rhs) @ Cf).reshape(n, 6)
-    return m
+        step = -solve(Cf @ system.velocity(m).reshape(-1))
+        m = m + (step @ Cf).reshape(n, 6)
+        impulse = impulse + step
+    return m, impulse
