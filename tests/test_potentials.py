@@ -378,3 +378,28 @@ def test_heavy_top_inertia_about_the_center_of_mass():
     np.testing.assert_array_equal(a.m, b.m)
     with pytest.raises(ValueError, match="`inertia_about` must be"):
         lievi.heavy_top(moments_c, mass, on_axis, inertia_about="com")
+
+
+def test_one_body_heavy_top_stops_newton_at_convergence():
+    """`simulate` (and `Tuning(fast=False)`) run the kick kernel's free step as one body:
+    Newton to the body's own convergence, not the batch's fixed iterations. At a tiny
+    step the first iterate already meets the tolerance, so a step takes fewer iterations
+    than the batch kernel's fixed ones (float64; the same trajectory to 1e-13)."""
+    top, dep = asymmetric_top(), lievi.DEP(chart="exp")
+    g0, m0 = g0_tilted(), M0
+    one = lievi.simulate(top, dep, g0, m0, h=1e-6, n_steps=4)
+    batch = lievi.simulate_batch(top, dep, g0[None], m0[None], h=1e-6, n_steps=4)
+    fixed = lievi.simulate_batch(
+        top,
+        dep,
+        g0[None],
+        m0[None],
+        h=1e-6,
+        n_steps=4,
+        tuning=lievi.advanced.Tuning(fast=False),
+    )
+    assert np.max(one.stats["newton_iterations"]) < np.min(batch.stats["newton_iterations"][0])
+    np.testing.assert_array_equal(
+        fixed.stats["newton_iterations"][0], one.stats["newton_iterations"]
+    )
+    np.testing.assert_allclose(one.m, batch.m[0], rtol=0, atol=1e-13)

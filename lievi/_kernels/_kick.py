@@ -81,6 +81,12 @@ class KickKernel(AbstractBatchKernel):
     def with_fixed_iterations(self, fixed_iterations: int):
         return dataclasses.replace(self, free=self.free.with_fixed_iterations(fixed_iterations))
 
+    def one_body(self):
+        # The free kernel as it runs one body (e.g. Newton to each body's own convergence),
+        # as `simulate` and `Tuning(fast=False)` promise: kept as is, the kicks would run
+        # the batch's fixed iterations there.
+        return dataclasses.replace(self, free=self.free.one_body())
+
     def reduced(self):
         # `V = aᵀ g b` depends on `g` through `Γ = gᵀa` alone.
         return self if self.reduced_state else dataclasses.replace(self, reduced_state=True)
