@@ -60,6 +60,7 @@ from jaxtyping import Array, Float, Scalar
 
 from .._checks import check_scalar, state_dtype, step_size_valid
 from .._groups._so3 import SO3
+from .._kernels._preprocessed import PreprocessedKernel
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
 from .._systems._rigid_body import RigidBody
@@ -203,8 +204,20 @@ def _polyval(coefficients, s):
 def preprocessing(system: RigidBody, m: Float[Array, 3], h: Scalar, order: int):
     """`(α, β)` at step `h`: the modified moments `α I⁻¹ + β` truncated after `h^(order − 2)`."""
     inverse_inertia = jnp.linalg.inv(system.inertia_tensor.astype(m.dtype))
+    return _at_step(inverse_inertia, m, h, order)
+
+
+def _at_step(inverse_inertia, m, h, order: int):
     alpha, beta = modified_moments_series(inverse_inertia, m, order - 2)
     return _polyval(alpha, h), _polyval(beta, h)
+
+
+def modified_principal_moments(moments: Float[Array, 3], m: Float[Array, 3], h, order: int):
+    """The principal moments `1/(α/I_i + β)` of `modified_body` for a body with principal
+    moments `moments`, prepared from `m` for step `h` (the batch kernel's per-run constants,
+    `_kernels/_preprocessed.py`)."""
+    alpha, beta = _at_step(jnp.diag(1 / moments), m, h, order)
+    return 1 / (alpha / moments + beta)
 
 
 def modified_body(system: RigidBody, alpha, beta) -> RigidBody:
@@ -269,6 +282,17 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
 
     def order(self) -> int:
         return self.order_
+
+    def own_step(self) -> bool:
+        # The kernel computes this class's step, with the plain Moser–Veselov step inside.
+        return type(self) is PreprocessedMoserVeselov and self.method.own_step()
+
+    def kernels(self):
+        # Plain DMV's kernel on each body's modified moments, prepared from its `m0`.
+        return tuple(
+            PreprocessedKernel(inner, modified_principal_moments, self.order_)
+            for inner in self.method.kernels()
+        )
 
     def is_symmetric(self) -> bool:
         # α and β are even in h and depend on the invariants H, C only, which the modified
