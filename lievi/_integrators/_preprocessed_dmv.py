@@ -76,17 +76,32 @@ def _cauchy_mask(n: int) -> np.ndarray:
     return (i + j == k).astype(float)
 
 
-def _mul(a, b, mask, spec):
-    """Truncated product of two series (leading axis = power of the variable)."""
-    return jnp.einsum(f"i{spec[0]},j{spec[1]},ijk->k{spec[2]}", a, b, mask)
-
-
 def _hat(v):
     return SO3.hat(v)
 
 
 def _vee(M):
     return jnp.stack([M[..., 2, 1], M[..., 0, 2], M[..., 1, 0]], axis=-1)
+
+
+def _pairs(mask, k):
+    """`pairs[i, j] = 1` iff `i + j = k`: one row of a Cauchy product (`k` traced)."""
+    return jax.lax.dynamic_index_in_dim(mask, k, axis=2, keepdims=False)
+
+
+def _inner_at(k, pairs, X, Y):
+    """The coefficient `k` of `(1 − X/2) Ŷ (1 + X/2)`, from `X₁ … X_k` (`X₀ = 0`): `Ŷ` at
+    `k = 0`, the linear terms, the quadratic one."""
+    X_k = jax.lax.dynamic_index_in_dim(X, k, keepdims=False)
+    quadratic = jnp.einsum("ij,iab,bc,jcd->ad", pairs, X, Y, X)
+    return Y * (k == 0) + (Y @ X_k - X_k @ Y) / 2 - quadratic / 4
+
+
+def _cayley_at(k, pairs, half, F):
+    """`F_k` of `F = cay(X)`, `k ≥ 1`, from `(1 − X/2) F = 1 + X/2`: `X_k/2 + Σ_{i+j=k}
+    (X_i/2) F_j` (`half = X/2`, `X₀ = 0`; `F_k` itself not yet set, zero)."""
+    half_k = jax.lax.dynamic_index_in_dim(half, k, keepdims=False)
+    return half_k + jnp.einsum("ij,iab,jbc->ac", pairs, half, F)
 
 
 def dmv_series(inverse_inertia, y: Float[Array, 3], degree: int):
@@ -111,16 +126,8 @@ def dmv_series(inverse_inertia, y: Float[Array, 3], degree: int):
 
     def power_x(k, series):
         x, inner = series
-        pairs = jax.lax.dynamic_index_in_dim(mask, k, axis=2, keepdims=False)  # i + j = k
-        X = _hat(x)
-        X_k = jax.lax.dynamic_index_in_dim(X, k, keepdims=False)
-        # (1 − X/2) Ŷ (1 + X/2) at s^k: Ŷ at k = 0 (X₀ = 0), the linear terms, the quadratic.
-        inner_k = (
-            Y * (k == 0)
-            + (Y @ X_k - X_k @ Y) / 2
-            - jnp.einsum("ij,iab,bc,jcd->ad", pairs, X, Y, X) / 4
-        )
-        inner = inner.at[k].set(_vee(inner_k))
+        pairs = _pairs(mask, k)
+        inner = inner.at[k].set(_vee(_inner_at(k, pairs, _hat(x), Y)))
         x_next = jnp.einsum("ij,iab,jb->a", pairs, inverse_inertia, inner)
         return x.at[k + 1].set(x_next), inner
 
@@ -128,11 +135,8 @@ def dmv_series(inverse_inertia, y: Float[Array, 3], degree: int):
     x, _ = jax.lax.fori_loop(0, degree, power_x, (zeros, zeros))
     half = _hat(x) / 2
 
-    # (1 − X/2) F = 1 + X/2  ⇔  F_k = X_k/2 + Σ_{i+j=k} (X_i/2) F_j  (k ≥ 1; X₀ = 0).
     def power_F(k, F):
-        pairs = jax.lax.dynamic_index_in_dim(mask, k, axis=2, keepdims=False)
-        half_k = jax.lax.dynamic_index_in_dim(half, k, keepdims=False)
-        return F.at[k].set(half_k + jnp.einsum("ij,iab,jbc->ac", pairs, half, F))
+        return F.at[k].set(_cayley_at(k, _pairs(mask, k), half, F))
 
     F = jax.lax.fori_loop(1, n, power_F, jnp.zeros((n, 3, 3), y.dtype).at[0].set(eye))
     y1 = jnp.einsum("kba,b->ka", F, y)
@@ -164,11 +168,13 @@ def modified_moments_series(inverse_inertia: Float[Array, "3 3"], y: Float[Array
 
     A change `δα h^k, δβ h^k` of the modified moments moves the Cayley coordinates `x` of
     the step by `h^{k+1}(δα I⁻¹y + δβ y)`, hence `y₁` by `h^{k+1} δα ẏ(0)` and the attitude
-    mismatch `R = P(h)ᵀF` by the same vector (hatted), and nothing of lower order. So each
-    sweep reads `δα_k` off the momentum mismatch at `h^{k+1}` (projected on `ẏ(0)`) and
-    `δβ_k` off the component along `y` of the attitude mismatch, for even `k` (odd
-    coefficients vanish by symmetry); a sweep makes one more even power exact, so
-    `degree/2` sweeps suffice. The other components of
+    mismatch `R = P(h)ᵀF` by the same vector (hatted), and nothing of lower order. So one
+    pass over the powers of the DMV step (`dmv_series`'s recurrence) fixes them as it goes:
+    at power `k + 1`, computed with `α_k = β_k = 0`, `δα_k` is read off the momentum
+    mismatch (projected on `ẏ(0)`) and `δβ_k` off the component along `y` of the attitude
+    mismatch, for even `k` (odd coefficients vanish by symmetry), and `x`, `F` at that power
+    are moved by them before the next. (A fixed-point sweep over the whole series per even
+    power cost 3× at order 8.) The other components of
     the mismatch vanish by the torus argument of the module docstring
     (`tools/derive_preprocessed_dmv.py` checks it in exact arithmetic).
     """
@@ -189,21 +195,34 @@ def modified_moments_series(inverse_inertia: Float[Array, "3 3"], y: Float[Array
     spinning = norm2 > 1e3 * jnp.finfo(dtype).tiny
     safe_norm2 = jnp.where(spinning, norm2, 1.0)
 
-    def sweep(_, moments):
-        alpha, beta = moments
-        modified = alpha[:, None, None] * inverse_inertia + beta[:, None, None] * eye
-        F, y1 = dmv_series(modified, y, n - 1)
-        R = _mul(jnp.swapaxes(Ps, 1, 2), F, mask, ("ab", "bc", "ac"))
-        a = jnp.where(moving, (ys - y1) @ velocity / safe_speed2, 0.0)
-        rotation = -_vee(R - jnp.swapaxes(R, 1, 2)) / 2 - a[:, None] * spin_axis
-        b = jnp.where(spinning, rotation @ y / safe_norm2, 0.0)
-        # The mismatch at h^(k+1) corrects the coefficient of h^k, even k only: odd
-        # coefficients are zero, and updating them from a mismatch that still carries
-        # the error of lower even powers would spoil them.
-        return alpha.at[2:-1:2].add(a[3::2]), beta.at[2:-1:2].add(b[3::2])
+    Y = _hat(y)
 
+    def power(k, state):
+        x, inner, F, alpha, beta = state
+        pairs, pairs_next = _pairs(mask, k), _pairs(mask, k + 1)
+        inner = inner.at[k].set(_vee(_inner_at(k, pairs, _hat(x), Y)))
+        modified = alpha[:, None, None] * inverse_inertia + beta[:, None, None] * eye
+        x = x.at[k + 1].set(jnp.einsum("ij,iab,jb->a", pairs, modified, inner))
+        F = F.at[k + 1].set(_cayley_at(k + 1, pairs_next, _hat(x) / 2, F))
+        # The mismatch at h^(k+1), with the coefficients of h^k not yet set.
+        F_next = jax.lax.dynamic_index_in_dim(F, k + 1, keepdims=False)
+        y_next = jax.lax.dynamic_index_in_dim(ys, k + 1, keepdims=False)
+        R = jnp.einsum("ij,iba,jbc->ac", pairs_next, Ps, F)
+        a = jnp.where(moving, (y_next - F_next.T @ y) @ velocity / safe_speed2, 0.0)
+        rotation = -_vee(R - R.T) / 2 - a * spin_axis
+        b = jnp.where(spinning, rotation @ y / safe_norm2, 0.0)
+        # Even k ≥ 2 only: odd coefficients are zero, and (α₀, β₀) = (1, 0).
+        update = (k % 2 == 0) & (k >= 2)
+        a, b = jnp.where(update, a, 0.0), jnp.where(update, b, 0.0)
+        shift = a * spin_axis + b * y  # x at h^(k+1), hence F (its coefficient there is X)
+        x, F = x.at[k + 1].add(shift), F.at[k + 1].add(_hat(shift))
+        return x, inner, F, alpha.at[k].add(a), beta.at[k].add(b)
+
+    zeros = jnp.zeros((n, 3), dtype)
     alpha = jnp.zeros(n, dtype).at[0].set(1.0)
-    alpha, beta = jax.lax.fori_loop(0, degree // 2, sweep, (alpha, jnp.zeros(n, dtype)))
+    F = jnp.zeros((n, 3, 3), dtype).at[0].set(eye)
+    state = (zeros, zeros, F, alpha, jnp.zeros(n, dtype))
+    *_, alpha, beta = jax.lax.fori_loop(0, n - 1, power, state)
     return alpha[: degree + 1], beta[: degree + 1]
 
 
