@@ -278,15 +278,18 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     - `method`: the inner `MoserVeselov` (its Newton tolerances).
 
     `α`, `β` depend on the step size and on the trajectory's invariants (truncated-series
-    arithmetic, up to ~10⁶ flops at order 10). `lievi.simulate` computes them once per run,
-    for that run's `h` and `m0` (`init`), so every step costs one DMV step, and an
+    arithmetic in one pass over the powers of the step: ~9 µs per body at order 8, batched).
+    `lievi.simulate` computes them once per run, for that run's `h` and `m0` (its set-up),
+    so every step costs one DMV step, and an
     integrator prepared for another `h` is prepared anew rather than misused. Called
     directly, `step` computes them from the current momentum; `prepare(system, m0, h)`
     returns a copy that stores them, whose `step` then requires that `h` (an error
     otherwise, also under `jit`) and a state on the trajectory of `m0` (the same energy
     and Casimir; another momentum is reported as `RESULTS.invalid_input`).
-    `equivalent_moser_veselov(system, m0, h)` returns the modified body itself, for
-    `MoserVeselov` fast paths such as `lievi.simulate_batch`'s.
+    `equivalent_moser_veselov(system, m0, h)` returns the modified body itself.
+    `lievi.simulate_batch` and `simulate` run it, on principal moments, on `MoserVeselov`'s
+    batch kernel with each body's modified moments computed once, from its own `m0`, in the
+    run's set-up (`_kernels/_preprocessed.py`).
     """
 
     order_: int = eqx.field(static=True)
