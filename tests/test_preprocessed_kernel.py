@@ -82,3 +82,22 @@ def test_one_body_runs_on_the_kernel_its_own_trajectory():
     assert int(info.result) == 0
     _, _, info = prepared.step(body, jnp.eye(3), m0, jnp.asarray(0.1))
     assert int(info.result) == lievi.RESULTS.invalid_input
+
+
+@pytest.mark.extended  # 7 s
+def test_a_step_past_the_bound_fails_as_on_the_generic_path():
+    """The step-size check is on the body's own moments (the generic `step_too_large`),
+    not the modified ones: the same body fails, at the same step, on both paths."""
+    momenta = M0S.at[1].set(jnp.array([0.0, 40.0, 0.0]))  # h|Ω| = 5 on I₂ = 0.8
+    body = lievi.RigidBody(INERTIA)
+
+    def run(integrator):
+        return lievi.simulate_batch(
+            body, integrator, G0S, momenta, h=0.1, n_steps=3, save=lievi.Save(), throw=False
+        )
+
+    fast, generic = run(lievi.PreprocessedMoserVeselov(6)), run(GenericPreprocessed(6))
+    assert int(fast.result[1]) == lievi.RESULTS.step_too_large
+    np.testing.assert_array_equal(fast.result, generic.result)
+    np.testing.assert_array_equal(fast.stats["failed_step"], generic.stats["failed_step"])
+    np.testing.assert_allclose(fast.m[0], generic.m[0], rtol=0, atol=1e-13)
