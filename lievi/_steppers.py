@@ -268,7 +268,7 @@ class KernelPlan(AbstractPlan):
         group = self.system.group if self.project and drifts_off_group(dtype) else None
         return KernelStepper(
             self.kernel,
-            self.kernel.prepare(constants, h),
+            self.kernel.prepare_run(constants, m0, h),
             # Per-run constants of the step-size check, once outside the loop.
             self.kernel.turn_rates(constants, h),
             self.bound,

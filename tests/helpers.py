@@ -22,6 +22,11 @@ def hlw_problem():
     return body, jnp.eye(3), m0
 
 
+class GenericPreprocessed(lievi.PreprocessedMoserVeselov):
+    """The preprocessed method on the generic path: a subclass runs its own step (its
+    per-run `init` under `jax.vmap`), never its parent's kernel (`own_step`)."""
+
+
 def random_rotation(rng, n):
     q, r = np.linalg.qr(rng.normal(size=(n, n)))
     q = q * np.sign(np.diag(r))

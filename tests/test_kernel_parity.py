@@ -90,6 +90,15 @@ REGISTRY = [
         "SplittingKernel",
     ),
     ("rk4", lievi.RK4(), _rigid_body, INERTIA, jnp.eye(3), M0, "RK4Kernel"),
+    (
+        "preprocessed-8",
+        lievi.PreprocessedMoserVeselov(8),
+        _rigid_body,
+        INERTIA,
+        jnp.eye(3),
+        M0,
+        "PreprocessedKernel",
+    ),
     *RKMK_ENTRIES,
     (
         "composition-splitting-6",

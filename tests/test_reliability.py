@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import lievi
-from helpers import hlw_problem
+from helpers import GenericPreprocessed, hlw_problem
 
 IMPLICIT = {
     "dep-exp": lievi.DEP(chart="exp"),
@@ -92,10 +92,15 @@ def _hlw_batch(inertias):
 
 @pytest.mark.parametrize(
     "integrator, fast",
-    [(lievi.RK4(), True), (lievi.DEP(), False), (lievi.PreprocessedMoserVeselov(), True)],
-    # The batch kernel; the one-body kernel under `jax.vmap`; a method without a kernel,
-    # its own step under `jax.vmap`.
-    ids=["rk4-fast", "dep-one-body", "preprocessed-generic"],
+    [
+        (lievi.RK4(), True),
+        (lievi.DEP(), False),
+        (lievi.PreprocessedMoserVeselov(), True),
+        (GenericPreprocessed(), True),
+    ],
+    # The batch kernel; the one-body kernel under `jax.vmap`; a kernel with per-body
+    # constants from `m0`; a method without a kernel, its own step under `jax.vmap`.
+    ids=["rk4-fast", "dep-one-body", "preprocessed-fast", "preprocessed-generic"],
 )
 def test_vmapped_bodies_with_bad_inertia_fail_alone(integrator, fast):
     """The README idiom `jax.vmap(lievi.RigidBody)(inertias)` skips the eager check; the

@@ -168,6 +168,13 @@ class AbstractBatchKernel(eqx.Module):
         returned: by default the 3 principal moments, arrays or scalars) and the step `h`
         (an array `(B,)` or a scalar), computed once outside the loop."""
 
+    def prepare_run(self, constants, m0, h):
+        """Per-run constants of a run that starts at the momenta `m0` `(B, d)`: by default
+        `prepare`'s, which do not depend on them. A kernel whose step depends on each
+        trajectory (the preprocessed Moser–Veselov method's modified moments, functions of
+        its energy and Casimir) computes that here, once per run, outside the loop."""
+        return self.prepare(constants, h)
+
     @abc.abstractmethod
     def step(self, params, g, m, alive):
         """Advance `(g, m)` by one step.
