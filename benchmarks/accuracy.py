@@ -21,6 +21,14 @@ ratios within one run are the figure to quote.
     python benchmarks/accuracy.py --quick    # smoke test (a few methods, small sizes)
     python benchmarks/accuracy.py --cost-only  # re-measure the cost per step only
     python benchmarks/accuracy.py --drift    # 10⁶ steps: error against time (~10 min)
+    taskset -c 0 python benchmarks/accuracy.py --batch-cost   # batched cost (~2 min)
+
+`--batch-cost` times `PreprocessedMoserVeselov(8)` in `simulate_batch` per body-step, on
+its batch kernel and on the generic path (a subclass: each body's `init` and step under
+`jax.vmap`), beside `MoserVeselov()` and `RKMK8()`, and its start-up (the modified moments,
+µs per body): HLW body, `Π₀` scaled per body, h = 0.1, 1000 steps, one saved state, under
+`jax.jit`, CPU time, best of 5 with the methods alternated in one process, batches 256,
+1024 and 4096. Writes `results/accuracy_batch_cost.json`.
 
 `--drift` is the long-run picture: 10⁶ steps of h = 0.1 (T = 10⁵) of one body, the
 Hairer–Lubich–Wanner free body and the benchmark's heavy top (`work_precision.py`'s), with
@@ -38,6 +46,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import time
 import warnings
@@ -51,6 +60,7 @@ import numpy as np  # noqa: E402
 
 import lievi  # noqa: E402
 from lievi import diagnostics as dg  # noqa: E402
+from lievi._integrators._preprocessed_dmv import modified_principal_moments  # noqa: E402
 
 RESULTS_DIR = pathlib.Path(__file__).parent / "results"
 
@@ -534,6 +544,62 @@ def plot(results, path):
     fig.savefig(path, dpi=110)
 
 
+class _GenericPreprocessed(lievi.PreprocessedMoserVeselov):
+    """The generic path (a subclass has no kernel): each body's `init` and step under
+    `jax.vmap`, the cost before the kernel."""
+
+
+def batch_cost(batches=(256, 1024, 4096), steps=1000, repeats=5) -> dict:
+    """`--batch-cost`: ns per body-step of `PreprocessedMoserVeselov(8)` on its kernel and
+    on the generic path beside `MoserVeselov` and `RKMK8`, and µs per body of its
+    start-up (the modified moments alone, batched), HLW body (module docstring)."""
+    inertia, m0, h = jnp.array([2.0, 1.0, 2 / 3]), jnp.array([np.cos(1.1), 0.0, np.sin(1.1)]), 0.1
+    body = lievi.RigidBody(inertia)
+    methods = {
+        "PMV(8) kernel": lievi.PreprocessedMoserVeselov(8),
+        "PMV(8) generic": _GenericPreprocessed(8),
+        "MoserVeselov": lievi.MoserVeselov(),
+        "RKMK8": lievi.RKMK8(),
+    }
+    save = lievi.Save(every=steps, stats=False)
+    out = {"problem": "HLW body", "h": h, "steps": steps, "rows": []}
+    for batch in batches:
+        m0s = m0 * (1 + 0.2 * jnp.sin(jnp.arange(batch)))[:, None]
+        g0s = jnp.broadcast_to(jnp.eye(3), (batch, 3, 3))
+        calls = {
+            name: jax.jit(
+                lambda m, method=method, g0s=g0s: (
+                    lievi.simulate_batch(
+                        body, method, g0s, m, h=h, n_steps=steps, save=save, throw=False
+                    ).m
+                )
+            )
+            for name, method in methods.items()
+        }
+        calls["start-up"] = jax.jit(
+            jax.vmap(lambda m: modified_principal_moments(inertia, m, h, 8))
+        )
+        best = dict.fromkeys(calls, np.inf)
+        for f in calls.values():
+            jax.block_until_ready(f(m0s))
+        for _ in range(repeats):  # the methods alternated
+            for name, f in calls.items():
+                t = time.process_time()
+                jax.block_until_ready(f(m0s))
+                best[name] = min(best[name], time.process_time() - t)
+        row = {"batch": batch}
+        for name in methods:
+            row[f"{name} ns per body-step"] = best[name] / (batch * steps) * 1e9
+        row["PMV(8) start-up us per body"] = best["start-up"] / batch * 1e6
+        out["rows"].append(row)
+        print(
+            "  ".join(
+                f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()
+            )
+        )
+    return out
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smoke test: few methods, small sizes")
@@ -551,11 +617,22 @@ def main():
         default=None,
         help="only the long-run drift picture, with this many steps (default 10⁶)",
     )
+    parser.add_argument(
+        "--batch-cost",
+        action="store_true",
+        help="only the batched per body-step cost of PreprocessedMoserVeselov(8) and its start-up",
+    )
     args = parser.parse_args()
     out_dir = pathlib.Path(args.out) if args.out else RESULTS_DIR
     out_dir.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if args.quick else ""
     start = time.perf_counter()
+    if args.batch_cost:
+        results = {"device": str(jax.devices()[0]), "dtype": "float64", **batch_cost()}
+        results["load_average"] = os.getloadavg()
+        (out_dir / "accuracy_batch_cost.json").write_text(json.dumps(results, indent=1))
+        print(f"wrote {out_dir / 'accuracy_batch_cost.json'}")
+        return
     if args.drift:
         results = {"device": str(jax.devices()[0]), "dtype": "float64", **drift(args.drift)}
         results["total_s"] = time.perf_counter() - start
