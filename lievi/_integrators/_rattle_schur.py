@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from .._small_linalg import inverse as small_inverse
 from .._systems._tree_solve import tree_solver
 
 
@@ -41,7 +42,7 @@ def kkt_solver(blocks, B, C, scale, length, structure):
     stacks them). `structure`: the joints' tree (`ArticulatedBodies.joint_structure`),
     whose block pattern the Schur complement has."""
     n, c = blocks.shape[0], C.shape[0]
-    inverse = jnp.linalg.inv(blocks)
+    inverse = small_inverse(blocks)
 
     def block_solve(v):
         """`A⁻¹ v` for `v` `(N, 6)`: each body's block on its own rows."""
