@@ -32,6 +32,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from .._small_linalg import inverse as small_inverse
+from .._small_linalg import matvec
 from .._systems._tree_solve import tree_solver
 
 
@@ -46,21 +47,23 @@ def kkt_solver(blocks, B, C, scale, length, structure):
 
     def block_solve(v):
         """`A⁻¹ v` for `v` `(N, 6)`: each body's block on its own rows."""
-        return jnp.einsum("nij,nj->ni", inverse, v)
+        return matvec(inverse, v)
 
     if c == 0:
         return lambda r: block_solve(scale * r.reshape(n, 6)).reshape(-1)
 
     # `A⁻¹ Cᵀ`, one `(N, 6)` column per joint equation, and the Schur complement factored.
-    AinvCt = jnp.einsum("nij,anj->ani", inverse, C)
-    schur_solve = tree_solver(jnp.einsum("anj,bnj->ab", B, AinvCt), structure)
+    # Products as broadcast-multiply-and-sum (`_small_linalg`), not `einsum`: batched,
+    # those were tiny `dot_general`s.
+    AinvCt = matvec(inverse[None], C)
+    schur_solve = tree_solver(jnp.sum(B[:, None] * AinvCt[None], axis=(2, 3)), structure)
 
     def solve(r):
         # A dξ − Cᵀ dΛ = s r_ξ and B dξ = ℓ r_Λ: with y = A⁻¹ s r_ξ,
         # S dΛ = ℓ r_Λ − B y and dξ = y + A⁻¹ Cᵀ dΛ.
         y = block_solve(scale * r[: 6 * n].reshape(n, 6))
-        impulse = schur_solve(length * r[6 * n :] - jnp.einsum("anj,nj->a", B, y))
-        xi = y + jnp.einsum("anj,a->nj", AinvCt, impulse)
+        impulse = schur_solve(length * r[6 * n :] - jnp.sum(B * y, axis=(1, 2)))
+        xi = y + jnp.sum(AinvCt * impulse[:, None, None], axis=0)
         return jnp.concatenate([xi.reshape(-1), impulse])
 
     return solve
