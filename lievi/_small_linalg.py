@@ -19,11 +19,6 @@ def matvec(A, x):
     return jnp.sum(A * x[..., None, :], axis=-1)
 
 
-def matmul(A, B):
-    """`A B` for `A` `(..., p, q)` and `B` `(..., q, r)`."""
-    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
-
-
 def inverse(A):
     """`A⁻¹` for `A` `(..., n, n)` by Gauss–Jordan elimination without pivoting, unrolled.
 
@@ -42,7 +37,5 @@ def inverse(A):
             if i == k:
                 continue
             factor = a[i][k]
-            a[i] = [
-                -factor * pivot if j == k else a[i][j] - factor * a[k][j] for j in range(n)
-            ]
+            a[i] = [-factor * pivot if j == k else a[i][j] - factor * a[k][j] for j in range(n)]
     return jnp.stack([jnp.stack(row, axis=-1) for row in a], axis=-2)

@@ -49,7 +49,6 @@ from .._groups._charts import AbstractChart, as_chart
 from .._groups._se3 import SE3
 from .._newton import check_newton_options, newton_solve, newton_tolerance
 from .._results import RESULTS
-from .._small_linalg import matvec
 from .._systems._base import AbstractLieSystem
 from ._base import AbstractIntegrator, StepInfo, checked_force, forced_end_kick
 from ._rattle_blocks import momentum_blocks
@@ -163,20 +162,14 @@ class RATTLE(AbstractIntegrator):
 
         def momentum_term(xi, M):
             """`dφ⁻¹(ξ_i)ᵀ M_i ξ_i / h`, body `i`'s side of its momentum equation."""
-            return jnp.sum(self.chart.dinverse(SE3, xi) * matvec(M, xi)[:, None], 0) / h
-
-        def pushed(impulse):
-            """`C(g_k)ᵀ Λ` `(N, 6)`. This and the step's other small products are
-            written as broadcast-multiply-and-sum (`_small_linalg`): `einsum`s batched by
-            `jax.vmap` were tiny `dot_general`s, a loop of GEMM calls on CPU."""
-            return jnp.sum(C0 * impulse[:, None, None], axis=0)
+            return self.chart.dinverse(SE3, xi).T @ (M @ xi) / h
 
         def joints_after(xi):
             return system.constraints(advanced(xi)[0])
 
         def residual(z):
             xi, impulse = unpack(z)
-            m_plus = start + pushed(impulse)
+            m_plus = start + jnp.einsum("cnk,c->nk", C0, impulse)
             momentum = jax.vmap(momentum_term)(xi, tensor) - m_plus
             return jnp.concatenate([momentum.reshape(-1) / scale, joints_after(xi) / length])
 
@@ -185,7 +178,7 @@ class RATTLE(AbstractIntegrator):
         impulse0 = jnp.zeros((c,), m.dtype)
         if reaction is not None:
             impulse0 = jnp.where(jnp.isfinite(reaction), h / 2 * reaction, 0).astype(m.dtype)
-        xi0 = h * system.velocity(start + pushed(impulse0))
+        xi0 = h * system.velocity(start + jnp.einsum("cnk,c->nk", C0, impulse0))
         guess = jnp.concatenate([xi0.reshape(-1), impulse0])
         tolerance = newton_tolerance(1.0, m.dtype, self.rtol, self.atol)
         if self.full_newton:
@@ -200,15 +193,15 @@ class RATTLE(AbstractIntegrator):
             # (`test_joint_torque_keeps_total_momentum_of_floating_chain`).
             blocks = momentum_blocks(xi0, tensor, h, self.chart.ad_squared)
             C1 = system.constraint_jacobian(advanced(xi0)[0]).astype(m.dtype)
-            rows = C1 - 0.5 * jnp.sum(C1[..., None] * SE3.ad(xi0)[None], axis=2)
+            rows = C1 - 0.5 * jnp.einsum("cnk,nkj->cnj", C1, jax.vmap(SE3.ad)(xi0))
             solve = kkt_solver(blocks, rows, C0, scale, length, system.joint_structure())
             z, info = newton_solve(
                 residual, guess, tolerance, self.max_steps, approximate_solve=solve
             )
         xi, impulse = unpack(z)
-        m_plus = start + pushed(impulse)
+        m_plus = start + jnp.einsum("cnk,c->nk", C0, impulse)
         g_next, F = advanced(xi)
-        m_next = jnp.sum(SE3.Ad(F) * m_plus[..., None], axis=1)
+        m_next = jnp.einsum("nji,nj->ni", jax.vmap(SE3.Ad)(F), m_plus)
         if system.potential is not None:
             m_next = m_next + h / 2 * system.force(g_next)
         iterations, residual_norm = info.iterations, info.residual

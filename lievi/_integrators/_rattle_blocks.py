@@ -22,23 +22,20 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from .._groups._se3 import SE3
-from .._small_linalg import matmul, matvec
 
 
 def momentum_blocks(xi, tensor, h, ad_squared):
     """`∂f_i/∂ξ_i` `(N, 6, 6)` at the increments `xi` `(N, 6)` for the kinetic tensors
     `tensor` `(N, 6, 6)`, the step `h` and the chart's `ad_squared` coefficient."""
-    mu = matvec(tensor, xi)
+    mu = jnp.einsum("nij,nj->ni", tensor, xi)
     adT = jnp.swapaxes(SE3.ad(xi), -1, -2)
     # `K(μ)[:, l] = ad_{e_l}ᵀ μ`: the coadjoint action as a matrix in its Lie-algebra slot.
-    # Products as broadcast-multiply-and-sum (`_small_linalg`): batched, `einsum` and `@`
-    # were tiny `dot_general`s.
-    basis = jnp.transpose(SE3.ad(jnp.eye(6, dtype=xi.dtype)), (2, 0, 1))
+    basis = SE3.ad(jnp.eye(6, dtype=xi.dtype))
 
     def coad(w):
-        return matvec(basis, w[..., None, :])
+        return jnp.einsum("lji,nj->nil", basis, w)
 
-    first = tensor - 0.5 * (matmul(adT, tensor) + coad(mu))
-    w = matvec(adT, mu)
-    second = coad(w) + matmul(adT, coad(mu) + matmul(adT, tensor))
+    first = tensor - 0.5 * (adT @ tensor + coad(mu))
+    w = jnp.einsum("nij,nj->ni", adT, mu)
+    second = coad(w) + adT @ (coad(mu) + adT @ tensor)
     return (first + ad_squared * second) / h

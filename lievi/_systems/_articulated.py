@@ -428,12 +428,10 @@ def _project(system: ArticulatedBodies, C, m):
     # Factored once for the two solves, by the joints' tree (block tridiagonal for a
     # chain): small blocks instead of a dense LAPACK inverse; the refinement absorbs its
     # rounding.
-    # The products as broadcast-multiply-and-sum: batched by `jax.vmap`, `@` with `Cf`
-    # was a tiny `dot_general` each.
-    solve = tree_solver(jnp.sum(Cf[:, None] * MinvCt[None], axis=-1), system.joint_structure())
+    solve = tree_solver(Cf @ MinvCt.T, system.joint_structure())
     impulse = jnp.zeros((Cf.shape[0],), m.dtype)
     for _ in range(2):
-        step = -solve(jnp.sum(Cf * system.velocity(m).reshape(-1), axis=-1))
-        m = m + jnp.sum(step[:, None] * Cf, axis=0).reshape(n, 6)
+        step = -solve(Cf @ system.velocity(m).reshape(-1))
+        m = m + (step @ Cf).reshape(n, 6)
         impulse = impulse + step
     return m, impulse

@@ -22,7 +22,6 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from .._small_linalg import inverse as small_inverse
-from .._small_linalg import matmul
 
 
 def tree_structure(parents, sizes):
@@ -47,12 +46,6 @@ def tree_structure(parents, sizes):
     return offsets, order, neighbours
 
 
-def _times(A, v):
-    """`A v` for `v` `(q,)` or `(q, k)`, as broadcast-multiply-and-sum: batched by
-    `jax.vmap`, `@` of these small blocks was a tiny `dot_general` each."""
-    return matmul(A, v.reshape(v.shape[0], -1)).reshape(A.shape[0], *v.shape[1:])
-
-
 def tree_solver(S, structure):
     """`r ↦ S⁻¹ r` for `S` `(c, c)` with the block pattern of `structure`
     (`tree_structure`), factored here once; `r` `(c,)` or `(c, k)`."""
@@ -63,10 +56,10 @@ def tree_solver(S, structure):
         inverse[a] = small_inverse(block[a, a])
         rest = [b for b in neighbours[a] if b not in done]
         for b in rest:
-            lower[b, a] = matmul(block[b, a], inverse[a])
+            lower[b, a] = block[b, a] @ inverse[a]
         for b in rest:
             for d in rest:
-                block[b, d] = block[b, d] - matmul(lower[b, a], block[a, d])
+                block[b, d] = block[b, d] - lower[b, a] @ block[a, d]
         done.add(a)
 
     def solve(r):
@@ -76,15 +69,15 @@ def tree_solver(S, structure):
             for b in neighbours[a]:
                 if b not in eliminated and b != a:
                     if (b, a) in lower:
-                        parts[b] = parts[b] - _times(lower[b, a], parts[a])
+                        parts[b] = parts[b] - lower[b, a] @ parts[a]
             eliminated.add(a)
         x, later = {}, set()
         for a in reversed(order):
             value = parts[a]
             for b in neighbours[a]:
                 if b in later:
-                    value = value - _times(block[a, b], x[b])
-            x[a] = _times(inverse[a], value)
+                    value = value - block[a, b] @ x[b]
+            x[a] = inverse[a] @ value
             later.add(a)
         return jnp.concatenate([x[a] for a in sorted(offsets)])
 
