@@ -11,13 +11,17 @@ the projection and of the iteration's set-up for a 5-link hinge chain.
 
 No pivoting across blocks: every pivot block is a Schur complement of a symmetric
 positive definite matrix (the Gram matrix), or of one perturbed by O(|ξ|) (RATTLE's),
-so it stays nonsingular and well conditioned for steps the iteration converges at; each
-small block is inverted with partial pivoting (`jnp.linalg.inv`).
+so it stays nonsingular and well conditioned for steps the iteration converges at, and
+each small block is inverted by elimination in order, unrolled (`_small_linalg.inverse`):
+under `jax.vmap` a LAPACK inverse per block (`getrf`, two `trsm` and a loop for the
+pivots) cost more than the elimination itself.
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
+
+from .._small_linalg import inverse as small_inverse
 
 
 def tree_structure(parents, sizes):
@@ -49,7 +53,7 @@ def tree_solver(S, structure):
     block = {(a, b): S[offsets[a], offsets[b]] for a in order for b in [a, *neighbours[a]]}
     inverse, lower, done = {}, {}, set()
     for a in order:
-        inverse[a] = jnp.linalg.inv(block[a, a])
+        inverse[a] = small_inverse(block[a, a])
         rest = [b for b in neighbours[a] if b not in done]
         for b in rest:
             lower[b, a] = block[b, a] @ inverse[a]
