@@ -66,6 +66,7 @@ from .._systems._base import AbstractLieSystem
 from .._systems._rigid_body import RigidBody
 from ._base import AbstractIntegrator, StepInfo
 from ._moser_veselov import MoserVeselov
+from ._preprocessed_shared import fitted_principal_moments
 
 ORDERS = (4, 6, 8, 10)
 
@@ -249,6 +250,14 @@ def modified_principal_moments(moments: Float[Array, 3], m: Float[Array, 3], h, 
     return 1 / (alpha / moments + beta)
 
 
+def shared_modified_principal_moments(
+    moments: Float[Array, 3], m0s: Float[Array, "B 3"], h, order: int
+):
+    """`modified_principal_moments` of every body of a batch that shares `moments`, fitted
+    from `order/2` sample trajectories (`_preprocessed_shared.py`: why, and how)."""
+    return fitted_principal_moments(modified_moments_series, moments, m0s, h, order)
+
+
 def modified_body(system: RigidBody, alpha, beta) -> RigidBody:
     """The rigid body with inverse inertia `α I⁻¹ + β·Id` (same principal axes)."""
     inertia = jnp.asarray(system.inertia)
@@ -322,7 +331,9 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     def kernels(self):
         # Plain DMV's kernel on each body's modified moments, prepared from its `m0`.
         return tuple(
-            PreprocessedKernel(inner, modified_principal_moments, self.order_)
+            PreprocessedKernel(
+                inner, modified_principal_moments, shared_modified_principal_moments, self.order_
+            )
             for inner in self.method.kernels()
         )
 
