@@ -12,6 +12,9 @@ each, on momenta of unit Casimir in the plane of the largest and smallest moment
 the Chebyshev–Vandermonde system at those nodes is solved by its discrete orthogonality
 (a fixed matrix product, exact and well conditioned; differentiable in the inertia), and
 each body then evaluates the polynomials in `(H, C)`, homogeneously (no division by `C`).
+At a rotation exactly about a principal axis each body's series keeps `α = 1` (`α` is not
+determined there) where the fit gives the nearby trajectories' value: the modified moment
+of that axis, the only one the step sees, is the same.
 
 Why: the per-body series arithmetic was most of a short batched run's cost (8–9 µs per
 body at order 8, the step ~55 ns: at 25–100 steps the start-up dominated); the fit costs
@@ -67,7 +70,8 @@ def fitted_principal_moments(series, moments, m0s, h, order: int):
     samples = jnp.sqrt((1 - u) / 2) * low + jnp.sqrt((1 + u) / 2) * high  # |m| = 1, H = e(u)
     alphas, betas = jax.vmap(lambda m: series(jnp.diag(inverse), m, order - 2))(samples)
     fit = jnp.asarray(_fit_matrix(n), dtype)
-    # Chebyshev coefficients `[k, j]` of p_k (row k: the coefficient of h^(2k)), j ≤ k.
+    # Chebyshev coefficients `[k, j]` of p_k (row k: the coefficient of h^(2k)), j ≤ k:
+    # by the orthogonality, the same as fitting degree k alone (the rest are round-off).
     degree_mask = jnp.asarray(np.tri(n), dtype)
     alpha_fit = (fit @ alphas[:, 0::2]).T * degree_mask
     beta_fit = (fit @ betas[:, 0::2]).T * degree_mask
