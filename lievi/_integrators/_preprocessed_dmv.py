@@ -66,6 +66,7 @@ from .._systems._base import AbstractLieSystem
 from .._systems._rigid_body import RigidBody
 from ._base import AbstractIntegrator, StepInfo
 from ._moser_veselov import MoserVeselov
+from ._preprocessed_shared import fitted_principal_moments
 
 ORDERS = (4, 6, 8, 10)
 
@@ -249,6 +250,14 @@ def modified_principal_moments(moments: Float[Array, 3], m: Float[Array, 3], h, 
     return 1 / (alpha / moments + beta)
 
 
+def shared_modified_principal_moments(
+    moments: Float[Array, 3], m0s: Float[Array, "B 3"], h, order: int
+):
+    """`modified_principal_moments` of every body of a batch that shares `moments`, fitted
+    from `order/2` sample trajectories (`_preprocessed_shared.py`: why, and how)."""
+    return fitted_principal_moments(modified_moments_series, moments, m0s, h, order)
+
+
 def modified_body(system: RigidBody, alpha, beta) -> RigidBody:
     """The rigid body with inverse inertia `α I⁻¹ + β·Id` (same principal axes)."""
     inertia = jnp.asarray(system.inertia)
@@ -278,7 +287,9 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     - `method`: the inner `MoserVeselov` (its Newton tolerances).
 
     `α`, `β` depend on the step size and on the trajectory's invariants (truncated-series
-    arithmetic in one pass over the powers of the step: ~9 µs per body at order 8, batched).
+    arithmetic in one pass over the powers of the step: ~9 µs per body at order 8, batched;
+    a batch sharing one body fits them from `order/2` such computations, ~0.1–1.5 µs per
+    body).
     `lievi.simulate` computes them once per run, for that run's `h` and `m0` (its set-up),
     so every step costs one DMV step, and an
     integrator prepared for another `h` is prepared anew rather than misused. Called
@@ -322,7 +333,9 @@ class PreprocessedMoserVeselov(AbstractIntegrator):
     def kernels(self):
         # Plain DMV's kernel on each body's modified moments, prepared from its `m0`.
         return tuple(
-            PreprocessedKernel(inner, modified_principal_moments, self.order_)
+            PreprocessedKernel(
+                inner, modified_principal_moments, shared_modified_principal_moments, self.order_
+            )
             for inner in self.method.kernels()
         )
 
