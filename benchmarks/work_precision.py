@@ -137,7 +137,7 @@ def steps_for(order, horizon, quick):
     if quick:
         return [0.2, 0.1]
     if horizon == "long":
-        return [0.8, 0.4, 0.2, 0.1] if order >= 6 else [0.1, 0.05, 0.025]
+        return [0.8, 0.4, 0.2, 0.1, 0.05] if order >= 6 else [0.1, 0.05, 0.025]
     return [0.8, 0.4, 0.2, 0.1, 0.05] if order >= 6 else [0.2, 0.1, 0.05, 0.025, 0.0125]
 
 
