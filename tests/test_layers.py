@@ -13,7 +13,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "lievi"
 
 # Lowest first. A module may import from its own layer or any lower one, never a higher.
 LAYERS = (
-    ("foundations", ("_results", "_checks")),
+    ("foundations", ("_results", "_checks", "_small_linalg")),
     ("solvers", ("_newton",)),
     ("groups", ("_groups",)),
     ("physics", ("_systems", "_forcing")),
