@@ -80,3 +80,17 @@ def dop853_final(rhs, y0, T):
     )
     assert sol.success
     return jnp.asarray(sol.y[:, -1])
+
+
+def assert_kernel_matches_generic(fast, generic, fast_grads, generic_grads, iterates, gradients):
+    """A kernel run and its generic path's (`Solution`s and gradients): every body
+    successful, iterates to `iterates` (momenta relative to their scale), gradients to
+    `gradients` relative, and no gradient identically zero."""
+    np.testing.assert_array_equal(fast.result, 0)
+    np.testing.assert_array_equal(generic.result, 0)
+    scale = float(np.max(np.abs(generic.m)))
+    np.testing.assert_allclose(fast.m, generic.m, rtol=0, atol=iterates * scale)
+    np.testing.assert_allclose(fast.g, generic.g, rtol=0, atol=iterates)
+    for a, b in zip(fast_grads, generic_grads):
+        assert float(np.max(np.abs(b))) > 0
+        np.testing.assert_allclose(a, b, rtol=gradients, atol=gradients * float(np.max(np.abs(b))))
