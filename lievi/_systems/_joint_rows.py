@@ -18,8 +18,10 @@ from .._small_linalg import matvec
 
 
 def _matmul(A, B):
-    """`A B` for `A` `(p, q)` and `B` `(q, r)` as a broadcast sum (elementwise under `vmap`)."""
-    return jnp.sum(A[:, :, None] * B[None, :, :], axis=1)
+    """`A B` for `A` `(p, q)` and `B` `(q, r)`. As `dot`, not a broadcast sum: batched by
+    `vmap` the sum was 1.3x faster at a batch of 16 but 1.2-1.4x slower at 4096 (it reduces
+    over a middle axis), the `dot` faster than the dense products at both."""
+    return A @ B
 
 
 class JointRows:
