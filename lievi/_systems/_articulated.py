@@ -26,11 +26,11 @@ from .._checks import is_concrete
 from .._groups._base import MatrixLieGroup
 from .._groups._se3 import SE3
 from ._base import AbstractLieSystem
+from ._joint_rows import JointRows
 from ._joints import AbstractJoint
 from ._potential import AbstractPotential, as_potential
 from ._rigid_bodies import RigidBodies
 from ._side import Side
-from ._joint_rows import JointRows
 from ._tree_solve import block_tree_solver, tree_structure
 
 
