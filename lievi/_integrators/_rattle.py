@@ -162,7 +162,7 @@ class RATTLE(AbstractIntegrator):
 
         def momentum_term(xi, M):
             """`dφ⁻¹(ξ_i)ᵀ M_i ξ_i / h`, body `i`'s side of its momentum equation."""
-            return self.chart.dinverse(SE3, xi).T @ (M @ xi) / h
+            return self.chart.dinverse_transpose_apply(SE3, xi, M @ xi) / h
 
         def joints_after(xi):
             return system.constraints(advanced(xi)[0])
