@@ -127,6 +127,11 @@ class MatrixLieGroup(eqx.Module):
         eye = jnp.broadcast_to(jnp.eye(self.algebra_dim, dtype=D.dtype), D.shape)
         return jnp.linalg.solve(D, eye)
 
+    def dexpinv_transpose_apply(self, x, mu):
+        """`dexp⁻¹(x)ᵀ μ`, the chart's factor of a DEP momentum `dexp⁻¹(ξ)ᵀ M ξ / h`;
+        groups with a closed form apply it without building the matrix."""
+        return jnp.einsum("...ji,...j->...i", self.dexpinv(x), mu)
+
     def dexpinv_series(
         self, x: Float[Array, "*batch d"], degree: int
     ) -> Float[Array, "*batch d d"]:

@@ -38,6 +38,11 @@ class AbstractChart(eqx.Module):
     def dinverse(self, group, xi):
         """`dφ⁻¹(ξ)`, the inverse of the right-trivialised derivative of `φ` at `ξ`."""
 
+    def dinverse_transpose_apply(self, group, xi, mu):
+        """`dφ⁻¹(ξ)ᵀ μ` (a DEP momentum's chart factor); charts with a closed form skip
+        the matrix."""
+        return jnp.einsum("...ji,...j->...i", self.dinverse(group, xi), mu)
+
     @abc.abstractmethod
     def beyond_branch(self, angle_squared, radius: float):
         """Whether an increment turning by `√angle_squared` is past the chart's branch
@@ -73,6 +78,9 @@ class ExpChart(AbstractChart):
 
     def dinverse(self, group, xi):
         return group.dexpinv(xi)
+
+    def dinverse_transpose_apply(self, group, xi, mu):
+        return group.dexpinv_transpose_apply(xi, mu)
 
     def beyond_branch(self, angle_squared, radius: float):
         # Beyond the injectivity radius of exp the "root" belongs to another branch of log:

@@ -228,6 +228,27 @@ class SE3Group(MatrixLieGroup):
         Qinv = -V / 2 + dc * (W @ W) + c * (W @ V + V @ W)
         return _blocks(Jinv, jnp.zeros_like(Jinv), Qinv, Jinv)
 
+    def dexpinv_transpose_apply(self, x, mu):
+        """`dexpinv(x)ᵀ μ` by cross products: `(Jᵀa + Qᵀb, Jᵀb)` for `μ = (a, b)`, with
+        `Jᵀy = y + ω×y/2 + c ω×(ω×y)` and `Qᵀb = v×b/2 + c' ω×(ω×b) + c (v×(ω×b) + ω×(v×b))`.
+        Under `jax.vmap` the `6×6` matrix and its product were most of RATTLE's residual
+        on the chains of docs/articulated.md."""
+        omega, v = _split(x)
+        a, b = _split(mu)
+        c, dc = _coefficient_and_derivative(dexpinv_coefficient, omega, v)
+        c, dc = c[..., 0], dc[..., 0]
+
+        def jt(y):
+            return y + jnp.cross(omega, y) / 2 + c * jnp.cross(omega, jnp.cross(omega, y))
+
+        wb = jnp.cross(omega, b)
+        qt = (
+            jnp.cross(v, b) / 2
+            + dc * jnp.cross(omega, wb)
+            + c * (jnp.cross(v, wb) + jnp.cross(omega, jnp.cross(v, b)))
+        )
+        return jnp.concatenate([jt(a) + qt, jt(b)], axis=-1)
+
     def dexpinv_series(
         self, x: Float[Array, "*batch 6"], degree: int
     ) -> Float[Array, "*batch 6 6"]:

@@ -33,16 +33,16 @@ import jax.numpy as jnp
 
 from .._small_linalg import inverse as small_inverse
 from .._small_linalg import matvec
-from .._systems._tree_solve import tree_solver
+from .._systems._tree_solve import block_tree_solver
 
 
 def kkt_solver(blocks, B, C, scale, length, structure):
     """`r ↦ J⁻¹ r` for the RATTLE Jacobian `J` with momentum blocks `blocks` `(N, 6, 6)`
-    (`∂f_i/∂ξ_i`, unscaled), constraint rows `B` `(c, N, 6)` and reaction directions `C`
-    `(c, N, 6)`; `r` is `(6N + c,)`, the momentum residuals first (as the iteration
-    stacks them). `structure`: the joints' tree (`ArticulatedBodies.joint_structure`),
-    whose block pattern the Schur complement has."""
-    n, c = blocks.shape[0], C.shape[0]
+    (`∂f_i/∂ξ_i`, unscaled), constraint rows `B` and reaction directions `C`, both
+    `JointRows` (`(c, N, 6)` kept by joint); `r` is `(6N + c,)`, the momentum residuals
+    first (as the iteration stacks them). `structure`: the joints' tree
+    (`ArticulatedBodies.joint_structure`), whose block pattern the Schur complement has."""
+    n, c = blocks.shape[0], sum(rows.shape[0] for rows in C.of_child)
     inverse = small_inverse(blocks)
 
     def block_solve(v):
@@ -52,21 +52,17 @@ def kkt_solver(blocks, B, C, scale, length, structure):
     if c == 0:
         return lambda r: block_solve(scale * r.reshape(n, 6)).reshape(-1)
 
-    # `A⁻¹ Cᵀ`, one `(N, 6)` column per joint equation, and the Schur complement factored.
-    # Products as broadcast-multiply-and-sum (`_small_linalg`), not `einsum`: batched,
-    # those were tiny `dot_general`s (measured: 1.1-1.25x a chain-step). The same rewrite
-    # of the residual, the momentum blocks, the tree solve and the projection was slower
-    # (0.75-0.9x): there the `dot`s fold the batch into one GEMM, or the sums reduce over
-    # a leading axis, which XLA:CPU does not vectorise.
-    AinvCt = matvec(inverse[None], C)
-    schur_solve = tree_solver(jnp.sum(B[:, None] * AinvCt[None], axis=(2, 3)), structure)
+    # The Schur complement `B A⁻¹ Cᵀ` by its nonzero blocks (two joints sharing a body),
+    # factored by the joints' tree: each joint's rows touch two bodies, so neither `A⁻¹ Cᵀ`
+    # nor the products with `B` and `Cᵀ` are formed densely.
+    schur_solve = block_tree_solver(B.gram_blocks(inverse, C, structure), structure)
 
     def solve(r):
         # A dξ − Cᵀ dΛ = s r_ξ and B dξ = ℓ r_Λ: with y = A⁻¹ s r_ξ,
         # S dΛ = ℓ r_Λ − B y and dξ = y + A⁻¹ Cᵀ dΛ.
         y = block_solve(scale * r[: 6 * n].reshape(n, 6))
-        impulse = schur_solve(length * r[6 * n :] - jnp.sum(B * y, axis=(1, 2)))
-        xi = y + jnp.sum(AinvCt * impulse[:, None, None], axis=0)
+        impulse = schur_solve(length * r[6 * n :] - B.apply(y))
+        xi = y + block_solve(C.transpose_apply(impulse))
         return jnp.concatenate([xi.reshape(-1), impulse])
 
     return solve

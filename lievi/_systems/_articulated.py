@@ -26,11 +26,12 @@ from .._checks import is_concrete
 from .._groups._base import MatrixLieGroup
 from .._groups._se3 import SE3
 from ._base import AbstractLieSystem
+from ._joint_rows import JointRows
 from ._joints import AbstractJoint
 from ._potential import AbstractPotential, as_potential
 from ._rigid_bodies import RigidBodies
 from ._side import Side
-from ._tree_solve import tree_solver, tree_structure
+from ._tree_solve import block_tree_solver, tree_structure
 
 
 class BodiesGravity(AbstractPotential):
@@ -284,6 +285,12 @@ class ArticulatedBodies(AbstractLieSystem):
         n, c = self.n_bodies, self.n_constraints
         if c == 0:
             return jnp.zeros((0, n, 6), g.dtype)
+        return self.constraint_rows(g).dense()
+
+    def constraint_rows(self, g: Float[Array, "N 4 4"]) -> JointRows:
+        """`C(g)` by joint (`JointRows`): each joint's closed-form rows on its two bodies,
+        the joints of one kind evaluated together as in `constraints`. `lievi.RATTLE`
+        multiplies with these, never with the dense `(c, N, 6)` array."""
         length = self.length_scale().astype(g.dtype)
         poses = jnp.concatenate([g, jnp.eye(4, dtype=g.dtype)[None]])
         blocks = {}
@@ -294,17 +301,14 @@ class ArticulatedBodies(AbstractLieSystem):
             )
             for k, i in enumerate(bodies):
                 blocks[i] = (of_parent[k], of_child[k])
-        # Assembled by static slices and stacks, not a scatter: batched, a scatter into
-        # `(c, N, 6)` is a serial loop on CPU that cost as much as the rest of `C`.
-        rows = []
-        for i, (p, joint) in enumerate(zip(self.parents, self.joints)):
-            if joint is None:
-                continue
-            of_parent, of_child = blocks[i]
-            zero = jnp.zeros_like(of_child)
-            columns = [of_child if j == i else of_parent if j == p else zero for j in range(n)]
-            rows.append(jnp.stack(columns, axis=1))
-        return jnp.concatenate(rows)
+        joined = [i for i, joint in enumerate(self.joints) if joint is not None]
+        return JointRows(
+            self.n_bodies,
+            joined,
+            [self.parents[i] for i in joined],
+            [blocks[i][0] for i in joined],
+            [blocks[i][1] for i in joined],
+        )
 
     def joint_structure(self):
         """The joints' tree as `tree_solver` reads it (`tree_structure`): each joint's rows
@@ -326,7 +330,7 @@ class ArticulatedBodies(AbstractLieSystem):
         (`lievi.RATTLE` starts its next step's reaction from it)."""
         if self.n_constraints == 0:
             return m, jnp.zeros((0,), m.dtype)
-        return _project(self, self.constraint_jacobian(g), m)
+        return _project(self, self.constraint_rows(g), m)
 
     # ---- building states ---------------------------------------------------------------------
 
@@ -418,20 +422,21 @@ class ArticulatedBodies(AbstractLieSystem):
         )
 
 
-def _project(system: ArticulatedBodies, C, m):
+def _project(system: ArticulatedBodies, C: JointRows, m):
     """`(m + Cᵀμ, μ)` with `C M⁻¹ (m + Cᵀμ) = 0` (the kinetic-metric projection), with one
     step of iterative refinement so that the velocity constraints hold to round-off."""
     n = system.n_bodies
-    Cf = C.reshape(C.shape[0], -1)
-    # `M⁻¹ Cᵀ`, one column per constraint.
-    MinvCt = jax.vmap(lambda row: system.velocity(row.reshape(n, 6)).reshape(-1))(Cf)
-    # Factored once for the two solves, by the joints' tree (block tridiagonal for a
-    # chain): small blocks instead of a dense LAPACK inverse; the refinement absorbs its
+    # `M⁻¹` per body `(N, 6, 6)`, column `k` the velocity of the momentum `e_k`.
+    basis = jnp.eye(6, dtype=m.dtype)
+    M_inv = jnp.stack([system.velocity(jnp.broadcast_to(e, (n, 6))) for e in basis], axis=-1)
+    # The Gram matrix `C M⁻¹ Cᵀ` by its nonzero blocks, factored once for the two solves
+    # by the joints' tree (block tridiagonal for a chain); the refinement absorbs its
     # rounding.
-    solve = tree_solver(Cf @ MinvCt.T, system.joint_structure())
-    impulse = jnp.zeros((Cf.shape[0],), m.dtype)
+    structure = system.joint_structure()
+    solve = block_tree_solver(C.gram_blocks(M_inv, C, structure), structure)
+    impulse = jnp.zeros((sum(rows.shape[0] for rows in C.of_child),), m.dtype)
     for _ in range(2):
-        step = -solve(Cf @ system.velocity(m).reshape(-1))
-        m = m + (step @ Cf).reshape(n, 6)
+        step = -solve(C.apply(system.velocity(m)))
+        m = m + C.transpose_apply(step)
         impulse = impulse + step
     return m, impulse

@@ -50,7 +50,16 @@ def tree_solver(S, structure):
     """`r ↦ S⁻¹ r` for `S` `(c, c)` with the block pattern of `structure`
     (`tree_structure`), factored here once; `r` `(c,)` or `(c, k)`."""
     offsets, order, neighbours = structure
-    block = {(a, b): S[offsets[a], offsets[b]] for a in order for b in [a, *neighbours[a]]}
+    blocks = {(a, b): S[offsets[a], offsets[b]] for a in order for b in [a, *neighbours[a]]}
+    return block_tree_solver(blocks, structure)
+
+
+def block_tree_solver(blocks, structure):
+    """`tree_solver` from the nonzero blocks `{(a, b): S_ab}` of `S` alone (joints named
+    by their body, `b` = `a` or one of its `neighbours`), as `JointRows.gram_blocks`
+    gives them: the dense `S` is never formed."""
+    offsets, order, neighbours = structure
+    block = dict(blocks)
     inverse, lower, done = {}, {}, set()
     for a in order:
         inverse[a] = small_inverse(block[a, a])
