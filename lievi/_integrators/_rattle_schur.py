@@ -42,7 +42,7 @@ def kkt_solver(blocks, B, C, scale, length, structure):
     `JointRows` (`(c, N, 6)` kept by joint); `r` is `(6N + c,)`, the momentum residuals
     first (as the iteration stacks them). `structure`: the joints' tree
     (`ArticulatedBodies.joint_structure`), whose block pattern the Schur complement has."""
-    n, c = blocks.shape[0], sum(rows.shape[0] for rows in C.of_child)
+    n, c = blocks.shape[0], C.n_rows
     inverse = small_inverse(blocks)
 
     def block_solve(v):

@@ -434,7 +434,7 @@ def _project(system: ArticulatedBodies, C: JointRows, m):
     # rounding.
     structure = system.joint_structure()
     solve = block_tree_solver(C.gram_blocks(M_inv, C, structure), structure)
-    impulse = jnp.zeros((sum(rows.shape[0] for rows in C.of_child),), m.dtype)
+    impulse = jnp.zeros((C.n_rows,), m.dtype)
     for _ in range(2):
         step = -solve(C.apply(system.velocity(m)))
         m = m + C.transpose_apply(step)

@@ -34,6 +34,11 @@ class JointRows:
         self.child, self.parent = tuple(child), tuple(parent)
         self.of_parent, self.of_child = list(of_parent), list(of_child)
 
+    @property
+    def n_rows(self) -> int:
+        """`c`, the rows of all joints."""
+        return sum(rows.shape[0] for rows in self.of_child)
+
     def _columns(self, k):
         """`(body, rows)` of joint `k`'s nonzero column blocks."""
         columns = [(self.child[k], self.of_child[k])]
