@@ -41,6 +41,9 @@ from jaxtyping import Scalar
 
 from .._checks import check_shape, is_concrete
 from .._groups._so3 import SO3
+from .._kernels._axisymmetric import AxisymmetricKernel, mean_first_moments
+from .._kernels._composition import SchemeKernel
+from .._kernels._kick import KickKernel
 from .._kernels._scheme import SplittingScheme
 from .._results import RESULTS
 from .._systems._base import AbstractLieSystem
@@ -89,13 +92,34 @@ SCHEMES = {
 }
 
 
-def symmetric_moments(method: str, system: AbstractLieSystem):
-    """`(I₁, I₃)` of a rigid body on SO(3) with principal moments `(I₁, I₁, I₃)`.
+def check_axisymmetric(method: str, inertia, tensor: bool = False) -> None:
+    """Raise `ValueError` unless concrete principal moments `(..., 3)` (with `tensor`:
+    inertia tensors `(..., 3, 3)`, which must be diagonal) have equal first two entries,
+    to a few ulps. Traced moments pass: the other integrators, too, leave traced
+    parameters to the run (`check_pair_sums`)."""
+    if not is_concrete(inertia):
+        return
+    values = np.asarray(inertia, float)
+    if tensor:
+        diagonal = np.diagonal(values, axis1=-2, axis2=-1)
+        symmetric = np.all(values * (1 - np.eye(3)) == 0)
+    else:
+        diagonal, symmetric = values, True
+    scale = np.max(np.abs(diagonal))
+    gap = np.max(np.abs(diagonal[..., 0] - diagonal[..., 1]))
+    if not symmetric or gap > 8 * np.finfo(float).eps * scale:
+        raise ValueError(
+            f"{method}: `inertia` must be axisymmetric about the body's third axis, principal "
+            f"moments (I₁, I₁, I₃) (or a diagonal tensor with equal first two entries); got "
+            f"{values.tolist()}. For any other body use `Composition(LiePoissonSplitting(), "
+            "…)`."
+        )
 
-    Raises `ValueError` for another system, a full inertia tensor that is not diagonal,
-    or unequal first two moments, where the inertia is concrete; a traced inertia is
-    taken as given (its first moment is used), as the other integrators leave traced
-    parameters to the run's checks."""
+
+def check_symmetric_body(method: str, system: AbstractLieSystem, batched: bool = False):
+    """Raise `ValueError` unless `system` is a rigid body on SO(3) whose concrete inertia is
+    axisymmetric (`check_axisymmetric`; `batched`: a batch of systems, a leading axis);
+    returns its inertia."""
     inertia = getattr(system, "inertia", None)
     if system.group != SO3 or system.lambda_matrix() is None or inertia is None:
         raise ValueError(
@@ -103,20 +127,16 @@ def symmetric_moments(method: str, system: AbstractLieSystem):
             f"a `lievi.RigidBody` (with or without a potential), got {type(system).__name__}."
         )
     inertia = jnp.asarray(inertia)
-    if is_concrete(inertia):
-        values = np.asarray(inertia, float)
-        diagonal = np.diagonal(values) if values.ndim == 2 else values
-        off = values - np.diag(diagonal) if values.ndim == 2 else np.zeros(1)
-        scale = np.max(np.abs(diagonal))
-        if np.any(off != 0) or abs(diagonal[0] - diagonal[1]) > 8 * np.finfo(float).eps * scale:
-            raise ValueError(
-                f"{method}: `inertia` must be axisymmetric about the body's third axis, "
-                f"principal moments (I₁, I₁, I₃) (a diagonal tensor with equal first two "
-                f"entries); got {values.tolist()}. For any other body use "
-                "`Composition(LiePoissonSplitting(), …)`."
-            )
+    check_axisymmetric(method, inertia, tensor=inertia.ndim == 2 + batched)
+    return inertia
+
+
+def symmetric_moments(method: str, system: AbstractLieSystem):
+    """`(I₁, I₃)` of one rigid body on SO(3) with principal moments `(I₁, I₁, I₃)`
+    (`check_symmetric_body`); `I₁` the mean of the first two (`mean_first_moments`)."""
+    inertia = check_symmetric_body(method, system)
     diagonal = jnp.diagonal(inertia) if inertia.ndim == 2 else inertia
-    return diagonal[0], diagonal[2]
+    return mean_first_moments(diagonal), diagonal[2]
 
 
 def axisymmetric_free_flow(I1, I3, g, m, t):
@@ -168,10 +188,28 @@ class SymmetricTopSplitting(AbstractKickIntegrator):
     def own_step(self) -> bool:
         return type(self) is SymmetricTopSplitting
 
+    def kernels(self):
+        return (AxisymmetricKernel(),)
+
+    def batch_kernel(self, system: AbstractLieSystem, batched: bool = False):
+        # Where a run is planned, on the concrete system (its step may see it traced).
+        check_symmetric_body("SymmetricTopSplitting", system, batched)
+        free = self.free_kernel(system, batched)
+        if free is None or system.potential is None:
+            return free
+        # The kicks of the potential at the scheme's weights, between exact free flows.
+        kernel = KickKernel(free, system.potential)
+        if kernel.physics(system, batched) is None:
+            return None
+        return SchemeKernel(kernel, self.scheme.drifts, scheme=self.scheme)
+
     def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
         I1, I3 = symmetric_moments("SymmetricTopSplitting", system)
         check_shape("g", g, (3, 3), "an element of SO(3)")
         check_shape("m", m, (3,), "momentum coordinates of so(3)*")
+        fast = self.kernel_step(system, g, m, h)
+        if fast is not None:  # the closed form on components (principal moments)
+            return fast
         g_next, m_next = axisymmetric_free_flow(I1, I3, g, m, h)
         finite = jnp.all(jnp.isfinite(m_next)) & jnp.all(jnp.isfinite(g_next))
         result = jnp.where(finite, RESULTS.successful, RESULTS.nonfinite)
