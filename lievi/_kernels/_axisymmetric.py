@@ -33,8 +33,13 @@ def axisymmetric_flow(g, m, rate, spin_rate):
     still = squared == 0
     size = jnp.sqrt(jnp.where(still, 1, squared))
     half = 0.5 * rate
-    sin_phi, cos_phi = sincos(half * size)
-    sin_psi, cos_psi = sincos((0.5 * spin_rate) * m[2])
+    # The two sine–cosine pairs and the product stored once each (`materialise`): left to
+    # XLA's fusion, each consumer recomputed them (measured, Lagrange top, batch 256, one
+    # core: 25 ns a body-stage of the order-6 step stored so, 28 with the product alone
+    # stored, 57 with nothing stored; the axis splitting's composition 40).
+    sin_phi, cos_phi, sin_psi, cos_psi = materialise(
+        (*sincos(half * size), *sincos((0.5 * spin_rate) * m[2])), one
+    )
     scale = jnp.where(still, half, sin_phi / size)
     turn = (cos_phi, scale * m[0], scale * m[1], scale * m[2])
     spin = (cos_psi, 0.0, 0.0, sin_psi)
