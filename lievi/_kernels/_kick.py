@@ -136,8 +136,9 @@ class KickKernel(AbstractBatchKernel):
     def step_stages(self, params, g, m, alive):
         """The splitting scheme of `prepare_scheme` (kick `b_0 h`, then free step `a_i h`
         and kick `b_i h` per stage). For the composition `Φ_{γ_s h} ∘ … ∘ Φ_{γ_1 h}` of
-        kick – free step – kick (`prepare_stages`) the half kicks of adjacent stages are merged: stage `i` ends and stage `i + 1` begins at the
-        same `g_i`, so `Π + (γ_i h/2)M(g_i) + (γ_{i+1} h/2)M(g_i)` is one kick
+        kick – free step – kick (`prepare_stages`) the half kicks of adjacent stages are
+        merged: stage `i` ends and stage `i + 1` begins at the same `g_i`, so
+        `Π + (γ_i h/2)M(g_i) + (γ_{i+1} h/2)M(g_i)` is one kick
         `Π + ((γ_i + γ_{i+1}) h/2)M(g_i)` — `s + 1` torques a step, not `2s`, and the same
         map (equal to the unmerged stages to round-off: one addition fewer per merge). A
         non-finite torque is caught once, at the end of the step (it propagates through
