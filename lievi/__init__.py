@@ -52,6 +52,7 @@ from ._integrators._rkmk import RKMK5 as RKMK5
 from ._integrators._rkmk import RKMK8 as RKMK8
 from ._integrators._rkmk import AbstractRKMK as AbstractRKMK
 from ._integrators._splitting import LiePoissonSplitting as LiePoissonSplitting
+from ._integrators._symmetric_top import SymmetricTopSplitting as SymmetricTopSplitting
 from ._monitor import AbstractInvariantMonitor as AbstractInvariantMonitor
 from ._monitor import EnergyMonitor as EnergyMonitor
 from ._monitor import MomentumMonitor as MomentumMonitor

@@ -16,6 +16,7 @@ import dataclasses
 import equinox as eqx
 
 from ._base import AbstractBatchKernel
+from ._scheme import SplittingScheme
 
 
 class CompositionKernel(AbstractBatchKernel):
@@ -70,3 +71,14 @@ class CompositionKernel(AbstractBatchKernel):
 
     def advected(self, state):
         return self.inner.advected(state)
+
+
+class SchemeKernel(CompositionKernel):
+    """A kick kernel (`KickKernel`) at the stages of a splitting scheme `(a, b)` whose kick
+    weights are its own (`_scheme.py`; `lievi.SymmetricTopSplitting`), not those of a
+    composition: `coefficients` are the drift weights `a_i`."""
+
+    scheme: SplittingScheme = eqx.field(static=True, kw_only=True)
+
+    def prepare(self, constants, h):
+        return self.inner.prepare_scheme(constants, h, self.scheme)

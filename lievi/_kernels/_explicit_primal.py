@@ -113,7 +113,7 @@ def sincos(x):
     return jnp.where(half, -sin_x, sin_x), jnp.where(half != odd, -cos_x, cos_x)
 
 
-def _quaternion_product(a, b):
+def quaternion_product(a, b):
     """`a ⊗ b` for quaternions `(w, x, y, z)`: `R(a ⊗ b) = R(a) R(b)`. Entries may be Python
     zeros (an axis rotation `(cos α/2, sin α/2 e_p)` has two), whose products are left out."""
 
@@ -137,7 +137,7 @@ def _quaternion_product(a, b):
     )
 
 
-def _rotation_minus_identity(quaternion):
+def rotation_minus_identity(quaternion):
     """`R(q) − 1` for a unit quaternion `q = (w, x, y, z)`: 9 arrays, row-major."""
     w, x, y, z = quaternion
     return (
@@ -187,11 +187,11 @@ def splitting_primal(g, m, rate):
         momenta.append(tuple(m))
         factors.append((cos_half, *(sin_half if i == p else 0.0 for i in range(3))))
     # (q1 q2) q3 (q4 q5): the two sparse pairs first, 4 products each.
-    q12, q45 = _quaternion_product(*factors[:2]), _quaternion_product(*factors[3:])
-    quaternion = _quaternion_product(_quaternion_product(q12, factors[2]), q45)
+    q12, q45 = quaternion_product(*factors[:2]), quaternion_product(*factors[3:])
+    quaternion = quaternion_product(quaternion_product(q12, factors[2]), q45)
     # Four numbers a body stored, and `F` rebuilt from them where it is read: 9 stored
     # entries of `F` cost more memory traffic than the few products that rebuild them.
-    D = _rotation_minus_identity(materialise(quaternion, one))
+    D = rotation_minus_identity(materialise(quaternion, one))
     F = tuple(d + 1 if i % 4 == 0 else d for i, d in enumerate(D))
     # Π_{k+1} = Fᵀ Π_k (as a row, Π_kᵀ F): equal to the sequential rotations to round-off
     # (`momenta[-1]`), and its loops read the 4 stored quaternion components instead of

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from .._groups._so3 import SO3
 from .._results import RESULTS
 from ._base import AbstractBatchKernel
+from ._scheme import SplittingScheme
 
 
 def rigid_body_coupling(potential) -> bool:
@@ -121,17 +122,23 @@ class KickKernel(AbstractBatchKernel):
         return tuple(p + weight * t for p, t in zip(m, self._torque(state)))
 
     def prepare_stages(self, inertia, h, coefficients: tuple[float, ...]):
-        # The free steps `γ_i h`, stacked; the first half kick `γ_1 h/2`; after stage i the
-        # merged kick `(γ_i + γ_{i+1}) h/2` (the last stage's own `γ_s h/2`).
-        free = [self.free.prepare(inertia, gamma * h) for gamma in coefficients]
-        halves = [gamma * h / 2 for gamma in coefficients]
-        after = [a + b for a, b in zip(halves, halves[1:])] + [halves[-1]]
-        return jax.tree.map(lambda *xs: jnp.stack(xs), *free), halves[0], jnp.stack(after)
+        # The composition of kick – free step – kick at the stages `γ_i h`: the splitting
+        # scheme `a_i = γ_i` with the merged kicks `(γ_i + γ_{i+1})/2` (`_scheme.py`).
+        return self.prepare_scheme(inertia, h, SplittingScheme.from_composition(coefficients))
+
+    def prepare_scheme(self, inertia, h, scheme: SplittingScheme):
+        """Per-run constants of `step_stages` for a splitting scheme `(a, b)`: the free
+        steps `a_i h`, stacked; the first kick `b_0 h`; after stage `i` the kick `b_i h`."""
+        free = [self.free.prepare(inertia, a * h) for a in scheme.drifts]
+        after = [b * h for b in scheme.kicks[1:]]
+        return jax.tree.map(lambda *xs: jnp.stack(xs), *free), scheme.kicks[0] * h, jnp.stack(after)
 
     def step_stages(self, params, g, m, alive):
-        """The composition `Φ_{γ_s h} ∘ … ∘ Φ_{γ_1 h}` of kick – free step – kick with the
-        half kicks of adjacent stages merged: stage `i` ends and stage `i + 1` begins at the
-        same `g_i`, so `Π + (γ_i h/2)M(g_i) + (γ_{i+1} h/2)M(g_i)` is one kick
+        """The splitting scheme of `prepare_scheme` (kick `b_0 h`, then free step `a_i h`
+        and kick `b_i h` per stage). For the composition `Φ_{γ_s h} ∘ … ∘ Φ_{γ_1 h}` of
+        kick – free step – kick (`prepare_stages`) the half kicks of adjacent stages are
+        merged: stage `i` ends and stage `i + 1` begins at the same `g_i`, so
+        `Π + (γ_i h/2)M(g_i) + (γ_{i+1} h/2)M(g_i)` is one kick
         `Π + ((γ_i + γ_{i+1}) h/2)M(g_i)` — `s + 1` torques a step, not `2s`, and the same
         map (equal to the unmerged stages to round-off: one addition fewer per merge). A
         non-finite torque is caught once, at the end of the step (it propagates through
