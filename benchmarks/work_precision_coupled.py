@@ -287,9 +287,10 @@ def check_field(problem, states, t1=2.0):
 # ---- the sweep ----------------------------------------------------------------------------
 
 
-def sweep(problem, states, t1, args, meets_all):
+def sweep(problem, states, t1, args, meets_all, saved=lambda rows: None):
     """Every run's cost (CPU seconds per system) and errors; a sequence's runs after one
-    that costs at least the family's cheapest run meeting every target are skipped."""
+    that costs at least the family's cheapest run meeting every target are skipped.
+    `saved(rows)` after each run: a long sweep stopped early keeps its runs."""
     rows, systems = [], states[1].shape[0]
     g0, m0 = states[1], states[2]
 
@@ -306,6 +307,7 @@ def sweep(problem, states, t1, args, meets_all):
         shown = "  ".join(f"{q} {errs[q]:8.1e}" for q in QUANTITIES)
         print(f"  {method:<26} {knob:>8.3g}  {seconds / systems:9.3g} s/system  {shown}"
               f"  ({time.perf_counter() - start:.0f} s wall)", flush=True)  # fmt: skip
+        saved(rows)
         return rows[-1]
 
     def dominated(family, previous):
@@ -317,7 +319,7 @@ def sweep(problem, states, t1, args, meets_all):
         )
         if previous is None or previous["cost"] < bound:
             return False
-        print(f"  the rest skipped: dominated ({previous['cost']:.3g} > {bound:.3g})")
+        print(f"  the rest skipped: dominated ({previous['cost']:.3g} ≥ {bound:.3g})")
         return True
 
     for method, (make, order, structure) in COUPLED_METHODS.items():
@@ -372,14 +374,18 @@ def main(args):
         if args.check:
             results["problems"][problem] = dict(field_check=check)
             continue
-        rows = sweep(problem, states, t1, args, partial(meets, min(TARGETS_LONG)))
-        table = summary(rows, TARGETS_LONG, QUANTITIES)
-        print_summary(table)
-        results["problems"][problem] = {
-            "long": dict(T=t1, systems=systems, quantities=QUANTITIES, rows=rows,
-                         summary=table, field_check=check, cost_unit="CPU seconds per system",
-                         **({"molecules": args.molecules} if problem == "water" else {}))
-        }  # fmt: skip
         out = args.out or f"work_precision_{problem}_long" + ("_quick" if args.quick else "")
-        save({"problems": {problem: results["problems"][problem]}}, args, load, start, out)
+
+        def saved(rows, problem=problem, t1=t1, systems=systems, check=check, out=out):
+            table = summary(rows, TARGETS_LONG, QUANTITIES)
+            results["problems"][problem] = {
+                "long": dict(T=t1, systems=systems, quantities=QUANTITIES, rows=rows,
+                             summary=table, field_check=check, cost_unit="CPU seconds per system",
+                             **({"molecules": args.molecules} if problem == "water" else {}))
+            }  # fmt: skip
+            save({"problems": {problem: results["problems"][problem]}}, args, load, start, out)
+            return table
+
+        rows = sweep(problem, states, t1, args, partial(meets, min(TARGETS_LONG)), saved)
+        print_summary(saved(rows))
     return results
