@@ -105,7 +105,8 @@ def steps_for(problem, order, quick):
     if problem == "binary":
         if quick:
             return [0.05, 0.025]
-        return {2: [0.05, 0.025, 0.0125], 4: [0.1, 0.05, 0.025]}.get(order, [0.2, 0.1, 0.05])
+        by_order = {2: [0.05, 0.025, 0.0125], 4: [0.2, 0.1, 0.05, 0.025]}
+        return by_order.get(order, [0.4, 0.2, 0.1, 0.05])
     if quick:
         return [0.01]
     return [0.02, 0.01] if order >= 4 else [0.01, 0.005]
