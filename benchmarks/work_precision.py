@@ -48,6 +48,11 @@ diffrax's cost to each lievi one. Results: `benchmarks/results/<out>.json` and `
     python benchmarks/work_precision.py --quick             # a smoke run (minutes)
     python benchmarks/work_precision.py --problems "free body" --horizons short
     python benchmarks/work_precision.py --free-flow         # the heavy top's free flow (~15 min)
+    python benchmarks/work_precision.py --coupled binary water   # coupled bodies (hours)
+
+`--coupled`: the binary asteroid and 64 rigid water molecules at a long horizon, targets on
+the invariants only, against diffrax on the Newton–Euler equations of all bodies in one
+state (`work_precision_coupled.py`).
 
 `--free-flow` asks whether a more accurate free rotation inside the heavy top's splitting
 would pay: T = 20, attitude error at equal steps of kick – free flow – kick with today's
