@@ -32,8 +32,8 @@ and the body torque `τ_a = −∂/∂ε_a V(R(I + ε̂), x)|₀` from lievi's p
 ~1e-12 over a short run at a tiny tolerance, and the final state against lievi's
 `RKMK8` at T = 2.
 
-    python benchmarks/work_precision.py --coupled binary            # ~? min
-    python benchmarks/work_precision.py --coupled water             # hours at T = 1000
+    python benchmarks/work_precision.py --coupled binary --batch 16   # 10 min (256: hours)
+    python benchmarks/work_precision.py --coupled water               # ~1 h at T = 2000
     python benchmarks/work_precision.py --coupled binary water --quick
     python benchmarks/work_precision.py --coupled binary --check    # the field check only
 """
