@@ -579,6 +579,7 @@ def plot(results, path):
     axes[0][-1].legend(fontsize=6, loc="lower left")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    plt.close(fig)  # `--coupled` plots after every run
 
 
 # ---- articulated bodies (`--articulated`) ---------------------------------------------------
