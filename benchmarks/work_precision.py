@@ -48,6 +48,11 @@ diffrax's cost to each lievi one. Results: `benchmarks/results/<out>.json` and `
     python benchmarks/work_precision.py --quick             # a smoke run (minutes)
     python benchmarks/work_precision.py --problems "free body" --horizons short
     python benchmarks/work_precision.py --free-flow         # the heavy top's free flow (~15 min)
+    python benchmarks/work_precision.py --coupled binary water   # coupled bodies (hours)
+
+`--coupled`: the binary asteroid and 64 rigid water molecules at a long horizon, targets on
+the invariants only, against diffrax on the Newton–Euler equations of all bodies in one
+state (`work_precision_coupled.py`).
 
 `--free-flow` asks whether a more accurate free rotation inside the heavy top's splitting
 would pay: T = 20, attitude error at equal steps of kick – free flow – kick with today's
@@ -586,13 +591,15 @@ def plot(results, path):
             style = "-o" if method.startswith("lievi") else ("--s" if "diffrax" in method else ":^")
             ax.loglog([rows[i]["cost"] for i in keep], [error[i] for i in keep], style,
                       label=method, ms=3)  # fmt: skip
-        ax.set_xlabel(f"CPU seconds per million bodies (T = {data['T']:g})")
+        unit = data.get("cost_unit", "CPU seconds per million bodies")
+        ax.set_xlabel(f"{unit} (T = {data['T']:g})")
         ax.set_ylabel("largest error: " + ", ".join(data["quantities"]))
         ax.set_title(f"{problem}, T = {data['T']:g}")
         ax.grid(True, which="both", alpha=0.3)
     axes[0][-1].legend(fontsize=6, loc="lower left")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    plt.close(fig)  # `--coupled` plots after every run
 
 
 # ---- articulated bodies (`--articulated`) ---------------------------------------------------
@@ -1216,12 +1223,29 @@ def main():
         "--step-cost-batches", nargs="+", type=int, default=None,
         help="with --articulated: the batches of the per chain-step cost table (default --batch)",
     )  # fmt: skip
+    parser.add_argument(
+        "--coupled", nargs="+", default=None, choices=["binary", "water"],
+        help="coupled rigid bodies at a long horizon, invariant targets "
+        "(benchmarks/work_precision_coupled.py): the binary asteroid (--batch systems, "
+        "--long-T), rigid water (--water-batch systems of --molecules, --water-T)",
+    )  # fmt: skip
+    parser.add_argument("--water-batch", type=int, default=1)
+    parser.add_argument("--molecules", type=int, default=64)
+    parser.add_argument("--water-T", type=float, default=2000.0)
+    parser.add_argument(
+        "--coupled-methods", nargs="+", default=None, help="with --coupled: lievi methods"
+    )
+    parser.add_argument("--check", action="store_true", help="with --coupled: the field check")
     parser.add_argument("--out", default=None, help="default work_precision[_articulated][_quick]")
     parser.add_argument("--outdir", default=str(pathlib.Path(__file__).parent / "results"))
     args = parser.parse_args()
     args.threads = os.cpu_count() if args.all_cores else 1
     if args.articulated:
         return main_articulated(args)
+    if args.coupled:
+        import work_precision_coupled
+
+        return work_precision_coupled.main(args)
     if args.free_flow:
         load, start = os.getloadavg(), time.perf_counter()
         return save(free_flow(args), args, load, start, args.out or "work_precision_free_flow")
