@@ -403,3 +403,14 @@ def test_one_body_heavy_top_stops_newton_at_convergence():
         fixed.stats["newton_iterations"][0], one.stats["newton_iterations"]
     )
     np.testing.assert_allclose(one.m, batch.m[0], rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("rho", [(0.0, 0.0, 0.5), (0.1, -0.2, 0.5)], ids=["on-axis", "off-axis"])
+def test_heavy_top_about_the_centre_of_mass_keeps_float32(rho):
+    """The parallel-axis shift is made in the inputs' dtype: a float32 top stays float32
+    (under x64 a default identity had made its inertia, and its runs, float64)."""
+    moments = jnp.array([0.8, 0.8, 1.0], jnp.float32)
+    top = lievi.heavy_top(
+        moments, 1.0, jnp.array(rho, jnp.float32), 1.0, inertia_about="center_of_mass"
+    )
+    assert top.inertia.dtype == jnp.float32

@@ -131,7 +131,10 @@ def _parallel_axis(inertia, mass, rho):
     """`I_C + m(|ρ|²1 − ρρᵀ)`: moments `(3,)` stay moments where `ρ` is (concretely) on a
     principal axis (the shift is then diagonal), else a `(3, 3)` tensor."""
     inertia, rho = jnp.asarray(inertia), jnp.asarray(rho)
-    shift = mass * (jnp.dot(rho, rho) * jnp.eye(3) - jnp.outer(rho, rho))
+    # The identity in the inputs' dtype: a default (float64 under x64) `eye` made a float32
+    # top's inertia, and so its whole run, float64.
+    eye = jnp.eye(3, dtype=jnp.result_type(inertia, rho))
+    shift = mass * (jnp.dot(rho, rho) * eye - jnp.outer(rho, rho))
     if jnp.ndim(inertia) == 1:
         on_axis = is_concrete(rho) and int(np.count_nonzero(np.asarray(rho))) <= 1
         if on_axis:
