@@ -294,6 +294,17 @@ def strong_field(problem):
     return field
 
 
+def step_control(knob, adaptive, t1):
+    """diffrax's step arguments and `max_steps`: a PID controller at rtol = atol = `knob`,
+    or constant steps of `knob`."""
+    import diffrax
+
+    if adaptive:
+        control = dict(dt0=None, stepsize_controller=diffrax.PIDController(rtol=knob, atol=knob))
+        return control, int(t1 * 1e4)
+    return dict(dt0=knob, stepsize_controller=diffrax.ConstantStepSize()), int(round(t1 / knob))
+
+
 def diffrax_run(problem, solver, knob, adaptive, batch, t1, repeats, final_only=False):
     """The strong baseline: one solve, the whole batch one `(12, B)` state."""
     import diffrax
@@ -304,12 +315,7 @@ def diffrax_run(problem, solver, knob, adaptive, batch, t1, repeats, final_only=
     term = diffrax.ODETerm(strong_field(problem))
     saveat = diffrax.SaveAt(t1=True) if final_only else diffrax.SaveAt(ts=ts)
     ts = ts[-1:] if final_only else ts
-    if adaptive:
-        control = dict(dt0=None, stepsize_controller=diffrax.PIDController(rtol=knob, atol=knob))
-        max_steps = int(t1 * 1e4)
-    else:
-        control = dict(dt0=knob, stepsize_controller=diffrax.ConstantStepSize())
-        max_steps = int(round(t1 / knob))
+    control, max_steps = step_control(knob, adaptive, t1)
 
     @jax.jit
     def run(y0):
@@ -735,12 +741,7 @@ def chain_diffrax_run(problem, solver, knob, adaptive, batch, t1, repeats):
     n = system.n_bodies
     rhs = jax.vmap(ap.reference_rhs(system))
     y0 = jax.vmap(ap.reference_state, (None, None, 0))(system, jnp.asarray(g0), jnp.asarray(m0))
-    if adaptive:
-        control = dict(dt0=None, stepsize_controller=diffrax.PIDController(rtol=knob, atol=knob))
-        max_steps = int(t1 * 1e4)
-    else:
-        control = dict(dt0=knob, stepsize_controller=diffrax.ConstantStepSize())
-        max_steps = int(round(t1 / knob))
+    control, max_steps = step_control(knob, adaptive, t1)
 
     @jax.jit
     def run(y0):

@@ -47,7 +47,14 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 import numpy as np
-from work_precision import TARGETS_LONG, best_cpu_seconds, print_summary, save, summary
+from work_precision import (
+    TARGETS_LONG,
+    best_cpu_seconds,
+    print_summary,
+    save,
+    step_control,
+    summary,
+)
 
 import lievi
 
@@ -243,12 +250,7 @@ def diffrax_run(states, solver, knob, adaptive, t1, repeats, samples=SAMPLES):
     system, g0, m0 = states
     y0 = to_state(jnp.asarray(g0), jnp.asarray(m0))
     ts = jnp.linspace(0.0, t1, samples + 1)[1:]
-    if adaptive:
-        control = dict(dt0=None, stepsize_controller=diffrax.PIDController(rtol=knob, atol=knob))
-        max_steps = int(t1 * 1e4)
-    else:
-        control = dict(dt0=knob, stepsize_controller=diffrax.ConstantStepSize())
-        max_steps = int(round(t1 / knob))
+    control, max_steps = step_control(knob, adaptive, t1)
     term = diffrax.ODETerm(newton_euler_field(system))
 
     @jax.jit
