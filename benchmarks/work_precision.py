@@ -944,7 +944,7 @@ def chain_summary(rows, targets, quantities, horizon):
 # The benchmark's problems and methods in `lievi/_suggest_knowledge.py` (its `METHODS`).
 KNOWLEDGE_PROBLEMS = ("free body", "HLW body", "heavy top", "Lagrange top")
 KNOWLEDGE_METHODS = ("splitting", "splitting ∘ 4", "splitting ∘ 6", "splitting ∘ 8",
-                     "RKMK4", "RKMK5", "RKMK8")  # fmt: skip
+                     "RKMK4", "RKMK5", "RKMK8", "symmetric top RKN 4", "symmetric top RKN 6")  # fmt: skip
 # The table's quantities: the attitude is the trajectory's on the integrable problems only
 # (the heavy top's is chaotic beyond short horizons).
 KNOWLEDGE_QUANTITIES = ("attitude", "energy", "momentum")
@@ -1203,6 +1203,14 @@ def main():
         help="lievi methods to run (default: all)",
     )  # fmt: skip
     parser.add_argument(
+        "--knowledge-from",
+        nargs="+",
+        default=None,
+        metavar="JSON",
+        help="fit and print suggest_integrator's table from these results files (e.g. a "
+        "problem's short and long full-size runs) instead of running",
+    )
+    parser.add_argument(
         "--knowledge", action="store_true",
         help="fit and print suggest_integrator's table (lievi/_suggest_knowledge.py) from the "
         "runs: its problems and methods, long horizon at most 2000, lievi only",
@@ -1250,6 +1258,8 @@ def main():
     if args.free_flow:
         load, start = os.getloadavg(), time.perf_counter()
         return save(free_flow(args), args, load, start, args.out or "work_precision_free_flow")
+    if args.knowledge_from:
+        return print_knowledge(merged_results(args.knowledge_from), args.outdir)
     if args.knowledge:
         args.problems = [p for p in args.problems if p in KNOWLEDGE_PROBLEMS]
         args.methods = args.methods or list(KNOWLEDGE_METHODS)
@@ -1281,14 +1291,27 @@ def main():
             )  # fmt: skip
     save(results, args, load, start, out)
     if args.knowledge:
-        table = knowledge(results)
-        flat = {f"{cls} | {method}": entry for (cls, method), entry in table.items()}
-        outdir = pathlib.Path(args.outdir)
-        (outdir / "suggest_knowledge.json").write_text(json.dumps(flat, indent=1))
-        print("TABLE = {")
-        for (cls, method), entry in table.items():
-            print(f"    ({cls!r}, {method!r}): {entry!r},")
-        print("}")
+        print_knowledge(results, args.outdir)
+
+
+def merged_results(paths):
+    """The problems and horizons of several results files, as one run's `results`."""
+    results = {"problems": {}}
+    for path in paths:
+        for problem, horizons in json.loads(pathlib.Path(path).read_text())["problems"].items():
+            results["problems"].setdefault(problem, {}).update(horizons)
+    return results
+
+
+def print_knowledge(results, outdir):
+    """`knowledge(results)`, written to `suggest_knowledge.json` and printed as `TABLE`."""
+    table = knowledge(results)
+    flat = {f"{cls} | {method}": entry for (cls, method), entry in table.items()}
+    (pathlib.Path(outdir) / "suggest_knowledge.json").write_text(json.dumps(flat, indent=1))
+    print("TABLE = {")
+    for (cls, method), entry in table.items():
+        print(f"    ({cls!r}, {method!r}): {entry!r},")
+    print("}")
 
 
 def save(results, args, load, start, out):

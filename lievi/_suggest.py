@@ -284,7 +284,7 @@ def _from_knowledge(system, known, horizon, tolerance, tolerance_on, g0, m0):
             "n_steps": n_steps,
             "predicted_error": error,
             "seconds_per_body": entry["seconds_per_body_step"] * n_steps,
-            "measured": MEASURED,
+            "measured": MEASURED[known.name],
         }
         rows.append(row)
         if best is None or row["seconds_per_body"] < best[1]["seconds_per_body"]:

@@ -18,7 +18,9 @@ benchmark). Regenerate `TABLE` with
 
     python benchmarks/work_precision.py --knowledge
 
-which runs the classes below and prints the table to paste here.
+which runs the classes below and prints the table to paste here (`--knowledge-from FILES`
+fits it from results files instead: the Lagrange top's entries come from its full-size
+runs).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from ._groups._so3 import SO3
 from ._integrators._composition import Composition
 from ._integrators._rkmk import RKMK4, RKMK5, RKMK8
 from ._integrators._splitting import LiePoissonSplitting
+from ._integrators._symmetric_top import SymmetricTopSplitting
 from ._kernels._kick import rigid_body_coupling
 
 # The methods of the table, by the benchmark's names.
@@ -43,6 +46,8 @@ METHODS = {
     "RKMK4": RKMK4,
     "RKMK5": RKMK5,
     "RKMK8": RKMK8,
+    "symmetric top RKN 4": lambda: SymmetricTopSplitting(4),
+    "symmetric top RKN 6": lambda: SymmetricTopSplitting(6),
 }
 
 # Two near-exact runs of the benchmark's asymmetric heavy top agree on the invariants to
@@ -52,12 +57,22 @@ METHODS = {
 LYAPUNOV_PER_FREQUENCY = math.log(1e13) / 8000 / 1.5
 ROUNDOFF = 1e-15
 
-# Where `TABLE` was measured: its costs are this machine's, its ranking is what carries over.
-MEASURED = (
+# Where each class of `TABLE` was measured: its costs are this machine's, its ranking within
+# a class is what carries over.
+_QUICK_RUN = (
     "python benchmarks/work_precision.py --knowledge --quick --problems 'free body' 'heavy top' "
     "--methods splitting 'splitting ∘ 4' 'splitting ∘ 6' 'splitting ∘ 8' RKMK8; 2026-11-29, "
     "shared 2-core x86-64, load average 11, batch 64, T = 20 and 200, one core"
 )
+MEASURED = {
+    "free body": _QUICK_RUN,
+    "heavy top": _QUICK_RUN,
+    "Lagrange top": (
+        "python benchmarks/work_precision.py --knowledge-from "
+        "benchmarks/results/work_precision_lagrange_top_{short,long}.json (the full-size "
+        "runs: 2026-11-30, 2-core x86-64, load 1.8, batch 256, T = 20 and 2·10⁴, one core)"
+    ),
+}
 # (class, method) → order, seconds per body-step, {quantity: (C, a, floor)} (module
 # docstring); the attitude only on the integrable free body (the heavy top's is chaotic).
 TABLE: dict[tuple[str, str], dict] = {
@@ -156,6 +171,37 @@ TABLE: dict[tuple[str, str], dict] = {
             "momentum": (0.0, 0.0, 1.9530465938036126e-14),
         },
     },
+    # The symmetric top: its own class (integrable, and `SymmetricTopSplitting` applies).
+    ("Lagrange top", "RKMK8"): {
+        "order": 8,
+        "seconds_per_body_step": 1.8762671535156316e-07,
+        "largest_omega_h": 1.6740343968328149,
+        "errors": {
+            "attitude": (1.518481406312756e-07, 1.695, 1.2248870471893228e-12),
+            "energy": (3.12180875734023e-10, 0.952, 3.606202393004296e-16),
+            "momentum": (1.4616955955627723e-09, 0.951, 1.0493833073405092e-15),
+        },
+    },
+    ("Lagrange top", "symmetric top RKN 4"): {
+        "order": 4,
+        "seconds_per_body_step": 1.4793923258300783e-07,
+        "largest_omega_h": 1.6740343968328149,
+        "errors": {
+            "attitude": (6.472180902297129e-08, 0.975, 9.027865992672331e-12),
+            "energy": (2.0248361793343423e-08, 0.028, 1.6844027145295676e-13),
+            "momentum": (0.0, 0.0, 8.945990603805272e-14),
+        },
+    },
+    ("Lagrange top", "symmetric top RKN 6"): {
+        "order": 6,
+        "seconds_per_body_step": 2.62428246425781e-07,
+        "largest_omega_h": 1.6740343968328149,
+        "errors": {
+            "attitude": (7.523446144111595e-08, 1.106, 1.2490102800435184e-12),
+            "energy": (8.199804789522712e-11, -0.0, 1.4424809572017184e-15),
+            "momentum": (0.0, 0.0, 8.307695252347412e-14),
+        },
+    },
 }
 
 
@@ -198,7 +244,7 @@ def problem_class(system, g0, m0) -> ProblemClass | None:
         return ProblemClass("free body", False, speed)
     frequency = max(speed, math.sqrt(strength / min(moments)))
     symmetric = moments[0] == moments[1] and float(b[0]) == 0.0 and float(b[1]) == 0.0
-    return ProblemClass("heavy top", not symmetric, frequency)
+    return ProblemClass("Lagrange top" if symmetric else "heavy top", not symmetric, frequency)
 
 
 def predicted_error(entry, quantity: str, omega: float, h: float, horizon: float):
