@@ -1,7 +1,8 @@
 """`suggest_integrator` from the benchmark's knowledge (no run), its refusal of trajectory
 targets beyond a chaotic problem's predictability horizon, and its pilot's cost bound.
-Nothing here compiles a run: the knowledge path runs nothing, and the pilot's runs are
-replaced by a stand-in whose error is `h²` (the bound is on the steps it asks for)."""
+The knowledge path runs nothing, and the pilot's runs are replaced by a stand-in whose
+error is `h²` (the bound is on the steps it asks for); one test runs a suggestion to check
+that it meets its tolerance."""
 
 import math
 from types import SimpleNamespace
