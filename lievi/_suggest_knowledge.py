@@ -74,7 +74,7 @@ MEASURED = {
     ),
 }
 # (class, method) → order, seconds per body-step, {quantity: (C, a, floor)} (module
-# docstring); the attitude only on the integrable free body (the heavy top's is chaotic).
+# docstring); the attitude only on the integrable classes (the heavy top's is chaotic).
 TABLE: dict[tuple[str, str], dict] = {
     ("free body", "RKMK8"): {
         "order": 8,
