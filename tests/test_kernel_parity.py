@@ -23,6 +23,7 @@ GRADIENTS = 1e-10  # gradients of a loss of the final state, relative
 STEPS, H = 12, 0.1
 
 INERTIA = jnp.array([2.0, 1.0, 2 / 3])
+SYMMETRIC_INERTIA = jnp.array([1.0, 1.0, 2 / 3])  # `SymmetricTopSplitting`'s bodies
 M0 = jnp.array([np.cos(1.1), 0.0, np.sin(1.1)])
 SE3_TENSOR = lievi._systems._se3_body.rigid_body_tensor(jnp.array([0.5, 0.7, 0.9]), 2.0)
 SE3_M0 = jnp.array([0.3, -0.2, 0.5, 0.4, 0.1, -0.3])
@@ -154,6 +155,15 @@ REGISTRY = [
         jnp.eye(3),
         M0,
         "KickKernel",
+    ),
+    (
+        "symmetric-top-6-heavy-top",  # an axisymmetric body; its own scheme's kicks
+        lievi.SymmetricTopSplitting(6),
+        _heavy_top,
+        SYMMETRIC_INERTIA,
+        jnp.eye(3),
+        M0,
+        "SchemeKernel",
     ),
     ("dep-exp-se3", lievi.DEP(), _se3, SE3_TENSOR, jnp.eye(4), SE3_M0, "SE3NewtonKernel"),
     (
