@@ -6,6 +6,8 @@ orders on the Lagrange top of `benchmarks/work_precision.py` against a tight ind
 reference; the conserved quantities; the kernel against the generic path; refusals.
 """
 
+import contextlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -224,3 +226,24 @@ def test_float32_batch():
     vertical = jnp.sum(sol32.m * Gamma, axis=-1)
     assert float(jnp.max(jnp.abs(vertical - vertical[:, :1]))) < 2e-6
     assert float(jnp.max(jnp.abs(sol32.m[..., 2] - sol32.m[:, :1, 2]))) < 2e-6
+
+
+@pytest.mark.parametrize("kernels", [True, False], ids=["kernel", "generic"])
+def test_traced_inertia_that_is_not_axisymmetric_is_reported(kernels):
+    """Under `jit` the inertia is a tracer, which the eager check cannot read: a body that
+    is not axisymmetric ends as `RESULTS.invalid_input` (at its first step), never as the
+    flow of the body of mean moments; an axisymmetric one runs."""
+
+    @jax.jit
+    def run(moments):
+        return lievi.simulate(
+            lagrange_top(moments), lievi.SymmetricTopSplitting(4), G0, M0, h=0.1,
+            n_steps=5, throw=False,
+        )  # fmt: skip
+
+    with contextlib.nullcontext() if kernels else reference_path():
+        bad = run(jnp.array([0.8, 0.9, 1.0]))
+        good = run(MOMENTS)
+    assert int(bad.result) == lievi.RESULTS.invalid_input
+    assert int(bad.stats["failed_step"]) == 0
+    assert int(good.result) == lievi.RESULTS.successful

@@ -41,7 +41,12 @@ from jaxtyping import Scalar
 
 from .._checks import check_shape, is_concrete
 from .._groups._so3 import SO3
-from .._kernels._axisymmetric import AxisymmetricKernel, mean_first_moments
+from .._kernels._axisymmetric import (
+    AxisymmetricKernel,
+    axisymmetric_result,
+    is_axisymmetric,
+    mean_first_moments,
+)
 from .._kernels._composition import SchemeKernel
 from .._kernels._kick import KickKernel
 from .._kernels._scheme import SplittingScheme
@@ -132,11 +137,12 @@ def check_symmetric_body(method: str, system: AbstractLieSystem, batched: bool =
 
 
 def symmetric_moments(method: str, system: AbstractLieSystem):
-    """`(I₁, I₃)` of one rigid body on SO(3) with principal moments `(I₁, I₁, I₃)`
-    (`check_symmetric_body`); `I₁` the mean of the first two (`mean_first_moments`)."""
+    """`(I₁, I₃, diagonal)` of one rigid body on SO(3) with principal moments
+    `(I₁, I₁, I₃)` (`check_symmetric_body`); `I₁` the mean of the first two
+    (`mean_first_moments`), `diagonal` the moments (for the traced check)."""
     inertia = check_symmetric_body(method, system)
     diagonal = jnp.diagonal(inertia) if inertia.ndim == 2 else inertia
-    return mean_first_moments(diagonal), diagonal[2]
+    return mean_first_moments(diagonal), diagonal[2], diagonal
 
 
 def axisymmetric_free_flow(I1, I3, g, m, t):
@@ -157,7 +163,8 @@ class SymmetricTopSplitting(AbstractKickIntegrator):
 
     For a `lievi.RigidBody` with principal moments `(I₁, I₁, I₃)` — symmetric about its
     third axis — and a potential of its attitude (`UniformGravity`: the Lagrange top);
-    any other inertia is refused (`ValueError` naming `inertia`). A free symmetric body
+    any other inertia is refused (`ValueError` naming `inertia`; a traced one, under `jit`,
+    ends the run as `RESULTS.invalid_input`). A free symmetric body
     takes one exact flow a step. Why its own class and not a `Composition` scheme: its
     kick weights are not those of a composition of a symmetric second-order step (they
     are chosen independently of the drift weights), and its free flow exists only for
@@ -204,7 +211,7 @@ class SymmetricTopSplitting(AbstractKickIntegrator):
         return SchemeKernel(kernel, self.scheme.drifts, scheme=self.scheme)
 
     def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
-        I1, I3 = symmetric_moments("SymmetricTopSplitting", system)
+        I1, I3, moments = symmetric_moments("SymmetricTopSplitting", system)
         check_shape("g", g, (3, 3), "an element of SO(3)")
         check_shape("m", m, (3,), "momentum coordinates of so(3)*")
         fast = self.kernel_step(system, g, m, h)
@@ -212,7 +219,8 @@ class SymmetricTopSplitting(AbstractKickIntegrator):
             return fast
         g_next, m_next = axisymmetric_free_flow(I1, I3, g, m, h)
         finite = jnp.all(jnp.isfinite(m_next)) & jnp.all(jnp.isfinite(g_next))
-        result = jnp.where(finite, RESULTS.successful, RESULTS.nonfinite)
+        finite_code = jnp.where(finite, RESULTS.successful, RESULTS.nonfinite)
+        result = axisymmetric_result(finite_code, is_axisymmetric(moments))
         zero = jnp.zeros((), m_next.dtype)
         return g_next, m_next, StepInfo(result, jnp.zeros((), jnp.int32), zero)
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from .._results import RESULTS
 from ._base import AbstractBatchKernel, materialise, ones
 from ._explicit import explicit_info, finite_result
 from ._explicit_primal import (
@@ -55,13 +56,30 @@ def mean_first_moments(inertia):
     return 0.5 * (inertia[0] + inertia[1])
 
 
+def is_axisymmetric(inertia):
+    """Traceable: principal moments with `I_1 = I_2` to a few ulps of the largest (the
+    eager check, `check_axisymmetric`, refuses concrete ones; traced ones reach the run,
+    where a body that fails this ends as `RESULTS.invalid_input`, not as the flow of
+    another body)."""
+    inertia = jnp.asarray(inertia)
+    scale = jnp.maximum(jnp.maximum(jnp.abs(inertia[0]), jnp.abs(inertia[1])), jnp.abs(inertia[2]))
+    return jnp.abs(inertia[0] - inertia[1]) <= 8 * jnp.finfo(inertia.dtype).eps * scale
+
+
+def axisymmetric_result(result, axisymmetric):
+    """`result`, or `invalid_input` where the body is not axisymmetric (`is_axisymmetric`)."""
+    return jnp.where(axisymmetric, result, RESULTS.invalid_input).astype(jnp.int32)
+
+
 class AxisymmetricKernel(AbstractBatchKernel):
     """`axisymmetric_flow` for `lievi.SymmetricTopSplitting`."""
 
     def prepare(self, inertia, h):
         I1 = mean_first_moments(inertia)
-        return h / I1, h * (1 / inertia[2] - 1 / I1)
+        return h / I1, h * (1 / inertia[2] - 1 / I1), is_axisymmetric(inertia)
 
     def step(self, params, g, m, alive):
-        g_next, m_next = axisymmetric_flow(g, m, *params)
-        return (g_next, m_next, finite_result(m_next, g_next), *explicit_info(m))
+        rate, spin_rate, axisymmetric = params
+        g_next, m_next = axisymmetric_flow(g, m, rate, spin_rate)
+        result = axisymmetric_result(finite_result(m_next, g_next), axisymmetric)
+        return (g_next, m_next, result, *explicit_info(m))
