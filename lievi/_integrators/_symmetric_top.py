@@ -110,9 +110,7 @@ def check_axisymmetric(method: str, inertia, tensor: bool = False) -> None:
         symmetric = np.all(values * (1 - np.eye(3)) == 0)
     else:
         diagonal, symmetric = values, True
-    scale = np.max(np.abs(diagonal))
-    gap = np.max(np.abs(diagonal[..., 0] - diagonal[..., 1]))
-    if not symmetric or gap > 8 * np.finfo(float).eps * scale:
+    if not symmetric or not np.all(is_axisymmetric(*np.moveaxis(diagonal, -1, 0))):
         raise ValueError(
             f"{method}: `inertia` must be axisymmetric about the body's third axis, principal "
             f"moments (I₁, I₁, I₃) (or a diagonal tensor with equal first two entries); got "
@@ -125,7 +123,7 @@ def check_symmetric_body(method: str, system: AbstractLieSystem, batched: bool =
     """Raise `ValueError` unless `system` is a rigid body on SO(3) whose concrete inertia is
     axisymmetric (`check_axisymmetric`; `batched`: a batch of systems, a leading axis);
     returns its inertia."""
-    inertia = getattr(system, "inertia", None)
+    inertia = system.kinetic_tensor()  # a rigid body's principal moments, or its tensor
     if system.group != SO3 or system.lambda_matrix() is None or inertia is None:
         raise ValueError(
             f"{method} integrates a rigid body on SO(3) symmetric about its third axis: pass "
@@ -220,7 +218,7 @@ class SymmetricTopSplitting(AbstractKickIntegrator):
         g_next, m_next = axisymmetric_free_flow(I1, I3, g, m, h)
         finite = jnp.all(jnp.isfinite(m_next)) & jnp.all(jnp.isfinite(g_next))
         finite_code = jnp.where(finite, RESULTS.successful, RESULTS.nonfinite)
-        result = axisymmetric_result(finite_code, is_axisymmetric(moments))
+        result = axisymmetric_result(finite_code, is_axisymmetric(*moments))
         zero = jnp.zeros((), m_next.dtype)
         return g_next, m_next, StepInfo(result, jnp.zeros((), jnp.int32), zero)
 

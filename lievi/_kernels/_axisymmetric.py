@@ -56,14 +56,13 @@ def mean_first_moments(inertia):
     return 0.5 * (inertia[0] + inertia[1])
 
 
-def is_axisymmetric(inertia):
-    """Traceable: principal moments with `I_1 = I_2` to a few ulps of the largest (the
-    eager check, `check_axisymmetric`, refuses concrete ones; traced ones reach the run,
-    where a body that fails this ends as `RESULTS.invalid_input`, not as the flow of
-    another body)."""
-    inertia = jnp.asarray(inertia)
-    scale = jnp.maximum(jnp.maximum(jnp.abs(inertia[0]), jnp.abs(inertia[1])), jnp.abs(inertia[2]))
-    return jnp.abs(inertia[0] - inertia[1]) <= 8 * jnp.finfo(inertia.dtype).eps * scale
+def is_axisymmetric(I_1, I_2, I_3):
+    """Principal moments with `I_1 = I_2` to a few ulps of their size, elementwise: the one
+    rule of both checks — eager on concrete moments (`check_axisymmetric`, a `ValueError`)
+    and traced in the run, where a body that fails it ends as `RESULTS.invalid_input`, not
+    as the flow of another body. Operators only, so NumPy and JAX arrays alike."""
+    eps = jnp.finfo(I_1.dtype).eps
+    return abs(I_1 - I_2) <= 8 * eps * (abs(I_1) + abs(I_2) + abs(I_3))
 
 
 def axisymmetric_result(result, axisymmetric):
@@ -76,7 +75,7 @@ class AxisymmetricKernel(AbstractBatchKernel):
 
     def prepare(self, inertia, h):
         I1 = mean_first_moments(inertia)
-        return h / I1, h * (1 / inertia[2] - 1 / I1), is_axisymmetric(inertia)
+        return h / I1, h * (1 / inertia[2] - 1 / I1), is_axisymmetric(*inertia)
 
     def step(self, params, g, m, alive):
         rate, spin_rate, axisymmetric = params
