@@ -191,11 +191,11 @@ def initial_states(problem, batch, seed=0):
     return np.asarray(lievi.SO3.exp(jnp.asarray(spec["tilt"], dtype=float))), m0
 
 
-def sample_every(n):
-    """Steps between saved states: every run saves `SAMPLES`, at the same times."""
-    if n % SAMPLES:
-        raise ValueError(f"{n} steps: use a step count that is a multiple of {SAMPLES}")
-    return n // SAMPLES
+def sample_every(n, samples=SAMPLES):
+    """Steps between saved states: every run saves `samples`, at the same times."""
+    if n % samples:
+        raise ValueError(f"{n} steps: use a step count that is a multiple of {samples}")
+    return n // samples
 
 
 def reference(problem, count, t1):

@@ -51,6 +51,7 @@ from work_precision import (
     TARGETS_LONG,
     best_cpu_seconds,
     print_summary,
+    sample_every,
     save,
     step_control,
     summary,
@@ -156,12 +157,6 @@ def errors(system, g0, m0, g, m):
     return {k: float(np.max(v)) for k, v in out.items()}
 
 
-def sample_every(n):
-    if n % SAMPLES:
-        raise ValueError(f"{n} steps: use a step count that is a multiple of {SAMPLES}")
-    return n // SAMPLES
-
-
 # ---- lievi --------------------------------------------------------------------------------
 
 
@@ -169,7 +164,7 @@ def lievi_run(states, integrator, h, t1, repeats):
     """`simulate_batch` over the systems' initial states (`simulate` for one system)."""
     system, g0, m0 = states
     n = int(round(t1 / h))
-    save_ = lievi.Save(g=True, m=True, stats=False, every=sample_every(n))
+    save_ = lievi.Save(g=True, m=True, stats=False, every=sample_every(n, SAMPLES))
 
     @jax.jit
     def run(g0, m0):
