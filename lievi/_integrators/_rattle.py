@@ -112,18 +112,25 @@ class RATTLE(AbstractIntegrator):
         return self._rattle_step(system, g, m, h, None, force, t)[:3]
 
     def _start_cache(self, system: AbstractLieSystem, g):
-        """The joints' reaction force `(c,)` the next step starts its impulse from: none
-        known at the start of a run (zero, the explicit guess of `step`)."""
-        dtype = jnp.result_type(g, float)
-        return jnp.zeros((_constrained(system).n_constraints,), dtype)
+        """What a step takes over from the one before, all of `g_k` alone: the joints'
+        reaction force `(c,)` its impulse starts from (none known at the start of a run:
+        zero, the explicit guess of `step`), the joints' rows `C(g_k)` and the potential's
+        force `M(g_k)` (`None` without one), which the step before built at its end for
+        its projection and its end kick."""
+        system = _constrained(system)
+        g = g.astype(jnp.result_type(g, float))
+        reaction = jnp.zeros((system.n_constraints,), g.dtype)
+        return reaction, system.constraint_rows(g), _potential_force(system, g)
 
     def _step_from_cache(self, system, g, m, h, cache, force, t):
         return self._rattle_step(system, g, m, h, cache, force, t)
 
-    def _rattle_step(self, system, g, m, h, reaction, force, t):
-        """The step from a guess of the joints' reaction force `reaction` `(c,)` (`None`:
-        zero), returning the reaction of its velocity projection, `2μ_k/h`, after
-        `(g_{k+1}, m_{k+1}, info)`.
+    def _rattle_step(self, system, g, m, h, cache, force, t):
+        """The step from `cache` (`_start_cache`'s `(reaction, C(g_k), M(g_k))` of the
+        step before, or `None`: computed here, the reaction guessed zero), returning the
+        cache of the next step after `(g_{k+1}, m_{k+1}, info)`: the reaction of its
+        velocity projection, `2μ_k/h`, and the rows and force at `g_{k+1}`, which the
+        projection and the end kick built (each was built twice a step before).
 
         The start impulse `Λ_{k+1}` and the end impulse `μ_k` of the step before are both
         `(h/2) λ(t_{k+1}) + O(h²)`: guessed from `μ_k`, the iteration starts about `h|ω|`
@@ -135,13 +142,17 @@ class RATTLE(AbstractIntegrator):
         system = _constrained(system)
         n = system.n_bodies
         tensor = system.tensor.astype(m.dtype)
+        if cache is None:
+            reaction = None
+            C0, start_force = system.constraint_rows(g.astype(m.dtype)), _potential_force(system, g)
+        else:
+            reaction, C0, start_force = cache
         start = m
-        if system.potential is not None:
-            start = start + h / 2 * system.force(g)
+        if start_force is not None:
+            start = start + h / 2 * start_force
         if force is not None:
             # The discrete Lagrange–d'Alembert force at g_k: f_k⁻ = (h/2) f(t_k, g_k, m_k).
             start = start + h / 2 * checked_force(force, t, g, m)
-        C0 = system.constraint_rows(g.astype(m.dtype))
         c = system.n_constraints
         length = system.length_scale().astype(m.dtype)
         # The momentum equations relative to the size of the momenta, the joints to `ℓ`:
@@ -202,8 +213,9 @@ class RATTLE(AbstractIntegrator):
         m_plus = start + C0.transpose_apply(impulse)
         g_next, F = advanced(xi)
         m_next = jnp.einsum("nji,nj->ni", jax.vmap(SE3.Ad)(F), m_plus)
-        if system.potential is not None:
-            m_next = m_next + h / 2 * system.force(g_next)
+        end_force = _potential_force(system, g_next)
+        if end_force is not None:
+            m_next = m_next + h / 2 * end_force
         iterations, residual_norm = info.iterations, info.residual
         result = jnp.where(info.converged, RESULTS.successful, RESULTS.newton_not_converged)
         if force is not None:
@@ -213,7 +225,8 @@ class RATTLE(AbstractIntegrator):
             iterations = iterations + kick.iterations
             residual_norm = jnp.maximum(residual_norm, kick.residual)
             result = RESULTS.first_failure(result, kick.result)
-        m_next, end_impulse = system.project_with_impulse(g_next, m_next)
+        C_next = system.constraint_rows(g_next)
+        m_next, end_impulse = system.project_with_impulse(g_next, m_next, C_next)
         finite = jnp.isfinite(residual_norm) & jnp.all(jnp.isfinite(m_next))
         # A residual that turned non-finite from finite data is the iteration diverging
         # (a step too long for it), which is `newton_not_converged` as when it stalls; the
@@ -221,4 +234,9 @@ class RATTLE(AbstractIntegrator):
         diverged = ~info.converged & jnp.all(jnp.isfinite(start)) & jnp.all(jnp.isfinite(m_next))
         result = jnp.where(finite | diverged, result, RESULTS.nonfinite)
         info = StepInfo(result.astype(jnp.int32), iterations, residual_norm)
-        return g_next, m_next, info, 2 * end_impulse / h
+        return g_next, m_next, info, (2 * end_impulse / h, C_next, end_force)
+
+
+def _potential_force(system, g):
+    """The potential's force `M(g)` `(N, 6)`, or `None` without a potential."""
+    return None if system.potential is None else system.force(g)

@@ -325,12 +325,13 @@ class ArticulatedBodies(AbstractLieSystem):
         velocity constraints satisfied, nearest to `m` in the kinetic metric."""
         return self.project_with_impulse(g, m)[0]
 
-    def project_with_impulse(self, g, m):
+    def project_with_impulse(self, g, m, rows: JointRows | None = None):
         """`(m + C(g)ᵀμ, μ)`: `project_momentum` and the impulse `μ` `(c,)` it applied
-        (`lievi.RATTLE` starts its next step's reaction from it)."""
+        (`lievi.RATTLE` starts its next step's reaction from it). `rows`: `C(g)`
+        (`constraint_rows`) where the caller has it already."""
         if self.n_constraints == 0:
             return m, jnp.zeros((0,), m.dtype)
-        return _project(self, self.constraint_rows(g), m)
+        return _project(self, self.constraint_rows(g) if rows is None else rows, m)
 
     # ---- building states ---------------------------------------------------------------------
 

@@ -12,6 +12,7 @@ the pattern `tree_solver` factors.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax.numpy as jnp
 
 from .._small_linalg import matvec
@@ -24,10 +25,17 @@ def _matmul(A, B):
     return A @ B
 
 
-class JointRows:
+class JointRows(eqx.Module):
     """The rows of a `(c, N, 6)` matrix by joint, in body order: joint `k` between body
     `child[k]` and `parent[k]` (`-1`: the world, no columns) has rows `of_parent[k]` and
-    `of_child[k]`, each `(size_k, 6)`."""
+    `of_child[k]`, each `(size_k, 6)`. A pytree (its rows the leaves), so that a step can
+    hand the rows of its end to the next step (`lievi.RATTLE`'s step cache)."""
+
+    n_bodies: int = eqx.field(static=True)
+    child: tuple[int, ...] = eqx.field(static=True)
+    parent: tuple[int, ...] = eqx.field(static=True)
+    of_parent: list
+    of_child: list
 
     def __init__(self, n_bodies, child, parent, of_parent, of_child):
         self.n_bodies = n_bodies
