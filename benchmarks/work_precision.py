@@ -896,6 +896,7 @@ def chain_sweep(problem, horizon, t1, args, ref):
     B, r = args.batch, args.repeats
     # A smoke run: the cheapest method of each order up to 4, one diffrax solver.
     methods = list(LIEVI_CHAIN_METHODS)[:2] if quick else list(LIEVI_CHAIN_METHODS)
+    methods = [m for m in methods if m in (args.chain_methods or methods)]
     for method in methods:
         order = LIEVI_CHAIN_METHODS[method][1]
         for h in chain_steps(order, horizon, quick):
@@ -1248,6 +1249,10 @@ def main():
         help="the articulated chains (triple pendulum, 5-link hinge chain) instead",
     )  # fmt: skip
     parser.add_argument("--chains", nargs="+", default=list(CHAINS), choices=list(CHAINS))
+    parser.add_argument(
+        "--chain-methods", nargs="+", default=None, choices=list(LIEVI_CHAIN_METHODS),
+        help="with --articulated: the lievi methods (default: all)",
+    )  # fmt: skip
     parser.add_argument(
         "--free-flow", action="store_true",
         help="the heavy top at T = 20: today's splitting against one with an exact free flow",
