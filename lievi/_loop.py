@@ -90,9 +90,10 @@ def _one_step(stepper, progress, n_steps):
     return one_step
 
 
-def _save(run, stepper, carry, h, t0, save_every):
+def _save(run, stepper, carry):
     """`(carry, out)` at a save: the state settled, the monitor's check, what is stored
-    (NaN after a body's failure), the statistics and the time `t0 + h·save_every·j`."""
+    (batch-major, NaN after a body's failure) and the save's statistics. The run's total of
+    Newton iterations stays in the carry; the saves' times are the host's (`finish`)."""
     state, result, failed_step, k, (total, most, worst), reference = carry
     state = stepper.settle(state)
     if run.monitor is not None:
@@ -102,27 +103,14 @@ def _save(run, stepper, carry, h, t0, save_every):
         failed_step = jnp.where(failing, k - 1, failed_step)
     ok = result == RESULTS.successful
     out = stepper.stored(state, run.save, ok)
-    out["iterations"] = total
     if run.save.stats:
         out["newton_iterations"], out["residual"] = most, worst
-    j = (k // save_every).astype(worst.dtype)
-    out["t"] = jnp.broadcast_to(t0 + h * save_every * j, ok.shape)
-    counters = _zero_counters(ok.shape[0], worst.dtype)
-    return (state, result, failed_step, k, counters, reference), out
+    _, most, worst = _zero_counters(ok.shape[0], worst.dtype)
+    return (state, result, failed_step, k, (total, most, worst), reference), out
 
 
 def _invariants(run, stepper, state):
     return run.plan.invariants(run.monitor, *stepper.configuration(state))
-
-
-def _layout(stepper, stacked):
-    """Stacked saves `(T, …)` batch-major; `iterations` summed over the saves."""
-    out = stepper.layout({k: v for k, v in stacked.items() if k in ("g", "m", "advected")})
-    out["iterations"] = jnp.sum(stacked["iterations"], axis=0)
-    for name in ("newton_iterations", "residual", "t"):
-        if name in stacked:
-            out[name] = stacked[name].T
-    return out
 
 
 def start(run: Run, g0, m0, h, t0):
@@ -136,29 +124,27 @@ def start(run: Run, g0, m0, h, t0):
     state = stepper.init(g0, m0)
     reference = None if run.monitor is None else _invariants(run, stepper, state)
     initial = stepper.initial(g0, m0, run.save)
-    initial["t"] = jnp.broadcast_to(t0, (batch,))[:, None]
     counters = _zero_counters(batch, run.dtype)
     carry = (state, result, failed_step, jnp.asarray(0, jnp.int32), counters, reference)
     return stepper, carry, initial
 
 
-def _saving(run, stepper, h, t0, n_steps):
-    """`one_save(carry, save_every, step_loop)`: a save after `step_loop(one_step, carry)`
-    has run its steps, what both drivers share."""
-    h, t0 = jnp.asarray(h, run.dtype), jnp.asarray(t0, run.dtype)
+def _saving(run, stepper, n_steps):
+    """`one_save(carry, step_loop)`: a save after `step_loop(one_step, carry)` has run its
+    steps, what both drivers share."""
     one_step = _one_step(stepper, run.progress, n_steps)
 
-    def one_save(carry, save_every, step_loop):
-        return _save(run, stepper, step_loop(one_step, carry), h, t0, save_every)
+    def one_save(carry, step_loop):
+        return _save(run, stepper, step_loop(one_step, carry))
 
     return one_save
 
 
 def run_static(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     """The run as one static scan over the saves (under a transformation, or with per-step
-    forcing data): `(carry, initial, saves)`, the saves batch-major."""
+    forcing data): `(carry, initial, saves)`, the saves `(T, B, …)`."""
     stepper, carry, initial = start(run, g0, m0, h, t0)
-    one_save = _saving(run, stepper, h, t0, n_steps)
+    one_save = _saving(run, stepper, n_steps)
     segment = run.segment
     # Checkpointed segments inside one save interval, or spanning whole save intervals.
     inner = segment if segment is not None and segment < save_every else None
@@ -180,10 +166,10 @@ def run_static(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     carry = (*carry[:3], run.progress.report(carry[3], n_steps), *carry[4:])
 
     def body(carry, data):
-        return one_save(carry, save_every, lambda one_step, c: steps(one_step, c, data))
+        return one_save(carry, lambda one_step, c: steps(one_step, c, data))
 
     carry, saves = scan_in_segments(body, carry, n_saves, outer, data)
-    return carry, initial, _layout(stepper, saves)
+    return carry, initial, saves
 
 
 def scan_in_segments(body, carry, length: int, segment: int | None, xs=None, unroll: int = 1):
@@ -207,12 +193,14 @@ _start_program = eqx.filter_jit(start)
 
 
 @eqx.filter_jit
-def _block_program(run, stepper, times, carry, n_steps, save_every, count, size: int):
+def _block_program(run, stepper, carry, n_steps, save_every, count, size: int):
     """`count ≤ size` saves of `save_every` steps each (all traced), into buffers of
-    `size` saves: one program for every horizon. `stepper`: `start`'s, its per-run
-    constants computed there (the input checks and set-up are not traced and compiled
-    again in this program); `times`: the run's `(h, t0)`."""
-    one_save = _saving(run, stepper, *times, n_steps)
+    `size` saves `(size, B, …)`: one program for every horizon. `stepper`: `start`'s, its
+    per-run constants computed there (the input checks and set-up are not traced and
+    compiled again in this program). What needs no device is left to the host: the saves'
+    times, and the batch-major layout (each a kernel of its own here, and each kernel
+    about 10 ms of a first call's compile on a CPU)."""
+    one_save = _saving(run, stepper, n_steps)
     # The meter's 0 at the start of a run (not again at a later block), before the loop.
     carry = (*carry[:3], run.progress.report(carry[3], n_steps), *carry[4:])
 
@@ -220,17 +208,16 @@ def _block_program(run, stepper, times, carry, n_steps, save_every, count, size:
         return jax.lax.fori_loop(0, save_every, lambda _, c: one_step(c, None)[0], carry)
 
     # A save's shapes from the save alone (`one_save` would trace the step again).
-    shapes = jax.eval_shape(lambda c: one_save(c, save_every, lambda f, c: c)[1], carry)
+    shapes = jax.eval_shape(lambda c: one_save(c, lambda f, c: c)[1], carry)
     buffers = jax.tree.map(lambda s: jnp.zeros((size,) + s.shape, s.dtype), shapes)
 
     def body(index, both):
-        carry, out = one_save(both[0], save_every, steps)
+        carry, out = one_save(both[0], steps)
         # `index < count ≤ size`: no bounds check (`.at[index].set` compiled one a buffer).
         put = functools.partial(jax.lax.dynamic_update_index_in_dim, index=index, axis=0)
         return carry, jax.tree.map(lambda b, x: put(b, x), both[1], out)
 
-    carry, buffers = jax.lax.fori_loop(0, count, body, (carry, buffers))
-    return carry, _layout(stepper, buffers)  # batch-major here: the host only concatenates
+    return jax.lax.fori_loop(0, count, body, (carry, buffers))
 
 
 def run_eager(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
@@ -250,31 +237,35 @@ def run_eager(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     outputs = []
     for begin in range(0, n_saves, size):
         count = np.asarray(min(size, n_saves - begin), np.int32)
-        carry, out = _block_program(run, stepper, (h, t0), carry, steps, every, count, size)
+        carry, out = _block_program(run, stepper, carry, steps, every, count, size)
         outputs.append(out)
     saves = {
-        name: sum(np.asarray(x[name]) for x in outputs)
-        if name == "iterations"
-        else np.concatenate([np.asarray(x[name]) for x in outputs], axis=1)[:, :n_saves]
+        name: np.concatenate([np.asarray(x[name]) for x in outputs])[:n_saves]
         for name in outputs[0]
     }
     return carry, initial, saves
 
 
-def finish(carry, initial, saves, n_steps: int, save: eqx.Module, xp=jnp) -> Solution:
-    """The batch's `Solution` (`xp`: `jax.numpy` traced, `numpy` for an eager run)."""
+def finish(run: Run, carry, initial, saves, times, n_steps: int, save_every: int, xp=jnp):
+    """The batch's `Solution` from the saves `(T, B, …)` (`xp`: `jax.numpy` traced, `numpy`
+    for an eager run), with the saves' times `t0 + h·save_every·j` (`times`: `(h, t0)`,
+    `h` a scalar or per body)."""
     result, failed_step = carry[1], carry[2]
+    saves = {name: xp.swapaxes(x, 0, 1) for name, x in saves.items()}
     stats = {
         "failed_step": failed_step,
-        "total_newton_iterations": saves["iterations"],
+        "total_newton_iterations": carry[4][0],
         "num_steps": xp.full(result.shape, n_steps),
     }
-    if save.stats:
+    if run.save.stats:
         stats.update(newton_iterations=saves["newton_iterations"], residual=saves["residual"])
-    t, g, m, advected = (
+    g, m, advected = (
         xp.concatenate([xp.asarray(initial[name]), saves[name]], axis=1) if name in saves else None
-        for name in ("t", "g", "m", "advected")
+        for name in ("g", "m", "advected")
     )
+    h, t0 = (xp.asarray(x, run.dtype) for x in times)
+    j = xp.arange(n_steps // save_every + 1, dtype=run.dtype)
+    t = xp.broadcast_to(t0 + h[..., None] * save_every * j, (result.shape[0], j.shape[0]))
     return Solution(t, g, m, result, stats, advected=advected)
 
 
@@ -313,7 +304,7 @@ def execute(
     if np.any(np.asarray(carry[1]) == int(RESULTS.invalid_input)):
         explain()
     carry, initial = jax.tree.map(np.asarray, (carry, initial))
-    solution = finish(carry, initial, saves, n_steps, run.save, xp=np)
+    solution = finish(run, carry, initial, saves, (h, t0), n_steps, save_every, xp=np)
     if throw is not None:  # on the host: the results are concrete
         raise_if_failed(solution, *throw)
     # On the device by a transfer, no program (`jnp.asarray` would compile one per shape).
@@ -323,7 +314,7 @@ def execute(
 @eqx.filter_jit
 def _static_program(run, g0, m0, h, t0, n_steps: int, save_every: int, *, one, throw):
     carry, initial, saves = run_static(run, g0, m0, h, t0, n_steps, save_every)
-    solution = finish(carry, initial, saves, n_steps, run.save)
+    solution = finish(run, carry, initial, saves, (h, t0), n_steps, save_every)
     solution = _first(solution) if one else solution
     return solution if throw is None else raise_if_failed(solution, *throw)
 

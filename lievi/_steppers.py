@@ -44,13 +44,8 @@ class AbstractStepper(eqx.Module):
 
     @abc.abstractmethod
     def stored(self, state, save, ok) -> dict:
-        """What a save stores of `state` (`save`: a `lievi.Save`), any layout, NaN where
-        `ok` `(B,)` is false."""
-
-    @abc.abstractmethod
-    def layout(self, stacked: dict) -> dict:
-        """Stacked saves `(T, …)` of `stored` as `g` `(B, T, n, n)`, `m`/`advected`
-        `(B, T, ·)`."""
+        """What a save stores of `state` (`save`: a `lievi.Save`): `g` `(B, n, n)`,
+        `m`/`advected` `(B, ·)`, NaN where `ok` `(B,)` is false."""
 
     def initial(self, g0, m0, save) -> dict:
         """The initial save, batch-major with one save: `(B, 1, …)`."""
@@ -126,24 +121,13 @@ class KernelStepper(AbstractStepper):
     def stored(self, state, save, ok):
         out = {}
         if save.g:
-            out["g"] = jnp.stack(state[0])
+            out["g"] = self.kernel.elements(jnp.stack(state[0])[None])[:, 0]
         if save.m:
-            out["m"] = jnp.stack(state[1])
+            out["m"] = jnp.stack(state[1], axis=-1)
         advected = self.kernel.advected(state[0]) if save.with_advected() else None
         if advected is not None:
-            out["advected"] = jnp.stack(advected)
-        # Component-major, the batch minor: NaN past a body's failure.
-        nan = jnp.asarray(jnp.nan, state[1][0].dtype)
-        return {name: jnp.where(ok, x, nan) for name, x in out.items()}
-
-    def layout(self, stacked):
-        out = {}
-        if "g" in stacked:
-            out["g"] = self.kernel.elements(stacked["g"])
-        for name in ("m", "advected"):
-            if name in stacked:
-                out[name] = jnp.moveaxis(stacked[name], -1, 0)
-        return out
+            out["advected"] = jnp.stack(advected, axis=-1)
+        return {name: where_ok(ok, x, jnp.full_like(x, jnp.nan)) for name, x in out.items()}
 
     def advected_at(self, g0):
         advected = self.kernel.advected(self.kernel.carried(g0))
@@ -209,7 +193,6 @@ class VmapStepper(AbstractStepper):
         advected = self._advected(state[0]) if save.with_advected() else None
         if advected is not None:
             out["advected"] = advected
-        # Batch-major: NaN past a body's failure.
         return {name: where_ok(ok, x, jnp.full_like(x, jnp.nan)) for name, x in out.items()}
 
     def _advected(self, g):
@@ -217,9 +200,6 @@ class VmapStepper(AbstractStepper):
         if potential is None or potential.advected_direction() is None:
             return None
         return jax.vmap(advected_of, in_axes=(self.axes[0], 0))(self.system, g)
-
-    def layout(self, stacked):
-        return {name: jnp.swapaxes(x, 0, 1) for name, x in stacked.items()}
 
     def advected_at(self, g0):
         return self._advected(g0)
