@@ -114,8 +114,8 @@ def _invariants(run, stepper, state):
 
 
 def start(run: Run, g0, m0, h, t0):
-    """`(stepper, carry, initial)`: the traced input checks, the stepper and its initial
-    state, and the initial save (batch-major)."""
+    """`(stepper, carry, advected)`: the traced input checks, the stepper and its initial
+    state, and the advected parameter at `g0` where it is saved (`None` otherwise)."""
     valid = run.plan.valid(g0, m0, h, t0)  # before the cast: `g0` to its own dtype's tolerance
     g0, m0, h, t0 = (jnp.asarray(x, run.dtype) for x in (g0, m0, h, t0))
     stepper = run.plan.stepper(g0, m0, h, t0)
@@ -123,10 +123,19 @@ def start(run: Run, g0, m0, h, t0):
     result, failed_step = (jnp.broadcast_to(x, (batch,)) for x in RESULTS.initial(valid))
     state = stepper.init(g0, m0)
     reference = None if run.monitor is None else _invariants(run, stepper, state)
-    initial = stepper.initial(g0, m0, run.save)
+    advected = stepper.advected_at(g0) if run.save.with_advected() else None
     counters = _zero_counters(batch, run.dtype)
     carry = (state, result, failed_step, jnp.asarray(0, jnp.int32), counters, reference)
-    return stepper, carry, initial
+    return stepper, carry, advected
+
+
+def _initial(run: Run, g0, m0, advected, xp):
+    """The initial save, `(B, 1, …)`: the inputs themselves, in the run's dtype, built where
+    they are (`xp`: NumPy for an eager run: as outputs of `start` each was a copy, a kernel
+    of its own)."""
+    out = {"g": g0, "m": m0, "advected": advected}
+    wanted = {"g": run.save.g, "m": run.save.m, "advected": advected is not None}
+    return {k: xp.asarray(v, run.dtype)[:, None] for k, v in out.items() if wanted[k]}
 
 
 def _saving(run, stepper, n_steps):
@@ -143,7 +152,8 @@ def _saving(run, stepper, n_steps):
 def run_static(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     """The run as one static scan over the saves (under a transformation, or with per-step
     forcing data): `(carry, initial, saves)`, the saves `(T, B, …)`."""
-    stepper, carry, initial = start(run, g0, m0, h, t0)
+    stepper, carry, advected = start(run, g0, m0, h, t0)
+    initial = _initial(run, g0, m0, advected, jnp)
     one_save = _saving(run, stepper, n_steps)
     segment = run.segment
     # Checkpointed segments inside one save interval, or spanning whole save intervals.
@@ -226,7 +236,8 @@ def run_eager(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     # NumPy scalars: a Python float would be compiled in as a constant, and `jnp.asarray`
     # is a program of its own.
     h, t0 = (x if eqx.is_array(x) else np.asarray(x) for x in (h, t0))
-    stepper, carry, initial = _start_program(run, g0, m0, h, t0)
+    stepper, carry, advected = _start_program(run, g0, m0, h, t0)
+    initial = _initial(run, g0, m0, advected, np)
     # A block's saves from one save's bytes (its outputs and the 3 statistics per body):
     # a function of the shapes only, so that a new horizon reuses the compiled block.
     per_body = sum(np.prod(x.shape[1:]) * x.dtype.itemsize for x in jax.tree.leaves(initial))

@@ -47,16 +47,6 @@ class AbstractStepper(eqx.Module):
         """What a save stores of `state` (`save`: a `lievi.Save`): `g` `(B, n, n)`,
         `m`/`advected` `(B, ·)`, NaN where `ok` `(B,)` is false."""
 
-    def initial(self, g0, m0, save) -> dict:
-        """The initial save, batch-major with one save: `(B, 1, …)`."""
-        out = {"g": g0[:, None]} if save.g else {}
-        if save.m:
-            out["m"] = m0[:, None]
-        advected = self.advected_at(g0) if save.with_advected() else None
-        if advected is not None:
-            out["advected"] = advected[:, None]
-        return out
-
     @abc.abstractmethod
     def advected_at(self, g0):
         """The advected parameter `Γ` `(B, k)` at the elements `g0`, or `None`."""
