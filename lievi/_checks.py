@@ -270,12 +270,13 @@ def step_size_valid(h):
     return jnp.isfinite(h) & (h >= tiny)
 
 
-def input_valid(system, g0, m0, h, t0=0.0):
-    """Traceable validity of a run's inputs: the system's parameters, `g0` in the group,
-    finite `m0`, `t0`, and a positive normal `h`. A boolean array (a run turns `False`
-    into `RESULTS.invalid_input`; it is computed inside the run's own program)."""
+def input_valid(system, g0, m0, h, t0=0.0, parameters: bool = True):
+    """Traceable validity of a run's inputs: the system's parameters (unless
+    `parameters=False`: checked already), `g0` in the group, finite `m0`, `t0`, and a
+    positive normal `h`. A boolean array (a run turns `False` into
+    `RESULTS.invalid_input`; it is computed inside the run's own program)."""
     return (
-        system.parameters_valid()
+        (system.parameters_valid() if parameters else True)
         & system.element_valid(g0)
         & jnp.all(jnp.isfinite(m0))
         & step_size_valid(h)

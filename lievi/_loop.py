@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
-from ._checks import is_concrete, tracing
+from ._checks import is_concrete, raise_if_violated, tracing
 from ._newton import ROOT_NAME
 from ._results import RESULTS
 from ._solution import Solution
@@ -46,6 +46,8 @@ class Run(eqx.Module):
     segment: int | None = eqx.field(static=True, default=None)
     unroll: int = eqx.field(static=True, default=1)
     monitor: Any = None  # an invariant monitor (`lievi.EnergyMonitor`), checked at saves
+    # The system's parameters checked on the host already (`execute`), not in `start`.
+    parameters_checked: bool = eqx.field(static=True, default=False)
 
     @classmethod
     def of(cls, plan, opts, dtype) -> Run:
@@ -116,7 +118,8 @@ def _invariants(run, stepper, state):
 def start(run: Run, g0, m0, h, t0):
     """`(stepper, carry, advected)`: the traced input checks, the stepper and its initial
     state, and the advected parameter at `g0` where it is saved (`None` otherwise)."""
-    valid = run.plan.valid(g0, m0, h, t0)  # before the cast: `g0` to its own dtype's tolerance
+    # Before the cast: `g0` to its own dtype's tolerance.
+    valid = run.plan.valid(g0, m0, h, t0, parameters=not run.parameters_checked)
     g0, m0, h, t0 = (jnp.asarray(x, run.dtype) for x in (g0, m0, h, t0))
     stepper = run.plan.stepper(g0, m0, h, t0)
     batch = m0.shape[0]
@@ -311,6 +314,12 @@ def execute(
     )
     if not eager:
         return _static_program(run, g0, m0, h, t0, n_steps, save_every, one=one, throw=throw)
+    if run.plan.system_axis is None:
+        # One system for every body: its parameters checked once, on the host, by the
+        # program its constructor compiled (`raise_if_violated`), not per body in `start`
+        # (a test of positive definiteness is a loop there: 5 of its 33 kernels, SO(3)).
+        raise_if_violated(run.plan.system.parameter_conditions)
+        run = dataclasses.replace(run, parameters_checked=True)
     carry, initial, saves = run_eager(run, g0, m0, h, t0, n_steps, save_every)
     if np.any(np.asarray(carry[1]) == int(RESULTS.invalid_input)):
         explain()

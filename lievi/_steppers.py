@@ -9,6 +9,7 @@ once, outside the loop); the stepper masks a failed body in its own state's layo
 from __future__ import annotations
 
 import abc
+import functools
 from typing import Any
 
 import equinox as eqx
@@ -211,9 +212,10 @@ class AbstractPlan(eqx.Module):
     def h_axis(self, h):
         return None if jnp.ndim(h) == 0 else 0
 
-    def valid(self, g0, m0, h, t0):
+    def valid(self, g0, m0, h, t0, parameters: bool = True):
         in_axes = (self.system.batch_axes(self.system_axis), 0, 0, self.h_axis(h), None)
-        return jax.vmap(input_valid, in_axes=in_axes)(self.system, g0, m0, h, t0)
+        check = functools.partial(input_valid, parameters=parameters)
+        return jax.vmap(check, in_axes=in_axes)(self.system, g0, m0, h, t0)
 
     def per_step(self):
         """The forcing's per-step data with the step axis leading, or `None`."""

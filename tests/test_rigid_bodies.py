@@ -679,7 +679,10 @@ def test_an_eager_batch_of_bodies_compiles_two_programs_and_a_new_horizon_none()
     of saves, no other program of lievi's; a new `n_steps`, `h` or `m0` compiles nothing
     (counts of compilations, not timings). The integrator's eager parameter check once
     evaluated the index arithmetic of a traced tensor's frame, two small programs more.
-    Free bodies: the coupling's kicks change nothing here, and compile for seconds."""
+    The run checks the system's parameters with the program its constructor compiled: the
+    caches are cleared before the system is built. Free bodies: the coupling's kicks
+    change nothing here, and compile for seconds."""
+    jax.clear_caches()
     rng = np.random.default_rng(5)
     Q = np.linalg.qr(rng.normal(size=(2, 3, 3)))[0]
     inertia = np.einsum("nij,nj,nkj->nik", Q, np.array([[1.0, 2.0, 3.0], [0.5, 0.7, 0.4]]), Q)
@@ -690,7 +693,6 @@ def test_an_eager_batch_of_bodies_compiles_two_programs_and_a_new_horizon_none()
     m0 = np.array([[0.003, 0.005, 0.01, 0.0, -1.0, 0.0], [0.004, -0.002, 0.001, 0.0, 1.0, 0.0]])
     m0 = np.stack([m0, 1.01 * m0])
     jax.block_until_ready(system)
-    jax.clear_caches()
 
     def programs(n_steps, h, m0):
         _COMPILED.clear()
