@@ -205,24 +205,24 @@ def scan_in_segments(body, carry, length: int, segment: int | None, xs=None, unr
 _start_program = eqx.filter_jit(start)
 
 
-@eqx.filter_jit
-def _block_program(run, stepper, carry, n_steps, save_every, count, size: int):
-    """`count ≤ size` saves of `save_every` steps each (all traced), into buffers of
-    `size` saves `(size, B, …)`: one program for every horizon. `stepper`: `start`'s, its
+@functools.partial(eqx.filter_jit, donate="all-except-first")
+def _block_program(fixed, buffers):
+    """`count ≤ size` saves of `save_every` steps each (all traced) from `carry`, written
+    into `buffers` of `size` saves `(size, B, …)`: one program for every horizon.
+    `fixed = (run, stepper, carry, n_steps, save_every, count)`, `stepper` `start`'s, its
     per-run constants computed there (the input checks and set-up are not traced and
-    compiled again in this program). What needs no device is left to the host: the saves'
-    times, and the batch-major layout (each a kernel of its own here, and each kernel
-    about 10 ms of a first call's compile on a CPU)."""
+    compiled again in this program).
+
+    What needs no device is left to the host: the buffers (given, uninitialised, and
+    donated), the saves' times and the batch-major layout. Each was a kernel of its own
+    here, and on a CPU each kernel is about 10 ms of a first call's compile."""
+    run, stepper, carry, n_steps, save_every, count = fixed
     one_save = _saving(run, stepper, n_steps)
     # The meter's 0 at the start of a run (not again at a later block), before the loop.
     carry = (*carry[:3], run.progress.report(carry[3], n_steps), *carry[4:])
 
     def steps(one_step, carry):
         return jax.lax.fori_loop(0, save_every, lambda _, c: one_step(c, None)[0], carry)
-
-    # A save's shapes from the save alone (`one_save` would trace the step again).
-    shapes = jax.eval_shape(lambda c: one_save(c, lambda f, c: c)[1], carry)
-    buffers = jax.tree.map(lambda s: jnp.zeros((size,) + s.shape, s.dtype), shapes)
 
     def body(index, both):
         carry, out = one_save(both[0], steps)
@@ -248,10 +248,14 @@ def run_eager(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     size = max(1, min(MAX_BLOCK_SAVES, size))
     n_saves = n_steps // save_every
     steps, every = (np.asarray(x, np.int32) for x in (n_steps, save_every))
+    # A save's shapes from the save alone (no step traced).
+    one_save = _saving(run, stepper, steps)
+    shapes = jax.eval_shape(lambda c: one_save(c, lambda f, c: c)[1], carry)
     outputs = []
     for begin in range(0, n_saves, size):
         count = np.asarray(min(size, n_saves - begin), np.int32)
-        carry, out = _block_program(run, stepper, carry, steps, every, count, size)
+        buffers = jax.tree.map(lambda s: np.empty((size,) + s.shape, s.dtype), shapes)
+        carry, out = _block_program((run, stepper, carry, steps, every, count), buffers)
         outputs.append(out)
     saves = {
         name: np.concatenate([np.asarray(x[name]) for x in outputs])[:n_saves]
