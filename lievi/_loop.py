@@ -2,13 +2,14 @@
 or neighbour-list run — steps here (the picture: docs/concepts/simulate.md).
 
 `start` checks the inputs per body, traced (a bad body starts as `RESULTS.invalid_input`),
-and builds the stepper's state and the initial save; each save runs `save_every` steps of
-`one_step` (the stepper's step, the failure record of `RESULTS.record`, the statistics
-reduced in the carry, the progress meter), then settles and stores the state; `finish`
-assembles the `Solution`. Two drivers run the same step and save: under a transformation
-or with per-step forcing data, one static `lax.scan` over the saves in checkpointed
-segments; called eagerly, two compiled programs whatever the horizon (`start`, and a block
-of saves whose trip counts, `h` and `t0` are traced), the blocks joined on the host.
+and builds the stepper's state; each save runs `save_every` steps of `one_step` (the
+stepper's step, the failure record of `RESULTS.record`, the statistics reduced in the
+carry, the progress meter), then settles and stores the state; `finish` assembles the
+`Solution` (the initial save, the saves batch-major, their times). Two drivers run the
+same step and save: under a transformation or with per-step forcing data, one static
+`lax.scan` over the saves in checkpointed segments; called eagerly, two compiled programs
+whatever the horizon (`start`, and a block of saves whose trip counts are traced), the
+blocks joined on the host.
 """
 
 from __future__ import annotations
