@@ -302,8 +302,9 @@ def execute(
     throw: tuple[str, str] | None = None,
 ) -> Solution:
     """The run of a batch, eagerly (`run_eager`) or traced (`run_static`), and its
-    `Solution` (`one`: of the batch's one body, without the batch axis). `explain()`
-    raises the `ValueError` that names a bad input, for an eager run with one. `throw`:
+    `Solution` (`one`: of the batch's one body, without the batch axis). `explain(i)`
+    raises the `ValueError` that names body `i`'s bad input, for an eager run whose body
+    `i` is the first found invalid (`RESULTS.invalid_input`). `throw`:
     `raise_if_failed`'s `(label, what)`, or `None` to return failures in `result`. The
     traced check is part of the run's program: applied to its outputs after the program,
     under a transformation without an outer `jit` (e.g. `jax.grad` of an eager call), each
@@ -326,8 +327,9 @@ def execute(
         raise_if_violated(run.plan.system.parameter_conditions)
         run = dataclasses.replace(run, parameters_checked=True)
     carry, initial, saves = run_eager(run, g0, m0, h, t0, n_steps, save_every)
-    if np.any(np.asarray(carry[1]) == int(RESULTS.invalid_input)):
-        explain()
+    invalid = np.flatnonzero(np.asarray(carry[1]) == int(RESULTS.invalid_input))
+    if invalid.size:
+        explain(int(invalid[0]))
     carry, initial = jax.tree.map(np.asarray, (carry, initial))
     solution = finish(run, carry, initial, saves, (h, t0), n_steps, save_every, xp=np)
     if throw is not None:  # on the host: the results are concrete

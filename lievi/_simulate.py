@@ -112,7 +112,8 @@ def simulate(
     run = Run.of(plan, opts, dtype)
 
     # With a bad input, an eager run raises the eager check's `ValueError` naming it.
-    explain = functools.partial(system.check_element, "g0", g0)
+    # (`g0` as given, bound now: the run's is a batch of one.)
+    explain = functools.partial(lambda g0, _: system.check_element("g0", g0), g0)
     g0, m0 = (np.asarray(x)[None] if is_concrete(x) else jnp.asarray(x)[None] for x in (g0, m0))
     check = ("lievi.simulate", "a step") if throw else None
     return execute(

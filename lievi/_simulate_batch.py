@@ -234,8 +234,13 @@ def simulate_batch(
     )
     run = Run.of(plan, opts, dtype)
 
-    # With a bad input, an eager run raises the group's own test naming the body.
-    explain = functools.partial(system.check_elements, "g0", g0)
+    def explain(i):
+        """Body `i` found invalid by the run: the `ValueError` of its system's own eager
+        check of `g0[i]` (the group, and the joints of a system of joints), if that is
+        what failed. (A bad parameter of one system of a batch fails that body alone.)"""
+        member = _member(system, system.batch_axes(system_axis), i)
+        member.check_element(f"g0[{i}]", np.asarray(g0[i]))
+
     check = ("lievi.simulate_batch", "a body") if throw else None
     return execute(run, g0, m0, h, t0, n_steps, opts.save.every, explain=explain, throw=check)
 
@@ -253,12 +258,12 @@ def _check_h(h) -> None:
             )
 
 
-def _member(tree, axes):
-    """The first member of a batch `tree` (`axes`: its `jax.vmap` in-axes), on the host."""
+def _member(tree, axes, i: int = 0):
+    """Member `i` of a batch `tree` (`axes`: its `jax.vmap` in-axes), on the host."""
     if axes is None:
         return tree
     return jax.tree.map(
-        lambda x, axis: x if axis is None or not eqx.is_array(x) else np.asarray(x)[0],
+        lambda x, axis: x if axis is None or not eqx.is_array(x) else np.asarray(x)[i],
         tree,
         axes,
         is_leaf=lambda x: x is None,

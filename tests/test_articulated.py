@@ -128,23 +128,22 @@ def test_one_link_chain_is_the_heavy_top():
 
 def test_simulate_batch_runs_states_and_reports_broken_joints():
     # A batch through `simulate_batch` (`jax.vmap` of the step): each good state as
-    # `simulate` runs it, and a state whose joint is broken reported as invalid input.
+    # `simulate` runs it, and a state whose joint is broken reported as invalid input
+    # under `jit`; an eager call raises the chain's own check, naming the state and the
+    # joint (it once fell back to a generic error: the batch's check knew only the group).
     system, g0, m0 = hinge_chain(1)
     broken = g0.at[0, 0, 3].add(0.1)
-    batch = lievi.simulate_batch(
-        system,
-        lievi.RATTLE(),
-        jnp.stack([g0, broken]),
-        jnp.stack([m0, m0]),
-        h=0.01,
-        n_steps=20,
-        throw=False,
-        save=lievi.Save(every=20),
-    )
+    kwargs = dict(h=0.01, n_steps=20, throw=False, save=lievi.Save(every=20))
+    states, momenta = jnp.stack([g0, broken]), jnp.stack([m0, m0])
+    batch = eqx.filter_jit(
+        lambda g, m: lievi.simulate_batch(system, lievi.RATTLE(), g, m, **kwargs)
+    )(states, momenta)
     one = lievi.simulate(system, lievi.RATTLE(), g0, m0, h=0.01, n_steps=20)
     assert int(batch.result[0]) == lievi.RESULTS.successful
     assert int(batch.result[1]) == lievi.RESULTS.invalid_input
     np.testing.assert_allclose(batch.g[0, -1], one.g[-1], rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match=r"`g0\[1\]` does not satisfy `joints\[0\]`"):
+        lievi.simulate_batch(system, lievi.RATTLE(), states, momenta, **kwargs)
 
 
 @pytest.mark.parametrize("chart", ["exp", pytest.param("cayley", marks=pytest.mark.extended)])

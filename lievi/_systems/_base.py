@@ -18,7 +18,6 @@ import abc
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float, Scalar
 
 from .._checks import (
@@ -241,19 +240,6 @@ class AbstractLieSystem(eqx.Module):
             if defect > bound:
                 raise _off_group(self.group, name, defect, bound)
 
-    def check_elements(self, name: str, g) -> None:
-        """`check_element`'s membership test for a batch of states `g` `(B, *element_shape)`
-        where it is concrete: raise `ValueError` naming the worst state, `name[i]`."""
-        if not is_concrete(g):
-            return
-        g = jnp.asarray(g)
-        bound = membership_tolerance(g.dtype)
-        with evaluated_now():
-            defect = np.asarray(_defects(self.group, g))
-        worst = int(np.argmax(defect))
-        if defect[worst] > bound:
-            raise _off_group(self.group, f"{name}[{worst}]", defect[worst], bound)
-
     def parameter_conditions(self) -> Conditions:
         """The admissible parameters, as conditions (`lievi._checks.Conditions`): here
         finite, and the potential's own (`AbstractPotential.parameter_conditions`).
@@ -296,17 +282,8 @@ def _largest_defect(group: MatrixLieGroup, g):
 
 
 def _off_group(group: MatrixLieGroup, name: str, defect, bound) -> ValueError:
-    """The error of `check_element` and `check_elements` for the state `name`."""
+    """The error of `check_element` for the state `name`."""
     return ValueError(
         f"`{name}` is not in the group: membership defect {defect:.3g} > {bound:.2g} "
         f"({group.membership_hint()})."
     )
-
-
-@eqx.filter_jit
-def _defects(group: MatrixLieGroup, g):
-    """The membership defect of each state of `g` `(B, *element_shape)`, the worst of its
-    elements (a state of several bodies has one per body), as one compiled program: the
-    `check_elements`' test, as `_largest_defect` is `check_element`'s."""
-    defect = group.membership_defect(jnp.asarray(g, float))
-    return jnp.max(defect.reshape(defect.shape[0], -1), axis=1)
