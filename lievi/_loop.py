@@ -249,9 +249,11 @@ def run_eager(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     size = max(1, min(MAX_BLOCK_SAVES, size))
     n_saves = n_steps // save_every
     steps, every = (np.asarray(x, np.int32) for x in (n_steps, save_every))
-    # A save's shapes from the save alone (no step traced).
-    one_save = _saving(run, stepper, steps)
-    shapes = jax.eval_shape(lambda c: one_save(c, lambda f, c: c)[1], carry)
+    # A save's shapes from the save alone (no step traced), the stepper abstract: concrete,
+    # the eager checks of what a save builds (a potential) would compile programs.
+    shapes = eqx.filter_eval_shape(
+        lambda stepper, c: _saving(run, stepper, steps)(c, lambda f, c: c)[1], stepper, carry
+    )
     outputs = []
     for begin in range(0, n_saves, size):
         count = np.asarray(min(size, n_saves - begin), np.int32)

@@ -2,6 +2,7 @@
 
 import equinox as eqx
 import jax
+import jax.monitoring
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -94,3 +95,27 @@ def assert_kernel_matches_generic(fast, generic, fast_grads, generic_grads, iter
     for a, b in zip(fast_grads, generic_grads):
         assert float(np.max(np.abs(b))) > 0
         np.testing.assert_allclose(a, b, rtol=gradients, atol=gradients * float(np.max(np.abs(b))))
+
+
+_COMPILING: list[list] = []  # the open `programs_compiled` records
+
+
+def _record_compile(name, duration, **kwargs):
+    if name == "/jax/core/compile/backend_compile_duration":
+        for names in _COMPILING:
+            names.append(kwargs.get("fun_name"))
+
+
+jax.monitoring.register_event_duration_secs_listener(_record_compile)
+
+
+def programs_compiled(call) -> list:
+    """The names of the XLA programs compiled while `call()` runs, its result ready (a
+    count of compilations, not a timing)."""
+    names: list = []
+    _COMPILING.append(names)
+    try:
+        jax.block_until_ready(call())
+    finally:
+        _COMPILING.remove(names)
+    return names
