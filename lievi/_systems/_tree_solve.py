@@ -12,7 +12,7 @@ the projection and of the iteration's set-up for a 5-link hinge chain.
 No pivoting across blocks: every pivot block is a Schur complement of a symmetric
 positive definite matrix (the Gram matrix), or of one perturbed by O(|ξ|) (RATTLE's),
 so it stays nonsingular and well conditioned for steps the iteration converges at, and
-each small block is inverted by elimination in order, unrolled (`_small_linalg.inverse`):
+each small block is inverted by elimination in order (`_small_linalg.inverse`):
 under `jax.vmap` a LAPACK inverse per block (`getrf`, two `trsm` and a loop for the
 pivots) cost more than the elimination itself.
 """
