@@ -336,7 +336,7 @@ class ArticulatedBodies(AbstractLieSystem):
 
     # ---- building states ---------------------------------------------------------------------
     # Compiled as one program each (`eqx.filter_jit`): called eagerly, as a user builds a
-    # run's start, their operations one by one were 12 and 98 small programs (2.4 s).
+    # run's start, their operations one by one were 12 and 98 small programs.
 
     @eqx.filter_jit
     def place(self, rotations, base=None) -> Float[Array, "N 4 4"]:
