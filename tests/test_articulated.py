@@ -420,7 +420,7 @@ def test_joint_points_that_do_not_connect_are_rejected():
 
 def test_eager_helpers_and_run_compile_their_programs_only():
     """`place` and `momentum` are one program each (their operations one by one were 12
-    and 98 small programs, 2.4 s), and an eager run of a chain in gravity its two: reading
+    and 98 small programs), and an eager run of a chain in gravity its two: reading
     a save's shapes once built the gravity potential from concrete masses, whose eager
     check compiled three more. NumPy inputs: the test's own arithmetic compiles nothing."""
     rods = np.array([[0.084, 0.084, 0.00125], [0.084, 0.084, 0.00125]])
