@@ -335,8 +335,9 @@ class ArticulatedBodies(AbstractLieSystem):
         return _project(self, self.constraint_rows(g) if rows is None else rows, m)
 
     # ---- building states ---------------------------------------------------------------------
-    # Compiled as one program each (`eqx.filter_jit`): called eagerly, as a user builds a
-    # run's start, their operations one by one were 12 and 98 small programs.
+    # `place` and `momentum` (and `project_momentum` above) are compiled as one program each
+    # (`eqx.filter_jit`): called eagerly, as a user builds a run's start, their operations
+    # one by one were 12 and 98 small programs.
 
     @eqx.filter_jit
     def place(self, rotations, base=None) -> Float[Array, "N 4 4"]:
