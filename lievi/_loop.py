@@ -275,7 +275,8 @@ def finish(run: Run, carry, initial, saves, times, n_steps: int, save_every: int
     saves = {name: xp.swapaxes(x, 0, 1) for name, x in saves.items()}
     stats = {
         "failed_step": failed_step,
-        "total_newton_iterations": carry[4][0],
+        # JAX's default integer, as the sum over the saves it was (`int64` under x64).
+        "total_newton_iterations": carry[4][0].astype(jax.dtypes.canonicalize_dtype(int)),
         "num_steps": xp.full(result.shape, n_steps),
     }
     if run.save.stats:
