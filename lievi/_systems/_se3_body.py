@@ -36,12 +36,15 @@ from ._potential import AbstractPotential, as_potential
 from ._side import Side
 
 
+@jax.jit
 def spd_solve(M: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " k"]:
     """`M⁻¹ b` for a small SPD `M` by an unrolled Cholesky factorisation.
 
     Written with scalar operations so that XLA fuses it into a few instructions; a LAPACK
     call per solve (`jnp.linalg.solve`) costs more than the rest of an RK4 stage on CPU,
-    especially under `vmap`.
+    especially under `vmap`. Under `jax.jit`, so that its hundred-odd operations are traced
+    once per shape and dtype, not at every call: RATTLE's step calls it nine times, which
+    were a quarter of the step's tracing.
     """
     k = b.shape[-1]
     M = (M + M.T) / 2  # reads both triangles: the derivative is the symmetric one
