@@ -216,7 +216,7 @@ def _block_program(fixed, buffers):
 
     What needs no device is left to the host: the buffers (given, uninitialised, and
     donated), the saves' times and the batch-major layout. Each was a kernel of its own
-    here, and on a CPU each kernel is about 10 ms of a first call's compile."""
+    here, and XLA's CPU backend compiles every kernel as a module of its own."""
     run, stepper, carry, n_steps, save_every, count = fixed
     one_save = _saving(run, stepper, n_steps)
     # The meter's 0 at the start of a run (not again at a later block), before the loop.

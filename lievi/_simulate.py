@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -112,12 +110,14 @@ def simulate(
     run = Run.of(plan, opts, dtype)
 
     # With a bad input, an eager run raises the eager check's `ValueError` naming it.
-    # (`g0` as given, bound now: the run's is a batch of one.)
-    explain = functools.partial(lambda g0, _: system.check_element("g0", g0), g0)
-    g0, m0 = (np.asarray(x)[None] if is_concrete(x) else jnp.asarray(x)[None] for x in (g0, m0))
+    def explain(_):
+        system.check_element("g0", g0)
+
+    # A batch of one.
+    g, m = (np.asarray(x)[None] if is_concrete(x) else jnp.asarray(x)[None] for x in (g0, m0))
     check = ("lievi.simulate", "a step") if throw else None
     return execute(
-        run, g0, m0, h, t0, n_steps, opts.save.every, explain=explain, one=True, throw=check
+        run, g, m, h, t0, n_steps, opts.save.every, explain=explain, one=True, throw=check
     )
 
 

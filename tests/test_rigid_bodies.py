@@ -12,26 +12,16 @@ import functools
 import equinox as eqx
 import jax
 import jax.extend
-import jax.monitoring
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import lievi
-from helpers import ROUNDOFF, dop853_final, final_state
+from helpers import ROUNDOFF, dop853_final, final_state, programs_compiled
 from lievi import diagnostics as dg
 
 SE3, SO3 = lievi.SE3, lievi.SO3
 SLOW = pytest.mark.slow
-
-_COMPILED = []  # the programs XLA compiles (their names), for the test that counts them
-jax.monitoring.register_event_duration_secs_listener(
-    lambda name, duration, **kwargs: (
-        _COMPILED.append(kwargs.get("fun_name"))
-        if name == "/jax/core/compile/backend_compile_duration"
-        else None
-    )
-)
 
 
 def _poses(rng, positions):
@@ -524,10 +514,9 @@ def test_gravitating_bodies_compiles_few_programs():
     masses = jnp.array([[1.0, 0.6, 0.8, 0.2], [0.5, 0.4, 0.3, 0.1], [0.2, 0.2, 0.3, 0.4]])
     points = jnp.asarray(np.random.default_rng(7).uniform(-1, 1, size=(3, 4, 3)) * 0.15)
     jax.clear_caches()
-    _COMPILED.clear()
+    compiled = programs_compiled(lambda: lievi.gravitating_bodies(1.0, masses, points).tensor)
+    assert len(compiled) <= 6, compiled
     system = lievi.gravitating_bodies(1.0, masses, points)
-    jax.block_until_ready(system.tensor)
-    assert len(_COMPILED) <= 6, _COMPILED
     *_, inertia = jax.vmap(lievi._systems._se3_potentials.point_mass_body)(masses, points)
     np.testing.assert_allclose(system.mass, jnp.sum(masses, axis=1), rtol=1e-15)
     np.testing.assert_allclose(system.tensor[:, :3, :3], inertia, rtol=1e-15)
@@ -694,8 +683,7 @@ def test_an_eager_batch_of_bodies_compiles_two_programs_and_a_new_horizon_none()
     m0 = np.stack([m0, 1.01 * m0])
     jax.block_until_ready(system)
 
-    def programs(n_steps, h, m0):
-        _COMPILED.clear()
+    def run(n_steps, h, m0):
         sol = lievi.simulate_batch(
             system,
             lievi.LiePoissonSplitting(),
@@ -705,12 +693,13 @@ def test_an_eager_batch_of_bodies_compiles_two_programs_and_a_new_horizon_none()
             n_steps=n_steps,
             save=lievi.Save(stats=False, every=n_steps),
         )
-        jax.block_until_ready(sol)
         assert np.all(np.asarray(sol.result) == int(lievi.RESULTS.successful))
-        return list(_COMPILED)
+        return sol
 
-    assert len(programs(4, 0.05, m0)) <= 2, _COMPILED
-    assert programs(6, 0.04, 1.01 * m0) == [], _COMPILED
+    compiled = programs_compiled(lambda: run(4, 0.05, m0))
+    assert len(compiled) <= 2, compiled
+    compiled = programs_compiled(lambda: run(6, 0.04, 1.01 * m0))
+    assert compiled == [], compiled
 
 
 @pytest.mark.parametrize("full", [False, True], ids=["principal", "tensors"])

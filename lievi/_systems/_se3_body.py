@@ -43,8 +43,7 @@ def spd_solve(M: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " k
     Written with scalar operations so that XLA fuses it into a few instructions; a LAPACK
     call per solve (`jnp.linalg.solve`) costs more than the rest of an RK4 stage on CPU,
     especially under `vmap`. Under `jax.jit`, so that its hundred-odd operations are traced
-    once per shape and dtype, not at every call: RATTLE's step calls it nine times, which
-    were a quarter of the step's tracing.
+    once per shape and dtype, not at each call (RATTLE's step calls it nine times).
     """
     k = b.shape[-1]
     M = (M + M.T) / 2  # reads both triangles: the derivative is the symmetric one
