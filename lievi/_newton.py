@@ -1,14 +1,17 @@
 """Newton's method inside `jax.lax.while_loop`, differentiated implicitly.
 
-The solve is wrapped in `jax.lax.custom_root`, so derivatives of the root with respect to
-anything the residual closes over (momentum, inertia, h) come from the implicit function
-theorem at the converged root, `dx = −J⁻¹ ∂r`, not from differentiating the iterations:
-reverse mode works (it cannot go through a `while_loop`) and the derivative does not
-depend on how many iterations were taken.
+The root is differentiated by the implicit function theorem: its derivative with respect
+to anything the residual closes over (momentum, inertia, h) is `dx = −J⁻¹ ∂r` at the
+converged root, not the derivative of the iterations, so reverse mode works (it cannot go
+through a `while_loop`) and the derivative does not depend on how many iterations were
+taken. It is a `jax.custom_jvp`, traced only when differentiated, as the kernels' roots
+are (`lievi._kernels._implicit`): `jax.lax.custom_root` linearised the residual and traced
+its Jacobian whenever the step was traced, forward runs included.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import equinox as eqx
@@ -108,20 +111,19 @@ def newton_solve(
     derivative at the root still uses the exact Jacobian, so derivatives do not depend on
     `J̃`.
     """
+    # The residual (and its Jacobian in closed form, where given) with what it closes over
+    # as arguments, traced once: the iterations run on those cut from the gradient, and
+    # `_at_root` adds the implicit derivative with respect to them.
     linear_solve = jnp.linalg.solve
-    if residual_and_jacobian is not None:
-        residual = lambda x: residual_and_jacobian(x)[0]  # noqa: E731
+    if residual_and_jacobian is None:
+        value, consts = jax.closure_convert(residual, x0)
+        jacobian = jax.jacfwd(value)
+    else:
+        both, consts = jax.closure_convert(residual_and_jacobian, x0)
+        value, jacobian = (functools.partial(_part, both, i) for i in (0, 1))
         if jnp.shape(x0) == (3,):
             linear_solve = _cramer3
-
-    def jacobian_and_value(x):
-        if residual_and_jacobian is None:
-            return _jacobian_and_value(residual, x)
-        r, jac = residual_and_jacobian(x)
-        return jac, r
-
-    def newton_step(jac, r):
-        return linear_solve(jac, r)
+    cut = jax.lax.stop_gradient(consts)
 
     def iterate(evaluate, step, guess):
         def cond(carry):
@@ -143,32 +145,45 @@ def newton_solve(
         x = jnp.where(jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(r)), x, guess)
         return x, it, jnp.max(jnp.abs(r))
 
-    # The iterations run on the residual with what it closes over cut from the gradient,
-    # outside `custom_root`; the root is tagged `ROOT_NAME` and handed to `custom_root`
-    # as its own guess (its solve returns it), which adds the implicit derivative. So a
-    # `jax.checkpoint` that keeps `ROOT_NAME` (`simulate`'s step) stores the root, and
-    # its backward pass evaluates the derivative there without solving again.
     guess = jax.lax.stop_gradient(x0)
-    if approximate_solve is None:
-        closed, consts = jax.closure_convert(jacobian_and_value, x0)
-        consts = jax.lax.stop_gradient(consts)
-        root, iterations, norm = iterate(lambda x: closed(x, *consts), newton_step, guess)
-    else:
+    if approximate_solve is not None:
         # No Jacobian in the loop (its slot carries nothing); the approximate solve's
         # factors, like the residual's constants, carry no derivative.
-        value, value_consts = jax.closure_convert(residual, x0)
         solve, solve_consts = jax.closure_convert(approximate_solve, x0)
-        value_consts, solve_consts = jax.lax.stop_gradient((value_consts, solve_consts))
+        solve_consts = jax.lax.stop_gradient(solve_consts)
         root, iterations, norm = iterate(
-            lambda x: ((), value(x, *value_consts)),
-            lambda _, r: solve(r, *solve_consts),
-            guess,
+            lambda x: ((), value(x, *cut)), lambda _, r: solve(r, *solve_consts), guess
         )
+    elif residual_and_jacobian is None:
+        evaluate = functools.partial(_jacobian_and_value, lambda x: value(x, *cut))
+        root, iterations, norm = iterate(evaluate, linear_solve, guess)
+    else:
+        root, iterations, norm = iterate(lambda x: both(x, *cut)[::-1], linear_solve, guess)
+    # Tagged before `_at_root`, whose derivative rule evaluates `J` at this input: a
+    # `jax.checkpoint` that keeps `ROOT_NAME` (`simulate`'s step) stores the root, and its
+    # backward pass evaluates the derivative there without solving again.
     root = checkpoint_name(root, ROOT_NAME)
-
-    def tangent_solve(linear, y):
-        return linear_solve(jax.jacobian(linear)(y), y)
-
-    x = jax.lax.custom_root(residual, root, lambda f, guess: guess, tangent_solve)
+    x = _at_root(value, jacobian, linear_solve, root, *consts)
     iterations, norm = jax.lax.stop_gradient((iterations, norm))
     return x, NewtonInfo(iterations, norm, norm <= tolerance)
+
+
+def _part(both, i, x, *consts):
+    return both(x, *consts)[i]
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
+def _at_root(value, jacobian, linear_solve, root, *consts):
+    """`root`, a root of `value(·, *consts)`, with the derivative of the root as a function
+    of `consts`."""
+    return root
+
+
+@_at_root.defjvp
+def _at_root_jvp(value, jacobian, linear_solve, primals, tangents):
+    # r(x(c), c) = 0 ⇒ J dx = −∂r/∂c dc: linear in the tangents with coefficients from the
+    # primal point, so JAX transposes it for reverse mode (both solves are transposable).
+    root, *consts = primals
+    _, *dconsts = tangents
+    _, dr = jax.jvp(lambda *c: value(root, *c), tuple(consts), tuple(dconsts))
+    return root, -linear_solve(jacobian(root, *consts), dr)

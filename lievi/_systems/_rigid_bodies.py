@@ -119,16 +119,8 @@ class RigidBodies(AbstractLieSystem):
         return flat.reshape(*mass.shape, 6, 6)
 
     def force(self, g: Float[Array, "N 4 4"]) -> Float[Array, "N 6"]:
-        """Each body's wrench `M_i = −d/dε V(…, g_i exp(ε e_a), …)`: in closed form where
-        the potential gives it (`AbstractPotential.value_and_body_wrenches`, e.g. the site
-        forces of `lievi.SitePotential`), else by autodiff (`AbstractLieSystem.force`).
-        NaN where `V(g)` is not finite, either way."""
-        closed = None if self.potential is None else self.potential.value_and_body_wrenches(g)
-        if closed is None:
-            return super().force(g)
-        value, wrench = closed
-        wrench = wrench.astype(jnp.result_type(g, float))
-        return jnp.where(jnp.isfinite(value), wrench, jnp.nan)
+        """Each body's wrench `M_i = −d/dε V(…, g_i exp(ε e_a), …)`: `bodies_force`."""
+        return bodies_force(self, g)
 
     def free_flow(self, integrator, g, m, h: Scalar):
         """Each body's free step by `integrator`, the N bodies at once: a body in vacuum
@@ -193,3 +185,18 @@ class RigidBodies(AbstractLieSystem):
     def energy(self, m: Float[Array, "N 6"]) -> Scalar:
         """The kinetic energy `Σ_i ½ m_iᵀ M_i⁻¹ m_i` (`lievi.diagnostics.energy` adds `V`)."""
         return jnp.sum(m * self.velocity(m)) / 2
+
+
+def bodies_force(system: AbstractLieSystem, g: Float[Array, "N 4 4"]) -> Float[Array, "N 6"]:
+    """The wrenches `M_i = −d/dε V(…, g_i exp(ε e_a), …)` of a system of N bodies on
+    SE(3)ᴺ: in closed form where its potential gives them
+    (`AbstractPotential.value_and_body_wrenches`, e.g. the site forces of
+    `lievi.SitePotential`, uniform gravity on jointed bodies), else by autodiff
+    (`AbstractLieSystem.force`). NaN where `V(g)` is not finite, either way."""
+    potential = system.potential
+    closed = None if potential is None else potential.value_and_body_wrenches(g)
+    if closed is None:
+        return AbstractLieSystem.force(system, g)
+    value, wrench = closed
+    wrench = wrench.astype(jnp.result_type(g, float))
+    return jnp.where(jnp.isfinite(value), wrench, jnp.nan)
