@@ -50,8 +50,7 @@ class BodiesGravity(AbstractPotential):
         """`(V(g), M(g))` in closed form: body `i`'s weight `γ m_i` acts at its centre of
         mass, its origin, so its wrench is no torque and the force `−γ m_i R_iᵀe₃` (`R_iᵀe₃`
         the third row of `R_i`); plus the further potential's, where it has a closed form
-        (else `None`: the whole force by autodiff). Traced, the autodiff form cost RATTLE
-        a quarter of its step's tracing."""
+        (else `None`: the whole force by autodiff, which each RATTLE step traced twice)."""
         extra = None if self.extra is None else self.extra.value_and_body_wrenches(g)
         if self.extra is not None and extra is None:
             return None
