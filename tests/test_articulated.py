@@ -21,6 +21,7 @@ from articulated_problems import (
 
 import lievi
 from helpers import dop853_final, final_state, programs_compiled
+from lievi._systems._base import AbstractLieSystem
 
 JOINTS = 1e-12  # joints, relative to the link length, at every step
 MOMENTUM = 1e-12  # conserved momenta, relative
@@ -525,8 +526,6 @@ def test_gravity_wrench_closed_form_matches_autodiff():
     force of the same potential (`AbstractLieSystem.force`) to 1e-13 relative, off the
     constraint manifold too; with a further potential that has no closed form the whole
     force is autodiff's."""
-    from lievi._systems._base import AbstractLieSystem
-
     system, g, _ = triple_pendulum()
     turn = 0.3 * jax.random.normal(jax.random.key(3), (system.n_bodies, 6))
     g = lievi.SE3.compose(g, lievi.SE3.exp(turn))

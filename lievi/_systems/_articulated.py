@@ -42,8 +42,12 @@ class BodiesGravity(AbstractPotential):
     gravity: Float[Array, ""]
     extra: AbstractPotential | None
 
+    def _gravity(self, g):
+        """`γ Σ_i m_i e₃·x_i`, gravity's part of `V(g)`."""
+        return jnp.asarray(self.gravity) * jnp.sum(jnp.asarray(self.mass) * g[..., :, 2, 3])
+
     def __call__(self, g):
-        value = jnp.asarray(self.gravity) * jnp.sum(jnp.asarray(self.mass) * g[..., :, 2, 3])
+        value = self._gravity(g)
         return value if self.extra is None else value + self.extra(g)
 
     def value_and_body_wrenches(self, g):
@@ -55,7 +59,7 @@ class BodiesGravity(AbstractPotential):
         if self.extra is not None and extra is None:
             return None
         weight = jnp.asarray(self.gravity) * jnp.asarray(self.mass)
-        value = jnp.sum(weight * g[..., :, 2, 3])
+        value = self._gravity(g)
         up = g[..., :, 2, :3]
         wrench = jnp.concatenate([jnp.zeros_like(up), -weight[..., None] * up], axis=-1)
         return (value, wrench) if extra is None else (value + extra[0], wrench + extra[1])
