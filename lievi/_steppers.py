@@ -303,8 +303,8 @@ def plan_for(
     the kernel as it runs one body; `carry_g=False`: the kernel's reduced form, if any.
 
     `Tuning(fast=False)` steps every body as a one-body `simulate` steps it, as under
-    `jax.vmap` of `simulate`: the kernel as it runs one body (Newton to each body's own
-    convergence), its per-run constants once, its state in its own layout. Not the
+    `jax.vmap` of `simulate`: the kernel as it runs one body (`one_body`), its per-run
+    constants once, its state in its own layout. Not the
     method's `step` under `jax.vmap`: there the kernel split `g` into components and
     prepared its constants at every step, and reverse mode assembled each component's
     cotangent in a fusion of its own that recomputed the step (`RK4`'s batched gradient,
@@ -322,7 +322,7 @@ def plan_for(
     if fast and fixed is not None:
         kernel = kernel.with_fixed_iterations(fixed)
     elif one_body or not fast:
-        # One body stops at convergence: no fixed iterations unrolled before the check
-        # (`AbstractBatchKernel.one_body`), a smaller program that runs as fast.
+        # The kernel's one-body form (`AbstractBatchKernel.one_body`; SE(3): a dense step,
+        # a fraction of the batch's program).
         kernel = kernel.one_body()
     return KernelPlan(system, system_axis, kernel, constants, integrator.step_bound(), carry_g)

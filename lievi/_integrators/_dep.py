@@ -156,7 +156,7 @@ class DEP(AbstractVariationalIntegrator):
     def free_step(self, system: AbstractLieSystem, g, m, h: Scalar):
         # Where a kernel applies (the rigid body with principal moments, the free body on
         # SE(3)): the same root, closed forms throughout, and under `jax.vmap` the batched
-        # kernel (`AbstractBatchKernel.one_body` sets its Newton policy for one body).
+        # kernel (`AbstractBatchKernel.one_body`: its form for one body).
         fast = self.kernel_step(system, g, m, h)
         if fast is not None:
             return fast

@@ -83,9 +83,8 @@ class KickKernel(AbstractBatchKernel):
         return dataclasses.replace(self, free=self.free.with_fixed_iterations(fixed_iterations))
 
     def one_body(self):
-        # The free kernel as it runs one body (e.g. Newton to each body's own convergence),
-        # as `simulate` and `Tuning(fast=False)` promise: kept as is, the kicks would run
-        # the batch's fixed iterations there.
+        # The free kernel as it runs one body, as `simulate` and `Tuning(fast=False)`
+        # promise: kept as is, the kicks would run the batch's form there.
         return dataclasses.replace(self, free=self.free.one_body())
 
     def reduced(self):
