@@ -39,6 +39,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._base import MatrixLieGroup
+from ._eager import compiled_when_eager
 from ._series import cosc, dexpinv_coefficient, dot, horner, sinc3, truncated_dexpinv_terms
 from ._so3 import SO3
 
@@ -78,6 +79,7 @@ def _coefficient_and_derivative(coefficient, omega, v):
     return c[..., None, None], dc[..., None, None]
 
 
+@compiled_when_eager
 class SE3Group(MatrixLieGroup):
     """SE(3) with closed forms. Use the instance `lievi.SE3`.
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._eager import compiled_when_eager
 from ._series import (
     cosc,
     dexpinv_coefficient,
@@ -27,6 +28,7 @@ from ._series import (
 from ._son import AbstractSpecialOrthogonal
 
 
+@compiled_when_eager
 class SO3Group(AbstractSpecialOrthogonal):
     """SO(3) with closed forms. Use the instance `lievi.SO3`.
 

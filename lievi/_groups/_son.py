@@ -24,6 +24,7 @@ from jaxtyping import Array, Float
 
 from .._checks import membership_tolerance
 from ._base import MatrixLieGroup
+from ._eager import compiled_when_eager
 
 
 @functools.cache
@@ -282,6 +283,7 @@ def _rotation_sqrt(g, iterations: int):
     return jax.lax.fori_loop(0, iterations, body, g + eye)
 
 
+@compiled_when_eager
 class SOn(AbstractSpecialOrthogonal):
     """The special orthogonal group SO(n), any `n ≥ 2`, in generic matrix form.
 
