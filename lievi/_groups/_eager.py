@@ -2,11 +2,12 @@
 
 Outside a transformation JAX runs a function's operations one by one, each a small
 program compiled on first use: `SO3.log` of one rotation was 36 of them (0.8 s at its
-first call, 1.5 ms at each later one; one program: 0.15–0.18 s, then 0.08 ms). `compiled_when_eager` gives a group
-class's public operations one `eqx.filter_jit` program each for concrete inputs (one
-compile per shape and dtype, then a dispatch). Called with a tracer — under `jit`,
-`vmap`, `grad` or a loop, which is how the library's own steps call them — they are
-traced inline as before: the library's programs do not change.
+first call, 1.5 ms at each later one; as one program 0.15–0.18 s, then 0.08 ms).
+`compiled_when_eager` gives a group class's public operations one `eqx.filter_jit`
+program each for concrete inputs (one compile per shape and dtype, then a dispatch).
+Called with a tracer — under `jit`, `vmap`, `grad` or a loop, which is how the library's
+own steps call them — they are traced inline as before: the library's programs do not
+change.
 """
 
 from __future__ import annotations
