@@ -103,8 +103,19 @@ def test_failure_is_recorded_across_blocks(small_blocks, fast, integrator):
     eager = lievi.simulate_batch(BODY, integrator, G0, momenta, **kwargs)
     assert eager.result[2] != lievi.RESULTS.successful
     assert np.all(np.isnan(eager.m[2, eager.stats["failed_step"][2] + 1 :]))
-    traced = eqx.filter_jit(lambda m: lievi.simulate_batch(BODY, integrator, G0, m, **kwargs))
-    _same(eager, traced(momenta), exact=False)
+    traced = eqx.filter_jit(lambda m: lievi.simulate_batch(BODY, integrator, G0, m, **kwargs))(
+        momenta
+    )
+    # The failed step's residual is that of a Newton iteration that diverged for its
+    # `max_steps` iterations (about 1e2 here): the two programs' round-off grows through
+    # them (45 ulps measured), so that one entry is compared to 1e-12 relative, the rest
+    # to round-off.
+    step = int(eager.stats["failed_step"][2])
+    np.testing.assert_allclose(
+        eager.stats["residual"][2, step], traced.stats["residual"][2, step], rtol=1e-12
+    )
+    residual = traced.stats["residual"].at[2, step].set(eager.stats["residual"][2, step])
+    _same(eager, eqx.tree_at(lambda s: s.stats["residual"], traced, residual), exact=False)
 
 
 @pytest.mark.parametrize(
