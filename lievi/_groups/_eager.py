@@ -18,15 +18,17 @@ import inspect
 import equinox as eqx
 import jax
 
+from .._checks import is_concrete
+
 
 def _compiled(method):
     compiled = eqx.filter_jit(method)
 
     @functools.wraps(method)
     def call(self, *args, **kwargs):
-        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((args, kwargs))):
-            return method(self, *args, **kwargs)
-        return compiled(self, *args, **kwargs)
+        if is_concrete(*jax.tree.leaves((args, kwargs))):
+            return compiled(self, *args, **kwargs)
+        return method(self, *args, **kwargs)
 
     return call
 
