@@ -15,14 +15,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._small_linalg import matvec
-
-
-def _matmul(A, B):
-    """`A B` for `A` `(p, q)` and `B` `(q, r)`. As `dot`, not a broadcast sum: batched by
-    `vmap` the sum was 1.3x faster at a batch of 16 but 1.2-1.4x slower at 4096 (it reduces
-    over a middle axis), the `dot` faster than the dense products at both."""
-    return A @ B
+from .._small_linalg import matmul, matvec, transpose_matvec
 
 
 class JointRows(eqx.Module):
@@ -57,9 +50,9 @@ class JointRows(eqx.Module):
     def times_blocks(self, W):
         """`C W` for a block-diagonal `W` `(N, 6, 6)`: each column block times its body's."""
         of_parent = [
-            rows if p == -1 else _matmul(rows, W[p]) for p, rows in zip(self.parent, self.of_parent)
+            rows if p == -1 else matmul(rows, W[p]) for p, rows in zip(self.parent, self.of_parent)
         ]
-        of_child = [_matmul(rows, W[i]) for i, rows in zip(self.child, self.of_child)]
+        of_child = [matmul(rows, W[i]) for i, rows in zip(self.child, self.of_child)]
         return JointRows(self.n_bodies, self.child, self.parent, of_parent, of_child)
 
     def apply(self, v):
@@ -78,7 +71,7 @@ class JointRows(eqx.Module):
             part = impulse[start : start + size]
             start += size
             for j, rows in self._columns(k):
-                per_body[j].append(jnp.sum(rows * part[:, None], axis=0))
+                per_body[j].append(transpose_matvec(rows, part))
         zero = jnp.zeros((6,), impulse.dtype)
         return jnp.stack([sum(terms) if terms else zero for terms in per_body])
 
@@ -94,7 +87,7 @@ class JointRows(eqx.Module):
             left_columns = dict(left._columns(index[a]))
             for b in [a, *neighbours[a]]:
                 terms = [
-                    _matmul(left_columns[j], rows.T)
+                    matmul(left_columns[j], rows.T)
                     for j, rows in other._columns(index[b])
                     if j in left_columns
                 ]

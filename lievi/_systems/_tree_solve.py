@@ -22,6 +22,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from .._small_linalg import inverse as small_inverse
+from .._small_linalg import matmul
 
 
 def tree_structure(parents, sizes):
@@ -65,10 +66,10 @@ def block_tree_solver(blocks, structure):
         inverse[a] = small_inverse(block[a, a])
         rest = [b for b in neighbours[a] if b not in done]
         for b in rest:
-            lower[b, a] = block[b, a] @ inverse[a]
+            lower[b, a] = matmul(block[b, a], inverse[a])
         for b in rest:
             for d in rest:
-                block[b, d] = block[b, d] - lower[b, a] @ block[a, d]
+                block[b, d] = block[b, d] - matmul(lower[b, a], block[a, d])
         done.add(a)
 
     def solve(r):
