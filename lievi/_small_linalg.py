@@ -7,13 +7,9 @@ written as a sum over the contracted index, unrolled (each term an elementwise p
 a column and a row), and an elimination whose steps are elementwise are elementwise over
 the batch, which XLA fuses into a few loops. A matrix–vector product stays a `dot`. Not a
 broadcast product reduced over the contracted axis: such small reductions ran slowest.
-Measured on one core, 4096 blocks, float64 (µs a call):
-
-| | `dot` | broadcast and reduce | unrolled sum |
-|---|---|---|---|
-| `(3, 6)·(6, 6)` | 755 | 851 | 83 |
-| `(6, 6)·(6, 6)` | 836 | 1751 | 146 |
-| `(6, 6)·(6,)` | 122 | 536 | 106 |
+With XLA's default multi-threaded Eigen (as users run it) a batched `dot_general` of `6×6`
+blocks ran about 10× slower than single-threaded, and than the unrolled sum (figures:
+`CHANGELOG.md`, RATTLE's joint products).
 
 RATTLE's step on the chains of docs/articulated.md was the sum of such calls. The unrolled
 products cost compile time instead (each is a kernel XLA compiles, where a `dot` is a
