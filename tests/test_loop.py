@@ -191,6 +191,28 @@ def test_progress_meter_of_an_eager_run(small_blocks, capsys):
     assert out.count("\n") == 1
 
 
+def test_an_eager_trajectory_fills_its_final_layout(small_blocks):
+    """The blocks' saves (4 a block, the last one partial) land in one batch-major
+    trajectory, the initial save in front, in the order of the steps: each save equal to
+    a run stopped there; and the host array the trajectory is filled in, on a 64-byte
+    boundary, is the one JAX holds (on the CPU: no copy)."""
+    kwargs = dict(h=0.1, save=lievi.Save(every=2), throw=True)
+    whole = lievi.simulate_batch(BODY, lievi.DEP(), G0, MOMENTA, n_steps=22, **kwargs)
+    assert whole.g.shape == (5, 12, 3, 3) and whole.stats["residual"].shape == (5, 11)
+    np.testing.assert_array_equal(whole.g[:, 0], np.broadcast_to(G0, (5, 3, 3)))
+    for n_steps in (2, 10, 18):  # the first save of blocks 1, 2 and 3
+        part = lievi.simulate_batch(BODY, lievi.DEP(), G0, MOMENTA, n_steps=n_steps, **kwargs)
+        np.testing.assert_array_equal(whole.m[:, : n_steps // 2 + 1], part.m)
+        np.testing.assert_array_equal(
+            whole.stats["residual"][:, : n_steps // 2], part.stats["residual"]
+        )
+    host = _loop._host_empty((5, 12, 3, 3), np.float64)
+    assert host.ctypes.data % 64 == 0 and host.flags.c_contiguous
+    if jax.default_backend() == "cpu":
+        taken = jax.device_put(host, may_alias=True)
+        assert taken.unsafe_buffer_pointer() == host.ctypes.data
+
+
 @pytest.mark.extended  # 13 s
 def test_under_transformations_the_static_scan_is_used():
     """`jit`, `grad` and `vmap` trace the run: the static scan (reverse mode needs it)."""
