@@ -8,8 +8,8 @@ carry, the progress meter), then settles and stores the state; `finish` assemble
 `Solution` (the initial save, the saves batch-major, their times). Two drivers run the
 same step and save: under a transformation or with per-step forcing data, one static
 `lax.scan` over the saves in checkpointed segments; called eagerly, two compiled programs
-whatever the horizon (`start`, and a block of saves whose trip counts are traced), the
-blocks joined on the host.
+whatever the horizon (`start`, and a block of saves whose trip counts are traced), each
+block's saves copied into the trajectory on the host.
 """
 
 from __future__ import annotations
