@@ -263,9 +263,10 @@ def run_eager(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     # The trajectory in its final layout from the start, each block copied into place once
     # (joining the blocks, then the initial save, then handing the result to JAX were three
     # copies of it: 0.3–0.4 of the run's time when a batch of 4096 saved every step).
-    first = {name: int(name in initial) for name in shapes}
+    # Where the saves start: after the initial save for what has one, at 0 for statistics.
+    offset = {name: int(name in initial) for name in shapes}
     trajectory = {
-        name: _host_empty((m0.shape[0], first[name] + n_saves) + s.shape[1:], s.dtype)
+        name: _host_empty((m0.shape[0], offset[name] + n_saves) + s.shape[1:], s.dtype)
         for name, s in shapes.items()
     }
     for name, x in initial.items():
@@ -278,7 +279,7 @@ def run_eager(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
         fixed = (run, stepper, carry, steps, every, np.asarray(count, np.int32))
         carry, buffers = _block_program(fixed, buffers)
         for name, x in buffers.items():
-            at = first[name] + begin
+            at = offset[name] + begin
             np.copyto(
                 trajectory[name][:, at : at + count], np.swapaxes(np.asarray(x)[:count], 0, 1)
             )
@@ -288,10 +289,10 @@ def run_eager(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
 def _host_empty(shape, dtype):
     """An uninitialised NumPy array on a 64-byte boundary, which `jax.device_put(...,
     may_alias=True)` takes without a copy on the CPU (a misaligned one it copies)."""
-    dtype = np.dtype(dtype)
-    raw = np.empty(int(np.prod(shape)) * dtype.itemsize + 64, np.uint8)
+    size = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    raw = np.empty(size + 64, np.uint8)
     skip = -raw.ctypes.data % 64
-    return raw[skip : skip + int(np.prod(shape)) * dtype.itemsize].view(dtype).reshape(shape)
+    return raw[skip : skip + size].view(dtype).reshape(shape)
 
 
 def finish(run: Run, carry, trajectory, times, n_steps: int, save_every: int, xp=jnp):

@@ -194,8 +194,8 @@ def test_progress_meter_of_an_eager_run(small_blocks, capsys):
 def test_an_eager_trajectory_fills_its_final_layout(small_blocks):
     """The blocks' saves (4 a block, the last one partial) land in one batch-major
     trajectory, the initial save in front, in the order of the steps: each save equal to
-    a run stopped there; and the host array the trajectory is filled in, on a 64-byte
-    boundary, is the one JAX holds (on the CPU: no copy)."""
+    a run stopped there; and the host array a trajectory is filled in lies on a 64-byte
+    boundary, where JAX takes it without a copy (on the CPU)."""
     kwargs = dict(h=0.1, save=lievi.Save(every=2), throw=True)
     whole = lievi.simulate_batch(BODY, lievi.DEP(), G0, MOMENTA, n_steps=22, **kwargs)
     assert whole.g.shape == (5, 12, 3, 3) and whole.stats["residual"].shape == (5, 11)
