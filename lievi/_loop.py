@@ -58,9 +58,10 @@ class Run(eqx.Module):
         return cls(plan, save, opts.progress, dtype, opts.segment, opts.tuning.unroll, opts.monitor)
 
 
-def _zero_counters(batch, dtype):
-    int32 = jnp.zeros((batch,), jnp.int32)
-    return int32, int32, jnp.full((batch,), -jnp.inf, dtype)
+def _zero_counters(batch, dtype, xp=jnp):
+    """The statistics' counters of a save interval, `(total, most, worst)` per body."""
+    int32 = xp.zeros((batch,), np.int32)
+    return int32, int32, xp.full((batch,), -np.inf, dtype)
 
 
 def _one_step(stepper, progress, n_steps):
@@ -117,20 +118,28 @@ def _invariants(run, stepper, state):
 
 
 def start(run: Run, g0, m0, h, t0):
-    """`(stepper, carry, advected)`: the traced input checks, the stepper and its initial
-    state, and the advected parameter at `g0` where it is saved (`None` otherwise)."""
+    """`(stepper, state, valid, reference, advected)`: the stepper and its initial state,
+    the traced input checks (`valid` `(B,)`), the monitor's invariants at the start (`None`
+    without a monitor) and the advected parameter at `g0` where it is saved (`None`
+    otherwise). The rest of the loop's carry is `_carry`'s."""
     # Before the cast: `g0` to its own dtype's tolerance.
     valid = run.plan.valid(g0, m0, h, t0, parameters=not run.parameters_checked)
     g0, m0, h, t0 = (jnp.asarray(x, run.dtype) for x in (g0, m0, h, t0))
     stepper = run.plan.stepper(g0, m0, h, t0)
-    batch = m0.shape[0]
-    result, failed_step = (jnp.broadcast_to(x, (batch,)) for x in RESULTS.initial(valid))
     state = stepper.init(g0, m0)
     reference = None if run.monitor is None else _invariants(run, stepper, state)
     advected = stepper.advected_at(g0) if run.save.with_advected() else None
-    counters = _zero_counters(batch, run.dtype)
-    carry = (state, result, failed_step, jnp.asarray(0, jnp.int32), counters, reference)
-    return stepper, carry, advected
+    return stepper, state, valid, reference, advected
+
+
+def _carry(run: Run, state, valid, reference, xp):
+    """The loop's carry before the first step, `(state, result, failed_step, k, counters,
+    reference)`, built where the run is (`xp`: NumPy for an eager run, whose `start`
+    program then outputs `valid` alone: as its outputs, the results, the step counter and
+    the counters were a kernel each)."""
+    result, failed_step = RESULTS.initial(valid, xp)
+    counters = _zero_counters(valid.shape[0], run.dtype, xp)
+    return (state, result, failed_step, xp.asarray(0, np.int32), counters, reference)
 
 
 def _initial(run: Run, g0, m0, advected, xp):
@@ -157,7 +166,8 @@ def run_static(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     """The run as one static scan over the saves (under a transformation, or with per-step
     forcing data): `(carry, trajectory)`, `trajectory` what is saved, batch-major: `g`, `m`
     and `advected` `(B, 1 + T, …)` from the initial state on, the statistics `(B, T)`."""
-    stepper, carry, advected = start(run, g0, m0, h, t0)
+    stepper, state, valid, reference, advected = start(run, g0, m0, h, t0)
+    carry = _carry(run, state, valid, reference, jnp)
     initial = _initial(run, g0, m0, advected, jnp)
     one_save = _saving(run, stepper, n_steps)
     segment = run.segment
@@ -246,7 +256,8 @@ def run_eager(run: Run, g0, m0, h, t0, n_steps: int, save_every: int):
     # NumPy scalars: a Python float would be compiled in as a constant, and `jnp.asarray`
     # is a program of its own.
     h, t0 = (x if eqx.is_array(x) else np.asarray(x) for x in (h, t0))
-    stepper, carry, advected = _start_program(run, g0, m0, h, t0)
+    stepper, state, valid, reference, advected = _start_program(run, g0, m0, h, t0)
+    carry = _carry(run, state, np.asarray(valid), reference, np)
     initial = _initial(run, g0, m0, advected, np)
     # A block's saves from one save's bytes (its outputs and the 3 statistics per body):
     # a function of the shapes only, so that a new horizon reuses the compiled block.

@@ -63,11 +63,12 @@ class RESULTS:
     # `simulate_batch`), each rule once.
 
     @staticmethod
-    def initial(valid):
+    def initial(valid, xp=jnp):
         """`(result, failed_step)` before the first step: `invalid_input` at step 0 where
-        the input checks failed (`valid` false), else success and no failed step (−1)."""
-        result = jnp.where(valid, RESULTS.successful, RESULTS.invalid_input)
-        return result.astype(jnp.int32), jnp.where(valid, -1, 0).astype(jnp.int32)
+        the input checks failed (`valid` false), else success and no failed step (−1).
+        (`xp`: `numpy` for concrete `valid`.)"""
+        result = xp.where(valid, RESULTS.successful, RESULTS.invalid_input)
+        return result.astype(jnp.int32), xp.where(valid, -1, 0).astype(jnp.int32)
 
     @staticmethod
     def checked(step_result, finite, too_large):

@@ -73,6 +73,14 @@ def _stacked(v) -> bool:
     return jnp.ndim(v) == 0 or (jnp.ndim(v) == 1 and 1 < jnp.size(v) <= STACKED_MAX)
 
 
+def per_run(values):
+    """Per-run constants (scalars, or `(B,)` arrays of a batch) as one array `(k, …)`,
+    read as components (`x[i]`) as a tuple of them is. Computed in the run's set-up
+    program and passed to its loop: there each output array is a kernel XLA compiles on
+    its own, so three rates are one kernel instead of three."""
+    return jnp.stack(jnp.broadcast_arrays(*values))
+
+
 def materialise(values, one, stack: bool = True):
     """`values / one` with `one` an array of ones computed at run time: forces XLA to store
     `values` instead of recomputing them in every consumer.
@@ -211,7 +219,7 @@ class AbstractBatchKernel(eqx.Module):
     def turn_rates(self, constants, h):
         """Per-run constants of `turn_squared` (computed once, outside the loop): by
         default `|h|/I_p`."""
-        return tuple(jnp.abs(h) / constants[i] for i in range(3))
+        return per_run([jnp.abs(h) / constants[i] for i in range(3)])
 
     def turn_squared(self, rates, m):
         """`(h|ω|)²`, the squared angle turned in one step at momentum `m` (components),

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 
 from .._results import RESULTS
 from . import _explicit_adjoints
-from ._base import AbstractBatchKernel
+from ._base import AbstractBatchKernel, per_run
 
 
 def finite_result(m, g):
@@ -68,7 +68,7 @@ class SplittingKernel(AbstractBatchKernel):
     """`splitting_step` for `LiePoissonSplitting`."""
 
     def prepare(self, inertia, h):
-        return tuple(h / moment for moment in inertia)
+        return per_run([h / moment for moment in inertia])
 
     def step(self, params, g, m, alive):
         g_next, m_next, result = splitting_step(g, m, params)
@@ -79,7 +79,7 @@ class RK4Kernel(AbstractBatchKernel):
     """`rk4_step` for `RK4`."""
 
     def prepare(self, inertia, h):
-        return tuple(h / moment for moment in inertia)
+        return per_run([h / moment for moment in inertia])
 
     def step(self, params, g, m, alive):
         g_next, m_next, result = rk4_step(g, m, params)

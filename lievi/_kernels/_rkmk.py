@@ -28,7 +28,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._groups._series import truncated_dexpinv_terms
-from ._base import AbstractBatchKernel, materialise, ones
+from ._base import AbstractBatchKernel, materialise, ones, per_run
 from ._explicit import explicit_info, finite_result
 from ._kick import advected_rows, coupling_torque, rigid_body_coupling
 from ._runge_kutta import CLASSICAL_RK4, ButcherTableau, rk_in_the_chart
@@ -141,7 +141,7 @@ class RKMKKernel(AbstractBatchKernel):
         return super().physics(system, batched)
 
     def prepare(self, inertia, h):
-        return tuple(h / moment for moment in inertia), scaled_coupling(self.potential, h)
+        return per_run([h / moment for moment in inertia]), scaled_coupling(self.potential, h)
 
     def advected(self, state):
         # `Γ = gᵀa` of `V = aᵀ g b` from the carried `g` (`save=("m", "advected")`).
