@@ -171,8 +171,7 @@ def _initial_state(system, system_axis, g, m, h) -> ChunkState:
     failed, `RESULTS.invalid_input` at step 0 (its saves NaN, as a failed body's)."""
     m = np.asarray(m)
     valid = np.asarray(_valid_rows(system, system_axis, g, m, h))
-    result = np.where(valid, RESULTS.successful, RESULTS.invalid_input).astype(np.int32)
-    failed_step = np.where(valid, -1, 0).astype(np.int32)
+    result, failed_step = RESULTS.initial(valid, np)
     return ChunkState(g, m, result, failed_step, np.zeros(len(m), np.int64), 0)
 
 
