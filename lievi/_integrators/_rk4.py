@@ -33,7 +33,8 @@ from ._base import AbstractIntegrator, StepInfo
 
 def momentum_rate(system: AbstractLieSystem, g, m, xi, force=None, t=0.0):
     """`ṁ = ± ad_ξᵀ m + M(g) (+ force(t, g, m))`: the Euler–Poincaré equation (2.4)/(2.5)
-    with the potential's generalised force and an external one (`None`: none)."""
+    with the potential's generalised force and an external one (`None`: none), and the
+    reaction of the system's constraints where it has any."""
     # `ad_ξᵀ m` per body where the state holds several (leading axes).
     ad = system.group.ad(xi)
     m_dot = system.side.coadjoint_sign() * jnp.einsum("...ba,...b->...a", ad, m)
@@ -41,7 +42,8 @@ def momentum_rate(system: AbstractLieSystem, g, m, xi, force=None, t=0.0):
         m_dot = m_dot + system.force(g)
     if force is not None:
         m_dot = m_dot + jnp.asarray(force(t, g, m), m_dot.dtype)
-    return m_dot
+    # A system with constraints adds their reaction (`AbstractLieSystem.constrained_rate`).
+    return system.constrained_rate(g, m, m_dot)
 
 
 def euler_poincare_vector_field(system: AbstractLieSystem, g, m, force=None, t=0.0):

@@ -26,12 +26,13 @@ from .._checks import is_concrete
 from .._groups._base import MatrixLieGroup
 from .._groups._se3 import SE3
 from ._base import AbstractLieSystem
+from ._joint_dynamics import constrained_rate, project, project_state
 from ._joint_rows import JointRows
 from ._joints import AbstractJoint
 from ._potential import AbstractPotential, as_potential
 from ._rigid_bodies import RigidBodies, bodies_force
 from ._side import Side
-from ._tree_solve import block_tree_solver, tree_structure
+from ._tree_solve import tree_structure
 
 
 class BodiesGravity(AbstractPotential):
@@ -221,16 +222,30 @@ class ArticulatedBodies(AbstractLieSystem):
 
     def check_unconstrained(self, method: str) -> None:
         """A `ValueError`: the joints are constraints that `method` (a kick method's free
-        step, a Runge–Kutta method or the reference solution of the free Euler–Poincaré
-        equations) would ignore, letting them drift apart."""
+        step, `lievi.RK4` in the matrix embedding or the reference solution of the free
+        Euler–Poincaré equations) would ignore, letting them drift apart."""
         raise ValueError(
-            "ArticulatedBodies: the joints are constraints that only lievi.RATTLE enforces; "
-            f"{method} would step the bodies as if they were free. Run it with "
-            "`lievi.RATTLE()` (or `lievi.Composition(lievi.RATTLE(), 4)`)."
+            "ArticulatedBodies: the joints are constraints that only lievi.RATTLE and the "
+            f"RKMK methods enforce; {method} would step the bodies as if they were free. Run "
+            "it with `lievi.RATTLE()` (or `lievi.Composition(lievi.RATTLE(), 4)`), or with "
+            "`lievi.RKMK4()`/`lievi.RKMK8()` (explicit, projected onto the joints)."
         )
 
     def free_flow(self, integrator, g, m, h: Scalar):
         self.check_unconstrained(type(integrator).__name__)
+
+    def constrained_rate(self, g, m, m_dot):
+        """`m_dot` with the joints' reaction `C(g)ᵀλ` that keeps the accelerations on the
+        joints (index reduction; `lievi/_systems/_joint_dynamics.py`)."""
+        return m_dot if self.n_constraints == 0 else constrained_rate(self, g, m, m_dot)
+
+    def project_state(self, g, m):
+        """`(g, m, held)`: the poses moved back onto the joints along the kinetic metric,
+        the momenta onto their velocity constraints, `held` whether the joints then hold
+        to round-off."""
+        if self.n_constraints == 0:
+            return g, m, jnp.asarray(True)
+        return project_state(self, g, m)
 
     # ---- the joints ------------------------------------------------------------------------
 
@@ -355,7 +370,7 @@ class ArticulatedBodies(AbstractLieSystem):
         (`constraint_rows`) where the caller has it already."""
         if self.n_constraints == 0:
             return m, jnp.zeros((0,), m.dtype)
-        return _project(self, self.constraint_rows(g) if rows is None else rows, m)
+        return project(self, self.constraint_rows(g) if rows is None else rows, m)
 
     # ---- building states ---------------------------------------------------------------------
     # `place` and `momentum` (and `project_momentum` above) are compiled as one program each
@@ -450,23 +465,3 @@ class ArticulatedBodies(AbstractLieSystem):
         return super().element_valid(g) & (
             self.joint_defect(g) <= self.joint_tolerance(jnp.result_type(g, float))
         )
-
-
-def _project(system: ArticulatedBodies, C: JointRows, m):
-    """`(m + Cᵀμ, μ)` with `C M⁻¹ (m + Cᵀμ) = 0` (the kinetic-metric projection), with one
-    step of iterative refinement so that the velocity constraints hold to round-off."""
-    n = system.n_bodies
-    # `M⁻¹` per body `(N, 6, 6)`, column `k` the velocity of the momentum `e_k`.
-    basis = jnp.eye(6, dtype=m.dtype)
-    M_inv = jnp.stack([system.velocity(jnp.broadcast_to(e, (n, 6))) for e in basis], axis=-1)
-    # The Gram matrix `C M⁻¹ Cᵀ` by its nonzero blocks, factored once for the two solves
-    # by the joints' tree (block tridiagonal for a chain); the refinement absorbs its
-    # rounding.
-    structure = system.joint_structure()
-    solve = block_tree_solver(C.gram_blocks(M_inv, C, structure), structure)
-    impulse = jnp.zeros((C.n_rows,), m.dtype)
-    for _ in range(2):
-        step = -solve(C.apply(system.velocity(m)))
-        m = m + C.transpose_apply(step)
-        impulse = impulse + step
-    return m, impulse

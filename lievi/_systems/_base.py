@@ -100,6 +100,18 @@ class AbstractLieSystem(eqx.Module):
         constraints that such a method would ignore (`lievi.ArticulatedBodies`) raises a
         `ValueError` naming `method` and the one that enforces them."""
 
+    def constrained_rate(self, g, m, m_dot):
+        """The momentum rate `m_dot` of the Euler–Poincaré equations (every force applied)
+        with the reaction of this system's constraints added: `m_dot` itself (the default,
+        no constraints). `lievi.ArticulatedBodies` adds its joints' reaction, so that the
+        explicit Lie-group methods (`lievi.RKMK4` …) integrate its equations."""
+        return m_dot
+
+    def project_state(self, g, m):
+        """`(g, m, held)`: the state after an explicit step moved back onto this system's
+        constraints, and whether they then hold: the state itself (the default, none)."""
+        return g, m, jnp.asarray(True)
+
     def free_flow(self, integrator, g, m, h: Scalar):
         """The free step of a kick integrator (`AbstractKickIntegrator.free_step`) on this
         system: the integrator's own (the default). A system of several bodies steps each
