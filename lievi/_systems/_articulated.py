@@ -129,7 +129,11 @@ class ArticulatedBodies(AbstractLieSystem):
 
     The state is `g` `(N, 4, 4)` and `m` `(N, 6)` as for `lievi.RigidBodies`; it must
     satisfy the joints (`place` and `momentum` build one). Run it with `lievi.RATTLE`
-    (or a `lievi.Composition` of it): the other methods do not know the joints.
+    (or a `lievi.Composition` of it: variational, the momenta of the symmetries kept to
+    round-off), or with an explicit `lievi.RKMK4`, `RKMK5` or `RKMK8` (the joints'
+    reaction in the rate, the state projected back onto the joints after each step:
+    high order, cheaper at tight accuracy, its momenta and energy drifting at the
+    method's accuracy). The other methods do not know the joints.
     """
 
     bodies: RigidBodies
