@@ -81,15 +81,20 @@ def test_batch_is_each_run():
 
 
 def test_projection_that_cannot_close_the_joints_is_reported():
-    """From poses whose joint is 5 % of the link length apart (far beyond any step's
-    local error) the projection's iterations leave a defect: the step reports
-    `newton_not_converged`, not a state that looks fine. (A step too long for the method
-    is refused before, by its step bound: `step_too_large`.)"""
+    """From poses whose joint points are a link length apart (far beyond any step's local
+    error) the projection's iteration does not reach round-off within its iterations: the
+    step reports `newton_not_converged`, not a state that looks fine. (From 5 % apart it
+    does reach it; a step too long for the method is refused before, by its step bound:
+    `step_too_large`.)"""
     system, g0, m0 = triple_pendulum()
-    apart = g0.at[1, :3, 3].add(0.05 * system.length_scale())
+    apart = g0.at[1, :3, 3].add(system.length_scale())
     g, _, info = lievi.RKMK4().step(system, apart, m0, 0.01)
     assert int(info.result) == lievi.RESULTS.newton_not_converged
     assert float(system.joint_defect(g)) > 1e-12
+    near = g0.at[1, :3, 3].add(0.05 * system.length_scale())
+    g, _, info = lievi.RKMK4().step(system, near, m0, 0.01)
+    assert int(info.result) == lievi.RESULTS.successful
+    assert float(system.joint_defect(g)) <= JOINTS
     sol = lievi.simulate(system, lievi.RKMK4(), g0, m0, h=10.0, n_steps=3, throw=False)
     assert int(sol.result) == lievi.RESULTS.step_too_large
 

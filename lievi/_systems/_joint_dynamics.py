@@ -22,7 +22,7 @@ forward-mode derivative of the closed-form rows.
 **The projection.** The index-reduced equations hold the joints only to the method's
 local error, which drifts. After each step the poses are moved back onto `Φ = 0` along
 the kinetic metric, `g_i ← g_i exp(M_i⁻¹ (Cᵀδ)_i)` with `δ` from the simplified Newton
-iteration `C M⁻¹ Cᵀ δ = −Φ(g)` (three iterations from a defect `O(h^{p+1})`: round-off),
+iteration `C M⁻¹ Cᵀ δ = −Φ(g)` to round-off (two iterations from a defect of 1e-6 of `ℓ`),
 and the momenta onto `C(g) ξ = 0` (`ArticulatedBodies.project_momentum`). The projection
 moves the state by `O(h^{p+1})`, so the method keeps its order `p`.
 """
@@ -33,13 +33,13 @@ import jax
 import jax.numpy as jnp
 
 from .._groups._se3 import SE3
+from .._newton import newton_solve
 from ._tree_solve import block_tree_solver
 
-# Simplified Newton iterations of the position projection, from a defect of the size of
-# the method's local error: the first is Newton's, the others reuse its factorisation and
-# contract less. From 1e-6 of `ℓ` (`RKMK8`, h = 0.08, the 5-link hinge chain of the docs)
-# two left 2e-12, three round-off.
-POSITION_ITERATIONS = 3
+# The position projection's iterations at most (simplified Newton, converging linearly
+# at the rate of the defect: from 1e-6 of `ℓ` two, from 2e-3 — `RKMK8`, h = 0.08, a
+# triple pendulum's fast swing — five); beyond them the step reports the joints apart.
+POSITION_MAX_STEPS = 16
 # The joints hold when their defect is within this many ulps of the link length and of
 # the positions it is computed from (`x_p + R_p a_p − x_c − R_c a_c` rounds to the size
 # of `x`): the implicit steps' default tolerance, 64 ulps.
@@ -86,15 +86,29 @@ def constrained_rate(system, g, m, m_dot):
 def project_state(system, g, m):
     """`(g, m, held)`: the poses moved onto the joints along the kinetic metric and the
     momenta onto their velocity constraints (module docstring); `held` is whether the
-    joints hold to round-off afterwards, 64 ulps of the link length and of the positions
-    (a step too long for the projection's iteration leaves them apart: the run reports
-    it)."""
+    position iteration brought the joints to round-off, 64 ulps of the link length and of
+    the positions, within `POSITION_MAX_STEPS` (a step too long leaves them apart: the run
+    reports it). Differentiated by the implicit function theorem at the root, as the
+    implicit steps are (`newton_solve`)."""
     rows = system.constraint_rows(g)
     solve = gram_solver(system, rows, m.dtype)
-    for _ in range(POSITION_ITERATIONS):
-        delta = solve(-system.constraints(g))
-        g = jnp.einsum("nij,njk->nik", g, SE3.exp(system.velocity(rows.transpose_apply(delta))))
+    length = system.length_scale().astype(m.dtype)
+
+    def moved(delta):
+        return jnp.einsum("nij,njk->nik", g, SE3.exp(system.velocity(rows.transpose_apply(delta))))
+
+    def defect(delta):
+        return system.constraints(moved(delta)) / length
+
+    size = jax.lax.stop_gradient(1 + jnp.max(jnp.abs(g[:, :3, 3])) / length)
+    tolerance = HELD_ULPS * jnp.finfo(m.dtype).eps * size
+    delta, info = newton_solve(
+        defect,
+        jnp.zeros((rows.n_rows,), m.dtype),
+        tolerance,
+        POSITION_MAX_STEPS,
+        approximate_solve=lambda r: solve(length * r),
+    )
+    g = moved(delta)
     m, _ = project(system, system.constraint_rows(g), m)
-    size = 1 + jnp.max(jnp.abs(g[:, :3, 3])) / system.length_scale()
-    held = system.joint_defect(g) <= HELD_ULPS * jnp.finfo(m.dtype).eps * size
-    return g, m, held
+    return g, m, info.converged
