@@ -9,6 +9,7 @@ its order.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -70,6 +71,24 @@ def hinge_chain(n=5, gravity=GRAVITY, fixed=True):
     base_velocity = None if fixed else jnp.array([0.3, -0.2, 0.1])
     m0 = system.momentum(g0, jnp.stack(w), base_velocity)
     return system, g0, m0
+
+
+# ---- the joints' defects of a run ----------------------------------------------------------
+
+
+@eqx.filter_jit
+def velocity_defect(system, g, m):
+    """`max |C(g) ξ|` relative to the speeds of the joint points, `ℓ|Ω| + |v|`, per state."""
+    xi = jax.vmap(system.velocity)(m)
+    speed = system.length_scale() * jnp.max(jnp.abs(xi[..., :3])) + jnp.max(jnp.abs(xi[..., 3:]))
+    defect = jax.vmap(system.velocity_constraints)(g, m)
+    return jnp.max(jnp.abs(defect)) / speed
+
+
+@eqx.filter_jit
+def joint_defects(system, g):
+    """`max |Φ(g)| / ℓ` of each saved state."""
+    return jax.vmap(system.joint_defect)(g)
 
 
 # ---- the reference: Newton–Euler equations with multipliers, index-reduced -------------------

@@ -12,11 +12,13 @@ import numpy as np
 import pytest
 from articulated_problems import (
     hinge_chain,
+    joint_defects,
     reference_poses,
     reference_rhs,
     reference_state,
     satellite,
     triple_pendulum,
+    velocity_defect,
 )
 
 import lievi
@@ -26,20 +28,6 @@ from lievi._systems._base import AbstractLieSystem
 JOINTS = 1e-12  # joints, relative to the link length, at every step
 MOMENTUM = 1e-12  # conserved momenta, relative
 HUGE_STEP = 10.0  # a step the RATTLE iteration cannot solve (the links' periods are ~1)
-
-
-@eqx.filter_jit
-def _velocity_defect(system, g, m):
-    """`max |C(g) ξ|` relative to the speeds of the joint points, `ℓ|Ω| + |v|`, per state."""
-    xi = jax.vmap(system.velocity)(m)
-    speed = system.length_scale() * jnp.max(jnp.abs(xi[..., :3])) + jnp.max(jnp.abs(xi[..., 3:]))
-    defect = jax.vmap(system.velocity_constraints)(g, m)
-    return jnp.max(jnp.abs(defect)) / speed
-
-
-@eqx.filter_jit
-def _joint_defects(system, g):
-    return jax.vmap(system.joint_defect)(g)
 
 
 @pytest.fixture(scope="module")
@@ -62,8 +50,8 @@ def floating_run():
 def test_pendulum_joints_hold_at_every_step(pendulum_run):
     system, sol = pendulum_run
     assert bool(jnp.all(sol.result == lievi.RESULTS.successful))
-    assert float(jnp.max(_joint_defects(system, sol.g))) <= JOINTS
-    assert float(_velocity_defect(system, sol.g, sol.m)) <= JOINTS
+    assert float(jnp.max(joint_defects(system, sol.g))) <= JOINTS
+    assert float(velocity_defect(system, sol.g, sol.m)) <= JOINTS
 
 
 def test_pendulum_keeps_vertical_angular_momentum_about_pivot(pendulum_run):
@@ -92,8 +80,8 @@ def test_floating_tree_keeps_total_momentum(floating_run):
     total = lievi.diagnostics.total_momentum(system, sol.g, sol.m)
     scale = jnp.max(jnp.abs(total[0]))
     assert float(jnp.max(jnp.abs(total - total[0])) / scale) <= MOMENTUM
-    assert float(jnp.max(_joint_defects(system, sol.g))) <= JOINTS
-    assert float(_velocity_defect(system, sol.g, sol.m)) <= JOINTS
+    assert float(jnp.max(joint_defects(system, sol.g))) <= JOINTS
+    assert float(velocity_defect(system, sol.g, sol.m)) <= JOINTS
     # Without a potential the energy is the kinetic energy: bounded.
     kinetic = jax.vmap(system.energy)(sol.m)
     assert float(jnp.max(jnp.abs(kinetic - kinetic[0])) / kinetic[0]) < 1e-3
@@ -214,8 +202,8 @@ def test_joint_torque_keeps_total_momentum_of_floating_chain():
     assert bool(jnp.all(sol.result == lievi.RESULTS.successful))
     total = lievi.diagnostics.total_momentum(system, sol.g, sol.m)
     assert float(jnp.max(jnp.abs(total - total[0])) / jnp.max(jnp.abs(total[0]))) <= MOMENTUM
-    assert float(jnp.max(_joint_defects(system, sol.g))) <= JOINTS
-    assert float(_velocity_defect(system, sol.g, sol.m)) <= JOINTS
+    assert float(jnp.max(joint_defects(system, sol.g))) <= JOINTS
+    assert float(velocity_defect(system, sol.g, sol.m)) <= JOINTS
     kinetic = jax.vmap(system.energy)(sol.m)
     assert float(jnp.max(jnp.abs(kinetic - kinetic[0])) / kinetic[0]) > 1e-2
 
@@ -368,7 +356,7 @@ def test_solve_optimal_control_reaches_a_pose_of_the_chain():
     )
     assert out.converged
     assert float(jnp.max(jnp.abs(out.solution.g[-1] - target))) <= 1e-10
-    assert float(_joint_defects(system, out.solution.g).max()) <= JOINTS
+    assert float(joint_defects(system, out.solution.g).max()) <= JOINTS
 
 
 # ---- long runs -------------------------------------------------------------------------------
@@ -381,8 +369,8 @@ def test_long_run_joints_and_vertical_momentum():
         system, lievi.RATTLE(), g0, m0, h=0.005, n_steps=100_000, save=lievi.Save(every=100)
     )
     assert bool(jnp.all(sol.result == lievi.RESULTS.successful))
-    assert float(jnp.max(_joint_defects(system, sol.g))) <= JOINTS
-    assert float(_velocity_defect(system, sol.g, sol.m)) <= JOINTS
+    assert float(jnp.max(joint_defects(system, sol.g))) <= JOINTS
+    assert float(velocity_defect(system, sol.g, sol.m)) <= JOINTS
     total = lievi.diagnostics.total_momentum(system, sol.g, sol.m)
     scale = jnp.max(jnp.abs(total[0, :3]))
     assert float(jnp.max(jnp.abs(total[:, 2] - total[0, 2])) / scale) <= MOMENTUM
